@@ -1,0 +1,1 @@
+"""iorthand cloud services: digital twin, recorder, replay, reports."""

@@ -1,0 +1,1 @@
+"""iorthand edge agent: the safety authority on the end-effector computer."""

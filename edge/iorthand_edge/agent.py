@@ -1,0 +1,358 @@
+"""The edge agent: the safety authority on the end-effector computer.
+
+Threads (all named):
+- ``control``: the control loop at the robot's rate — reads the robot, runs the supervisor's cycle (deadman
+  timeout, limits), sends the twist, publishes ``state/robot`` and ``state/safety``.
+- ``commands``: decodes twists as they arrive and applies them at once (low latency), publishing the
+  supervisor's verdict on ``state/applied``.
+- ``control-plane``: stop commands, ownership queries and operator liveliness, in arrival order.
+
+Zenoh callbacks only queue bytes into bounded inboxes. The supervisor is shared under one lock; nothing outside
+this process can move the robot except through it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from iorthand import keys, protocol
+from iorthand.protocol import (
+    AppliedCommand,
+    ControlReply,
+    ControlRequest,
+    DecodeError,
+    RejectCounter,
+    RobotState,
+    SafetyStatus,
+    Sequencer,
+    Status,
+    StopCommand,
+    TwistCommand,
+)
+from iorthand.transport import Inbox, Worker, open_session, publisher, subscribe
+from iorthand_edge.config import EdgeConfig
+from iorthand_edge.robots import Robot, RobotFault, RobotReading, make_robot
+from iorthand_edge.supervisor import Decision, Supervisor
+
+log = logging.getLogger("iorthand.edge")
+
+
+class RateLimitedLog:
+    """Logs a repeated message once, then at most every ``interval`` seconds with a count (floods of garbage
+    must not flood the log, but nothing is hidden)."""
+
+    def __init__(self, logger: logging.Logger, interval: float = 5.0) -> None:
+        self._log = logger
+        self._interval = interval
+        self._last: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+
+    def warning(self, key: str, msg: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -math.inf) >= self._interval:
+            extra = self._suppressed.pop(key, 0)
+            self._log.warning("%s%s", msg, f" (+{extra} similar)" if extra else "")
+            self._last[key] = now
+        else:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+
+
+class EdgeAgent:
+    def __init__(self, config: EdgeConfig, robot: Robot | None = None) -> None:
+        self.config = config
+        self.keys = keys.RobotKeys(config.robot_id)
+        self.robot = robot if robot is not None else make_robot(config.robot)
+        self.period = self.robot.control_period
+        self.supervisor = Supervisor(config.safety, period=self.period)
+        self.lock = threading.RLock()
+        self.stop_event = threading.Event()
+        self.rejects = RejectCounter()
+        self.reading: RobotReading | None = None
+        self._seq = {name: Sequencer() for name in ("robot", "safety", "applied")}
+        self._commanded = np.zeros(6)
+        self._last_cmd_seq = 0
+        self._last_cmd_recv = 0
+        self._last_safety: tuple[Any, ...] | None = None
+        self._last_safety_pub = 0.0
+        self._twists = Inbox(64, keep="newest")
+        self._control = Inbox(256, keep="oldest")
+        self._workers: list[Worker] = []
+        self._rlog = RateLimitedLog(log)
+        self.session: zenoh.Session | None = None
+        # Components (force, servos, perception, video) register per-cycle hooks here.
+        self.cycle_hooks: list[Callable[[RobotReading], None]] = []
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        self.robot.connect()
+        self.reading = self.robot.read_state()
+        self.session = open_session(self.config.zenoh, stop=self.stop_event)
+        s, k = self.session, self.keys
+        self._pub_robot = publisher(s, k.key(keys.STATE_ROBOT))
+        self._pub_safety = publisher(s, k.key(keys.STATE_SAFETY))
+        self._pub_applied = publisher(s, k.key(keys.STATE_APPLIED))
+        self._declared = [
+            subscribe(s, k.key(keys.CMD_TWIST), self._twists),
+            subscribe(s, k.key(keys.CMD_STOP), self._control),
+            s.declare_queryable(k.key(keys.CONTROL_ACQUIRE), lambda q: self._control.put(("acquire", q))),
+            s.declare_queryable(k.key(keys.CONTROL_RELEASE), lambda q: self._control.put(("release", q))),
+            s.declare_queryable(k.key(keys.CONTROL_ARM), lambda q: self._control.put(("arm", q))),
+            s.liveliness().declare_subscriber(k.alive_operators, self._on_operator_liveliness, history=True),
+        ]
+        self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
+        for name, fn in (("control", self._control_loop), ("commands", self._command_loop), ("control-plane", self._control_plane_loop)):
+            w = Worker(f"edge-{name}", fn, self.stop_event)
+            w.start()
+            self._workers.append(w)
+        log.info(
+            "edge agent %r up: robot %s, %s, armed=%s, profile %s (%.0f mm/s)",
+            self.config.robot_id, type(self.robot).__name__, ", ".join(self.config.zenoh.connect) or self.config.zenoh.mode,
+            self.supervisor.armed, self.supervisor.profile, 1000 * self.supervisor.limits.linear,
+        )
+
+    def run_forever(self) -> None:
+        self.start()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stop_event.set())
+        self.stop_event.wait()
+        self.shutdown()
+
+    def shutdown(self) -> None:
+        self.stop_event.set()
+        self._twists.close()
+        self._control.close()
+        for w in self._workers:
+            w.join(timeout=2.0)
+        with self.lock:
+            self.supervisor.disarm("edge agent shutting down")
+            try:
+                self.robot.stop(self.config.safety.stop_deceleration)
+            finally:
+                self.robot.disconnect()
+        if self.session is not None:
+            try:
+                self._publish_safety(force=True)
+            except zenoh.ZError:
+                pass
+            self.session.close()
+            self.session = None
+        log.info("edge agent %r stopped", self.config.robot_id)
+
+    # ------------------------------------------------------------------ local commands
+
+    def arm(self) -> None:
+        """Local arming confirmation (a button or a command on the robot side)."""
+        with self.lock:
+            self.supervisor.arm()
+        log.info("armed by local confirmation")
+
+    # ------------------------------------------------------------------ the control loop
+
+    def _control_loop(self, stop: threading.Event) -> None:
+        next_tick = time.monotonic()
+        while not stop.is_set():
+            now = time.monotonic()
+            with self.lock:
+                reading = self.robot.read_state()
+                self.reading = reading
+                fault = reading.fault or ("" if reading.connected else "robot link lost")
+                if fault != self.supervisor.fault:
+                    if fault:
+                        log.error("robot fault: %s — stopping", fault)
+                    self.supervisor.set_fault(fault)
+                decision = self.supervisor.step(now, reading.tcp_pose)
+                self._drive(decision)
+                state = RobotState(
+                    tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=reading.q,
+                    commanded=self._commanded, mode=reading.mode, connected=reading.connected,
+                    fault=fault, robot_time=reading.robot_time,
+                    cmd_seq=self._last_cmd_seq, cmd_recv_t=self._last_cmd_recv,
+                ).stamp(self._seq["robot"].next(), reading.timestamp_ns)
+            for hook in self.cycle_hooks:
+                hook(reading)
+            self._pub_robot.put(state.encode())
+            self._publish_safety()
+            next_tick += self.period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                stop.wait(delay)
+            else:
+                next_tick = time.monotonic()  # overran: do not try to catch up with a burst
+
+    def _drive(self, decision: Decision) -> None:
+        """Send the decided twist to the robot (caller holds the lock). A zero twist after motion is a stop
+        with the configured deceleration; the UR driver keeps its watchdog kicked on its own."""
+        twist = decision.twist
+        try:
+            if np.any(twist):
+                self._commanded = self.robot.send_twist(twist, self.config.safety.max_linear_acceleration)
+            elif np.any(self._commanded):
+                self.robot.stop(self.config.safety.stop_deceleration)
+                self._commanded = np.zeros(6)
+        except RobotFault as exc:
+            self._commanded = np.zeros(6)
+            log.error("robot refused the command: %s — stopping", exc)
+            self.supervisor.set_fault(str(exc))
+            self.robot.stop(self.config.safety.stop_deceleration)
+
+    def _publish_safety(self, force: bool = False) -> None:
+        with self.lock:
+            sv = self.supervisor
+            c = sv.counters
+            age = -1.0 if math.isinf(sv._last_accepted) else max(0.0, time.monotonic() - sv._last_accepted)
+            fields = (
+                sv.armed, sv.arm_requested, sv.owner, sv._deadman, sv.profile, sv.status, sv.reason,
+                tuple(sv.limits_hit), int(sv.force_level), sv.force_stale,
+            )
+            now = time.monotonic()
+            if not force and fields == self._last_safety and now - self._last_safety_pub < 1.0 / self.config.safety_rate_hz:
+                return
+            self._last_safety, self._last_safety_pub = fields, now
+            msg = SafetyStatus(
+                armed=sv.armed, arm_requested=sv.arm_requested, owner=sv.owner, deadman=sv._deadman,
+                profile=sv.profile, linear_limit=sv.limits.linear, angular_limit=sv.limits.angular,
+                limits_hit=list(sv.limits_hit), command_age=age, status=sv.status, reason=sv.reason,
+                force_level=int(sv.force_level), force_stale=sv.force_stale,
+                received=c.received, applied=c.applied, rejected=c.rejected,
+                malformed=self.rejects.total, stops=c.stops,
+            ).stamp(self._seq["safety"].next())
+        self._pub_safety.put(msg.encode())
+
+    # ------------------------------------------------------------------ commands
+
+    def _command_loop(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            item = self._twists.get(timeout=0.1)
+            if item is None:
+                continue
+            key, payload, recv_ns = item
+            try:
+                cmd = TwistCommand.decode(payload)
+            except DecodeError as exc:
+                self.rejects.add(key, str(exc))
+                self._rlog.warning(f"malformed:{key}", f"rejected malformed command on {key}: {exc}")
+                continue
+            with self.lock:
+                pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
+                decision = self.supervisor.on_command(cmd, recv_ns / 1e9, time.monotonic(), pose)
+                if decision.accepted:
+                    self._drive(decision)
+                    self._last_cmd_seq, self._last_cmd_recv = cmd.seq, recv_ns
+                else:
+                    self._rlog.warning(f"refused:{decision.status}", f"refused command {cmd.seq} from {cmd.operator!r}: {decision.reason}")
+                echo = AppliedCommand(
+                    operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns,
+                    applied=self._commanded if decision.accepted else np.zeros(6),
+                    accepted=decision.accepted, status=decision.status, reason=decision.reason,
+                ).stamp(self._seq["applied"].next())
+            self._pub_applied.put(echo.encode())
+
+    # ------------------------------------------------------------------ control plane
+
+    def _on_operator_liveliness(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self._control.put(("operator_gone", keys.operator_from_alive_key(str(sample.key_expr))))
+
+    def _control_plane_loop(self, stop: threading.Event) -> None:
+        handlers: dict[str, Callable[[Any], None]] = {
+            "acquire": self._on_acquire,
+            "release": self._on_release,
+            "arm": self._on_arm,
+            "operator_gone": self._on_operator_gone,
+        }
+        while not stop.is_set():
+            item = self._control.get(timeout=0.1)
+            if item is None:
+                continue
+            if isinstance(item[0], str) and item[0] in handlers:
+                handlers[item[0]](item[1])
+            else:
+                self._on_stop(item)
+
+    def _request(self, query: zenoh.Query) -> ControlRequest | None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            return ControlRequest.decode(payload)
+        except DecodeError as exc:
+            self.rejects.add(str(query.key_expr), str(exc))
+            self._reply(query, False, f"malformed request: {exc}")
+            return None
+
+    def _reply(self, query: zenoh.Query, ok: bool, reason: str, **extra: Any) -> None:
+        reply = ControlReply(ok=ok, reason=reason, owner=self.supervisor.owner, **extra).stamp(0)
+        try:
+            query.reply(query.key_expr, reply.encode())
+        except zenoh.ZError as exc:
+            log.warning("could not answer %s: %s", query.key_expr, exc)
+        finally:
+            query.drop()
+
+    def _on_acquire(self, query: zenoh.Query) -> None:
+        req = self._request(query)
+        if req is None:
+            return
+        with self.lock:
+            ok, reason = self.supervisor.acquire(req.operator, time.monotonic(), req.profile)
+        (log.info if ok else log.warning)("acquire by %r: %s", req.operator, reason)
+        self._reply(query, ok, reason, lease=self.config.safety.lease)
+        self._publish_safety(force=True)
+
+    def _on_release(self, query: zenoh.Query) -> None:
+        req = self._request(query)
+        if req is None:
+            return
+        with self.lock:
+            ok, reason = self.supervisor.release(req.operator)
+        log.info("release by %r: %s", req.operator, reason)
+        self._reply(query, ok, reason)
+        self._publish_safety(force=True)
+
+    def _on_arm(self, query: zenoh.Query) -> None:
+        req = self._request(query)
+        if req is None:
+            return
+        with self.lock:
+            ok, reason = self.supervisor.request_arm(req.operator)
+        log.info("arm request by %r: %s", req.operator, reason)
+        self._reply(query, ok, reason)
+        self._publish_safety(force=True)
+
+    def _on_operator_gone(self, operator: str) -> None:
+        with self.lock:
+            lost = self.supervisor.owner_lost(operator, f"owner {operator!r} disappeared (liveliness lost)")
+            if lost:
+                self._drive(Decision(np.zeros(6), False, Status.OWNER_LOST))
+        if lost:
+            log.warning("owner %r lost: robot stopped, control released", operator)
+            self._publish_safety(force=True)
+
+    def _on_stop(self, item: tuple[str, bytes, int]) -> None:
+        key, payload, _ = item
+        try:
+            cmd = StopCommand.decode(payload)
+        except DecodeError as exc:
+            # A garbled stop is still a stop request: stopping is always the safe side.
+            self.rejects.add(key, str(exc))
+            cmd = StopCommand(operator="?", reason=f"malformed stop command ({exc.field})")
+        with self.lock:
+            self.supervisor.stop(f"stop from {cmd.operator!r}: {cmd.reason}")
+            self._drive(Decision(np.zeros(6), False, Status.STOPPED))
+        log.warning("stop from %r: %s", cmd.operator, cmd.reason)
+        self._publish_safety(force=True)
+
+
+def run(config: EdgeConfig) -> None:
+    EdgeAgent(config).run_forever()
+
+
+__all__ = ["EdgeAgent", "protocol", "run"]

@@ -1,0 +1,21 @@
+"""Robot backends and the factory that builds one from its configuration."""
+
+from __future__ import annotations
+
+from iorthand_edge.robots.base import Robot, RobotFault, RobotReading
+from iorthand_edge.robots.config import RobotConfig, SimRobotConfig, URRobotConfig
+
+
+def make_robot(config: RobotConfig) -> Robot:
+    if isinstance(config, SimRobotConfig):
+        from iorthand_edge.robots.sim import SimRobot
+
+        return SimRobot(config)
+    if isinstance(config, URRobotConfig):
+        from iorthand_edge.robots.ur import URRobot  # imports ur_rtde only when a UR is configured
+
+        return URRobot(config)
+    raise ValueError(f"no robot backend for {type(config).__name__}")
+
+
+__all__ = ["Robot", "RobotConfig", "RobotFault", "RobotReading", "make_robot"]

@@ -1,0 +1,65 @@
+"""The robot interface: one abstract class that every robot backend implements.
+
+The agent talks to a robot only through this interface, from its control loop. ``send_twist`` returns what
+was actually sent (after the backend's own clipping), as LeRobot's ``send_action`` does, so the supervisor
+can publish the command that really reached the robot.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+Vector = NDArray[np.float64]
+
+
+class RobotFault(RuntimeError):
+    """The robot cannot be commanded (link lost, protective stop, driver dead). The message says why."""
+
+
+@dataclass
+class RobotReading:
+    """One state sample, SI units. ``tcp_pose`` is ``[x, y, z, rx, ry, rz]`` in the base frame."""
+
+    tcp_pose: Vector
+    tcp_speed: Vector
+    q: Vector
+    timestamp_ns: int  # when this sample was taken, on the agent's clock
+    robot_time: float = 0.0  # the controller's own clock, s
+    mode: str = "running"
+    connected: bool = True
+    fault: str = ""  # empty while healthy; otherwise the reason motion is impossible
+    tcp_force: Vector = field(default_factory=lambda: np.zeros(6))
+
+
+class Robot(ABC):
+    """A robot arm commanded by Cartesian tool velocity."""
+
+    @abstractmethod
+    def connect(self) -> None:
+        """Connect; raise RobotFault with the reason when the robot cannot be reached."""
+
+    @abstractmethod
+    def read_state(self) -> RobotReading:
+        """The newest state. Never blocks for long: a dead link shows as ``connected=False`` / ``fault``."""
+
+    @abstractmethod
+    def send_twist(self, twist: Vector, acceleration: float) -> Vector:
+        """Command tool velocity ``[vx, vy, vz, wx, wy, wz]`` (m/s, rad/s, base frame) with the given
+        acceleration (m/s²). Returns the twist actually sent. Raises RobotFault if it cannot be sent."""
+
+    @abstractmethod
+    def stop(self, deceleration: float) -> None:
+        """Bring the tool to rest with the given deceleration (m/s²). Must not raise on a dead link."""
+
+    @abstractmethod
+    def disconnect(self) -> None:
+        """Stop motion and release the connection."""
+
+    @property
+    def control_period(self) -> float:
+        """The period (s) at which the agent should run its control loop for this robot."""
+        return 1.0 / 125.0

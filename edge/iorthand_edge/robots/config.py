@@ -1,0 +1,51 @@
+"""One configuration dataclass per kind of robot, chosen by ``robot.kind`` in the edge YAML."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from iorthand.config import setting
+
+# UR3e "home" joint angles (rad): the simulated robot reports these while it has no inverse kinematics.
+UR3E_HOME_Q = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
+
+
+@dataclass
+class RobotConfig:
+    """Base of the robot configurations; ``VARIANTS`` maps ``kind`` to the dataclass for it."""
+
+    VARIANTS: ClassVar[dict[str, type[RobotConfig]]] = {}
+    KIND: ClassVar[str] = ""
+
+    control_rate_hz: float = setting(125.0, lo=10.0, hi=1000.0, help="control loop and state/robot rate")
+
+
+@dataclass
+class SimRobotConfig(RobotConfig):
+    """A kinematic Cartesian-velocity model of the tool (no dynamics, no joint limits)."""
+
+    KIND: ClassVar[str] = "sim"
+    initial_pose: list[float] = setting(
+        default_factory=lambda: [0.30, 0.0, 0.25, 3.14159, 0.0, 0.0], length=6,
+        help="start pose [x,y,z,rx,ry,rz], m and rotation vector; default: tool pointing down",
+    )
+    model: str = setting("ur3e", choices=("ur3e", "ur5e"))
+
+
+@dataclass
+class URRobotConfig(RobotConfig):
+    """A real Universal Robots arm (or the emulator) through ur_rtde, driven from a child process."""
+
+    KIND: ClassVar[str] = "ur"
+    host: str = "127.0.0.1"
+    model: str = setting("ur3e", choices=("ur3e", "ur5e"))
+    rtde_frequency: float = setting(125.0, lo=10.0, hi=500.0)
+    watchdog_hz: float = setting(10.0, lo=1.0, hi=500.0, help="controller stops the program after 1/f s silent")
+    connect_timeout: float = setting(5.0, lo=0.5, hi=60.0)
+    stop_deceleration: float = setting(0.5, lo=0.05, hi=5.0, help="m/s² for speedStop")
+    reconnect_max_s: float = setting(5.0, lo=0.1, hi=60.0, help="longest back-off between reconnects")
+    link_timeout: float = setting(0.1, lo=0.01, hi=2.0, help="controller timestamp frozen this long = link lost")
+
+
+RobotConfig.VARIANTS = {c.KIND: c for c in (SimRobotConfig, URRobotConfig)}

@@ -1,0 +1,376 @@
+"""The safety supervisor: every rule that decides whether and how the robot may move. No I/O.
+
+The agent feeds it commands, ownership events, the robot's pose and the force level, with explicit times; it
+answers with the twist to send and a status code (see :class:`iorthand.protocol.Status`) and a reason for
+every refusal and every halt. Being pure, it is tested in milliseconds.
+
+Rules (DESIGN.md, "Safety model"):
+- Disarmed at start. Remote clients can only *request* arming; ``arm()`` is the local confirmation.
+- One owner at a time, by lease. Others are refused with the owner's name.
+- A command moves the robot only with its deadman flag set, while fresh: nothing accepted for
+  ``command_timeout`` → the commanded twist is zero at once and the robot decelerates. Commands older than
+  ``max_command_age``, or not newer than the last one, are dropped.
+- Limits on every command: speed by profile, acceleration (passed to the robot), a workspace box.
+- Force: at DANGER, velocity pressing harder is removed (optionally a small retreat); a stale sensor stops the
+  robot once and then refuses motion toward contact.
+- After a stop command the robot stays stopped until the deadman is released and pressed again; after a fault
+  or the owner's loss, until an operator acquires control again. Nothing resumes by itself.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from iorthand.config import setting
+from iorthand.geometry import rotvec_to_matrix
+from iorthand.protocol import ForceLevel, Status, TwistCommand
+from iorthand_edge.robots.base import Vector
+
+
+@dataclass
+class SpeedProfile:
+    linear: float = setting(0.008, lo=0.0, hi=0.25, help="m/s")
+    angular: float = setting(0.1, lo=0.0, hi=1.0, help="rad/s")
+
+
+@dataclass
+class WorkspaceBox:
+    """Allowed tool positions in the base frame (m)."""
+
+    min: list[float] = setting(default_factory=lambda: [0.10, -0.30, 0.02], length=3)
+    max: list[float] = setting(default_factory=lambda: [0.45, 0.30, 0.45], length=3)
+
+    def check(self) -> None:
+        if any(lo >= hi for lo, hi in zip(self.min, self.max, strict=True)):
+            raise ValueError(f"workspace min {self.min} must be below max {self.max} on every axis")
+
+
+@dataclass
+class ForceReaction:
+    enabled: bool = setting(True, help="react to force levels (needs a force sensor)")
+    retract_distance: float = setting(0.0, lo=0.0, hi=0.02, help="m to back off along the contact normal at DANGER")
+    retract_speed: float = setting(0.005, lo=0.0, hi=0.05, help="m/s of that retreat")
+    contact_axis: list[float] = setting(
+        default_factory=lambda: [0.0, 0.0, 1.0], length=3,
+        help="direction of pressing in the tool frame (the probe's axis)",
+    )
+
+
+@dataclass
+class SafetyConfig:
+    auto_arm: bool = setting(False, help="arm at start without local confirmation (simulated robots only)")
+    command_timeout: float = setting(0.15, lo=0.01, hi=2.0, help="s without a fresh command → stop")
+    max_command_age: float = setting(0.5, lo=0.01, hi=10.0, help="s; older commands are dropped")
+    lease: float = setting(3.0, lo=0.5, hi=60.0, help="s an ownership lasts without renewal")
+    profile: str = "remote"
+    profiles: dict[str, SpeedProfile] = setting(
+        default_factory=lambda: {
+            "local": SpeedProfile(linear=0.030, angular=0.2),
+            "remote": SpeedProfile(linear=0.008, angular=0.1),
+        }
+    )
+    max_linear_acceleration: float = setting(0.25, lo=0.01, hi=2.0, help="m/s²")
+    stop_deceleration: float = setting(0.5, lo=0.01, hi=5.0, help="m/s² when stopping")
+    workspace: WorkspaceBox = field(default_factory=WorkspaceBox)
+    allowed_operators: list[str] = setting(default_factory=list, help="empty: any operator may acquire")
+    force: ForceReaction = field(default_factory=ForceReaction)
+
+    def check(self) -> None:
+        if self.profile not in self.profiles:
+            raise ValueError(f"profile {self.profile!r} is not one of the profiles {sorted(self.profiles)}")
+
+
+@dataclass
+class Decision:
+    """What the supervisor decided for one command or one control cycle."""
+
+    twist: Vector  # what to send to the robot (m/s, rad/s)
+    accepted: bool
+    status: str
+    reason: str = ""
+    limits_hit: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Counters:
+    received: int = 0
+    applied: int = 0
+    rejected: int = 0
+    stops: int = 0
+
+
+_ZERO = np.zeros(6)
+
+
+class Supervisor:
+    def __init__(self, config: SafetyConfig, period: float = 1.0 / 125.0, force_required: bool = False) -> None:
+        self.config = config
+        self.period = period
+        self.armed = config.auto_arm
+        self.arm_requested = False
+        self.owner = ""
+        self.profile = config.profile
+        self.counters = Counters()
+        self.force_required = force_required
+        self.force_level = ForceLevel.SAFE
+        self.force_stale = force_required
+        self.fault = ""
+        self._lease_until = 0.0
+        self._last_seq = 0
+        self._last_accepted = -math.inf  # monotonic time of the last accepted command
+        self._deadman = False
+        self._target = np.zeros(6)  # the last accepted command, already limited
+        self._latched = ""  # status that keeps the robot stopped until cleared (see module doc)
+        self._latch_reason = ""
+        self._retreat_left = 0.0
+        self.status = Status.DISARMED if not self.armed else Status.IDLE
+        self.reason = "" if self.armed else "not armed: confirm arming on the robot side"
+        self.limits_hit: list[str] = []
+        self.moving = False
+
+    # ---------------------------------------------------------------- arming and ownership
+
+    @property
+    def limits(self) -> SpeedProfile:
+        return self.config.profiles[self.profile]
+
+    def request_arm(self, operator: str) -> tuple[bool, str]:
+        if self.armed:
+            return True, "already armed"
+        self.arm_requested = True
+        return False, f"arming requested by {operator}: waiting for confirmation on the robot side"
+
+    def arm(self) -> None:
+        """Local confirmation (a button or local command on the robot side)."""
+        self.armed = True
+        self.arm_requested = False
+        self._set(Status.IDLE, "armed")
+
+    def disarm(self, reason: str) -> None:
+        self.armed = False
+        self._halt(Status.DISARMED, reason)
+
+    def acquire(self, operator: str, now: float, profile: str = "") -> tuple[bool, str]:
+        allowed = self.config.allowed_operators
+        if allowed and operator not in allowed:
+            return False, f"operator {operator!r} is not on this robot's allow-list"
+        if self.owner and self.owner != operator and now < self._lease_until:
+            return False, f"robot is controlled by {self.owner!r}"
+        if profile and profile not in self.config.profiles:
+            return False, f"unknown speed profile {profile!r} (this robot has {sorted(self.config.profiles)})"
+        if self.owner != operator:
+            self._last_seq = 0  # a new owner starts its own sequence
+            self._deadman = False
+        self.owner = operator
+        self._lease_until = now + self.config.lease
+        if profile:
+            self.profile = profile
+        if self._latched in (Status.FAULT, Status.OWNER_LOST, Status.STOPPED) and not self.fault:
+            self._latched = ""  # acquiring again is the operator's acknowledgement
+        return True, f"control granted to {operator!r} for {self.config.lease:g} s, profile {self.profile}"
+
+    def release(self, operator: str, reason: str = "released by its owner") -> tuple[bool, str]:
+        if operator != self.owner:
+            return False, f"{operator!r} does not hold control"
+        self.owner = ""
+        self._halt(Status.IDLE, reason)
+        return True, reason
+
+    def owner_lost(self, operator: str, reason: str) -> bool:
+        """The owner's liveliness token vanished (or its lease ran out): stop and release."""
+        if not self.owner or operator != self.owner:
+            return False
+        self.owner = ""
+        self._halt(Status.OWNER_LOST, reason, latch=True)
+        return True
+
+    # ---------------------------------------------------------------- faults, stops, force
+
+    def stop(self, reason: str) -> None:
+        """A stop command: controlled stop, latched until the deadman is released and pressed again."""
+        self._halt(Status.STOPPED, reason, latch=True)
+
+    def set_fault(self, reason: str) -> None:
+        if reason and reason != self.fault:
+            self.fault = reason
+            self._halt(Status.FAULT, reason, latch=True)
+        elif not reason:
+            self.fault = ""
+
+    def update_force(self, level: int, stale: bool) -> None:
+        became_stale = stale and not self.force_stale
+        rose_to_danger = level == ForceLevel.DANGER and self.force_level != ForceLevel.DANGER
+        self.force_level = ForceLevel(level)
+        self.force_stale = stale
+        if became_stale and self.config.force.enabled:
+            # A silent sensor: the robot does not know how hard it presses. Stop once; then only motion away
+            # from contact is allowed.
+            self._halt(Status.FORCE_STALE, "force sensor stale: robot stopped, motion toward contact refused")
+        if rose_to_danger and not stale:
+            self._retreat_left = self.config.force.retract_distance
+
+    # ---------------------------------------------------------------- commands and control cycles
+
+    def on_command(self, cmd: TwistCommand, recv_wall: float, now: float, tcp_pose: Vector) -> Decision:
+        """A decoded twist command. ``recv_wall`` is the receive time (s since the epoch, to compare with
+        ``cmd.t``); ``now`` is the monotonic time; ``tcp_pose`` the latest ``[x,y,z,rx,ry,rz]``."""
+        self.counters.received += 1
+        refusal = self._refuse(cmd, recv_wall)
+        if refusal is not None:
+            self.counters.rejected += 1
+            status, reason = refusal
+            return Decision(self._current(), False, status, reason)
+        self._last_seq = cmd.seq
+        self._last_accepted = now
+        self._lease_until = now + self.config.lease
+        if not cmd.deadman:
+            self._deadman = False
+            if self._latched == Status.STOPPED:
+                self._latched = ""  # deadman released after a stop: the next press may move again
+            self._target = np.zeros(6)
+            self.counters.applied += 1
+            self._set(Status.NO_DEADMAN, "deadman released")
+            return Decision(np.zeros(6), True, Status.NO_DEADMAN, "deadman released")
+        self._deadman = True
+        if self._latched:
+            self.counters.rejected += 1
+            return Decision(np.zeros(6), False, self._latched, self._latch_reason)
+        self._target = np.concatenate([cmd.linear, cmd.angular]).astype(float)
+        decision = self._limit(self._target, tcp_pose)
+        self.counters.applied += 1
+        decision.accepted = True
+        return decision
+
+    def step(self, now: float, tcp_pose: Vector) -> Decision:
+        """One control cycle: apply the timeout and the limits to the current target."""
+        if self.owner and now >= self._lease_until and now - self._last_accepted > self.config.lease:
+            self.owner_lost(self.owner, f"lease of {self.owner!r} expired")
+        if self._latched or not self.armed:
+            return Decision(np.zeros(6), False, self.status, self.reason)
+        if self._deadman and now - self._last_accepted > self.config.command_timeout:
+            self._deadman = False
+            self._target = np.zeros(6)
+            self._halt(
+                Status.COMMAND_TIMEOUT,
+                f"no command for {1000 * (now - self._last_accepted):.0f} ms "
+                f"(timeout {1000 * self.config.command_timeout:.0f} ms)",
+            )
+        if not self._deadman:
+            return self._retreat_only(tcp_pose)
+        return self._limit(self._target, tcp_pose)
+
+    # ---------------------------------------------------------------- internals
+
+    def _refuse(self, cmd: TwistCommand, recv_wall: float) -> tuple[str, str] | None:
+        if self.fault:
+            return Status.FAULT, self.fault
+        if not self.armed:
+            return Status.DISARMED, "not armed: confirm arming on the robot side"
+        if not self.owner:
+            return Status.NOT_OWNER, "no operator holds control: acquire it first"
+        if cmd.operator != self.owner:
+            return Status.NOT_OWNER, f"robot is controlled by {self.owner!r}, not {cmd.operator!r}"
+        if cmd.seq <= self._last_seq:
+            return Status.OUT_OF_ORDER, f"sequence {cmd.seq} is not after {self._last_seq}"
+        age = recv_wall - cmd.t / 1e9
+        if age > self.config.max_command_age:
+            return Status.STALE_COMMAND, f"command is {1000 * age:.0f} ms old (max {1000 * self.config.max_command_age:.0f})"
+        if age < -self.config.max_command_age:
+            return Status.STALE_COMMAND, f"command time is {-1000 * age:.0f} ms in the future: check clock sync"
+        return None
+
+    def _current(self) -> Vector:
+        return self._target if self._deadman and not self._latched else np.zeros(6)
+
+    def _set(self, status: str, reason: str) -> None:
+        self.status, self.reason = status, reason
+
+    def _halt(self, status: str, reason: str, latch: bool = False) -> None:
+        was_moving = self.moving or bool(np.any(self._target))
+        self._deadman = False
+        self._target = np.zeros(6)
+        self.moving = False
+        if was_moving or latch:
+            self.counters.stops += 1
+        if latch:
+            self._latched, self._latch_reason = status, reason
+        self._set(status, reason)
+
+    def _contact_direction(self, tcp_pose: Vector) -> Vector:
+        axis = rotvec_to_matrix(tcp_pose[3:]) @ np.asarray(self.config.force.contact_axis, dtype=float)
+        return axis / max(float(np.linalg.norm(axis)), 1e-9)
+
+    def _retreat_only(self, tcp_pose: Vector) -> Decision:
+        if self._retreat_left > 0.0 and self.config.force.retract_speed > 0:
+            direction = -self._contact_direction(tcp_pose)
+            twist = np.concatenate([direction * self.config.force.retract_speed, np.zeros(3)])
+            self._retreat_left = max(0.0, self._retreat_left - self.config.force.retract_speed * self.period)
+            return Decision(twist, True, Status.FORCE_DANGER, "retracting from danger-level force")
+        self.moving = False
+        return Decision(np.zeros(6), False, self.status, self.reason)
+
+    def _limit(self, target: Vector, tcp_pose: Vector) -> Decision:
+        limits = self.limits
+        twist = target.copy()
+        hit: list[str] = []
+        status, reason = Status.OK, ""
+        lin_speed = float(np.linalg.norm(twist[:3]))
+        if lin_speed > limits.linear:
+            twist[:3] *= limits.linear / lin_speed
+            hit.append("linear_speed")
+            status, reason = Status.SPEED_LIMITED, f"linear speed {1000 * lin_speed:.1f} mm/s clipped to {1000 * limits.linear:.1f} mm/s ({self.profile})"
+        ang_speed = float(np.linalg.norm(twist[3:]))
+        if ang_speed > limits.angular:
+            twist[3:] *= limits.angular / ang_speed
+            hit.append("angular_speed")
+            status, reason = Status.SPEED_LIMITED, f"angular speed {ang_speed:.2f} rad/s clipped to {limits.angular:.2f} rad/s ({self.profile})"
+        if self._clip_workspace(twist, tcp_pose):
+            hit.append("workspace")
+            status, reason = Status.WORKSPACE, "velocity leaving the workspace box removed"
+        force_status = self._clip_force(twist, tcp_pose)
+        if force_status is not None:
+            hit.append("force")
+            status, reason = force_status
+        self.limits_hit = hit
+        self.moving = bool(np.any(np.abs(twist) > 1e-9))
+        self._set(status, reason)
+        return Decision(twist, True, status, reason, hit)
+
+    def _clip_workspace(self, twist: Vector, tcp_pose: Vector) -> bool:
+        """Remove velocity components that would carry the tool out of the box: the allowed speed toward a
+        face is what still stops in time at the stop deceleration, ``v ≤ √(2·a·d)`` and ``v·T ≤ d``."""
+        box = self.config.workspace
+        decel = self.config.stop_deceleration
+        horizon = 2.0 * self.period  # two control periods of reaction
+        clipped = False
+        for i in range(3):
+            p, v = float(tcp_pose[i]), float(twist[i])
+            if v > 0:
+                d = box.max[i] - p
+            elif v < 0:
+                d = p - box.min[i]
+            else:
+                continue
+            allowed = 0.0 if d <= 0 else min(math.sqrt(2 * decel * d), d / horizon)
+            if abs(v) > allowed:
+                twist[i] = math.copysign(allowed, v)
+                clipped = True
+        return clipped
+
+    def _clip_force(self, twist: Vector, tcp_pose: Vector) -> tuple[str, str] | None:
+        if not self.config.force.enabled or not self.force_required:
+            return None
+        danger = self.force_level == ForceLevel.DANGER
+        if not (danger or self.force_stale):
+            return None
+        n = self._contact_direction(tcp_pose)
+        toward = float(np.dot(twist[:3], n))
+        if toward <= 0:
+            return None
+        twist[:3] -= toward * n
+        if self.force_stale:
+            return Status.FORCE_STALE, "force sensor stale: motion toward contact refused"
+        return Status.FORCE_DANGER, "danger-level force: motion pressing harder removed"

@@ -1,0 +1,160 @@
+"""Rigid transforms: 4×4 homogeneous matrices, rotation vectors, UR pose vectors.
+
+A UR pose is ``[x, y, z, rx, ry, rz]``: metres and a rotation vector (axis × angle, rad). It is never a set of
+Euler angles. All functions are pure numpy and accept any array-like input.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Matrix = NDArray[np.float64]
+_SMALL = 1e-12
+
+
+def skew(v: ArrayLike) -> Matrix:
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def rotvec_to_matrix(rv: ArrayLike) -> Matrix:
+    """Rodrigues' formula: rotation vector (rad) → 3×3 rotation matrix."""
+    rv = np.asarray(rv, dtype=float)
+    theta = float(np.linalg.norm(rv))
+    if theta < _SMALL:
+        return np.eye(3) + skew(rv)
+    k = skew(rv / theta)
+    return np.eye(3) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
+
+
+def matrix_to_rotvec(r: ArrayLike) -> NDArray[np.float64]:
+    """3×3 rotation matrix → rotation vector with angle in [0, π]; stable near 0 and π."""
+    r = np.asarray(r, dtype=float)
+    cos_theta = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
+    theta = math.acos(cos_theta)
+    if theta < 1e-6:
+        return np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+    if math.pi - theta < 1e-4:
+        # Near π the antisymmetric part vanishes: take the axis from the symmetric part instead.
+        b = (r + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(b)))
+        axis = b[:, i] / math.sqrt(max(b[i, i], _SMALL))
+        axis /= np.linalg.norm(axis)
+        # Resolve the sign with what little antisymmetric part remains.
+        w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+        if np.dot(w, axis) < 0:
+            axis = -axis
+        return axis * theta
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return w * (theta / (2.0 * math.sin(theta)))
+
+
+def make_transform(rotation: ArrayLike | None = None, translation: ArrayLike | None = None) -> Matrix:
+    t = np.eye(4)
+    if rotation is not None:
+        t[:3, :3] = np.asarray(rotation, dtype=float)
+    if translation is not None:
+        t[:3, 3] = np.asarray(translation, dtype=float)
+    return t
+
+
+def pose_to_matrix(pose: ArrayLike) -> Matrix:
+    """UR pose ``[x, y, z, rx, ry, rz]`` → 4×4."""
+    p = np.asarray(pose, dtype=float)
+    if p.shape != (6,):
+        raise ValueError(f"a UR pose has 6 numbers [x,y,z,rx,ry,rz], got shape {p.shape}")
+    return make_transform(rotvec_to_matrix(p[3:]), p[:3])
+
+
+def matrix_to_pose(t: ArrayLike) -> NDArray[np.float64]:
+    """4×4 → UR pose ``[x, y, z, rx, ry, rz]``."""
+    t = np.asarray(t, dtype=float)
+    return np.concatenate([t[:3, 3], matrix_to_rotvec(t[:3, :3])])
+
+
+def invert(t: ArrayLike) -> Matrix:
+    """Inverse of a rigid transform (uses Rᵀ, not a general matrix inverse)."""
+    t = np.asarray(t, dtype=float)
+    r = t[:3, :3]
+    return make_transform(r.T, -r.T @ t[:3, 3])
+
+
+def compose(*transforms: ArrayLike) -> Matrix:
+    """Left-to-right product ``T1 · T2 · …``."""
+    out = np.eye(4)
+    for t in transforms:
+        out = out @ np.asarray(t, dtype=float)
+    return out
+
+
+def rot_x(angle: float) -> Matrix:
+    c, s = math.cos(angle), math.sin(angle)
+    return make_transform([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def rot_y(angle: float) -> Matrix:
+    c, s = math.cos(angle), math.sin(angle)
+    return make_transform([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def rot_z(angle: float) -> Matrix:
+    c, s = math.cos(angle), math.sin(angle)
+    return make_transform([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def translation(x: float, y: float, z: float) -> Matrix:
+    return make_transform(None, [x, y, z])
+
+
+def rotation_angle(r_a: ArrayLike, r_b: ArrayLike) -> float:
+    """Angle (rad) of the rotation between two rotation matrices (or the rotation parts of two 4×4)."""
+    a = np.asarray(r_a, dtype=float)[:3, :3]
+    b = np.asarray(r_b, dtype=float)[:3, :3]
+    c = (np.trace(a.T @ b) - 1.0) / 2.0
+    return math.acos(float(np.clip(c, -1.0, 1.0)))
+
+
+def translation_distance(t_a: ArrayLike, t_b: ArrayLike) -> float:
+    return float(np.linalg.norm(np.asarray(t_a, dtype=float)[:3, 3] - np.asarray(t_b, dtype=float)[:3, 3]))
+
+
+def is_rigid(t: ArrayLike, tol: float = 1e-6) -> bool:
+    """True for a proper rigid transform: orthonormal rotation with det +1 and a [0,0,0,1] last row."""
+    t = np.asarray(t, dtype=float)
+    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+        return False
+    r = t[:3, :3]
+    return (
+        np.allclose(r.T @ r, np.eye(3), atol=tol)
+        and abs(np.linalg.det(r) - 1.0) < tol
+        and np.allclose(t[3], [0, 0, 0, 1], atol=tol)
+    )
+
+
+def orthonormalize(r: ArrayLike) -> Matrix:
+    """The nearest rotation matrix (SVD projection), det +1."""
+    u, _, vt = np.linalg.svd(np.asarray(r, dtype=float))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def interpolate_pose(t_a: ArrayLike, t_b: ArrayLike, s: float) -> Matrix:
+    """Interpolate between two transforms: linear in translation, along the geodesic in rotation."""
+    a = np.asarray(t_a, dtype=float)
+    b = np.asarray(t_b, dtype=float)
+    r_rel = a[:3, :3].T @ b[:3, :3]
+    r = a[:3, :3] @ rotvec_to_matrix(matrix_to_rotvec(r_rel) * s)
+    return make_transform(r, a[:3, 3] + (b[:3, 3] - a[:3, 3]) * s)
+
+
+def flatten(t: ArrayLike) -> list[float]:
+    """4×4 → 16 numbers, row-major (the wire form of a matrix)."""
+    return [float(v) for v in np.asarray(t, dtype=float).reshape(16)]
+
+
+def unflatten(values: Sequence[float]) -> Matrix:
+    return np.asarray(values, dtype=float).reshape(4, 4)

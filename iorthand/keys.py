@@ -1,0 +1,107 @@
+"""Zenoh key expressions: the one place that builds them.
+
+Every key starts with ``iorthand/<robot>/``. Cloud services live under ``iorthand/_twin`` and
+``iorthand/_recorder``. Code never writes a key literal: it asks :class:`RobotKeys` or the helpers here.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+ROOT = "iorthand"
+ROBOT_ID_PATTERN = re.compile(r"^[a-z0-9_-]{1,64}$")
+OPERATOR_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.@-]{1,64}$")
+
+# Suffixes under iorthand/<robot>/, named once.
+CMD_TWIST = "cmd/twist"
+CMD_SERVO = "cmd/servo"
+CMD_TORCH = "cmd/torch"
+CMD_STOP = "cmd/stop"
+STATE_ROBOT = "state/robot"
+STATE_SAFETY = "state/safety"
+STATE_APPLIED = "state/applied"
+STATE_FORCE = "state/force"
+STATE_FORCE_LEVEL = "state/force_level"
+STATE_SERVO = "state/servo"
+STATE_TORCH = "state/torch"
+MARKERS = "markers"
+VIDEO_CAMERA = "video/camera"
+VIDEO_ULTRASOUND = "video/ultrasound"
+CONTROL_ACQUIRE = "control/acquire"
+CONTROL_RELEASE = "control/release"
+CONTROL_ARM = "control/arm"
+CONTROL_POSES = "control/poses"
+CONTROL_GOTO = "control/goto"
+ALIVE_EDGE = "alive/edge"
+ALIVE_OPERATOR = "alive/operator"
+
+TWIN = "_twin"
+RECORDER = "_recorder"
+
+
+class KeyExprError(ValueError):
+    """A robot or operator id that cannot be part of a key expression."""
+
+
+def check_robot_id(robot: str) -> str:
+    if not isinstance(robot, str) or not ROBOT_ID_PATTERN.match(robot):
+        raise KeyExprError(f"robot id {robot!r} is invalid: expected 1-64 characters of [a-z0-9_-]")
+    return robot
+
+
+def check_operator_id(operator: str) -> str:
+    if not isinstance(operator, str) or not OPERATOR_ID_PATTERN.match(operator):
+        raise KeyExprError(f"operator id {operator!r} is invalid: expected 1-64 characters of [A-Za-z0-9_.@-]")
+    return operator
+
+
+@dataclass(frozen=True)
+class RobotKeys:
+    """All key expressions of one robot."""
+
+    robot: str
+
+    def __post_init__(self) -> None:
+        check_robot_id(self.robot)
+
+    def key(self, suffix: str) -> str:
+        return f"{ROOT}/{self.robot}/{suffix}"
+
+    @property
+    def prefix(self) -> str:
+        return f"{ROOT}/{self.robot}"
+
+    @property
+    def all(self) -> str:
+        return f"{ROOT}/{self.robot}/**"
+
+    def alive_operator(self, operator: str) -> str:
+        return self.key(f"{ALIVE_OPERATOR}/{check_operator_id(operator)}")
+
+    @property
+    def alive_operators(self) -> str:
+        return self.key(f"{ALIVE_OPERATOR}/*")
+
+
+def all_robots(suffix: str) -> str:
+    """A key expression matching ``suffix`` on every robot, e.g. ``iorthand/*/state/robot``."""
+    return f"{ROOT}/*/{suffix}"
+
+
+def service_key(service: str, *parts: str) -> str:
+    """A cloud service key, e.g. ``service_key(TWIN, robot, "snapshot")``."""
+    return "/".join((ROOT, service, *parts))
+
+
+def split_key(key: str) -> tuple[str, str]:
+    """``iorthand/<robot>/<suffix>`` → ``(robot, suffix)``; raises if the key is not a robot key."""
+    parts = str(key).split("/", 2)
+    if len(parts) != 3 or parts[0] != ROOT or parts[1].startswith("_"):
+        raise KeyExprError(f"{key!r} is not a robot key (iorthand/<robot>/<suffix>)")
+    return parts[1], parts[2]
+
+
+def operator_from_alive_key(key: str) -> str:
+    """The operator id at the end of an ``alive/operator/<id>`` liveliness key."""
+    return str(key).rsplit("/", 1)[-1]

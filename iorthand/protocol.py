@@ -1,0 +1,527 @@
+"""Wire messages: one typed class per key, msgpack maps, validated on decode.
+
+Every message carries ``v`` (schema version), ``seq`` (per-publisher counter) and ``t`` (source time, ns
+since the epoch). Each field's type and bounds are declared once, next to the field, with :func:`spec`;
+:meth:`Message.decode` checks all of them and raises :class:`DecodeError` naming the offending field. A
+receiver never acts on a message that failed to decode: it counts the reject (see :class:`RejectCounter`).
+
+Units are SI on the wire: metres, seconds, radians, newtons. Poses are ``[x, y, z, rx, ry, rz]`` (metres and
+a rotation vector, UR's convention) or 4×4 row-major matrices flattened to 16 numbers — never Euler angles.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+import time
+import types
+import typing
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any, ClassVar, Self
+
+import msgpack
+
+from iorthand import keys
+
+MAX_PAYLOAD = 64 * 1024  # default size limit of one message, bytes
+MAX_VIDEO_PAYLOAD = 8 * 1024 * 1024
+_MAX_INT = 2**63 - 1
+_FAR_FUTURE_NS = 2**62  # about year 2116: any later source time is garbage
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid message. ``field`` names what was wrong (``payload`` for the whole)."""
+
+    def __init__(self, message_type: str, field_name: str, problem: str) -> None:
+        super().__init__(f"{message_type}.{field_name}: {problem}")
+        self.message_type = message_type
+        self.field = field_name
+        self.problem = problem
+
+
+def spec(
+    default: Any = dataclasses.MISSING,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    length: int | None = None,
+    max_len: int | None = None,
+    default_factory: Any = dataclasses.MISSING,
+) -> Any:
+    """A message field with its bounds: ``lo``/``hi`` for numbers (and each element of a vector),
+    ``length`` for fixed-size vectors, ``max_len`` for strings, bytes and lists."""
+    meta = {"lo": lo, "hi": hi, "length": length, "max_len": max_len}
+    if default_factory is not dataclasses.MISSING:
+        return field(default_factory=default_factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def vec(n: int, *, lo: float | None = None, hi: float | None = None) -> Any:
+    """A fixed-length vector of finite floats, zero by default."""
+    return spec(default_factory=lambda: [0.0] * n, length=n, lo=lo, hi=hi)
+
+
+def now_ns() -> int:
+    return time.time_ns()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Validation machinery
+
+
+def _check_number(mtype: str, name: str, value: Any, meta: dict[str, Any], kind: type) -> Any:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DecodeError(mtype, name, f"expected {kind.__name__}, got {type(value).__name__}")
+    if kind is int:
+        if not isinstance(value, int):
+            raise DecodeError(mtype, name, f"expected int, got {type(value).__name__}")
+        if not -_MAX_INT <= value <= _MAX_INT:
+            raise DecodeError(mtype, name, "integer out of the 64-bit range")
+    else:
+        value = float(value)
+        if not math.isfinite(value):
+            raise DecodeError(mtype, name, f"must be finite, got {value}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if lo is not None and value < lo:
+        raise DecodeError(mtype, name, f"{value} is below the minimum {lo}")
+    if hi is not None and value > hi:
+        raise DecodeError(mtype, name, f"{value} is above the maximum {hi}")
+    return value
+
+
+def _check(mtype: str, name: str, value: Any, hint: Any, meta: dict[str, Any]) -> Any:
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if value is None:
+            return None
+        return _check(mtype, name, value, args[0], meta)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise DecodeError(mtype, name, f"expected bool, got {type(value).__name__}")
+        return value
+    if hint in (int, float):
+        return _check_number(mtype, name, value, meta, hint)
+    if hint in (str, bytes):
+        if not isinstance(value, hint):
+            raise DecodeError(mtype, name, f"expected {hint.__name__}, got {type(value).__name__}")
+        max_len = meta.get("max_len")
+        if max_len is not None and len(value) > max_len:
+            raise DecodeError(mtype, name, f"length {len(value)} exceeds {max_len}")
+        return value
+    if origin is list:
+        (item,) = typing.get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            raise DecodeError(mtype, name, f"expected a list, got {type(value).__name__}")
+        length, max_len = meta.get("length"), meta.get("max_len")
+        if length is not None and len(value) != length:
+            raise DecodeError(mtype, name, f"expected {length} elements, got {len(value)}")
+        if max_len is not None and len(value) > max_len:
+            raise DecodeError(mtype, name, f"{len(value)} elements exceed {max_len}")
+        if dataclasses.is_dataclass(item):
+            return [item._from_map(v, f"{mtype}.{name}[{i}]") for i, v in enumerate(value)]
+        return [_check(mtype, f"{name}[{i}]", v, item, meta) for i, v in enumerate(value)]
+    raise TypeError(f"{mtype}.{name}: unsupported field type {hint!r}")  # a programming error
+
+
+def _to_wire(value: Any) -> Any:
+    if isinstance(value, Struct):
+        return value._to_map()
+    if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
+        items = value.tolist() if hasattr(value, "tolist") else value
+        return [_to_wire(v) for v in items]
+    if isinstance(value, bool) or value is None or isinstance(value, (str, bytes)):
+        return value
+    if isinstance(value, float) or hasattr(value, "__float__") and not isinstance(value, int):
+        return float(value)
+    return value
+
+
+@dataclass(kw_only=True)
+class Struct:
+    """A nested map inside a message (no version or sequence of its own)."""
+
+    @classmethod
+    def _fields(cls) -> list[tuple[str, Any, dict[str, Any]]]:
+        cache = cls.__dict__.get("_field_cache")
+        if cache is None:
+            hints = typing.get_type_hints(cls)
+            cache = [(f.name, hints[f.name], dict(f.metadata)) for f in dataclasses.fields(cls)]
+            cls._field_cache = cache  # type: ignore[attr-defined]
+        return cache
+
+    def _to_map(self) -> dict[str, Any]:
+        return {name: _to_wire(getattr(self, name)) for name, _, _ in self._fields()}
+
+    @classmethod
+    def _from_map(cls, data: Any, mtype: str | None = None) -> Self:
+        mtype = mtype or cls.__name__
+        if not isinstance(data, dict):
+            raise DecodeError(mtype, "payload", f"expected a map, got {type(data).__name__}")
+        known = {name for name, _, _ in cls._fields()} | {"v", "seq", "t"}
+        for k in data:
+            if k not in known:
+                raise DecodeError(mtype, str(k)[:40], "unknown field")
+        values: dict[str, Any] = {}
+        for name, hint, meta in cls._fields():
+            if name not in data:
+                raise DecodeError(mtype, name, "missing field")
+            values[name] = _check(mtype, name, data[name], hint, meta)
+        return cls(**values)
+
+    def validate(self) -> Self:
+        """Check this instance against its declared bounds (as decode would); raise DecodeError if bad."""
+        return type(self)._from_map(msgpack.unpackb(msgpack.packb(self._to_map(), use_bin_type=True)))
+
+
+@dataclass(kw_only=True)
+class Message(Struct):
+    """Base of every wire message. Subclasses set ``KEY`` (the suffix under ``iorthand/<robot>/``)."""
+
+    KEY: ClassVar[str] = ""
+    VERSION: ClassVar[int] = 1
+    MAX_BYTES: ClassVar[int] = MAX_PAYLOAD
+
+    seq: int = spec(0, lo=0)
+    t: int = spec(0, lo=0, hi=_FAR_FUTURE_NS)
+
+    def stamp(self, seq: int, t: int | None = None) -> Self:
+        self.seq = seq
+        self.t = now_ns() if t is None else t
+        return self
+
+    def encode(self) -> bytes:
+        data = self._to_map()
+        data["v"] = self.VERSION
+        payload = msgpack.packb(data, use_bin_type=True)
+        if len(payload) > self.MAX_BYTES:
+            raise ValueError(f"{type(self).__name__}: encoded size {len(payload)} exceeds {self.MAX_BYTES} bytes")
+        return payload
+
+    @classmethod
+    def decode(cls, payload: bytes | bytearray | memoryview) -> Self:
+        name = cls.__name__
+        if len(payload) > cls.MAX_BYTES:
+            raise DecodeError(name, "payload", f"size {len(payload)} exceeds the limit of {cls.MAX_BYTES} bytes")
+        try:
+            data = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True, use_list=True)
+        except Exception as exc:  # msgpack raises many kinds on garbage; all mean the same to us
+            raise DecodeError(name, "payload", f"not valid msgpack ({type(exc).__name__})") from None
+        if not isinstance(data, dict):
+            raise DecodeError(name, "payload", f"expected a map, got {type(data).__name__}")
+        if "v" not in data:
+            raise DecodeError(name, "v", "missing field")
+        if data["v"] != cls.VERSION or isinstance(data["v"], bool):
+            raise DecodeError(name, "v", f"unknown schema version {data['v']!r} (this build reads {cls.VERSION})")
+        return cls._from_map(data)
+
+
+class Sequencer:
+    """Per-publisher sequence numbers: thread-safe, starting at 1."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._n = 0
+
+    def next(self) -> int:
+        with self._lock:
+            self._n += 1
+            return self._n
+
+
+class RejectCounter:
+    """Counts rejected payloads per key; keeps the last reason for each key (to show and log once)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.counts: dict[str, int] = {}
+        self.last_reason: dict[str, str] = {}
+
+    def add(self, key: str, reason: str) -> int:
+        with self._lock:
+            n = self.counts.get(key, 0) + 1
+            self.counts[key] = n
+            self.last_reason[key] = reason
+            return n
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self.counts.values())
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Codes shared between edge and clients. Defined once; the console, twin and recorder read them from here.
+
+
+class ForceLevel(IntEnum):
+    """Contact-force warning levels. 0 is safe: the reference system shipped these inverted once."""
+
+    SAFE = 0  # green
+    CAUTION = 1  # yellow
+    DANGER = 2  # red
+
+
+FORCE_LEVEL_COLOURS = {ForceLevel.SAFE: "green", ForceLevel.CAUTION: "yellow", ForceLevel.DANGER: "red"}
+STALE_COLOUR = "grey"
+
+
+class Status:
+    """Supervisor status codes: one for every state and every reason a command is refused or motion halts."""
+
+    OK = "ok"
+    IDLE = "idle"
+    DISARMED = "disarmed"
+    NOT_OWNER = "not_owner"
+    NO_DEADMAN = "deadman_released"
+    COMMAND_TIMEOUT = "command_timeout"
+    STALE_COMMAND = "stale_command"
+    OUT_OF_ORDER = "out_of_order"
+    SPEED_LIMITED = "speed_limited"
+    ACCEL_LIMITED = "accel_limited"
+    WORKSPACE = "workspace_limit"
+    FORCE_DANGER = "force_danger"
+    FORCE_STALE = "force_stale"
+    STOPPED = "stopped"
+    FAULT = "fault"
+    MALFORMED = "malformed"
+    OWNER_LOST = "owner_lost"
+    NOT_ALLOWED = "operator_not_allowed"
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Messages. Bounds are generous sanity limits; safety limits live in the supervisor's configuration.
+
+_SPEED = 10.0  # m/s or rad/s: nothing legitimate on the wire is faster
+_POSITION = 100.0  # m
+
+
+@dataclass(kw_only=True)
+class TwistCommand(Message):
+    """Operator → edge at a fixed rate: tool velocity in the base frame, with the deadman flag."""
+
+    KEY: ClassVar[str] = keys.CMD_TWIST
+    operator: str = spec("", max_len=64)
+    linear: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # m/s
+    angular: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # rad/s
+    deadman: bool = False
+
+
+@dataclass(kw_only=True)
+class StopCommand(Message):
+    KEY: ClassVar[str] = keys.CMD_STOP
+    operator: str = spec("", max_len=64)
+    reason: str = spec("operator stop", max_len=200)
+
+
+@dataclass(kw_only=True)
+class ServoCommand(Message):
+    """Absolute pan/tilt angles (rad). A missing axis (None) keeps its current target."""
+
+    KEY: ClassVar[str] = keys.CMD_SERVO
+    operator: str = spec("", max_len=64)
+    pan: float | None = spec(None, lo=-2 * math.pi, hi=2 * math.pi)
+    tilt: float | None = spec(None, lo=-2 * math.pi, hi=2 * math.pi)
+
+
+@dataclass(kw_only=True)
+class TorchCommand(Message):
+    KEY: ClassVar[str] = keys.CMD_TORCH
+    operator: str = spec("", max_len=64)
+    on: bool = False
+    brightness: float = spec(1.0, lo=0.0, hi=1.0)
+
+
+@dataclass(kw_only=True)
+class RobotState(Message):
+    """Edge → all at the control rate. ``cmd_seq``/``cmd_recv_t`` echo the last applied command (latency)."""
+
+    KEY: ClassVar[str] = keys.STATE_ROBOT
+    tcp_pose: list[float] = vec(6, lo=-_POSITION, hi=_POSITION)  # [x,y,z,rx,ry,rz]
+    tcp_speed: list[float] = vec(6, lo=-_SPEED, hi=_SPEED)
+    q: list[float] = vec(6, lo=-4 * math.pi, hi=4 * math.pi)
+    commanded: list[float] = vec(6, lo=-_SPEED, hi=_SPEED)  # the twist sent to the robot this cycle
+    mode: str = spec("", max_len=40)
+    connected: bool = True
+    fault: str = spec("", max_len=200)
+    robot_time: float = spec(0.0, lo=0.0)  # the robot's own clock, s
+    cmd_seq: int = spec(0, lo=0)
+    cmd_recv_t: int = spec(0, lo=0)
+
+
+@dataclass(kw_only=True)
+class AppliedCommand(Message):
+    """Edge → all for every received twist: what the supervisor did with it, at once (the command echo)."""
+
+    KEY: ClassVar[str] = keys.STATE_APPLIED
+    operator: str = spec("", max_len=64)
+    cmd_seq: int = spec(0, lo=0)
+    cmd_t: int = spec(0, lo=0)
+    recv_t: int = spec(0, lo=0)
+    applied: list[float] = vec(6, lo=-_SPEED, hi=_SPEED)
+    accepted: bool = False
+    status: str = spec(Status.OK, max_len=40)
+    reason: str = spec("", max_len=200)
+
+
+@dataclass(kw_only=True)
+class SafetyStatus(Message):
+    """Edge → all at 20 Hz and on change: the supervisor's state and why it is what it is."""
+
+    KEY: ClassVar[str] = keys.STATE_SAFETY
+    armed: bool = False
+    arm_requested: bool = False
+    owner: str = spec("", max_len=64)
+    deadman: bool = False
+    profile: str = spec("", max_len=32)
+    linear_limit: float = spec(0.0, lo=0.0, hi=_SPEED)
+    angular_limit: float = spec(0.0, lo=0.0, hi=_SPEED)
+    limits_hit: list[str] = spec(default_factory=list, max_len=16)
+    command_age: float = spec(-1.0, lo=-1.0)  # s since the last accepted command; -1 = none yet
+    status: str = spec(Status.IDLE, max_len=40)
+    reason: str = spec("", max_len=200)
+    force_level: int = spec(0, lo=0, hi=2)
+    force_stale: bool = True
+    received: int = spec(0, lo=0)
+    applied: int = spec(0, lo=0)
+    rejected: int = spec(0, lo=0)
+    malformed: int = spec(0, lo=0)
+    stops: int = spec(0, lo=0)
+
+
+@dataclass(kw_only=True)
+class ForceSample(Message):
+    """Edge → all at 100 Hz: the wrench at the tool, N and N·m, in the sensor frame."""
+
+    KEY: ClassVar[str] = keys.STATE_FORCE
+    force: list[float] = vec(3, lo=-1e5, hi=1e5)
+    torque: list[float] = vec(3, lo=-1e5, hi=1e5)
+
+
+@dataclass(kw_only=True)
+class ForceLevelState(Message):
+    """Edge → all on change and at 10 Hz. ``stale`` overrides ``level``: no fresh sample, no colour."""
+
+    KEY: ClassVar[str] = keys.STATE_FORCE_LEVEL
+    level: int = spec(0, lo=0, hi=2)
+    stale: bool = True
+    value: float = spec(0.0, lo=-1e5, hi=1e5)  # the quantity compared with the thresholds, N
+    quantity: str = spec("fz", max_len=16)
+    caution: float = spec(6.0, lo=0.0)
+    danger: float = spec(8.0, lo=0.0)
+
+
+@dataclass(kw_only=True)
+class ServoState(Message):
+    KEY: ClassVar[str] = keys.STATE_SERVO
+    pan: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)  # rad, current
+    tilt: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
+    pan_target: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
+    tilt_target: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
+    clamped: bool = False
+    reason: str = spec("", max_len=200)
+
+
+@dataclass(kw_only=True)
+class TorchState(Message):
+    KEY: ClassVar[str] = keys.STATE_TORCH
+    on: bool = False
+    brightness: float = spec(0.0, lo=0.0, hi=1.0)
+    reason: str = spec("", max_len=200)
+
+
+@dataclass(kw_only=True)
+class MarkerPose(Struct):
+    id: int = spec(0, lo=0, hi=10_000)
+    pose: list[float] = vec(16, lo=-1e3, hi=1e3)  # filtered T_base_marker, 4×4 row-major
+    raw: list[float] = vec(16, lo=-1e3, hi=1e3)  # this frame's unfiltered estimate
+    reprojection_error: float = spec(0.0, lo=0.0)  # px
+    pixel_size: float = spec(0.0, lo=0.0)  # mean side length, px
+
+
+@dataclass(kw_only=True)
+class Markers(Message):
+    """Every marker seen in one camera frame, in the robot base frame. ``t`` is the frame's capture time."""
+
+    KEY: ClassVar[str] = keys.MARKERS
+    markers: list[MarkerPose] = spec(default_factory=list, max_len=256)
+    frames: int = spec(0, lo=0)
+    fps: float = spec(0.0, lo=0.0)
+    processing_ms: float = spec(0.0, lo=0.0)
+
+
+@dataclass(kw_only=True)
+class VideoFrame(Message):
+    """A JPEG image. ``t`` is the capture time; ``seq`` counts captured frames (gaps = dropped)."""
+
+    KEY: ClassVar[str] = keys.VIDEO_CAMERA
+    MAX_BYTES: ClassVar[int] = MAX_VIDEO_PAYLOAD
+    source: str = spec("camera", max_len=32)
+    width: int = spec(0, lo=1, hi=8192)
+    height: int = spec(0, lo=1, hi=8192)
+    encoding: str = spec("jpeg", max_len=16)
+    data: bytes = spec(b"", max_len=MAX_VIDEO_PAYLOAD)
+
+
+@dataclass(kw_only=True)
+class ControlRequest(Message):
+    """Payload of a ``control/*`` query."""
+
+    operator: str = spec("", max_len=64)
+    profile: str = spec("", max_len=32)  # acquire: the speed profile asked for ("" = the edge's default)
+    name: str = spec("", max_len=64)  # goto/preview: the named pose
+    token: str = spec("", max_len=128)  # goto: the preview token
+
+
+@dataclass(kw_only=True)
+class ControlReply(Message):
+    ok: bool = False
+    reason: str = spec("", max_len=200)
+    owner: str = spec("", max_len=64)
+    lease: float = spec(0.0, lo=0.0)
+    detail: str = spec("", max_len=4096)  # JSON text for richer answers (pose lists, previews)
+
+
+@dataclass(kw_only=True)
+class Annotation(Message):
+    author: str = spec("", max_len=64)
+    text: str = spec("", max_len=4000)
+    tags: list[str] = spec(default_factory=list, max_len=32)
+    score: float | None = spec(None, lo=-1e6, hi=1e6)
+
+
+MESSAGES_BY_KEY: dict[str, type[Message]] = {
+    m.KEY: m
+    for m in (
+        TwistCommand,
+        StopCommand,
+        ServoCommand,
+        TorchCommand,
+        RobotState,
+        AppliedCommand,
+        SafetyStatus,
+        ForceSample,
+        ForceLevelState,
+        ServoState,
+        TorchState,
+        Markers,
+    )
+}
+MESSAGES_BY_KEY[keys.VIDEO_CAMERA] = VideoFrame
+MESSAGES_BY_KEY[keys.VIDEO_ULTRASOUND] = VideoFrame
+
+
+def message_type_for(key: str) -> type[Message] | None:
+    """The message class of a robot key (``iorthand/<robot>/<suffix>``), or None if it has none."""
+    try:
+        _, suffix = keys.split_key(key)
+    except keys.KeyExprError:
+        return None
+    return MESSAGES_BY_KEY.get(suffix)
+
+
+def as_floats(values: Sequence[float]) -> list[float]:
+    return [float(v) for v in values]

@@ -1,0 +1,55 @@
+"""``iorthand router``: a Zenoh router run from the Python package (no zenohd binary needed)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import threading
+from pathlib import Path
+
+import zenoh
+
+from iorthand.transport import load_router_config
+
+log = logging.getLogger("iorthand.router")
+
+
+def run_router(config: zenoh.Config, describe: str) -> None:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = zenoh.open(config)
+    log.info("router %s listening on %s", session.zid(), describe)
+    print(f"router ready: {describe}", flush=True)
+    stop.wait()
+    session.close()
+    log.info("router stopped")
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    if args.config:
+        config = load_router_config(Path(args.config))
+        if args.listen:
+            config.insert_json5("listen/endpoints", json.dumps(args.listen))
+    else:
+        config = zenoh.Config()
+        config.insert_json5("mode", '"router"')
+        config.insert_json5("listen/endpoints", json.dumps(args.listen or ["tcp/127.0.0.1:7447"]))
+        config.insert_json5("scouting/multicast/enabled", "false")
+    if args.connect:
+        config.insert_json5("connect/endpoints", json.dumps(args.connect))
+    endpoints = json.loads(config.get_json("listen/endpoints"))
+    if isinstance(endpoints, dict):  # per-role form {router: [...], peer: [...]}
+        endpoints = endpoints.get("router", [])
+    run_router(config, ", ".join(endpoints))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("router", help="run a Zenoh router")
+    p.add_argument("--config", help="router JSON5 configuration (e.g. configs/router.json5)")
+    p.add_argument("--listen", action="append", help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--connect", action="append", help="another router to connect to (a chain of sites)")
+    p.set_defaults(func=_cmd)

@@ -1,0 +1,319 @@
+"""Zenoh sessions and QoS profiles.
+
+:func:`open_session` builds a session for ``router``, ``client`` or ``peer`` mode from a :class:`ZenohConfig`
+(endpoints, lease, scouting off by default) and retries with back-off while no router answers. The QoS of
+every key is decided once, in :data:`QOS_BY_KEY`; :func:`publisher` applies it.
+
+Zenoh's Python callbacks share one receive path per session: a slow callback stalls every subscriber of the
+session. So callbacks here only hand data over (:class:`Inbox`), and work happens in named worker threads.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from iorthand import keys
+from iorthand.config import setting
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class QosProfile:
+    priority: zenoh.Priority
+    congestion: zenoh.CongestionControl
+    express: bool = False
+
+
+COMMAND = QosProfile(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.DROP, express=True)
+CONTROL = QosProfile(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, express=True)
+STATE = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP)
+SAFETY = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.BLOCK)
+DATA = QosProfile(zenoh.Priority.DATA, zenoh.CongestionControl.DROP)
+VIDEO = QosProfile(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP)
+
+# The QoS of every key suffix of DESIGN.md, in one place.
+QOS_BY_KEY: dict[str, QosProfile] = {
+    keys.CMD_TWIST: COMMAND,
+    keys.CMD_SERVO: CONTROL,
+    keys.CMD_TORCH: CONTROL,
+    keys.CMD_STOP: CONTROL,
+    keys.STATE_ROBOT: STATE,
+    keys.STATE_APPLIED: STATE,
+    keys.STATE_SAFETY: SAFETY,
+    keys.STATE_FORCE: STATE,
+    keys.STATE_FORCE_LEVEL: SAFETY,
+    keys.STATE_SERVO: DATA,
+    keys.STATE_TORCH: DATA,
+    keys.MARKERS: DATA,
+    keys.VIDEO_CAMERA: VIDEO,
+    keys.VIDEO_ULTRASOUND: VIDEO,
+}
+
+
+@dataclass
+class TlsConfig:
+    """Zenoh TLS settings (paths to PEM files). ``mtls`` makes both sides present a certificate."""
+
+    root_ca: Path | None = None
+    certificate: Path | None = None
+    private_key: Path | None = None
+    mtls: bool = True
+    verify_name: bool = False
+
+
+@dataclass
+class ZenohConfig:
+    mode: str = setting("client", choices=("client", "peer", "router"))
+    connect: list[str] = setting(default_factory=list)
+    listen: list[str] = setting(default_factory=list)
+    lease_ms: int = setting(2000, lo=500, hi=60_000, help="transport lease: a silent link is dropped after it")
+    multicast_scouting: bool = False
+    shared_memory: bool = setting(True, help="off to model a WAN between sites on one host")
+    connect_retry_s: float = setting(30.0, lo=0.0, help="how long open_session retries before giving up")
+    tls: TlsConfig | None = None
+    username: str = ""
+    password_file: Path | None = None
+    extra: dict[str, Any] = setting(default_factory=dict, help="raw Zenoh config entries, key path → value")
+
+    def check(self) -> None:
+        if self.mode == "client" and not self.connect:
+            raise ValueError("connect: a client needs at least one router endpoint, e.g. tcp/127.0.0.1:7447")
+        for ep in [*self.connect, *self.listen]:
+            if "/" not in ep:
+                raise ValueError(f"endpoint {ep!r} must look like tcp/HOST:PORT or tls/HOST:PORT")
+
+
+def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    """The zenoh.Config for our settings (kept as a plain dict first, so it can be logged and tested)."""
+    zc = zenoh.Config()
+    for path, value in zenoh_entries(cfg).items():
+        zc.insert_json5(path, json.dumps(value))
+    return zc
+
+
+def zenoh_entries(cfg: ZenohConfig) -> dict[str, Any]:
+    entries: dict[str, Any] = {
+        "mode": cfg.mode,
+        "scouting/multicast/enabled": cfg.multicast_scouting,
+        "transport/link/tx/lease": cfg.lease_ms,
+        "transport/shared_memory/enabled": cfg.shared_memory,
+    }
+    if cfg.mode != "router":
+        entries["scouting/gossip/enabled"] = False
+    if cfg.connect:
+        entries["connect/endpoints"] = list(cfg.connect)
+    if cfg.listen:
+        entries["listen/endpoints"] = list(cfg.listen)
+    if cfg.tls is not None:
+        tls = cfg.tls
+        if tls.root_ca:
+            entries["transport/link/tls/root_ca_certificate"] = str(tls.root_ca)
+        if cfg.mode == "router":
+            if tls.certificate:
+                entries["transport/link/tls/listen_certificate"] = str(tls.certificate)
+            if tls.private_key:
+                entries["transport/link/tls/listen_private_key"] = str(tls.private_key)
+        else:
+            if tls.certificate:
+                entries["transport/link/tls/connect_certificate"] = str(tls.certificate)
+            if tls.private_key:
+                entries["transport/link/tls/connect_private_key"] = str(tls.private_key)
+        entries["transport/link/tls/enable_mtls"] = tls.mtls
+        entries["transport/link/tls/verify_name_on_connect"] = tls.verify_name
+    if cfg.username:
+        entries["transport/auth/usrpwd/user"] = cfg.username
+        if cfg.password_file:
+            entries["transport/auth/usrpwd/password"] = Path(cfg.password_file).read_text().strip()
+    entries.update(cfg.extra)
+    return entries
+
+
+class ConnectError(RuntimeError):
+    pass
+
+
+def open_session(cfg: ZenohConfig, stop: threading.Event | None = None) -> zenoh.Session:
+    """Open a Zenoh session, retrying with back-off (0.1 s doubling to 2 s) for ``connect_retry_s``.
+
+    zenoh.open() in client mode raises at once when no router answers; an edge that starts before its router
+    must keep trying (plug-and-play). ``stop`` aborts the retries.
+    """
+    zc = zenoh_config(cfg)
+    deadline = time.monotonic() + cfg.connect_retry_s
+    delay = 0.1
+    attempt = 0
+    while True:
+        attempt += 1
+        try:
+            return zenoh.open(zc)
+        except zenoh.ZError as exc:
+            if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
+                raise ConnectError(
+                    f"cannot reach a Zenoh router at {', '.join(cfg.connect) or '(no endpoint)'} after {attempt} "
+                    f"attempts: {exc}. Is the router running, and are the address, port and certificates right?"
+                ) from None
+            if attempt == 1:
+                log.warning("no router at %s yet (%s); retrying", ", ".join(cfg.connect), exc)
+            if stop is not None:
+                stop.wait(delay)
+            else:
+                time.sleep(delay)
+            delay = min(delay * 2, 2.0)
+
+
+def publisher(session: zenoh.Session, key: str, qos: QosProfile | None = None) -> zenoh.Publisher:
+    """Declare a publisher with the QoS of its key (looked up from the key's suffix unless given)."""
+    if qos is None:
+        _, suffix = keys.split_key(key)
+        qos = QOS_BY_KEY[suffix]
+    return session.declare_publisher(
+        key, priority=qos.priority, congestion_control=qos.congestion, express=qos.express
+    )
+
+
+class Inbox:
+    """A bounded hand-over from a Zenoh callback to a worker thread.
+
+    ``keep="newest"`` drops the oldest item when full (streams: only the latest matters); ``keep="oldest"``
+    refuses new items when full (nothing already queued is lost). Dropped items are counted.
+    """
+
+    def __init__(self, maxlen: int = 256, keep: str = "newest") -> None:
+        if keep not in ("newest", "oldest"):
+            raise ValueError("keep must be 'newest' or 'oldest'")
+        self._items: deque[Any] = deque()
+        self._maxlen = maxlen
+        self._keep = keep
+        self._cond = threading.Condition()
+        self.dropped = 0
+        self.closed = False
+
+    def put(self, item: Any) -> None:
+        with self._cond:
+            if len(self._items) >= self._maxlen:
+                self.dropped += 1
+                if self._keep == "oldest":
+                    return
+                self._items.popleft()
+            self._items.append(item)
+            self._cond.notify()
+
+    def get(self, timeout: float | None = None) -> Any | None:
+        """The next item, or None after ``timeout`` or once closed and empty."""
+        with self._cond:
+            if not self._items and not self.closed:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def drain(self) -> list[Any]:
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            return items
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def subscribe(session: zenoh.Session, key: str, inbox: Inbox) -> zenoh.Subscriber:
+    """Subscribe ``key``; the callback only queues ``(key, payload bytes, receive time ns)``."""
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+
+    return session.declare_subscriber(key, on_sample)
+
+
+class Worker(threading.Thread):
+    """A named daemon thread that runs ``target(stop_event)``; logs and records a crash instead of hiding it."""
+
+    def __init__(self, name: str, target: Callable[[threading.Event], None], stop: threading.Event) -> None:
+        super().__init__(name=name, daemon=True)
+        self._target_fn = target
+        self._stop_event = stop
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self._target_fn(self._stop_event)
+        except BaseException as exc:  # a dead worker must be visible, never silent
+            self.error = exc
+            log.exception("worker %s crashed", self.name)
+            self._stop_event.set()
+
+
+def query(session: zenoh.Session, key: str, payload: bytes, timeout: float = 2.0) -> list[bytes]:
+    """Send a query and collect the ok replies' payloads (errors are raised with their text)."""
+    replies = session.get(key, payload=payload, timeout=timeout)
+    out: list[bytes] = []
+    for reply in replies:
+        if reply.ok is not None:
+            out.append(reply.ok.payload.to_bytes())
+        else:
+            raise RuntimeError(f"query {key} failed: {reply.err.payload.to_bytes().decode(errors='replace')}")
+    return out
+
+
+def load_router_config(path: Path) -> zenoh.Config:
+    """A router's JSON5 configuration file, as Zenoh reads it (also usable by a stock zenohd)."""
+    try:
+        return zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise ValueError(f"{path}: not a valid Zenoh configuration: {exc}") from None
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def router_json5(endpoint: str) -> str:
+    """A minimal loopback router configuration (tests, demo)."""
+    return json.dumps(
+        {
+            "mode": "router",
+            "listen": {"endpoints": [endpoint]},
+            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+            "transport": {"link": {"tx": {"lease": 2000}}},
+        }
+    )
+
+
+def client_config(endpoint: str, **overrides: Any) -> ZenohConfig:
+    return ZenohConfig(mode="client", connect=[endpoint], **overrides)
+
+
+__all__ = [
+    "COMMAND",
+    "QOS_BY_KEY",
+    "ConnectError",
+    "Inbox",
+    "QosProfile",
+    "Worker",
+    "ZenohConfig",
+    "client_config",
+    "field",
+    "open_session",
+    "publisher",
+    "query",
+    "subscribe",
+]

@@ -1,0 +1,1 @@
+"""iorthand operator tools: teleoperation client, console and benchmarks."""

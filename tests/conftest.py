@@ -1,0 +1,154 @@
+"""Shared fixtures: real Zenoh routers on 127.0.0.1 with free ports, edge agents with a simulated robot,
+operator clients. Everything a fixture starts, it stops."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from iorthand.config import from_dict
+from iorthand.transport import free_port, open_session, router_json5
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def router_endpoint() -> Iterator[str]:
+    """A real Zenoh router in this process, listening on a free loopback port."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = zenoh.open(zenoh.Config.from_json5(router_json5(endpoint)))
+    yield endpoint
+    session.close()
+
+
+class RouterProcess:
+    """A router in its own process (``iorthand router``), so tests can kill and restart it."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.endpoint = endpoint
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "iorthand.cli", "router", "--listen", self.endpoint],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        )
+        assert self.proc.stdout is not None
+        deadline = time.monotonic() + 15
+        for line in self.proc.stdout:
+            if b"router ready" in line or time.monotonic() > deadline:
+                break
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(2)
+
+
+@pytest.fixture
+def router_process() -> Iterator[RouterProcess]:
+    router = RouterProcess(f"tcp/127.0.0.1:{free_port()}")
+    router.start()
+    yield router
+    router.stop()
+
+
+def edge_config(endpoint: str, robot_id: str = "sim1", **overrides: object):
+    """An edge config for tests: simulated robot, auto-armed. ``overrides`` are merged per top-level key."""
+    from iorthand_edge.config import EdgeConfig
+
+    data: dict = {
+        "robot_id": robot_id,
+        "zenoh": {"mode": "client", "connect": [endpoint], "connect_retry_s": 10.0},
+        "robot": {"kind": "sim", "initial_pose": [0.30, 0.0, 0.20, 3.14159, 0.0, 0.0]},
+        "safety": {"auto_arm": True},
+    }
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return from_dict(data, EdgeConfig, source="<test>")
+
+
+@pytest.fixture
+def edge_factory(router_endpoint: str):
+    """Start edge agents in this process; all are shut down after the test."""
+    from iorthand_edge.agent import EdgeAgent
+
+    agents: list[EdgeAgent] = []
+
+    def make(robot_id: str = "sim1", **overrides: object) -> EdgeAgent:
+        agent = EdgeAgent(edge_config(router_endpoint, robot_id, **overrides))
+        agent.start()
+        agents.append(agent)
+        return agent
+
+    yield make
+    for agent in agents:
+        agent.shutdown()
+
+
+@pytest.fixture
+def session_factory(router_endpoint: str):
+    """Client sessions to the test router, closed after the test."""
+    from iorthand.transport import client_config
+
+    sessions: list[zenoh.Session] = []
+
+    def make() -> zenoh.Session:
+        s = open_session(client_config(router_endpoint))
+        sessions.append(s)
+        return s
+
+    yield make
+    for s in sessions:
+        s.close()
+
+
+@pytest.fixture
+def operator_factory(session_factory):
+    """Operator clients (library) on their own sessions, closed after the test."""
+    from iorthand_operator.client import OperatorClient
+
+    clients: list[OperatorClient] = []
+
+    def make(robot_id: str = "sim1", operator_id: str = "op1", **kwargs: object) -> OperatorClient:
+        client = OperatorClient(session_factory(), robot_id, operator_id, **kwargs)
+        clients.append(client)
+        return client
+
+    yield make
+    for c in clients:
+        try:
+            c.close()
+        except zenoh.ZError:
+            pass
+
+
+def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01, message: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {message}")
+
+
+def iorthand_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "iorthand.cli", *args]
+
+
+os.environ.setdefault("PYTHONUNBUFFERED", "1")
