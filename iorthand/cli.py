@@ -26,8 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
     for ep in sorted(entry_points(group="iorthand.commands"), key=lambda e: e.name):
         try:
             ep.load()(sub)
-        except ImportError as exc:  # a role installed without its optional dependencies
-            logging.getLogger("iorthand").debug("subcommands of %s unavailable: %s", ep.name, exc)
+        except (ImportError, AttributeError) as exc:
+            # A role installed without its optional dependencies (or broken) must not take the others down.
+            print(f"iorthand: the {ep.name!r} commands are unavailable: {exc}", file=sys.stderr)
     return parser
 
 

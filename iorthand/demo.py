@@ -8,6 +8,7 @@ child also dies with the demo (PR_SET_PDEATHSIG), so no process is left behind e
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import json
 import signal
@@ -27,10 +28,8 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _die_with_parent() -> None:
-    try:
+    with contextlib.suppress(OSError):  # not Linux: the Ctrl-C handling still stops the children
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:  # not Linux: Ctrl-C handling below still stops the children
-        pass
 
 
 @dataclass

@@ -3,6 +3,7 @@ operator clients. Everything a fixture starts, it stops."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -132,10 +133,8 @@ def operator_factory(session_factory):
 
     yield make
     for c in clients:
-        try:
+        with contextlib.suppress(zenoh.ZError):
             c.close()
-        except zenoh.ZError:
-            pass
 
 
 def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01, message: str = "condition") -> None:

@@ -11,8 +11,12 @@ Rules (DESIGN.md, "Safety model"):
   ``command_timeout`` → the commanded twist is zero at once and the robot decelerates. Commands older than
   ``max_command_age``, or not newer than the last one, are dropped.
 - Limits on every command: speed by profile, acceleration (passed to the robot), a workspace box.
-- Force: at DANGER, velocity pressing harder is removed (optionally a small retreat); a stale sensor stops the
-  robot once and then refuses motion toward contact.
+- Force (only with a force sensor, ``force_required``): at CAUTION the speed toward contact is capped so that
+  the tool stops within ``overshoot_margin`` of where DANGER is detected; at DANGER velocity pressing harder is
+  removed and, if configured, the tool backs off ``retract_distance`` along the contact normal (whether or not
+  the deadman is held); a stale sensor (or none yet) stops the robot once and then refuses motion toward
+  contact. Motion away from contact is always allowed. Each intervention is recorded in ``interventions``
+  (drained and logged by the agent) and shows in the status and reason.
 - After a stop command the robot stays stopped until the deadman is released and pressed again; after a fault
   or the owner's loss, until an operator acquires control again. Nothing resumes by itself.
 """
@@ -57,6 +61,21 @@ class ForceReaction:
         default_factory=lambda: [0.0, 0.0, 1.0], length=3,
         help="direction of pressing in the tool frame (the probe's axis)",
     )
+    overshoot_margin: float = setting(
+        0.002, lo=0.0002, hi=0.02, help="m the tool may travel into contact after DANGER is detected",
+    )
+    reaction_time: float = setting(
+        0.04, lo=0.0, hi=0.5, help="s from crossing a threshold to the robot starting to brake (sensor + loop)",
+    )
+
+    def check(self) -> None:
+        if not any(self.contact_axis):
+            raise ValueError("contact_axis must not be the zero vector")
+
+    def approach_speed_cap(self, deceleration: float) -> float:
+        """The fastest approach (m/s) that still stops within ``overshoot_margin``: v·T + v²/(2a) ≤ margin."""
+        a, t, m = deceleration, self.reaction_time, self.overshoot_margin
+        return a * (math.sqrt(t * t + 2.0 * m / a) - t)
 
 
 @dataclass
@@ -125,7 +144,9 @@ class Supervisor:
         self._target = np.zeros(6)  # the last accepted command, already limited
         self._latched = ""  # status that keeps the robot stopped until cleared (see module doc)
         self._latch_reason = ""
-        self._retreat_left = 0.0
+        self._retreat_until = -math.inf  # monotonic time until which the tool backs off from contact
+        self._force_active = ""  # the force intervention in effect (edge-triggers ``interventions``)
+        self.interventions: list[tuple[str, str]] = []  # (status, reason), drained by the agent to log
         self.status = Status.DISARMED if not self.armed else Status.IDLE
         self.reason = "" if self.armed else "not armed: confirm arming on the robot side"
         self.limits_hit: list[str] = []
@@ -200,17 +221,29 @@ class Supervisor:
         elif not reason:
             self.fault = ""
 
-    def update_force(self, level: int, stale: bool) -> None:
+    def update_force(self, level: int, stale: bool, now: float) -> None:
+        """A change of the force level or staleness (``now``: monotonic time)."""
+        level = ForceLevel(level)
+        was_danger = self.force_level == ForceLevel.DANGER and not self.force_stale
         became_stale = stale and not self.force_stale
-        rose_to_danger = level == ForceLevel.DANGER and self.force_level != ForceLevel.DANGER
-        self.force_level = ForceLevel(level)
-        self.force_stale = stale
-        if became_stale and self.config.force.enabled:
-            # A silent sensor: the robot does not know how hard it presses. Stop once; then only motion away
-            # from contact is allowed.
-            self._halt(Status.FORCE_STALE, "force sensor stale: robot stopped, motion toward contact refused")
-        if rose_to_danger and not stale:
-            self._retreat_left = self.config.force.retract_distance
+        self.force_level, self.force_stale = level, stale
+        reaction = self.config.force
+        if not (reaction.enabled and self.force_required):
+            return
+        if became_stale:
+            # A silent sensor: the robot does not know how hard it presses. Stop once (not latched); then only
+            # motion away from contact is allowed until samples come back.
+            self._retreat_until = -math.inf
+            reason = "force sensor stale: robot stopped, motion toward contact refused"
+            self._halt(Status.FORCE_STALE, reason)
+            self._intervene(Status.FORCE_STALE, reason)
+        elif level == ForceLevel.DANGER and not stale and not was_danger:
+            reason = "danger-level force: motion pressing harder removed"
+            if reaction.retract_distance > 0 and reaction.retract_speed > 0:
+                self._retreat_until = now + reaction.retract_distance / reaction.retract_speed
+                reason += f", retracting {1000 * reaction.retract_distance:.1f} mm"
+            self._set(Status.FORCE_DANGER, reason)
+            self._intervene(Status.FORCE_DANGER, reason)
 
     # ---------------------------------------------------------------- commands and control cycles
 
@@ -239,7 +272,7 @@ class Supervisor:
             self.counters.rejected += 1
             return Decision(np.zeros(6), False, self._latched, self._latch_reason)
         self._target = np.concatenate([cmd.linear, cmd.angular]).astype(float)
-        decision = self._limit(self._target, tcp_pose)
+        decision = self._limit(self._target, tcp_pose, now)
         self.counters.applied += 1
         decision.accepted = True
         return decision
@@ -259,8 +292,8 @@ class Supervisor:
                 f"(timeout {1000 * self.config.command_timeout:.0f} ms)",
             )
         if not self._deadman:
-            return self._retreat_only(tcp_pose)
-        return self._limit(self._target, tcp_pose)
+            return self._retreat_only(tcp_pose, now)
+        return self._limit(self._target, tcp_pose, now)
 
     # ---------------------------------------------------------------- internals
 
@@ -303,16 +336,25 @@ class Supervisor:
         axis = rotvec_to_matrix(tcp_pose[3:]) @ np.asarray(self.config.force.contact_axis, dtype=float)
         return axis / max(float(np.linalg.norm(axis)), 1e-9)
 
-    def _retreat_only(self, tcp_pose: Vector) -> Decision:
-        if self._retreat_left > 0.0 and self.config.force.retract_speed > 0:
-            direction = -self._contact_direction(tcp_pose)
-            twist = np.concatenate([direction * self.config.force.retract_speed, np.zeros(3)])
-            self._retreat_left = max(0.0, self._retreat_left - self.config.force.retract_speed * self.period)
-            return Decision(twist, True, Status.FORCE_DANGER, "retracting from danger-level force")
+    def _retreat_only(self, tcp_pose: Vector, now: float) -> Decision:
+        """No operator motion: only the retreat from danger, if one is under way."""
+        if now < self._retreat_until:
+            twist = np.zeros(6)
+            self._clip_force(twist, tcp_pose, now)
+            self._clip_workspace(twist, tcp_pose)
+            self.moving = bool(np.any(twist))
+            self._set(Status.FORCE_DANGER, "retracting from danger-level force")
+            return Decision(twist, True, Status.FORCE_DANGER, "retracting from danger-level force", ["force"])
         self.moving = False
         return Decision(np.zeros(6), False, self.status, self.reason)
 
-    def _limit(self, target: Vector, tcp_pose: Vector) -> Decision:
+    def _intervene(self, status: str, reason: str) -> None:
+        if status != self._force_active:
+            self._force_active = status
+            self.interventions.append((status, reason))
+            del self.interventions[:-64]  # bounded if nobody drains it
+
+    def _limit(self, target: Vector, tcp_pose: Vector, now: float) -> Decision:
         limits = self.limits
         twist = target.copy()
         hit: list[str] = []
@@ -327,13 +369,17 @@ class Supervisor:
             twist[3:] *= limits.angular / ang_speed
             hit.append("angular_speed")
             status, reason = Status.SPEED_LIMITED, f"angular speed {ang_speed:.2f} rad/s clipped to {limits.angular:.2f} rad/s ({self.profile})"
-        if self._clip_workspace(twist, tcp_pose):
-            hit.append("workspace")
-            status, reason = Status.WORKSPACE, "velocity leaving the workspace box removed"
-        force_status = self._clip_force(twist, tcp_pose)
+        # Force before workspace: a retreat adds velocity, and the box must still bound it.
+        force_status = self._clip_force(twist, tcp_pose, now)
         if force_status is not None:
             hit.append("force")
             status, reason = force_status
+            self._intervene(status, reason)
+        else:
+            self._force_active = ""
+        if self._clip_workspace(twist, tcp_pose):
+            hit.append("workspace")
+            status, reason = Status.WORKSPACE, "velocity leaving the workspace box removed"
         self.limits_hit = hit
         self.moving = bool(np.any(np.abs(twist) > 1e-9))
         self._set(status, reason)
@@ -343,7 +389,9 @@ class Supervisor:
         """Remove velocity components that would carry the tool out of the box: the allowed speed toward a
         face is what still stops in time at the stop deceleration, ``v ≤ √(2·a·d)`` and ``v·T ≤ d``."""
         box = self.config.workspace
-        decel = self.config.stop_deceleration
+        # A reduced target is reached at the command acceleration, a stop at the stop deceleration: assume the
+        # slower of the two, halved as a margin for the one-cycle lag of a sampled loop.
+        decel = 0.5 * min(self.config.max_linear_acceleration, self.config.stop_deceleration)
         horizon = 2.0 * self.period  # two control periods of reaction
         clipped = False
         for i in range(3):
@@ -360,17 +408,33 @@ class Supervisor:
                 clipped = True
         return clipped
 
-    def _clip_force(self, twist: Vector, tcp_pose: Vector) -> tuple[str, str] | None:
-        if not self.config.force.enabled or not self.force_required:
+    def _clip_force(self, twist: Vector, tcp_pose: Vector, now: float) -> tuple[str, str] | None:
+        """Shape ``twist`` (in place) by the force state; return (status, reason) if it intervened."""
+        reaction = self.config.force
+        if not reaction.enabled or not self.force_required:
             return None
-        danger = self.force_level == ForceLevel.DANGER
-        if not (danger or self.force_stale):
-            return None
-        n = self._contact_direction(tcp_pose)
+        n = self._contact_direction(tcp_pose)  # pressing direction in the base frame
         toward = float(np.dot(twist[:3], n))
-        if toward <= 0:
-            return None
-        twist[:3] -= toward * n
         if self.force_stale:
+            if toward <= 0:
+                return None
+            twist[:3] -= toward * n
             return Status.FORCE_STALE, "force sensor stale: motion toward contact refused"
-        return Status.FORCE_DANGER, "danger-level force: motion pressing harder removed"
+        result: tuple[str, str] | None = None
+        if self.force_level == ForceLevel.DANGER and toward > 0:
+            twist[:3] -= toward * n
+            toward = 0.0
+            result = Status.FORCE_DANGER, "danger-level force: motion pressing harder removed"
+        elif self.force_level == ForceLevel.CAUTION:
+            decel = min(self.config.max_linear_acceleration, self.config.stop_deceleration)
+            cap = reaction.approach_speed_cap(decel)
+            if toward > cap:
+                twist[:3] -= (toward - cap) * n
+                toward = cap
+                result = Status.FORCE_CAUTION, f"caution-level force: approach slowed to {1000 * cap:.1f} mm/s"
+        # The retreat runs its full distance even once the level has dropped (it drops within a fraction of
+        # a millimetre, by the hysteresis): a retreat cut short would leave the probe at the red threshold.
+        if now < self._retreat_until and toward > -reaction.retract_speed:
+            twist[:3] += (-reaction.retract_speed - toward) * n
+            result = Status.FORCE_DANGER, "danger-level force: retracting along the contact normal"
+        return result

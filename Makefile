@@ -1,0 +1,41 @@
+# The two commands of the README:
+#   make demo   installs iorthand into .venv and runs the whole system on this machine
+#   make test   installs the test dependencies too (system packages when root) and runs the tests
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+PIP    := $(BIN)/python -m pip
+
+.PHONY: demo test install install-test lint bench clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install --quiet --upgrade pip
+
+$(VENV)/.installed: $(BIN)/python pyproject.toml edge/pyproject.toml cloud/pyproject.toml operator/pyproject.toml
+	$(PIP) install --quiet -e . -e "edge[ur]" -e cloud -e operator
+	touch $@
+
+$(VENV)/.installed-test: $(VENV)/.installed
+	$(PIP) install --quiet -e ".[test]"
+	touch $@
+
+install: $(VENV)/.installed
+
+install-test: $(VENV)/.installed-test
+	scripts/install-test-deps.sh
+
+demo: install
+	$(BIN)/iorthand demo
+
+test: install-test
+	$(BIN)/python -m pytest
+
+lint: install-test
+	$(BIN)/ruff check .
+
+bench: install-test
+	$(BIN)/python benchmarks/run_all.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info */*.egg-info .pytest_cache .ruff_cache

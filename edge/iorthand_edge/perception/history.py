@@ -1,0 +1,103 @@
+"""Recent robot poses and servo angles, interpolated at a camera frame's capture time.
+
+A frame is exposed at one instant; the robot state arrives at another rate (125 Hz) and the arm keeps
+moving, so the pose to chain with is the one at the frame's timestamp, not the latest one received.
+Both histories are thread-safe: the agent's control loop adds, the perception worker reads.
+"""
+
+from __future__ import annotations
+
+import bisect
+import threading
+from collections.abc import Callable
+from typing import Generic, TypeVar
+
+import numpy as np
+
+from iorthand.geometry import Matrix, interpolate_pose, is_rigid
+
+S = TypeVar("S")
+
+
+class _TimedHistory(Generic[S]):
+    """Samples ordered by time, kept for ``span_s``; :meth:`at` interpolates between the two around ``t``."""
+
+    def __init__(
+        self, interpolate: Callable[[S, S, float], S], span_s: float, max_extrapolation_s: float | None
+    ) -> None:
+        self._interpolate = interpolate
+        self._span_ns = int(span_s * 1e9)
+        self._max_extrapolation_ns = None if max_extrapolation_s is None else int(max_extrapolation_s * 1e9)
+        self._times: list[int] = []
+        self._samples: list[S] = []
+        self._lock = threading.Lock()
+
+    def _add(self, t_ns: int, sample: S) -> None:
+        with self._lock:
+            if self._times and t_ns <= self._times[-1]:
+                # Out-of-order or repeated samples (a re-sent state) would break the bisection: insert in place.
+                i = bisect.bisect_left(self._times, t_ns)
+                if i < len(self._times) and self._times[i] == t_ns:
+                    self._samples[i] = sample
+                    return
+                self._times.insert(i, t_ns)
+                self._samples.insert(i, sample)
+            else:
+                self._times.append(t_ns)
+                self._samples.append(sample)
+            cutoff = self._times[-1] - self._span_ns
+            drop = bisect.bisect_left(self._times, cutoff)
+            # Keep one sample older than the span so a frame near the cutoff can still be bracketed.
+            if drop > 1:
+                del self._times[: drop - 1]
+                del self._samples[: drop - 1]
+
+    def at(self, t_ns: int) -> S | None:
+        """The sample interpolated at ``t_ns``; None if ``t_ns`` is outside what the history can answer for."""
+        with self._lock:
+            if not self._times:
+                return None
+            if t_ns >= self._times[-1]:
+                # A frame slightly newer than the last state (states arrive late): hold the newest sample.
+                limit = self._max_extrapolation_ns
+                return self._samples[-1] if limit is None or t_ns - self._times[-1] <= limit else None
+            i = bisect.bisect_right(self._times, t_ns)
+            if i == 0:
+                return None
+            t0, t1 = self._times[i - 1], self._times[i]
+            s0, s1 = self._samples[i - 1], self._samples[i]
+        return self._interpolate(s0, s1, (t_ns - t0) / (t1 - t0))
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._times)
+
+
+class PoseHistory(_TimedHistory[Matrix]):
+    """T_base_tcp over time; interpolation is linear in translation and geodesic in rotation."""
+
+    def __init__(self, span_s: float = 2.0, max_extrapolation_s: float = 0.05) -> None:
+        super().__init__(interpolate_pose, span_s, max_extrapolation_s)
+
+    def add(self, t_ns: int, t_base_tcp: np.ndarray) -> None:
+        pose = np.array(t_base_tcp, dtype=float)
+        if not is_rigid(pose, tol=1e-5):
+            raise ValueError("T_base_tcp must be a rigid 4×4 transform (convert UR poses with pose_to_matrix)")
+        self._add(t_ns, pose)
+
+
+def _lerp_angles(a: tuple[float, float], b: tuple[float, float], s: float) -> tuple[float, float]:
+    return (a[0] + (b[0] - a[0]) * s, a[1] + (b[1] - a[1]) * s)
+
+
+class ServoHistory(_TimedHistory[tuple[float, float]]):
+    """(pan, tilt) in rad over time, linearly interpolated.
+
+    Servo states are published on change, so by default the newest angles hold for any later time.
+    """
+
+    def __init__(self, span_s: float = 2.0, max_extrapolation_s: float | None = None) -> None:
+        super().__init__(_lerp_angles, span_s, max_extrapolation_s)
+
+    def add(self, t_ns: int, pan: float, tilt: float) -> None:
+        self._add(t_ns, (float(pan), float(tilt)))

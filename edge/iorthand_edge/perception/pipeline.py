@@ -1,0 +1,252 @@
+"""The perception pipeline: frame → ArUco → IPPE pose → chain to the base frame → filter → ``Markers``.
+
+:meth:`PerceptionPipeline.start` runs capture and processing in a named worker thread that never blocks the
+caller; :meth:`PerceptionPipeline.process` does one frame synchronously (tests, benchmarks). Configuration
+problems (missing or wrong-size calibration, a bad file) raise :class:`PerceptionError` from the constructor
+with the reason; a camera that cannot be opened or stops delivering ends the worker, logged, with the reason
+in :attr:`PerceptionPipeline.failure` — the rest of the agent keeps running.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from iorthand.geometry import compose, flatten, pose_to_matrix
+from iorthand.protocol import MarkerPose, Markers, Sequencer
+
+from .calibration import CalibrationError, load_handeye, load_intrinsics
+from .camera import CameraError, CameraSource, Frame, make_camera
+from .chain import CameraChain
+from .config import PerceptionConfig, SyntheticCameraConfig
+from .detector import detect_markers, estimate_marker_pose, make_aruco_detector
+from .filter import MarkerFilters
+from .synthetic import camera_matrix
+
+log = logging.getLogger(__name__)
+
+_FPS_WINDOW = 30  # frames over which the published frame rate is measured
+_WARN_EVERY_S = 5.0
+
+
+class PerceptionError(RuntimeError):
+    """The pipeline cannot run; the message says why."""
+
+
+@dataclass
+class StageTimes:
+    """Milliseconds spent in each stage of the last processed frame."""
+
+    convert: float = 0.0
+    detect: float = 0.0
+    pose: float = 0.0
+    chain: float = 0.0
+    filter: float = 0.0
+    total: float = 0.0
+
+
+@dataclass
+class PipelineStats:
+    frames: int = 0
+    frames_without_robot_pose: int = 0
+    publish_errors: int = 0
+    stages: StageTimes = field(default_factory=StageTimes)
+
+
+class PerceptionPipeline:
+    def __init__(
+        self,
+        config: PerceptionConfig,
+        robot_pose_at: Callable[[int], np.ndarray | None],
+        servo_angles_at: Callable[[int], tuple[float, float]],
+        publish: Callable[[Markers], None],
+        camera: CameraSource | None = None,
+    ) -> None:
+        self.config = config
+        self.robot_pose_at = robot_pose_at
+        self.servo_angles_at = servo_angles_at
+        self.publish = publish
+        self.image_size = config.camera.image_size()
+        self.camera_matrix, self.dist_coeffs, self.calibrated_size = self._intrinsics(config)
+        self.chain = self._chain(config)
+        self.detector = make_aruco_detector(config.detector)
+        self.filters = MarkerFilters(config.filter)
+        self.stats = PipelineStats()
+        self.failure: str | None = None
+        self._camera = camera
+        self._sequencer = Sequencer()
+        self._recent_frame_times: deque[int] = deque(maxlen=_FPS_WINDOW)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_warning = 0.0
+
+    # -- set-up ------------------------------------------------------------------------------------------
+
+    def _intrinsics(self, config: PerceptionConfig) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+        if config.intrinsics_file is not None:
+            try:
+                intrinsics = load_intrinsics(config.intrinsics_file, self.image_size)
+            except CalibrationError as exc:
+                raise PerceptionError(str(exc)) from None
+            return intrinsics.matrix(), intrinsics.distortion(), intrinsics.image_size
+        if isinstance(config.camera, SyntheticCameraConfig):
+            c = config.camera
+            return camera_matrix(c), np.zeros(5), (c.width, c.height)
+        raise PerceptionError(
+            f"the {type(config.camera).__name__} needs intrinsics_file (make one with `iorthand calibrate intrinsics`)"
+        )
+
+    def _chain(self, config: PerceptionConfig) -> CameraChain:
+        if config.handeye_file is None:
+            return CameraChain(config.geometry)
+        try:
+            handeye = load_handeye(config.handeye_file, self.calibrated_size)
+        except CalibrationError as exc:
+            raise PerceptionError(str(exc)) from None
+        # Re-derive T_tilt_camera with this config's mount so a changed mount geometry cannot go unnoticed
+        # behind a stale value stored in the file.
+        chain = CameraChain(config.geometry)
+        chain.t_tilt_camera = chain.tilt_camera_from_tcp_camera(
+            pose_to_matrix(handeye.tcp_camera), handeye.pan, handeye.tilt
+        )
+        return chain
+
+    # -- one frame ---------------------------------------------------------------------------------------
+
+    def process(self, frame: Frame) -> Markers:
+        """Detect, estimate, chain and filter the markers of one frame; the message is stamped with its time."""
+        if frame.size != self.calibrated_size:
+            raise PerceptionError(
+                f"frame is {frame.size[0]}×{frame.size[1]} but the intrinsics are for "
+                f"{self.calibrated_size[0]}×{self.calibrated_size[1]}; recalibrate or change the camera size"
+            )
+        times = StageTimes()
+        start = time.perf_counter()
+        gray = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+        mark = time.perf_counter()
+        times.convert = (mark - start) * 1e3
+        detections = detect_markers(self.detector, gray)
+        now = time.perf_counter()
+        times.detect, mark = (now - mark) * 1e3, now
+
+        markers: list[MarkerPose] = []
+        t_base_tcp = self.robot_pose_at(frame.t_ns) if detections else None
+        if detections and t_base_tcp is None:
+            self.stats.frames_without_robot_pose += 1
+            self._warn(
+                "no robot pose at the frame's capture time: markers seen but not published (is the robot state flowing?)"
+            )
+        elif detections:
+            pan, tilt = self.servo_angles_at(frame.t_ns)
+            t_base_camera = self.chain.base_camera(t_base_tcp, pan, tilt)
+            r_camera_base = t_base_camera[:3, :3].T
+            for detection in detections:
+                estimate = estimate_marker_pose(
+                    detection.corners,
+                    self.config.markers.size_of(detection.id),
+                    self.camera_matrix,
+                    self.dist_coeffs,
+                    self._expected_normal(detection.id, r_camera_base),
+                    self.config.detector.ambiguity_ratio,
+                )
+                now = time.perf_counter()
+                times.pose, mark = times.pose + (now - mark) * 1e3, now
+                if estimate is None:
+                    continue
+                raw = compose(t_base_camera, estimate.t_camera_marker)
+                now = time.perf_counter()
+                times.chain, mark = times.chain + (now - mark) * 1e3, now
+                filtered = self.filters.update(detection.id, frame.t_ns, raw)
+                now = time.perf_counter()
+                times.filter, mark = times.filter + (now - mark) * 1e3, now
+                markers.append(
+                    MarkerPose(
+                        id=detection.id,
+                        pose=flatten(filtered),
+                        raw=flatten(raw),
+                        reprojection_error=estimate.reprojection_error,
+                        pixel_size=estimate.pixel_size,
+                    )
+                )
+        times.total = (time.perf_counter() - start) * 1e3
+        self.stats.frames += 1
+        self.stats.stages = times
+        self._recent_frame_times.append(frame.t_ns)
+        return Markers(
+            seq=self._sequencer.next(),
+            t=frame.t_ns,
+            markers=markers,
+            frames=self.stats.frames,
+            fps=self._fps(),
+            processing_ms=times.total,
+        )
+
+    def _expected_normal(self, marker_id: int, r_camera_base: np.ndarray) -> np.ndarray | None:
+        normal = self.config.markers.expected_normals.get(marker_id, self.config.markers.expected_normal)
+        if normal is None:
+            return None
+        n = r_camera_base @ np.asarray(normal, dtype=float)
+        return n / np.linalg.norm(n)
+
+    def _fps(self) -> float:
+        times = self._recent_frame_times
+        if len(times) < 2 or times[-1] <= times[0]:
+            return 0.0
+        return (len(times) - 1) / ((times[-1] - times[0]) / 1e9)
+
+    def _warn(self, message: str) -> None:
+        now = time.monotonic()
+        if now - self._last_warning >= _WARN_EVERY_S:
+            self._last_warning = now
+            log.warning("perception: %s", message)
+
+    # -- worker ------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Open the camera and process frames in the ``perception`` thread; returns at once."""
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._stop.clear()
+        self.failure = None
+        self._thread = threading.Thread(target=self._run, name="perception", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.warning("perception: worker still blocked in the camera after %.1f s; left as a daemon", timeout)
+            self._thread = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def _run(self) -> None:
+        camera = self._camera or make_camera(self.config, self.robot_pose_at, self.servo_angles_at)
+        try:
+            camera.open()
+            log.info("perception: %s open", camera.description)
+            while not self._stop.is_set():
+                message = self.process(camera.read())
+                try:
+                    self.publish(message)
+                except Exception:  # a failing publisher must not end perception; count and log it
+                    self.stats.publish_errors += 1
+                    log.exception("perception: publishing markers failed")
+        except (CameraError, PerceptionError) as exc:
+            self.failure = str(exc)
+            log.error("perception stopped: %s", exc)
+        except Exception as exc:  # anything else is a bug: stop this worker, not the agent
+            self.failure = f"internal error: {exc!r}"
+            log.exception("perception stopped by an internal error")
+        finally:
+            camera.close()

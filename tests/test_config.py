@@ -1,0 +1,69 @@
+"""Configuration errors name the file, the key and what was expected."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from iorthand.config import ConfigError, load
+from iorthand_edge.config import EdgeConfig, load_edge_config
+from iorthand_edge.robots.config import SimRobotConfig, URRobotConfig
+
+GOOD = """
+robot_id: lab1
+zenoh: {mode: client, connect: ["tcp/127.0.0.1:7447"]}
+robot: {kind: sim}
+safety: {auto_arm: true, profile: local}
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "edge.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_good_config_loads_with_defaults(tmp_path: Path) -> None:
+    cfg = load_edge_config(write(tmp_path, GOOD))
+    assert cfg.robot_id == "lab1"
+    assert isinstance(cfg.robot, SimRobotConfig)
+    assert cfg.safety.command_timeout == 0.15
+    assert cfg.safety.profiles["remote"].linear == 0.008
+    assert cfg.safety.profiles["local"].linear == 0.030
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "expected"),
+    [
+        (GOOD.replace("lab1", "Lab 1"), "", "robot id"),
+        (GOOD.replace("auto_arm: true", "auto_arm: yes please"), "safety.auto_arm", "true or false"),
+        (GOOD + "safety_rate_hz: -3\n", "safety_rate_hz", "at least"),
+        (GOOD.replace("kind: sim", "kind: kuka"), "robot.kind", "one of"),
+        (GOOD.replace("profile: local", "profile: turbo"), "safety", "profile 'turbo'"),
+        (GOOD + "colour: red\n", "colour", "unknown key"),
+        (GOOD.replace("robot_id: lab1\n", ""), "robot_id", "missing"),
+        (GOOD.replace('connect: ["tcp/127.0.0.1:7447"]', "connect: []"), "zenoh", "router endpoint"),
+        (GOOD.replace("kind: sim", "kind: ur") , "", "auto_arm is allowed only"),
+        (GOOD + "safety: {command_timeout: .nan}\n", "safety.command_timeout", "finite"),
+    ],
+)
+def test_errors_name_file_key_and_expectation(tmp_path: Path, text: str, key: str, expected: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_edge_config(path)
+    assert err.value.source == str(path)
+    assert err.value.key == key
+    assert expected in str(err.value)
+
+
+def test_unreadable_and_corrupt_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read"):
+        load(tmp_path / "nope.yaml", EdgeConfig)
+    with pytest.raises(ConfigError, match=r"not valid YAML .*line 2"):
+        load(write(tmp_path, "robot_id: a\n  zenoh: [\n"), EdgeConfig)
+
+
+def test_ur_variant_has_its_own_dataclass(tmp_path: Path) -> None:
+    cfg = load_edge_config(write(tmp_path, GOOD.replace("kind: sim", "kind: ur, host: 10.0.0.5").replace("auto_arm: true", "auto_arm: false")))
+    assert isinstance(cfg.robot, URRobotConfig) and cfg.robot.host == "10.0.0.5"

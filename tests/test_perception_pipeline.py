@@ -1,0 +1,136 @@
+"""The pipeline as the agent uses it: config files, the worker thread, and bad input."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from iorthand_edge.perception.camera import Frame
+from iorthand_edge.perception.chain import CameraChain
+from iorthand_edge.perception.config import PerceptionConfig
+from iorthand_edge.perception.pipeline import PerceptionError, PerceptionPipeline
+from iorthand_edge.perception.synthetic import SyntheticCamera, look_at
+
+from iorthand.config import ConfigError, from_dict, load
+from iorthand.geometry import compose, invert
+from iorthand.protocol import Markers
+
+ROOT = Path(__file__).resolve().parents[1]
+PHANTOM = ROOT / "configs" / "scene-phantom.yaml"
+INTRINSICS = ROOT / "configs" / "calibration" / "intrinsics-640x480.yaml"
+HANDEYE = ROOT / "configs" / "calibration" / "handeye.yaml"
+SERVO = (0.2, -0.1)
+
+
+def robot_over_phantom(config: PerceptionConfig) -> np.ndarray:
+    """T_base_tcp that puts the camera 0.3 m above the phantom's markers, looking at them."""
+    t_base_camera = look_at(np.array([0.45, 0.1, 0.3]), np.array([0.40, 0.05, 0.02]), roll=0.0)
+    return compose(t_base_camera, invert(CameraChain(config.geometry).tcp_camera(*SERVO)))
+
+
+def test_example_config_runs_in_its_own_thread_and_publishes() -> None:
+    config = load(PHANTOM, PerceptionConfig)
+    config.intrinsics_file, config.handeye_file = INTRINSICS, HANDEYE  # the example calibration files
+    tcp = robot_over_phantom(config)
+    received: list[Markers] = []
+    got_three = threading.Event()
+
+    def publish(message: Markers) -> None:
+        assert threading.current_thread().name == "perception"
+        received.append(message)
+        if len(received) >= 3:
+            got_three.set()
+
+    pipeline = PerceptionPipeline(config, lambda _t: tcp, lambda _t: SERVO, publish)
+    started = time.monotonic()
+    pipeline.start()
+    assert time.monotonic() - started < 0.1  # start never blocks the caller
+    try:
+        assert got_three.wait(10.0), f"no messages: {pipeline.failure}"
+    finally:
+        pipeline.stop()
+    assert not pipeline.running and pipeline.failure is None
+    last = received[-1]
+    assert sorted(m.id for m in last.markers) == [3, 7, 11]
+    assert [m.seq for m in received[:3]] == [1, 2, 3]
+    assert received[0].t < received[1].t < received[2].t
+    assert last.frames >= 3 and last.fps > 0 and last.processing_ms > 0
+    Markers.decode(last.encode())  # valid on the wire
+
+
+def test_publish_failure_does_not_stop_perception() -> None:
+    config = load(PHANTOM, PerceptionConfig)
+    tcp = robot_over_phantom(config)
+    calls = threading.Semaphore(0)
+
+    def publish(_message: Markers) -> None:
+        calls.release()
+        raise ConnectionError("zenoh session closed")
+
+    pipeline = PerceptionPipeline(config, lambda _t: tcp, lambda _t: SERVO, publish)
+    pipeline.start()
+    try:
+        assert all(calls.acquire(timeout=5.0) for _ in range(3))
+        assert pipeline.running
+    finally:
+        pipeline.stop()
+    assert pipeline.stats.publish_errors >= 3
+
+
+def test_unreadable_camera_fails_the_worker_with_the_reason() -> None:
+    config = from_dict(
+        {"camera": {"kind": "device", "path": "/nonexistent/video9"}, "intrinsics_file": str(INTRINSICS)},
+        PerceptionConfig,
+    )
+    pipeline = PerceptionPipeline(config, lambda _t: np.eye(4), lambda _t: (0.0, 0.0), lambda _m: None)
+    pipeline.start()
+    deadline = time.monotonic() + 5.0
+    while pipeline.running and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not pipeline.running
+    assert pipeline.failure is not None and "cannot open camera /nonexistent/video9" in pipeline.failure
+
+
+def test_calibration_for_another_image_size_is_refused() -> None:
+    config = from_dict(
+        {"camera": {"kind": "device", "width": 1280, "height": 720}, "intrinsics_file": str(INTRINSICS)},
+        PerceptionConfig,
+    )
+    with pytest.raises(PerceptionError, match="made for 640×480 images but the camera delivers 1280×720"):
+        PerceptionPipeline(config, lambda _t: None, lambda _t: (0.0, 0.0), lambda _m: None)
+
+
+def test_real_camera_without_intrinsics_is_refused() -> None:
+    config = from_dict({"camera": {"kind": "device"}}, PerceptionConfig)
+    with pytest.raises(PerceptionError, match="needs intrinsics_file"):
+        PerceptionPipeline(config, lambda _t: None, lambda _t: (0.0, 0.0), lambda _m: None)
+
+
+def test_corrupt_files_name_the_file_and_the_problem(tmp_path: Path) -> None:
+    broken = tmp_path / "perception.yaml"
+    broken.write_text("camera: {kind: synthetic, width: [640\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load(broken, PerceptionConfig)
+    wrong = tmp_path / "wrong.yaml"
+    wrong.write_text("detector: {dictionary: DICT_9X9_7}\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="unknown ArUco dictionary"):
+        load(wrong, PerceptionConfig)
+    calibration = tmp_path / "intrinsics.yaml"
+    calibration.write_text("image_width: 640\nimage_height: 480\ncamera_matrix: [[1, 2]]\n", encoding="utf-8")
+    config = from_dict({"intrinsics_file": str(calibration)}, PerceptionConfig)
+    with pytest.raises(PerceptionError, match=r"intrinsics.yaml: camera_matrix: expected 3 values"):
+        PerceptionPipeline(config, lambda _t: None, lambda _t: (0.0, 0.0), lambda _m: None)
+
+
+def test_frame_of_the_wrong_size_is_refused_and_no_pose_means_no_markers() -> None:
+    config = load(PHANTOM, PerceptionConfig)
+    pipeline = PerceptionPipeline(config, lambda _t: None, lambda _t: (0.0, 0.0), lambda _m: None)
+    with pytest.raises(PerceptionError, match="frame is 1280×720"):
+        pipeline.process(Frame(np.zeros((720, 1280), np.uint8), 1, 0))
+    tcp = robot_over_phantom(config)
+    frame = SyntheticCamera.from_config(config, lambda _t: tcp, lambda _t: SERVO).capture(10**18)
+    message = pipeline.process(frame)  # the robot pose is unknown at that time: nothing is published as a pose
+    assert message.markers == [] and pipeline.stats.frames_without_robot_pose == 1

@@ -1,0 +1,126 @@
+"""Protocol: every message round-trips; every kind of bad input is rejected with the field named."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import msgpack
+import pytest
+
+from iorthand import keys, protocol
+from iorthand.protocol import DecodeError, ForceLevel, Message, TwistCommand
+
+ALL_MESSAGES = sorted(
+    {cls for cls in vars(protocol).values() if isinstance(cls, type) and issubclass(cls, Message) and cls is not Message},
+    key=lambda c: c.__name__,
+)
+
+
+def sample(cls: type[Message]) -> Message:
+    """An instance with non-default values in every field that has a sensible one."""
+    msg = cls()
+    for f in dataclasses.fields(cls):
+        value = getattr(msg, f.name)
+        if isinstance(value, bool):
+            setattr(msg, f.name, not value)
+        elif isinstance(value, list) and value and isinstance(value[0], float):
+            setattr(msg, f.name, [0.001 * (i + 1) for i in range(len(value))])
+    if cls is protocol.VideoFrame:
+        msg.width, msg.height, msg.data = 640, 480, b"\xff\xd8jpeg"
+    if cls is protocol.Markers:
+        msg.markers = [protocol.MarkerPose(id=7, reprojection_error=0.3, pixel_size=55.0)]
+    return msg.stamp(42)
+
+
+@pytest.mark.parametrize("cls", ALL_MESSAGES, ids=lambda c: c.__name__)
+def test_every_message_round_trips(cls: type[Message]) -> None:
+    msg = sample(cls)
+    decoded = cls.decode(msg.encode())
+    assert decoded == msg
+    assert decoded.seq == 42 and decoded.t > 0
+
+
+def twist_map(**changes: object) -> dict:
+    data = {"v": 1, "seq": 3, "t": 1_700_000_000_000_000_000, "operator": "op", "linear": [0.01, 0.0, 0.0],
+            "angular": [0.0, 0.0, 0.0], "deadman": True}
+    data.update(changes)
+    return data
+
+
+@pytest.mark.parametrize(
+    ("changes", "field", "problem"),
+    [
+        ({"linear": [0.0, "x", 0.0]}, "linear[1]", "expected float"),
+        ({"deadman": 1}, "deadman", "expected bool"),
+        ({"operator": 5}, "operator", "expected str"),
+        ({"linear": [math.nan, 0.0, 0.0]}, "linear[0]", "finite"),
+        ({"angular": [0.0, math.inf, 0.0]}, "angular[1]", "finite"),
+        ({"linear": [0.0, 0.0]}, "linear", "expected 3 elements"),
+        ({"linear": [50.0, 0.0, 0.0]}, "linear[0]", "above the maximum"),
+        ({"seq": -1}, "seq", "below the minimum"),
+        ({"t": 2**63}, "t", "out of the 64-bit range"),
+        ({"v": 2}, "v", "unknown schema version"),
+        ({"surprise": 1}, "surprise", "unknown field"),
+        ({"operator": "x" * 65}, "operator", "exceeds"),
+    ],
+)
+def test_bad_fields_are_rejected_by_name(changes: dict, field: str, problem: str) -> None:
+    with pytest.raises(DecodeError) as err:
+        TwistCommand.decode(msgpack.packb(twist_map(**changes)))
+    assert err.value.field == field
+    assert problem in str(err.value)
+    assert str(err.value).startswith(f"TwistCommand.{field}")
+
+
+@pytest.mark.parametrize("missing", ["v", "seq", "t", "operator", "linear", "angular", "deadman"])
+def test_missing_fields_are_named(missing: str) -> None:
+    data = twist_map()
+    del data[missing]
+    with pytest.raises(DecodeError) as err:
+        TwistCommand.decode(msgpack.packb(data))
+    assert err.value.field == missing
+    assert "missing" in str(err.value)
+
+
+@pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb([1, 2]), msgpack.packb("text"), b"\xdd\xff\xff\xff\xff"])
+def test_garbage_payloads_are_rejected(payload: bytes) -> None:
+    with pytest.raises(DecodeError) as err:
+        TwistCommand.decode(payload)
+    assert err.value.field == "payload"
+
+
+def test_oversized_payload_rejected_before_parsing() -> None:
+    with pytest.raises(DecodeError, match="exceeds the limit"):
+        TwistCommand.decode(b"\x00" * (protocol.MAX_PAYLOAD + 1))
+
+
+def test_encode_refuses_what_decode_would_refuse() -> None:
+    with pytest.raises(DecodeError):
+        TwistCommand(linear=[math.nan, 0, 0]).validate()
+
+
+def test_nested_marker_errors_name_the_element() -> None:
+    msg = sample(protocol.Markers)
+    data = msgpack.unpackb(msg.encode())
+    data["markers"][0]["pose"][3] = math.inf
+    with pytest.raises(DecodeError) as err:
+        protocol.Markers.decode(msgpack.packb(data))
+    assert "markers[0]" in str(err.value) and "pose[3]" in str(err.value)
+
+
+def test_force_level_codes_are_fixed() -> None:
+    # The reference implementation shipped these inverted between robot and app: pin them.
+    assert (ForceLevel.SAFE, ForceLevel.CAUTION, ForceLevel.DANGER) == (0, 1, 2)
+    assert protocol.FORCE_LEVEL_COLOURS[ForceLevel.DANGER] == "red"
+
+
+def test_keys_are_built_in_one_place() -> None:
+    k = keys.RobotKeys("ur3e-lab_1")
+    assert k.key(keys.CMD_TWIST) == "iorthand/ur3e-lab_1/cmd/twist"
+    assert keys.split_key(k.key(keys.STATE_ROBOT)) == ("ur3e-lab_1", "state/robot")
+    assert protocol.message_type_for(k.key(keys.STATE_ROBOT)) is protocol.RobotState
+    assert protocol.message_type_for("iorthand/_twin/x/snapshot") is None
+    for bad in ("UR3", "a/b", "", "x" * 65, "*"):
+        with pytest.raises(keys.KeyExprError):
+            keys.RobotKeys(bad)

@@ -1,0 +1,177 @@
+"""The safety supervisor as pure logic: explicit times, no Zenoh, milliseconds per test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from iorthand.protocol import ForceLevel, Status, TwistCommand
+from iorthand_edge.supervisor import SafetyConfig, Supervisor, WorkspaceBox
+
+POSE = np.array([0.30, 0.0, 0.20, 3.14159, 0.0, 0.0])  # tool pointing down, inside the default box
+T0 = 1_700_000_000.0  # wall clock of the tests, s
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.mono = 100.0
+        self.seq = 0
+
+    def cmd(self, vx: float = 0.005, deadman: bool = True, operator: str = "op1", age: float = 0.0, **kw: object) -> TwistCommand:
+        self.seq += 1
+        c = TwistCommand(operator=operator, linear=[vx, kw.get("vy", 0.0), kw.get("vz", 0.0)], angular=[0.0, 0.0, kw.get("wz", 0.0)], deadman=deadman)
+        return c.stamp(kw.get("seq", self.seq), int((self.wall - age) * 1e9))
+
+    @property
+    def wall(self) -> float:
+        return T0 + self.mono
+
+
+def armed(**cfg: object) -> tuple[Supervisor, Clock]:
+    sv = Supervisor(SafetyConfig(auto_arm=True, **cfg))
+    clock = Clock()
+    ok, _ = sv.acquire("op1", clock.mono)
+    assert ok
+    return sv, clock
+
+
+def test_starts_disarmed_and_remote_can_only_request() -> None:
+    sv = Supervisor(SafetyConfig())
+    c = Clock()
+    sv.acquire("op1", c.mono)
+    d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.DISARMED and not np.any(d.twist)
+    ok, reason = sv.request_arm("op1")
+    assert not ok and "confirmation" in reason and sv.arm_requested and not sv.armed
+    sv.arm()
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+
+
+def test_ownership_is_exclusive_with_reason_and_lease() -> None:
+    sv, c = armed()
+    ok, reason = sv.acquire("op2", c.mono + 1.0)
+    assert not ok and "op1" in reason
+    d = sv.on_command(c.cmd(operator="op2"), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.NOT_OWNER and "op1" in d.reason
+    # The lease runs out without renewal: another operator may take over.
+    ok, _ = sv.acquire("op2", c.mono + sv.config.lease + 0.1)
+    assert ok and sv.owner == "op2"
+
+
+def test_owner_lost_stops_and_latches_until_reacquired() -> None:
+    sv, c = armed()
+    assert np.any(sv.on_command(c.cmd(), c.wall, c.mono, POSE).twist)
+    assert sv.owner_lost("op1", "liveliness lost")
+    assert sv.owner == "" and sv.status == Status.OWNER_LOST
+    assert not np.any(sv.step(c.mono, POSE).twist)
+    sv.acquire("op1", c.mono)
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+
+
+def test_allow_list() -> None:
+    sv = Supervisor(SafetyConfig(auto_arm=True, allowed_operators=["alice"]))
+    ok, reason = sv.acquire("mallory", 0.0)
+    assert not ok and "allow-list" in reason
+    assert sv.acquire("alice", 0.0)[0]
+
+
+def test_deadman_flag_required() -> None:
+    sv, c = armed()
+    d = sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
+    assert d.status == Status.NO_DEADMAN and not np.any(d.twist)
+
+
+def test_command_timeout_zeroes_the_twist() -> None:
+    sv, c = armed()
+    sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert np.any(sv.step(c.mono + 0.149, POSE).twist)
+    d = sv.step(c.mono + 0.151, POSE)
+    assert not np.any(d.twist) and sv.status == Status.COMMAND_TIMEOUT and "150 ms" in sv.reason
+
+
+def test_stale_and_out_of_order_commands_dropped() -> None:
+    sv, c = armed()
+    d = sv.on_command(c.cmd(age=0.6), c.wall, c.mono, POSE)
+    assert d.status == Status.STALE_COMMAND and "old" in d.reason
+    d = sv.on_command(c.cmd(age=-5.0), c.wall, c.mono, POSE)
+    assert d.status == Status.STALE_COMMAND and "future" in d.reason
+    assert sv.on_command(c.cmd(seq=10), c.wall, c.mono, POSE).accepted
+    d = sv.on_command(c.cmd(seq=9), c.wall, c.mono, POSE)
+    assert d.status == Status.OUT_OF_ORDER and not d.accepted
+    d = sv.on_command(c.cmd(seq=10), c.wall, c.mono, POSE)
+    assert d.status == Status.OUT_OF_ORDER  # a replay of the same sequence number
+    assert sv.counters.rejected == 4 and sv.counters.applied == 1
+
+
+@pytest.mark.parametrize(("profile", "limit"), [("remote", 0.008), ("local", 0.030)])
+def test_speed_clipped_to_profile(profile: str, limit: float) -> None:
+    sv, c = armed(profile=profile)
+    d = sv.on_command(c.cmd(vx=0.1, vy=0.1), c.wall, c.mono, POSE)
+    assert d.accepted and d.status == Status.SPEED_LIMITED and "linear_speed" in d.limits_hit
+    assert np.linalg.norm(d.twist[:3]) == pytest.approx(limit)
+    assert d.twist[0] == pytest.approx(d.twist[1])  # direction kept
+    d = sv.on_command(c.cmd(vx=0.0, wz=5.0), c.wall, c.mono, POSE)
+    assert abs(d.twist[5]) == pytest.approx(sv.limits.angular)
+
+
+def test_workspace_removes_outward_velocity_only() -> None:
+    sv, c = armed(workspace=WorkspaceBox(min=[0.1, -0.3, 0.02], max=[0.3, 0.3, 0.45]))
+    at_face = POSE.copy()
+    at_face[0] = 0.3
+    d = sv.on_command(c.cmd(vx=0.006, vy=0.004), c.wall, c.mono, at_face)  # under the 8 mm/s limit
+    assert d.twist[0] == 0.0 and d.twist[1] == pytest.approx(0.004) and d.status == Status.WORKSPACE
+    d = sv.on_command(c.cmd(vx=-0.008), c.wall, c.mono, at_face)
+    assert d.twist[0] == pytest.approx(-0.008)  # inward is free
+    near = POSE.copy()
+    near[0] = 0.3 - 0.00002  # 20 µm from the face: only what still stops in time
+    d = sv.on_command(c.cmd(vx=0.008), c.wall, c.mono, near)
+    assert 0 < d.twist[0] < 0.008
+
+
+def test_stop_latches_until_deadman_released() -> None:
+    sv, c = armed()
+    sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    sv.stop("e-stop")
+    d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.STOPPED and not np.any(d.twist)
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+
+
+def test_fault_refuses_and_needs_reacquire() -> None:
+    sv, c = armed()
+    sv.set_fault("robot link lost")
+    d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert not d.accepted and d.reason == "robot link lost"
+    sv.set_fault("")
+    d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.FAULT  # cleared fault: still latched
+    sv.acquire("op1", c.mono)
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+
+
+def test_force_danger_removes_pressing_component() -> None:
+    sv = Supervisor(SafetyConfig(auto_arm=True), force_required=True)
+    c = Clock()
+    sv.acquire("op1", c.mono)
+    sv.update_force(ForceLevel.SAFE, stale=False)
+    # Tool points down (rotation π about x): pressing is −z in the base frame.
+    assert sv.on_command(c.cmd(vx=0.0, vz=-0.005), c.wall, c.mono, POSE).twist[2] < 0
+    sv.update_force(ForceLevel.DANGER, stale=False)
+    d = sv.on_command(c.cmd(vx=0.004, vz=-0.005), c.wall, c.mono, POSE)
+    assert d.status == Status.FORCE_DANGER and d.twist[2] == pytest.approx(0.0, abs=1e-6)
+    assert d.twist[0] == pytest.approx(0.004)
+    d = sv.on_command(c.cmd(vx=0.0, vz=0.005), c.wall, c.mono, POSE)
+    assert d.twist[2] == pytest.approx(0.005)  # retreat allowed
+
+
+def test_stale_force_stops_then_refuses_contact_motion() -> None:
+    sv = Supervisor(SafetyConfig(auto_arm=True), force_required=True)
+    c = Clock()
+    sv.acquire("op1", c.mono)
+    sv.update_force(ForceLevel.SAFE, stale=False)
+    sv.on_command(c.cmd(vx=0.0, vz=-0.005), c.wall, c.mono, POSE)
+    sv.update_force(ForceLevel.SAFE, stale=True)
+    assert not np.any(sv.step(c.mono, POSE).twist)
+    d = sv.on_command(c.cmd(vx=0.0, vz=-0.005), c.wall, c.mono, POSE)
+    assert d.twist[2] == pytest.approx(0.0, abs=1e-6) and d.status == Status.FORCE_STALE
