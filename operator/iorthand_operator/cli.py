@@ -1,17 +1,24 @@
-"""``iorthand operator ...``: teleoperation from the command line."""
+"""``iorthand operator ...``: teleoperation from the command line.
+
+``iorthand operator --robot R --config configs/operator.yaml`` (no action) opens the console; actions:
+``script FILE.yaml`` (headless, JSON summary), ``move``, ``demo-script``, ``stop``.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 import time
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from iorthand.config import from_dict, load
+from iorthand.config import ConfigError, from_dict, load
 from iorthand.transport import open_session
 from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.config import OperatorConfig
@@ -38,15 +45,88 @@ def operator_config(args: argparse.Namespace) -> OperatorConfig:
         config.zenoh.connect = list(args.connect)
     if getattr(args, "profile", None):
         config.profile = args.profile
+    if getattr(args, "input", None):
+        config.console.input = args.input
+    if getattr(args, "keymap", None):
+        config.console.keymap = args.keymap
+    if getattr(args, "gamepad", None):
+        config.console.gamepad = Path(args.gamepad)
     return config
 
 
 def connect(config: OperatorConfig) -> OperatorClient:
     session = open_session(config.zenoh)
-    return OperatorClient(session, config.robot, config.operator_id, rate_hz=config.rate_hz, release_tail=config.release_tail)
+    return OperatorClient(
+        session, config.robot, config.operator_id, rate_hz=config.rate_hz, release_tail=config.release_tail,
+        link_window=config.console.link_window,
+    )
 
 
-def _run_with_control(args: argparse.Namespace, action) -> int:  # noqa: ANN001
+def json_safe(value: Any) -> Any:
+    """NaN/inf → null, so the printed summary is strict JSON."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def _configs_dir(args: argparse.Namespace) -> Path:
+    return Path(args.config).resolve().parent if getattr(args, "config", None) else Path.cwd() / "configs"
+
+
+def make_device(config: OperatorConfig, configs_dir: Path):
+    """The input device the console settings ask for (a bad keymap or gamepad file fails here, at start)."""
+    from iorthand_operator.inputs.keyboard import KeyboardInput, load_keymap
+
+    settings = config.console
+    if settings.input == "gamepad":
+        from iorthand_operator.inputs.gamepad import GamepadInput
+        from iorthand_operator.inputs.mapping import GamepadConfig
+
+        assert settings.gamepad is not None  # ConsoleSettings.check
+        return GamepadInput(load(settings.gamepad, GamepadConfig))
+    return KeyboardInput(load_keymap(settings.keymap, configs_dir))
+
+
+def _console(args: argparse.Namespace) -> int:
+    config = operator_config(args)
+    try:
+        device = make_device(config, _configs_dir(args))
+    except FileNotFoundError as exc:
+        raise ConfigError("console", "keymap", str(exc)) from None
+    from iorthand_operator.console.app import OperatorConsole
+    from iorthand_operator.console.controller import ConsoleController
+
+    client = connect(config)
+    controller = ConsoleController(client, device, config.console, router=", ".join(config.zenoh.connect))
+    try:
+        try:
+            client.acquire(config.profile)
+        except ControlRefused as exc:
+            # Stay up and show why (the log line is in the console); "e" asks again.
+            log.warning("control refused: %s", exc)
+        client.start()
+        controller.start()
+        return OperatorConsole(controller).run() or 0
+    finally:
+        controller.stop()
+        client.close()
+        client.session.close()
+
+
+def _script(args: argparse.Namespace) -> int:
+    from iorthand_operator.script import Script, run_script
+
+    script = load(args.file, Script)
+    if script.profile and not getattr(args, "profile", None):
+        args.profile = script.profile
+    return _run_with_control(args, lambda c: run_script(c, script))
+
+
+def _run_with_control(args: argparse.Namespace, action) -> int:
     config = operator_config(args)
     client = connect(config)
     try:
@@ -58,7 +138,7 @@ def _run_with_control(args: argparse.Namespace, action) -> int:  # noqa: ANN001
             return 3
         client.start()
         result = action(client)
-        print(json.dumps(result, indent=2))
+        print(json.dumps(json_safe(result), indent=2))
         return 0
     finally:
         client.close()
@@ -87,16 +167,34 @@ def _stop(args: argparse.Namespace) -> int:
         client.session.close()
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", help="operator YAML (configs/operator.yaml)")
-    p.add_argument("--robot", help="robot id")
-    p.add_argument("--operator-id", help="this operator's id")
-    p.add_argument("--connect", action="append", help="router endpoint, e.g. tcp/127.0.0.1:7447")
+def _common(p: argparse.ArgumentParser, suppress: bool = True) -> None:
+    # Actions take the same options as ``iorthand operator`` itself; SUPPRESS keeps an action's unset option
+    # from overwriting one given before the action name.
+    d: dict[str, Any] = {"default": argparse.SUPPRESS} if suppress else {}
+    p.add_argument("--config", help="operator YAML (configs/operator.yaml)", **d)
+    p.add_argument("--robot", help="robot id", **d)
+    p.add_argument("--operator-id", help="this operator's id", **d)
+    p.add_argument("--connect", action="append", help="router endpoint, e.g. tcp/127.0.0.1:7447", **d)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("operator", help="teleoperate a robot")
-    osub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    p = sub.add_parser(
+        "operator", help="teleoperate a robot (no action: the console)",
+        description="Without an action: the operator console (terminal UI, keyboard or gamepad).",
+    )
+    _common(p, suppress=False)
+    p.add_argument("--profile", help="speed profile to ask for (local, remote)")
+    p.add_argument("--input", choices=["keyboard", "gamepad"], help="input device (default: from the config)")
+    p.add_argument("--keymap", help="keymap name (configs/keymap-<name>.yaml) or file")
+    p.add_argument("--gamepad", help="gamepad mapping YAML (configs/gamepad-*.yaml)")
+    p.set_defaults(func=_console)
+    osub = p.add_subparsers(dest="action", metavar="ACTION", required=False)
+
+    sc = osub.add_parser("script", help="play a YAML script of timed twists and actions; prints a JSON summary")
+    _common(sc)
+    sc.add_argument("file", help="script YAML")
+    sc.add_argument("--profile", help="speed profile to ask for (overrides the script's)", default=argparse.SUPPRESS)
+    sc.set_defaults(func=_script)
 
     m = osub.add_parser("move", help="move the tool at a constant velocity, then print where it went")
     _common(m)
@@ -104,12 +202,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--vy", type=float, default=0.0, help="m/s")
     m.add_argument("--vz", type=float, default=0.0, help="m/s")
     m.add_argument("--seconds", type=float, default=1.0)
-    m.add_argument("--profile", help="speed profile to ask for (local, remote)")
+    m.add_argument("--profile", help="speed profile to ask for (local, remote)", default=argparse.SUPPRESS)
     m.set_defaults(func=_move)
 
     d = osub.add_parser("demo-script", help="the demo's scripted motion; prints a JSON summary")
     _common(d)
-    d.add_argument("--profile", help="speed profile to ask for (local, remote)")
+    d.add_argument("--profile", help="speed profile to ask for (local, remote)", default=argparse.SUPPRESS)
     d.set_defaults(func=_demo_script)
 
     s = osub.add_parser("stop", help="send an emergency stop")

@@ -5,15 +5,25 @@ events: the reference system's irregular, event-driven publishing tripped safety
 sequence number, its send time and the deadman flag. When the deadman is released the sender keeps sending
 zero twists with ``deadman=False`` for ``release_tail`` seconds, then goes quiet. A liveliness token tells
 the edge this operator is alive; the edge releases control when it disappears (a crash, a kill, Ctrl-C).
+
+Besides the command stream the client watches what the console shows: the force level (``state/force_level``,
+with its receive time so a silent sensor turns "stale" here even if the edge says nothing), the wrench, servo
+and torch state, markers, the edge's liveliness, link quality (:class:`LinkWindow`) and a log of refusals and
+stops with their reasons. Zenoh callbacks only decode small messages and store them.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import math
+import os
+import sys
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -24,14 +34,23 @@ from iorthand.protocol import (
     ControlReply,
     ControlRequest,
     DecodeError,
+    ForceLevelState,
+    ForceSample,
+    Markers,
     RejectCounter,
     RobotState,
     SafetyStatus,
     Sequencer,
+    ServoCommand,
+    ServoState,
+    Status,
     StopCommand,
+    TorchCommand,
+    TorchState,
     TwistCommand,
 )
 from iorthand.transport import publisher, query
+from iorthand_operator.link import LinkQuality, LinkWindow
 
 log = logging.getLogger("iorthand.operator")
 
@@ -55,6 +74,22 @@ class Echo:
         return (self.echoed_ns - self.sent_ns) / 1e6
 
 
+@dataclass
+class Event:
+    """A refusal, a stop or an input problem, with its reason: what the console's log shows."""
+
+    t: float  # wall time, s
+    kind: str  # "refused", "stop", "control", "input", "action"
+    status: str
+    reason: str
+
+
+# Safety statuses that mean the robot was stopped (worth a line in the log when the edge enters them).
+STOP_STATUSES = {
+    Status.STOPPED, Status.COMMAND_TIMEOUT, Status.FAULT, Status.OWNER_LOST, Status.FORCE_DANGER,
+    Status.FORCE_STALE, Status.DISARMED,
+}
+
 class OperatorClient:
     def __init__(
         self,
@@ -64,6 +99,9 @@ class OperatorClient:
         rate_hz: float = 60.0,
         release_tail: float = 0.3,
         query_timeout: float = 2.0,
+        link_window: float = 5.0,
+        realtime: bool = True,
+        gil_switch_interval: float | None = 0.0005,
     ) -> None:
         self.session = session
         self.keys = keys.RobotKeys(robot_id)
@@ -88,32 +126,125 @@ class OperatorClient:
         self.owner = False
         self.lease = 0.0
         self.muted = False  # True: the sender skips its sends (models a dead link; tests and demo)
+        self.link = LinkWindow(link_window)
+        self.realtime = realtime
+        self.gil_switch_interval = gil_switch_interval
+        self.sender_priority = "normal"  # what the sender thread got: "SCHED_FIFO", "normal (…)"
+        self.events: deque[Event] = deque(maxlen=200)
+        self.force_level: ForceLevelState | None = None
+        self.force_level_at = 0.0  # monotonic receive time of force_level
+        self.force: ForceSample | None = None
+        self.force_at = 0.0
+        self.force_history: deque[float] = deque(maxlen=120)  # |F| N, for the sparkline
+        self.servo: ServoState | None = None
+        self.torch: TorchState | None = None
+        self.markers: Markers | None = None
+        self.markers_at = 0.0
+        self.robot_state_at = 0.0
+        self.edge_alive: bool | None = None  # None: not known yet
+        self._servo_target = [0.0, 0.0]
+        self._last_refusal_key: tuple[str, str] | None = None
+        self._last_safety_status = ""
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._pub_twist = publisher(session, self.keys.key(keys.CMD_TWIST))
         self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP))
+        self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO))
+        self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH))
         self._token = session.liveliness().declare_token(self.keys.alive_operator(operator_id))
         self._subs = [
             session.declare_subscriber(self.keys.key(keys.STATE_ROBOT), self._on_robot),
             session.declare_subscriber(self.keys.key(keys.STATE_SAFETY), self._on_safety),
             session.declare_subscriber(self.keys.key(keys.STATE_APPLIED), self._on_applied),
+            session.declare_subscriber(self.keys.key(keys.STATE_FORCE_LEVEL), self._on_force_level),
+            session.declare_subscriber(self.keys.key(keys.STATE_FORCE), self._on_force),
+            session.declare_subscriber(self.keys.key(keys.STATE_SERVO), self._on_servo),
+            session.declare_subscriber(self.keys.key(keys.STATE_TORCH), self._on_torch),
+            session.declare_subscriber(self.keys.key(keys.MARKERS), self._on_markers),
+            session.liveliness().declare_subscriber(self.keys.key(keys.ALIVE_EDGE), self._on_edge_alive, history=True),
         ]
 
     # ------------------------------------------------------------------ control
 
-    def _control(self, suffix: str, profile: str = "") -> ControlReply:
-        payload = ControlRequest(operator=self.operator_id, profile=profile).stamp(self._seq.next()).encode()
-        replies = query(self.session, self.keys.key(suffix), payload, timeout=self.query_timeout)
+    def _control(self, suffix: str, profile: str = "", *, key: str | None = None, **fields: str) -> ControlReply:
+        payload = ControlRequest(operator=self.operator_id, profile=profile, **fields).stamp(self._seq.next()).encode()
+        key = key or self.keys.key(suffix)
+        replies = query(self.session, key, payload, timeout=self.query_timeout)
         if not replies:
             raise ControlRefused(f"no answer from robot {self.keys.robot!r} on {suffix} (is its edge agent online?)")
-        return ControlReply.decode(replies[0])
+        try:
+            return ControlReply.decode(replies[0])
+        except DecodeError as exc:
+            raise ControlRefused(f"malformed reply on {suffix}: {exc}") from None
 
     def acquire(self, profile: str = "") -> ControlReply:
         reply = self._control(keys.CONTROL_ACQUIRE, profile)
         if not reply.ok:
+            self.log_event("control", Status.NOT_OWNER, f"control refused: {reply.reason}")
             raise ControlRefused(reply.reason)
         self.owner, self.lease = True, reply.lease
         return reply
+
+    def switch_profile(self, profile: str) -> ControlReply:
+        """Ask the edge for another speed profile (renewing the lease); the edge refuses unknown ones."""
+        return self.acquire(profile)
+
+    # ------------------------------------------------------------------ safety poses (edge + twin)
+
+    def list_poses(self) -> list[dict[str, Any]]:
+        """The edge's named safety poses (``control/poses``; detail: a JSON list of {name, ...})."""
+        reply = self._control(keys.CONTROL_POSES)
+        if not reply.ok:
+            raise ControlRefused(reply.reason)
+        return _json_list(reply.detail, "poses")
+
+    def preview_pose(self, name: str) -> ControlReply:
+        """Ask the twin to preview moving to ``name``; its reply carries the verdict and a token."""
+        key = keys.service_key(keys.TWIN, self.keys.robot, "preview")
+        return self._control("preview", key=key, name=name)
+
+    def goto_pose(self, name: str, token: str) -> ControlReply:
+        """Execute a previewed move (``control/goto`` with the preview's token); the edge decides."""
+        reply = self._control(keys.CONTROL_GOTO, name=name, token=token)
+        if not reply.ok:
+            self.log_event("refused", "goto", f"goto {name!r} refused: {reply.reason}")
+        return reply
+
+    # ------------------------------------------------------------------ camera and torch
+
+    def send_servo(self, pan: float | None = None, tilt: float | None = None) -> None:
+        """Absolute pan/tilt targets (rad); None keeps an axis."""
+        if pan is not None:
+            self._servo_target[0] = pan
+        if tilt is not None:
+            self._servo_target[1] = tilt
+        cmd = ServoCommand(operator=self.operator_id, pan=pan, tilt=tilt).stamp(self._seq.next())
+        self._pub_servo.put(cmd.encode())
+
+    def step_servo(self, dpan: float = 0.0, dtilt: float = 0.0, limit: float = math.pi / 2) -> tuple[float, float]:
+        """Move the camera by a step from its current target (the edge clamps to its real range)."""
+        if self.servo is not None and not any(self._servo_target):
+            self._servo_target = [self.servo.pan_target, self.servo.tilt_target]
+        pan = max(-limit, min(limit, self._servo_target[0] + dpan))
+        tilt = max(-limit, min(limit, self._servo_target[1] + dtilt))
+        self.send_servo(pan if dpan else None, tilt if dtilt else None)
+        return pan, tilt
+
+    def set_torch(self, on: bool, brightness: float = 1.0) -> None:
+        self._pub_torch.put(TorchCommand(operator=self.operator_id, on=on, brightness=brightness).stamp(self._seq.next()).encode())
+
+    def toggle_torch(self) -> bool:
+        on = not (self.torch.on if self.torch is not None else False)
+        self.set_torch(on)
+        return on
+
+    # ------------------------------------------------------------------ what the console shows
+
+    def log_event(self, kind: str, status: str, reason: str) -> None:
+        self.events.append(Event(time.time(), kind, status, reason))
+
+    def link_quality(self, now_ns: int | None = None) -> LinkQuality:
+        return self.link.snapshot(time.time_ns() if now_ns is None else now_ns)
 
     def release(self) -> ControlReply | None:
         self.set_twist(np.zeros(3), np.zeros(3), deadman=False)
@@ -131,11 +262,12 @@ class OperatorClient:
 
     def emergency_stop(self, reason: str = "operator e-stop") -> None:
         self.set_twist(np.zeros(3), np.zeros(3), deadman=False)
+        self.log_event("stop", Status.STOPPED, f"e-stop sent: {reason}")
         self._pub_stop.put(StopCommand(operator=self.operator_id, reason=reason).stamp(self._seq.next()).encode())
 
     # ------------------------------------------------------------------ the command stream
 
-    def set_twist(self, linear, angular, deadman: bool) -> None:  # noqa: ANN001 (array-likes)
+    def set_twist(self, linear, angular, deadman: bool) -> None:
         """What the sender sends from its next tick on (linear m/s, angular rad/s, base frame)."""
         with self._lock:
             if self._deadman and not deadman:
@@ -152,7 +284,24 @@ class OperatorClient:
             t.start()
             self._threads.append(t)
 
+    def _raise_priority(self) -> None:
+        """Best effort: make the sender hard to delay. Two things delay a Python thread that wakes on time:
+        the GIL, held by a busy UI thread for up to ``sys.getswitchinterval()`` (5 ms by default; lowered here,
+        process-wide, to ``gil_switch_interval``), and other processes on a loaded CPU (a real-time policy for
+        this thread only, when the OS allows it: root or CAP_SYS_NICE). Measured by benchmarks/bench_sender.py."""
+        if self.gil_switch_interval is not None and sys.getswitchinterval() > self.gil_switch_interval:
+            sys.setswitchinterval(self.gil_switch_interval)
+        if not self.realtime or not hasattr(os, "sched_setscheduler"):
+            return
+        try:
+            os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(10))
+            self.sender_priority = "SCHED_FIFO"
+        except (PermissionError, OSError) as exc:
+            self.sender_priority = f"normal ({exc.strerror or exc})"
+            log.debug("sender stays at normal priority: %s", exc)
+
     def _sender(self) -> None:
+        self._raise_priority()
         period = 1.0 / self.rate_hz
         next_tick = time.monotonic()
         while not self._stop.is_set():
@@ -183,6 +332,9 @@ class OperatorClient:
             self.sent_count += 1
             self.last_sent_ns = cmd.t
             self.send_times.append(time.monotonic())
+            if len(self.send_times) > 400_000:  # ~2 h at 60 Hz: keep memory bounded on long sessions
+                del self.send_times[:100_000]
+        self.link.sent(cmd.seq, cmd.t)
         self._pub_twist.put(payload)
 
     def _renew_lease(self) -> None:
@@ -192,6 +344,7 @@ class OperatorClient:
                     self.acquire()
                 except (ControlRefused, RuntimeError) as exc:
                     self.owner = False
+                    self.log_event("control", Status.NOT_OWNER, f"lost control: {exc}")
                     log.warning("lost control: %s", exc)
 
     def close(self) -> None:
@@ -207,7 +360,7 @@ class OperatorClient:
 
     # ------------------------------------------------------------------ state (callbacks only store)
 
-    def _decode(self, cls, sample: zenoh.Sample):  # noqa: ANN001, ANN202
+    def _decode(self, cls, sample: zenoh.Sample):
         try:
             return cls.decode(sample.payload.to_bytes())
         except DecodeError as exc:
@@ -218,11 +371,48 @@ class OperatorClient:
         msg = self._decode(RobotState, sample)
         if msg is not None:
             self.robot_state = msg
+            self.robot_state_at = time.monotonic()
+            self.link.state(msg.seq, time.time_ns())
 
     def _on_safety(self, sample: zenoh.Sample) -> None:
         msg = self._decode(SafetyStatus, sample)
         if msg is not None:
             self.safety = msg
+            if msg.status != self._last_safety_status:
+                self._last_safety_status = msg.status
+                if msg.status in STOP_STATUSES:
+                    self.log_event("stop", msg.status, msg.reason or msg.status)
+
+    def _on_force_level(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(ForceLevelState, sample)
+        if msg is not None:
+            self.force_level, self.force_level_at = msg, time.monotonic()
+
+    def _on_force(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(ForceSample, sample)
+        if msg is not None:
+            self.force, self.force_at = msg, time.monotonic()
+            self.force_history.append(float(np.linalg.norm(msg.force)))
+
+    def _on_servo(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(ServoState, sample)
+        if msg is not None:
+            self.servo = msg
+
+    def _on_torch(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(TorchState, sample)
+        if msg is not None:
+            self.torch = msg
+
+    def _on_markers(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(Markers, sample)
+        if msg is not None:
+            self.markers, self.markers_at = msg, time.monotonic()
+
+    def _on_edge_alive(self, sample: zenoh.Sample) -> None:
+        self.edge_alive = sample.kind == zenoh.SampleKind.PUT
+        if not self.edge_alive:
+            self.log_event("stop", "edge_offline", "edge agent went offline (liveliness lost)")
 
     def _on_applied(self, sample: zenoh.Sample) -> None:
         now = time.time_ns()
@@ -235,8 +425,16 @@ class OperatorClient:
                 self.echoes.append(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status))
                 if len(self.echoes) > 100_000:
                     del self.echoes[: len(self.echoes) - 100_000]
+        if sent is not None:
+            self.link.echoed(msg.cmd_seq, sent, now)
         if not msg.accepted:
             self.last_refusal = msg
+            # One log line per distinct refusal, not one per command at 60 Hz.
+            if (msg.status, msg.reason) != self._last_refusal_key:
+                self._last_refusal_key = (msg.status, msg.reason)
+                self.log_event("refused", msg.status, msg.reason)
+        else:
+            self._last_refusal_key = None
 
     def wait_for_state(self, timeout: float = 5.0) -> RobotState:
         deadline = time.monotonic() + timeout
@@ -245,3 +443,15 @@ class OperatorClient:
                 raise TimeoutError(f"no state from robot {self.keys.robot!r} within {timeout} s")
             time.sleep(0.01)
         return self.robot_state
+
+
+def _json_list(text: str, what: str) -> list[dict[str, Any]]:
+    try:
+        data = json.loads(text) if text else []
+    except json.JSONDecodeError as exc:
+        raise ControlRefused(f"{what}: reply detail is not JSON ({exc})") from None
+    if isinstance(data, dict) and isinstance(data.get(what), list):
+        data = data[what]
+    if not isinstance(data, list):
+        raise ControlRefused(f"{what}: expected a JSON list, got {type(data).__name__}")
+    return [d if isinstance(d, dict) else {"name": str(d)} for d in data]

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from iorthand import keys
 from iorthand.config import setting
 from iorthand.transport import ZenohConfig
+from iorthand_operator.console.settings import ConsoleSettings
 
 
 @dataclass
@@ -17,6 +18,7 @@ class OperatorConfig:
     rate_hz: float = setting(60.0, lo=10.0, hi=500.0, help="command stream rate")
     release_tail: float = setting(0.3, lo=0.0, hi=5.0, help="s of zero twists sent after the deadman is released")
     profile: str = setting("", help="speed profile to ask for (empty: the edge's default)")
+    console: ConsoleSettings = field(default_factory=ConsoleSettings)  # the terminal UI and its inputs
 
     def check(self) -> None:
         keys.check_robot_id(self.robot)

@@ -1,0 +1,1 @@
+"""Benchmarks of the command path, transports, load, WAN profiles and scale (issue 9)."""

@@ -1,0 +1,150 @@
+"""Benchmark reports: the machine and versions, JSON files, summary tables and the issue's targets."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from iorthand_operator.bench.stats import ratio
+
+
+def _pkg(name: str) -> str:
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return ""
+
+
+def _cmd_version(argv: list[str]) -> str:
+    try:
+        r = subprocess.run(argv, capture_output=True, text=True, timeout=5)
+        return (r.stdout or r.stderr).strip().splitlines()[0]
+    except (OSError, IndexError, subprocess.TimeoutExpired):
+        return ""
+
+
+def machine() -> dict[str, Any]:
+    """What a reader needs to judge the figures: hardware, load at the start, versions."""
+    return {
+        "hostname": platform.node(),
+        "platform": platform.platform(),
+        "kernel": platform.release(),
+        "cpu": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "memory_gb": round(psutil.virtual_memory().total / 2**30, 1),
+        "load_average_at_start": list(os.getloadavg()),
+        "cpu_percent_at_start": psutil.cpu_percent(interval=0.5),
+        "python": sys.version.split()[0],
+        "versions": {
+            "eclipse-zenoh": _pkg("eclipse-zenoh"),
+            "paho-mqtt": _pkg("paho-mqtt"),
+            "msgpack": _pkg("msgpack"),
+            "iorthand": _pkg("iorthand"),
+            "mosquitto": _cmd_version(["dpkg-query", "-W", "-f=${Version}", "mosquitto"]),
+            "nftables": _cmd_version(["dpkg-query", "-W", "-f=${Version}", "nftables"]),
+        },
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+def write_json(path: Path, data: dict[str, Any]) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1, default=_jsonable, allow_nan=True))
+    return path
+
+
+def _jsonable(o: Any) -> Any:
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
+
+
+def fmt(v: Any, digits: int = 2) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "—"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def table(headers: list[str], rows: list[list[Any]]) -> str:
+    cells = [[fmt(c) for c in r] for r in rows]
+    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(headers)]
+    line = "  ".join(h.ljust(w) for h, w in zip(headers, widths, strict=True))
+    out = [line, "  ".join("-" * w for w in widths)]
+    out += ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))) for r in cells]
+    return "\n".join(out)
+
+
+def latency_rows(cases: dict[str, dict[str, Any]]) -> list[list[Any]]:
+    rows = []
+    for name, c in cases.items():
+        r, s = c["rtt_ms"], c.get("sequence", {})
+        rows.append([name, r["count"], r["p50"], r["p90"], r["p99"], r["p99.9"], r["max"], r["jitter"],
+                     s.get("lost", "—"), s.get("reordered", "—")])
+    return rows
+
+
+LATENCY_HEADERS = ["case", "n", "p50 ms", "p90 ms", "p99 ms", "p99.9 ms", "max ms", "jitter ms", "lost", "reord"]
+
+
+def transport_ratios(cases: dict[str, dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Each Zenoh transport's p50 and p99 divided by MQTT's, per payload (below 1: Zenoh is faster)."""
+    out: dict[str, dict[str, float]] = {}
+    for name, c in cases.items():
+        if c["transport"] == "mqtt":
+            continue
+        base = next((m for m in cases.values() if m["transport"] == "mqtt" and m["size"] == c["size"]), None)
+        if base is None:
+            continue
+        out[name] = {q: ratio(c["rtt_ms"][q], base["rtt_ms"][q]) for q in ("p50", "p99")}
+    return out
+
+
+def targets(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """The issue's "must show" checks, for whichever parts were run."""
+    out: list[dict[str, Any]] = []
+    load = results.get("load")
+    if load:
+        p99 = load["cases"]["command_path_video"]["rtt_ms"]["p99"]
+        out.append({"target": "command path through one router with video, p99 ≤ 3 ms", "value_ms": p99, "ok": p99 <= 3.0})
+    tr = results.get("transports")
+    if tr:
+        for name, rr in tr["ratios"].items():
+            if tr["cases"][name]["transport"] == "zenoh-router":
+                out.append({"target": f"{name}: Zenoh via one router faster than MQTT (p50 and p99)",
+                            "ratio_p50": rr["p50"], "ratio_p99": rr["p99"], "ok": rr["p50"] < 1 and rr["p99"] < 1})
+    wan = results.get("wan")
+    if wan and "blackout" in wan["profiles"]:
+        b = wan["profiles"]["blackout"]["blackout_summary"]
+        out.append({"target": f"blackout: robot stops within {b['limit_ms']:.0f} ms of the last command, every trial",
+                    "passed": b["passed"], "trials": b["trials"], "max_ms": b["stop_ms"]["max"],
+                    "ok": b["trials"] > 0 and b["passed"] == b["trials"]})
+    sc = results.get("scale")
+    if sc:
+        for p in sc["points"]:
+            if p["n"] == 20:
+                out.append({"target": f"scale ({p['topology']}): 20 robots, no command lost, p99 ≤ 10 ms",
+                            "lost": p["lost"], "p99_ms": p["rtt_ms"]["p99"], "ok": p["lost"] == 0 and p["rtt_ms"]["p99"] <= 10})
+    return out
+
+
+def print_targets(checks: list[dict[str, Any]]) -> None:
+    if not checks:
+        return
+    print("\nTargets (issue 9):")
+    for c in checks:
+        detail = ", ".join(f"{k}={fmt(v)}" for k, v in c.items() if k not in ("target", "ok"))
+        print(f"  [{'PASS' if c['ok'] else 'MISS'}] {c['target']}: {detail}")

@@ -1,0 +1,315 @@
+"""WAN emulation: operator, cloud and edge as three hosts on this machine, with profiles on their links.
+
+As root, the tool creates three network namespaces (operator, cloud, edge) joined by two veth pairs with
+addresses 10.201.1.0/24 (operator↔cloud) and 10.201.2.0/24 (cloud↔edge), only inside those namespaces:
+
+    operator ns: OperatorClient probe ──► 10.201.1.1:17447 [relay, op-link profile] ─┐
+    cloud ns:    cloud router 127.0.0.1:7447 ◄──────────────────────────────────────────┘◄─┐
+    edge ns:     edge agent + state monitor ─► edge-site router ─► 10.201.2.1:17448 [relay, edge-link profile]
+
+This kernel has no netem, so delay and jitter come from the project's TCP relay (``linkemu``, order
+preserving) running in the cloud namespace; bandwidth is limited with ``tc tbf`` on the veth, and a blackout is
+an nftables drop rule in the edge namespace (nothing passes, both directions). The edge-site router lets a
+monitor in the edge namespace watch the robot during a blackout (the deadman stop is measured at the edge).
+
+Without root (or without ``ip netns``) everything runs on 127.0.0.1 and the relay itself holds all traffic
+during a blackout; the run says so. Everything created is removed on exit, failure or signal.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from iorthand.transport import free_port
+from iorthand_operator.bench import stats
+from iorthand_operator.bench.linkemu import LinkProfile
+from iorthand_operator.bench.procs import Group, on_cleanup, python_argv
+from iorthand_operator.bench.transports import ROLES, analyse_probe, ep, start_edge, start_router
+
+log = logging.getLogger("iorthand.bench.wan")
+
+COMMAND_TIMEOUT_S = 0.150  # the edge's default safety.command_timeout
+CONTROL_PERIOD_S = 0.008  # the simulated robot's 125 Hz control period
+
+
+@dataclass(frozen=True)
+class WanProfile:
+    name: str
+    link: LinkProfile  # each direction of the affected link
+    rate: str = ""  # tc tbf rate of the affected link ("" = unlimited)
+    blackout: bool = False
+    note: str = ""
+
+
+PROFILES: dict[str, WanProfile] = {
+    "lan": WanProfile("lan", LinkProfile(0.5, 0.2), note="wired LAN, 0.5 ± 0.2 ms one-way"),
+    "5g": WanProfile("5g", LinkProfile(15.0, 5.0), "100mbit", note="15 ± 5 ms one-way, 100 Mbit/s"),
+    "4g": WanProfile("4g", LinkProfile(40.0, 15.0, 0.01, 200.0), "20mbit",
+                     note="40 ± 15 ms one-way, 1 % of chunks stall 200 ms (loss + retransmission), 20 Mbit/s"),
+    "poor": WanProfile("poor", LinkProfile(150.0, 80.0, 0.02, 300.0), "2mbit",
+                       note="150 ± 80 ms one-way, 2 % stall 300 ms, 2 Mbit/s"),
+    "blackout": WanProfile("blackout", LinkProfile(0.5, 0.2), blackout=True,
+                           note="LAN link with repeated blackouts: nothing passes for N s"),
+}
+
+
+def _run(argv: list[str], stdin: str | None = None, check: bool = True) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(argv, input=stdin, text=True, capture_output=True, check=check, timeout=20)
+
+
+class Namespaces:
+    """Three namespaces and two veth links; removed by :meth:`destroy` (registered for exit and signals)."""
+
+    def __init__(self, tag: str | None = None) -> None:
+        tag = tag or str(os.getpid() % 100000)
+        self.tag = tag
+        self.op, self.cloud, self.edge = f"ioh{tag}-op", f"ioh{tag}-cloud", f"ioh{tag}-edge"
+        # veth names: ≤ 15 characters; o = operator link, e = edge link; suffix = which end
+        self.veth = {"op": f"i{tag}oo", "cloud_op": f"i{tag}oc", "cloud_edge": f"i{tag}ec", "edge": f"i{tag}ee"}
+        self.created: list[str] = []
+        self._unregister = None
+
+    @staticmethod
+    def available() -> tuple[bool, str]:
+        if os.geteuid() != 0:
+            return False, "not root: network namespaces need root"
+        if shutil.which("ip") is None:
+            return False, "the ip command (iproute2) is missing"
+        probe = f"ioh-probe-{os.getpid()}"
+        r = _run(["ip", "netns", "add", probe], check=False)
+        if r.returncode != 0:
+            return False, f"ip netns add failed: {r.stderr.strip()}"
+        _run(["ip", "netns", "del", probe], check=False)
+        if shutil.which("nft") is None:
+            return False, "nftables is not installed (apt-get install -y nftables): blackouts need it"
+        return True, "namespaces, veth, tbf and nftables"
+
+    def create(self) -> Namespaces:
+        self._unregister = on_cleanup(self.destroy)
+        for ns in (self.op, self.cloud, self.edge):
+            _run(["ip", "netns", "add", ns])
+            self.created.append(ns)
+            _run(["ip", "-n", ns, "link", "set", "lo", "up"])
+        v = self.veth
+        for a, ns_a, addr_a, b, ns_b, addr_b in (
+            (v["op"], self.op, "10.201.1.2/24", v["cloud_op"], self.cloud, "10.201.1.1/24"),
+            (v["edge"], self.edge, "10.201.2.2/24", v["cloud_edge"], self.cloud, "10.201.2.1/24"),
+        ):
+            _run(["ip", "link", "add", a, "netns", ns_a, "type", "veth", "peer", "name", b, "netns", ns_b])
+            _run(["ip", "-n", ns_a, "addr", "add", addr_a, "dev", a])
+            _run(["ip", "-n", ns_b, "addr", "add", addr_b, "dev", b])
+            _run(["ip", "-n", ns_a, "link", "set", a, "up"])
+            _run(["ip", "-n", ns_b, "link", "set", b, "up"])
+        _run(["ip", "netns", "exec", self.edge, "nft", "-f", "-"], stdin=(
+            "table inet iohbench {\n"
+            " chain in { type filter hook input priority 0; policy accept; }\n"
+            " chain out { type filter hook output priority 0; policy accept; }\n"
+            "}\n"
+        ))
+        return self
+
+    def blackout(self, on: bool) -> None:
+        """Drop everything on the edge's link (both directions), or stop dropping."""
+        dev = self.veth["edge"]
+        rules = (f"add rule inet iohbench in iifname {dev} drop\nadd rule inet iohbench out oifname {dev} drop\n"
+                 if on else "flush chain inet iohbench in\nflush chain inet iohbench out\n")
+        _run(["ip", "netns", "exec", self.edge, "nft", "-f", "-"], stdin=rules)
+
+    def shape(self, rate: str) -> None:
+        """Limit the edge link to ``rate`` in both directions with tbf (or remove the limit)."""
+        for ns, dev in ((self.edge, self.veth["edge"]), (self.cloud, self.veth["cloud_edge"])):
+            _run(["tc", "-n", ns, "qdisc", "del", "dev", dev, "root"], check=False)
+            if rate:
+                _run(["tc", "-n", ns, "qdisc", "add", "dev", dev, "root", "tbf", "rate", rate, "burst", "64kb",
+                      "latency", "100ms"])
+
+    def destroy(self) -> None:
+        if self._unregister:
+            self._unregister()
+            self._unregister = None
+        for ns in reversed(self.created):
+            _run(["ip", "netns", "del", ns], check=False)  # deleting a namespace deletes its veth ends
+        self.created.clear()
+
+
+def _relay_argv(listen: str, connect: str, prof: LinkProfile, seed: int, max_s: float) -> list[str]:
+    return python_argv("iorthand_operator.bench.linkemu", "--listen", listen, "--connect", connect,
+                       "--delay-ms", str(prof.delay_ms), "--jitter-ms", str(prof.jitter_ms),
+                       "--stall-prob", str(prof.stall_prob), "--stall-ms", str(prof.stall_ms), "--seed", str(seed),
+                       "--max-seconds", str(max_s))
+
+
+@dataclass
+class Plan:
+    duration: float
+    trials: int = 0
+    blackout_s: float = 1.5
+    settle_s: float = 1.5
+    recover_s: float = 3.0
+    long_blackouts: tuple[float, ...] = ()  # extra blackouts longer than the Zenoh lease (session is lost)
+    long_recover_s: float = 10.0
+
+
+def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespaces | None, links: str = "edge",
+                robot: str = "wan") -> dict[str, Any]:
+    name = f"wan-{profile.name}"
+    schedule = [plan.blackout_s] * plan.trials + list(plan.long_blackouts) if profile.blackout else []
+    total = plan.duration if not profile.blackout else sum(
+        plan.settle_s + b + (plan.recover_s if b < 2.0 else plan.long_recover_s) for b in schedule) + 1.0
+    max_s = total + 300.0
+    lan = PROFILES["lan"].link
+    op_link = profile.link if links == "both" else lan
+    out, mon_out = workdir / f"{name}-probe.json", workdir / f"{name}-monitor.json"
+    blackouts: list[tuple[int, int]] = []
+    with Group(workdir / name) as g:
+        if netns is not None:
+            ns_op, ns_cloud, ns_edge = netns.op, netns.cloud, netns.edge
+            cloud_port = edge_port = 7447  # each namespace has its own loopback
+            op_relay, edge_relay = "10.201.1.1:17447", "10.201.2.1:17448"
+            netns.shape(profile.rate)
+        else:
+            ns_op = ns_cloud = ns_edge = None
+            cloud_port, edge_port = free_port(), free_port()
+            op_relay, edge_relay = f"127.0.0.1:{free_port()}", f"127.0.0.1:{free_port()}"
+        start_router(g, "router-cloud", cloud_port, netns=ns_cloud)
+        g.start("relay-op", _relay_argv(op_relay, f"127.0.0.1:{cloud_port}", op_link, 11, max_s), netns=ns_cloud,
+                ready="linkemu ready")
+        relay_edge = g.start("relay-edge", _relay_argv(edge_relay, f"127.0.0.1:{cloud_port}", profile.link, 12, max_s),
+                             netns=ns_cloud, ready="linkemu ready")
+        start_router(g, "router-edge", edge_port, [f"tcp/{edge_relay}"], netns=ns_edge)
+        start_edge(g, robot, [ep(edge_port)], netns=ns_edge)
+        g.start("monitor", python_argv(ROLES, "state-monitor", "--connect", ep(edge_port), "--robot", robot,
+                                       "--duration", str(total + 60), "--out", str(mon_out), "--max-seconds", str(max_s)),
+                netns=ns_edge, ready="monitor ready")
+        probe = g.start("operator", python_argv(ROLES, "operator-probe", "--connect", f"tcp/{op_relay}", "--robots", robot,
+                                                "--duration", str(total), "--out", str(out), "--max-seconds", str(max_s)),
+                        netns=ns_op, ready="probe ready", timeout=120.0)
+        if profile.blackout:
+            for length in schedule:
+                time.sleep(plan.settle_s)
+                _blackout(netns, relay_edge, True)
+                b0 = time.time_ns()
+                time.sleep(length)
+                b_end_req = time.time_ns()
+                _blackout(netns, relay_edge, False)
+                blackouts.append((b0, max(b_end_req, time.time_ns())))
+                # A blackout longer than the 2 s lease ends the Zenoh sessions: give them time to come back.
+                time.sleep(plan.recover_s if length < 2.0 else plan.long_recover_s)
+        probe.wait(total + 120.0)
+        g.children[[c.name for c in g.children].index("monitor")].signal(signal.SIGTERM)
+        deadline = time.monotonic() + 20
+        while not mon_out.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+    if not out.exists():
+        raise RuntimeError(f"{name}: the operator probe wrote nothing; see {workdir / name}/operator.log")
+    probe_data = json.loads(out.read_text())
+    rd = probe_data["robots"][robot]
+    result = analyse_probe(rd)
+    states = json.loads(mon_out.read_text())["states"] if mon_out.exists() else []
+    result.update(profile=profile.name, note=profile.note, link=asdict(profile.link), rate=profile.rate,
+                  links=links, events=probe_data.get("events", []))
+    result["deadman_stops_while_driving"] = _spurious_stops(states, blackouts)
+    if profile.blackout:
+        result["trials"] = blackout_trials(states, rd["records"], blackouts)
+        result["blackout_s"] = plan.blackout_s
+    return result
+
+
+def _blackout(netns: Namespaces | None, relay: Any, on: bool) -> None:
+    if netns is not None:
+        netns.blackout(on)
+    else:
+        relay.signal(signal.SIGUSR1 if on else signal.SIGUSR2)
+
+
+def _spurious_stops(states: list[list[Any]], blackouts: list[tuple[int, int]]) -> int:
+    """Moving → stopped transitions at the edge outside blackouts: deadman timeouts the operator felt."""
+    states = sorted(states, key=lambda s: s[0])
+    last_moving = max((s[0] for s in states if s[3]), default=0)
+    n = 0
+    for prev, cur in itertools.pairwise(states):
+        # The operator's final release is not a stop it suffered: count only stops the robot came back from.
+        if prev[3] and not cur[3] and cur[0] < last_moving and not any(b0 <= cur[0] <= b1 + 1e9 for b0, b1 in blackouts):
+            n += 1
+    return n
+
+
+def blackout_trials(states: list[list[Any]], records: list[list[Any]], blackouts: list[tuple[int, int]],
+                    limit_s: float = COMMAND_TIMEOUT_S + CONTROL_PERIOD_S) -> list[dict[str, Any]]:
+    """Per blackout: the edge's stop time after the last command it received (state t − cmd_recv_t of the
+    first state with a zero commanded twist), whether it stayed stopped, and when motion and the operator's
+    echoes came back after the link did. States are (t, cmd_seq, cmd_recv_t, moving, arrival)."""
+    states = sorted(states, key=lambda s: s[0])
+    trials = []
+    for i, (b0, b1) in enumerate(blackouts):
+        before = [s for s in states if s[0] < b0]
+        moving_before = bool(before) and bool(before[-1][3])
+        stop = next((s for s in states if s[0] >= b0 and not s[3]), None)
+        trial: dict[str, Any] = {"trial": i + 1, "moving_before": moving_before, "blackout_ms": (b1 - b0) / 1e6}
+        if stop is None or not moving_before:
+            trial.update(ok=False, reason="robot was not moving before the blackout" if not moving_before else "no stop seen")
+            trials.append(trial)
+            continue
+        stop_ms = (stop[0] - stop[2]) / 1e6
+        moved_during = any(s[3] for s in states if stop[0] < s[0] < b1)
+        resume = next((s for s in states if s[0] > b1 and s[3]), None)
+        echo = next((r for r in records if r[4] > b1 and r[5]), None)
+        trial.update(
+            stop_after_last_command_ms=stop_ms,
+            stop_after_blackout_start_ms=(stop[0] - b0) / 1e6,
+            stayed_stopped=not moved_during,
+            motion_resumed_after_ms=(resume[0] - b1) / 1e6 if resume else None,
+            operator_echo_after_ms=(echo[4] - b1) / 1e6 if echo else None,
+            ok=stop_ms <= limit_s * 1000 and not moved_during,
+        )
+        trials.append(trial)
+    return trials
+
+
+def summarize_trials(trials: list[dict[str, Any]], long_from_ms: float = 2000.0) -> dict[str, Any]:
+    """Stop times over every trial; recovery figures only over the short blackouts (a blackout past the lease
+    is a different event — the sessions are re-opened — and is reported per trial)."""
+    short = [t for t in trials if t["blackout_ms"] < long_from_ms]
+    stops = [t["stop_after_last_command_ms"] for t in trials if "stop_after_last_command_ms" in t]
+    rec = [t["operator_echo_after_ms"] for t in short if t.get("operator_echo_after_ms") is not None]
+    resumed = [t["motion_resumed_after_ms"] for t in short if t.get("motion_resumed_after_ms") is not None]
+    return {
+        "trials": len(trials), "passed": sum(bool(t.get("ok")) for t in trials),
+        "limit_ms": (COMMAND_TIMEOUT_S + CONTROL_PERIOD_S) * 1000,
+        "stop_ms": stats.latency_summary(stops), "stop_ms_values": [round(s, 2) for s in stops],
+        "operator_recovery_ms": stats.latency_summary(rec), "motion_resumed_ms": stats.latency_summary(resumed),
+        "long_blackouts": [t for t in trials if t["blackout_ms"] >= long_from_ms],
+    }
+
+
+def run_wan(workdir: Path, profiles: list[str], duration: float, trials: int, blackout_s: float, links: str = "edge",
+            force_loopback: bool = False, long_blackouts: tuple[float, ...] = ()) -> dict[str, Any]:
+    ok, why = (False, "loopback requested") if force_loopback else Namespaces.available()
+    if not ok:
+        print(f"iorthand bench wan: no namespaces ({why}); falling back to relays on 127.0.0.1 — blackouts hold "
+              "traffic in the relay instead of dropping it, and tbf rate limits are not applied", flush=True)
+    netns = Namespaces().create() if ok else None
+    results: dict[str, Any] = {"isolation": "namespaces" if ok else "loopback", "why": why, "links": links, "profiles": {}}
+    try:
+        for name in profiles:
+            if name not in PROFILES:
+                raise ValueError(f"unknown WAN profile {name!r} (known: {', '.join(PROFILES)})")
+            plan = Plan(duration=duration, trials=trials, blackout_s=blackout_s, long_blackouts=tuple(long_blackouts))
+            r = run_profile(workdir, PROFILES[name], plan, netns, links)
+            if "trials" in r:
+                r["blackout_summary"] = summarize_trials(r["trials"])
+            results["profiles"][name] = r
+    finally:
+        if netns is not None:
+            netns.destroy()
+    return results

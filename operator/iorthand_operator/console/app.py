@@ -1,0 +1,302 @@
+"""The operator console: a textual app over :class:`ConsoleController`. Rendering only; logic lives in the
+controller and :mod:`model`.
+
+Keys go to the keyboard input device (hold-to-move; see :mod:`iorthand_operator.inputs.keyboard`) when it is
+the active device; with a gamepad, the keyboard still has e-stop and the pose list. ``ctrl+c`` quits like
+``q``: the client releases control on the way out.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from typing import Any, ClassVar
+
+from rich.table import Table
+from rich.text import Text
+from textual import events, work
+from textual.app import App, ComposeResult
+from textual.binding import Binding
+from textual.containers import Grid, Vertical
+from textual.message import Message
+from textual.screen import ModalScreen
+from textual.widgets import Footer, OptionList, RichLog, Static
+
+from iorthand_operator.client import ControlRefused
+from iorthand_operator.console.controller import ConsoleController, ConsoleView
+from iorthand_operator.inputs.keyboard import KeyboardInput
+
+
+def _yes(flag: bool, yes: str = "yes", no: str = "no") -> Text:
+    return Text(yes if flag else no, style="bold green" if flag else "bold red")
+
+
+def _fmt(values: list[float], unit: str, prec: int = 1) -> str:
+    return "  ".join(f"{v:+.{prec}f}" for v in values) + f" {unit}" if values else "—"
+
+
+class PoseScreen(ModalScreen[None]):
+    """Safety poses: list → preview on the twin (its verdict shown) → confirm to execute."""
+
+    BINDINGS: ClassVar = [Binding("escape", "dismiss_screen", "back"), Binding("y", "confirm", "execute previewed pose")]
+    DEFAULT_CSS = """
+    PoseScreen { align: center middle; }
+    #pose-box { width: 80; height: auto; max-height: 30; border: thick $accent; background: $surface; padding: 1; }
+    #pose-verdict { height: auto; min-height: 3; }
+    """
+
+    def __init__(self, controller: ConsoleController) -> None:
+        super().__init__()
+        self.controller = controller
+        self.poses: list[dict[str, Any]] = []
+        self.preview: tuple[str, str] | None = None  # (name, token) of an ok preview
+
+    def compose(self) -> ComposeResult:
+        with Vertical(id="pose-box"):
+            yield Static("Safety poses — enter: preview on the twin, y: execute, escape: back", id="pose-title")
+            yield OptionList(id="pose-list")
+            yield Static("loading…", id="pose-verdict")
+
+    def on_mount(self) -> None:
+        self.load_poses()
+
+    @work(thread=True, exclusive=True, group="poses")
+    def load_poses(self) -> None:
+        try:
+            poses = self.controller.client.list_poses()
+            text = f"{len(poses)} poses" if poses else "the edge has no safety poses"
+        except (ControlRefused, RuntimeError) as exc:
+            poses, text = [], f"cannot list poses: {exc}"
+        self.app.call_from_thread(self._show_poses, poses, text)
+
+    def _show_poses(self, poses: list[dict[str, Any]], text: str) -> None:
+        self.poses = poses
+        ol = self.query_one("#pose-list", OptionList)
+        ol.clear_options()
+        ol.add_options([str(p.get("name", "?")) + (f" — {p['description']}" if p.get("description") else "") for p in poses])
+        self.query_one("#pose-verdict", Static).update(text)
+        ol.focus()
+
+    def on_option_list_option_selected(self, event: OptionList.OptionSelected) -> None:
+        if 0 <= event.option_index < len(self.poses):
+            self.preview = None
+            self.query_one("#pose-verdict", Static).update("previewing on the twin…")
+            self.run_preview(str(self.poses[event.option_index].get("name", "")))
+
+    @work(thread=True, exclusive=True, group="poses")
+    def run_preview(self, name: str) -> None:
+        try:
+            reply = self.controller.client.preview_pose(name)
+            detail = _detail(reply.detail)
+            token = str(detail.get("token", ""))
+            verdict = detail.get("verdict", "ok" if reply.ok else "refused")
+            text = Text.assemble(
+                (f"preview {name}: {verdict}", "bold green" if reply.ok else "bold red"),
+                f"\n{reply.reason}" if reply.reason else "",
+                "\n" + ", ".join(f"{k}: {v}" for k, v in detail.items() if k not in ("token", "verdict")),
+                ("\npress y to execute" if reply.ok and token else ""),
+            )
+            ok = reply.ok
+        except (ControlRefused, RuntimeError) as exc:
+            text, token, ok = Text(f"preview unavailable: {exc}", style="bold red"), "", False
+        self.app.call_from_thread(self._previewed, name, token if ok else "", text)
+
+    def _previewed(self, name: str, token: str, text: Text) -> None:
+        self.preview = (name, token) if token else None
+        self.query_one("#pose-verdict", Static).update(text)
+
+    def action_confirm(self) -> None:
+        if self.preview is None:
+            self.query_one("#pose-verdict", Static).update(Text("preview a pose first (enter)", style="yellow"))
+            return
+        self.run_goto(*self.preview)
+
+    @work(thread=True, exclusive=True, group="poses")
+    def run_goto(self, name: str, token: str) -> None:
+        try:
+            reply = self.controller.client.goto_pose(name, token)
+            text = Text(f"goto {name}: {'started' if reply.ok else 'refused'} {reply.reason}",
+                        style="bold green" if reply.ok else "bold red")
+        except (ControlRefused, RuntimeError) as exc:
+            text = Text(f"goto {name} failed: {exc}", style="bold red")
+        self.app.call_from_thread(self.query_one("#pose-verdict", Static).update, text)
+
+    def action_dismiss_screen(self) -> None:
+        self.dismiss(None)
+
+
+def _detail(text: str) -> dict[str, Any]:
+    try:
+        data = json.loads(text) if text else {}
+    except json.JSONDecodeError:
+        return {"detail": text}
+    return data if isinstance(data, dict) else {"detail": data}
+
+
+class UiAction(Message):
+    """An input action the UI handles (pose list, quit), posted from the input thread."""
+
+    def __init__(self, action: str) -> None:
+        super().__init__()
+        self.action = action
+
+
+class OperatorConsole(App[int]):
+    TITLE = "iorthand operator"
+    CSS = """
+    Screen { layout: vertical; }
+    #grid { grid-size: 3 2; grid-columns: 1fr 1fr 1fr; grid-rows: auto auto; height: auto; }
+    .panel { border: round $primary; padding: 0 1; height: auto; min-height: 7; }
+    #force { border: round $primary; padding: 0 1; }
+    #events { border: round $primary; height: 1fr; min-height: 6; }
+    """
+    BINDINGS: ClassVar = [Binding("ctrl+c", "quit_console", "quit", priority=True)]
+
+    def __init__(self, controller: ConsoleController) -> None:
+        super().__init__()
+        self.controller = controller
+        self.view_model = ConsoleView()
+        self._events_shown = 0
+        self._last_event_key = ""
+        controller.on_ui_action = self._ui_action_from_thread
+        self.keyboard = controller.device if isinstance(controller.device, KeyboardInput) else None
+
+    def compose(self) -> ComposeResult:
+        with Grid(id="grid"):
+            yield Static(id="status", classes="panel")
+            yield Static(id="force", classes="panel")
+            yield Static(id="link", classes="panel")
+            yield Static(id="pose", classes="panel")
+            yield Static(id="profile", classes="panel")
+            yield Static(id="input", classes="panel")
+        yield RichLog(id="events", max_lines=500, wrap=True)
+        yield Footer()
+
+    def on_mount(self) -> None:
+        for wid, title in (("status", "robot"), ("force", "force"), ("link", "link quality"), ("pose", "tool"),
+                           ("profile", "speed profile"), ("input", "input / camera")):
+            self.query_one(f"#{wid}").border_title = title
+        self.query_one("#events").border_title = "refusals, stops and actions"
+        self.set_interval(1.0 / self.controller.settings.refresh_hz, self.refresh_view)
+        self.refresh_view()
+
+    # ------------------------------------------------------------------ keys
+
+    def on_key(self, event: events.Key) -> None:
+        if len(self.screen_stack) > 1:
+            return  # the pose screen has the keys; holding a move key there must not move the robot
+        key = event.key
+        if self.keyboard is not None and self.keyboard.key(key, time.monotonic()):
+            event.stop()
+            return
+        # With a gamepad the keyboard still stops the robot and opens the pose list.
+        fallback = {"x": "estop", "g": "poses", "q": "quit", "escape": "estop"}.get(key)
+        if fallback:
+            event.stop()
+            self.controller.dispatch(fallback)
+
+    def _ui_action_from_thread(self, action: str) -> None:
+        # post_message is thread-safe and does not wait: the input thread must never block on the UI.
+        self.post_message(UiAction(action))
+
+    def on_ui_action(self, message: UiAction) -> None:
+        self.ui_action(message.action)
+
+    def ui_action(self, action: str) -> None:
+        if action == "quit":
+            self.action_quit_console()
+        elif action == "poses" and len(self.screen_stack) == 1:
+            if self.keyboard is not None:
+                self.keyboard.release_all()
+            self.push_screen(PoseScreen(self.controller))
+
+    def action_quit_console(self) -> None:
+        self.exit(0)
+
+    # ------------------------------------------------------------------ rendering
+
+    def refresh_view(self) -> None:
+        v = self.controller.view()
+        self.view_model = v
+        self.query_one("#status", Static).update(self._status(v))
+        self.query_one("#force", Static).update(self._force(v))
+        # textual's CSS colours differ from rich's: grey50 is "grey" there.
+        self.query_one("#force").styles.border = ("round", "grey" if v.force.colour.startswith("grey") else v.force.colour)
+        self.query_one("#link", Static).update(self._link(v))
+        self.query_one("#pose", Static).update(self._pose(v))
+        self.query_one("#profile", Static).update(self._profile(v))
+        self.query_one("#input", Static).update(self._input(v))
+        log = self.query_one("#events", RichLog)
+        # New events only (the controller keeps the last 50; a key on the last line detects what is new).
+        last_key = v.events[-1] if v.events else ""
+        if last_key != self._last_event_key:
+            new = v.events[v.events.index(self._last_event_key) + 1:] if self._last_event_key in v.events else v.events
+            for line in new:
+                style = "red" if (" refused " in line or " stop " in line or " input " in line) else ""
+                log.write(Text(line, style=style))
+            self._last_event_key = last_key
+
+    @staticmethod
+    def _table() -> Table:
+        t = Table.grid(padding=(0, 1))
+        t.add_column(style="bold")
+        t.add_column()
+        return t
+
+    def _status(self, v: ConsoleView) -> Table:
+        t = self._table()
+        t.add_row("router", Text(v.router or "—") + Text("  connected" if v.connected else "  no data", style="green" if v.connected else "red"))
+        online = {"online": "bold green", "offline": "bold red"}.get(v.robot_online, "grey50")
+        t.add_row("robot", Text(v.robot_online.upper(), style=online) + Text("" if v.state_fresh else "  (no fresh state)", style="yellow"))
+        t.add_row("armed", _yes(v.armed))
+        t.add_row("owner", Text(v.owner or "nobody", style="bold green" if v.we_own else "bold yellow"))
+        t.add_row("deadman", Text.assemble("sent ", _yes(v.deadman, "ON", "off"), "  edge ", _yes(v.edge_deadman, "ON", "off")))
+        t.add_row("status", Text(f"{v.edge_status} {v.edge_reason}".strip() or "—", style="red" if v.edge_reason and v.edge_status not in ("ok", "idle") else ""))
+        return t
+
+    def _force(self, v: ConsoleView) -> Table:
+        f = v.force
+        t = Table.grid(padding=(0, 1))
+        t.add_column()
+        fg = "black" if f.colour in ("green", "yellow") else "white"
+        t.add_row(Text(f"  {f.label:^12}  ", style=f"bold {fg} on {f.colour}"))
+        t.add_row(Text(f.detail))
+        t.add_row(Text("F " + _fmt(v.wrench[:3], "N") if v.wrench else "wrench: no fresh sample", style="" if v.wrench else "grey50"))
+        if v.wrench:
+            t.add_row(Text("T " + _fmt(v.wrench[3:], "N·m", 2)))
+        t.add_row(Text(v.spark or "", style=f.colour))
+        return t
+
+    def _link(self, v: ConsoleView) -> Table:
+        t = self._table()
+        for row in v.link:
+            t.add_row(row.label, Text(row.text, style=f"bold {row.colour}"))
+        t.add_row("sent", str(v.sent))
+        return t
+
+    def _pose(self, v: ConsoleView) -> Table:
+        t = self._table()
+        p = v.tcp_pose_mm_deg
+        t.add_row("xyz", _fmt(p[:3], "mm") if p else "—")
+        t.add_row("rxyz", _fmt(p[3:], "°") if p else "—")
+        t.add_row("speed", "—" if math.isnan(v.tcp_speed_mm_s) else f"{v.tcp_speed_mm_s:.1f} mm/s")
+        t.add_row("command", _fmt(v.command[:3], "mm/s") if v.command else "—")
+        t.add_row("markers", ", ".join(map(str, v.markers)) or "none in view")
+        return t
+
+    def _profile(self, v: ConsoleView) -> Table:
+        t = self._table()
+        t.add_row("profile", Text(v.profile or "—", style="bold cyan"))
+        t.add_row("linear", "—" if math.isnan(v.linear_limit_mm_s) else f"{v.linear_limit_mm_s:.1f} mm/s")
+        t.add_row("angular", "—" if math.isnan(v.angular_limit_deg_s) else f"{v.angular_limit_deg_s:.1f} °/s")
+        t.add_row("limits hit", Text(", ".join(v.limits_hit) or "none", style="yellow" if v.limits_hit else ""))
+        return t
+
+    def _input(self, v: ConsoleView) -> Table:
+        t = self._table()
+        t.add_row("device", v.input_name)
+        t.add_row("state", Text(v.input_status or "—", style="" if v.input_connected else "bold red"))
+        t.add_row("camera", v.camera or "—")
+        t.add_row("torch", v.torch or "—")
+        return t

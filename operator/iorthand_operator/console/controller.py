@@ -1,0 +1,235 @@
+"""The console's engine, without any UI: polls the input device, feeds the client's sender, runs actions.
+
+Threads:
+- ``operator-input`` polls the device at ``input_hz`` and calls ``client.set_twist``. It never blocks on the
+  network: if it stalled, the sender would keep repeating the last twist (the edge's timeout would not fire
+  because commands keep coming).
+- ``operator-actions`` runs actions that query the edge (profile switch) so a slow answer cannot stall input.
+- The client's own sender thread sends at its fixed rate whatever the last ``set_twist`` said.
+
+The UI (textual) only forwards keys to :class:`KeyboardInput` and renders :meth:`view` — or nothing at all:
+tests and the headless script use this class directly.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from iorthand_operator.client import ControlRefused, OperatorClient
+from iorthand_operator.console.model import ForceView, LinkRow, force_view, link_rows, next_profile, sparkline
+from iorthand_operator.console.settings import ConsoleSettings
+from iorthand_operator.inputs.base import InputDevice, InputSample
+
+log = logging.getLogger("iorthand.operator.console")
+
+
+@dataclass
+class ConsoleView:
+    """Everything the screen shows, as plain data (tests assert on it)."""
+
+    router: str = ""
+    connected: bool = False
+    robot_online: str = "unknown"  # online / offline / unknown
+    state_fresh: bool = False
+    armed: bool = False
+    owner: str = ""
+    we_own: bool = False
+    edge_deadman: bool = False
+    deadman: bool = False  # what we send
+    edge_status: str = ""
+    edge_reason: str = ""
+    force: ForceView = field(default_factory=lambda: force_view(None, 0.0, 0.0, 1.0))
+    wrench: list[float] = field(default_factory=list)
+    spark: str = ""
+    tcp_pose_mm_deg: list[float] = field(default_factory=list)
+    tcp_speed_mm_s: float = math.nan
+    profile: str = ""
+    linear_limit_mm_s: float = math.nan
+    angular_limit_deg_s: float = math.nan
+    limits_hit: list[str] = field(default_factory=list)
+    link: list[LinkRow] = field(default_factory=list)
+    input_name: str = ""
+    input_connected: bool = True
+    input_status: str = ""
+    command: list[float] = field(default_factory=list)  # what we send, mm/s and deg/s
+    markers: list[int] = field(default_factory=list)
+    camera: str = ""
+    torch: str = ""
+    events: list[str] = field(default_factory=list)
+    sent: int = 0
+
+
+class ConsoleController:
+    def __init__(
+        self,
+        client: OperatorClient,
+        device: InputDevice,
+        settings: ConsoleSettings | None = None,
+        router: str = "",
+        on_ui_action: Callable[[str], None] | None = None,
+    ) -> None:
+        self.client = client
+        self.device = device
+        self.settings = settings or ConsoleSettings()
+        self.router = router
+        self.on_ui_action = on_ui_action  # "poses", "quit": the UI's business
+        self.sample = InputSample()
+        self._input_was_connected = True
+        self._stop = threading.Event()
+        self._actions: queue.Queue[str] = queue.Queue(maxsize=64)
+        self._threads: list[threading.Thread] = []
+        self.polls = 0
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        for name, fn in (("input", self._input_loop), ("actions", self._action_loop)):
+            t = threading.Thread(target=fn, name=f"operator-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
+        for t in self._threads:
+            t.join(timeout=2.0)
+        self.device.close()
+
+    # ------------------------------------------------------------------ input → sender
+
+    def _input_loop(self) -> None:
+        period = 1.0 / self.settings.input_hz
+        while not self._stop.is_set():
+            try:
+                self.poll_once(time.monotonic())
+            except Exception as exc:  # a broken device must stop motion, not the console
+                self.client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
+                self.client.log_event("input", "input_error", f"input device failed: {exc}")
+                log.exception("input device failed")
+                self._stop.wait(1.0)
+            self._stop.wait(period)
+
+    def poll_once(self, now: float) -> InputSample:
+        sample = self.device.poll(now)
+        if not sample.connected:
+            sample.twist, sample.deadman = np.zeros(6), False
+        if sample.connected != self._input_was_connected:
+            self._input_was_connected = sample.connected
+            self.client.log_event("input", "input_lost" if not sample.connected else "input_back", sample.status)
+        self.client.set_twist(sample.twist[:3], sample.twist[3:], deadman=sample.deadman)
+        self.sample = sample
+        self.polls += 1
+        for action in sample.actions:
+            self.dispatch(action)
+        return sample
+
+    def dispatch(self, action: str) -> None:
+        if action == "estop":
+            # At once, on this thread: a stop must not wait behind a slow query.
+            self.client.emergency_stop("operator e-stop key")
+        elif action in ("poses", "quit"):
+            if self.on_ui_action is not None:
+                self.on_ui_action(action)
+        else:
+            try:
+                self._actions.put_nowait(action)
+            except queue.Full:
+                log.warning("action %s dropped: too many pending", action)
+
+    def _action_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                action = self._actions.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                self.run_action(action)
+            except (ControlRefused, RuntimeError) as exc:
+                self.client.log_event("action", action, f"{action} failed: {exc}")
+
+    def run_action(self, action: str) -> None:
+        c, step = self.client, math.radians(self.settings.pan_tilt_step_deg)
+        if action == "acquire":
+            try:
+                c.acquire(c.safety.profile if c.safety and c.owner else "")
+                c.log_event("action", "acquire", "control granted")
+            except ControlRefused:
+                pass  # acquire() logged the edge's reason
+        elif action == "profile_next":
+            current = c.safety.profile if c.safety else ""
+            target = next_profile(current, self.settings.profiles)
+            try:
+                c.switch_profile(target)
+                c.log_event("action", "profile", f"speed profile {target}")
+            except ControlRefused as exc:
+                c.log_event("refused", "profile", f"profile {target!r} refused: {exc}")
+        elif action == "pan_left":
+            c.step_servo(dpan=step)
+        elif action == "pan_right":
+            c.step_servo(dpan=-step)
+        elif action == "tilt_up":
+            c.step_servo(dtilt=step)
+        elif action == "tilt_down":
+            c.step_servo(dtilt=-step)
+        elif action == "camera_center":
+            c.send_servo(0.0, 0.0)
+        elif action == "torch":
+            on = c.toggle_torch()
+            c.log_event("action", "torch", f"torch {'on' if on else 'off'}")
+
+    # ------------------------------------------------------------------ what the screen shows
+
+    def view(self, now: float | None = None) -> ConsoleView:
+        now = time.monotonic() if now is None else now
+        c, s = self.client, self.settings
+        v = ConsoleView(router=self.router, sent=c.sent_count)
+        state = c.robot_state
+        v.state_fresh = state is not None and now - c.robot_state_at <= s.state_stale_after
+        v.connected = v.state_fresh or c.edge_alive is not None
+        v.robot_online = {True: "online", False: "offline", None: "unknown"}[c.edge_alive]
+        if c.edge_alive is None and v.state_fresh:
+            v.robot_online = "online"
+        safety = c.safety
+        if safety is not None:
+            v.armed, v.owner, v.edge_deadman = safety.armed, safety.owner, safety.deadman
+            v.we_own = safety.owner == c.operator_id
+            v.edge_status, v.edge_reason = safety.status, safety.reason
+            v.profile = safety.profile
+            v.linear_limit_mm_s = 1000 * safety.linear_limit
+            v.angular_limit_deg_s = math.degrees(safety.angular_limit)
+            v.limits_hit = list(safety.limits_hit)
+        v.deadman = self.sample.deadman
+        v.force = force_view(c.force_level, c.force_level_at, now, s.force_stale_after)
+        if c.force is not None and now - c.force_at <= s.force_stale_after:
+            v.wrench = [*c.force.force, *c.force.torque]
+        top = c.force_level.danger if c.force_level is not None else None
+        v.spark = sparkline(c.force_history, 30, top)
+        if state is not None:
+            p = state.tcp_pose
+            v.tcp_pose_mm_deg = [1000 * p[0], 1000 * p[1], 1000 * p[2], *(math.degrees(a) for a in p[3:])]
+            v.tcp_speed_mm_s = 1000 * float(np.linalg.norm(state.tcp_speed[:3]))
+        v.link = link_rows(c.link_quality(), s.link)
+        v.input_name = self.device.name
+        v.input_connected = self.sample.connected
+        v.input_status = self.sample.status
+        tw = self.sample.twist
+        v.command = [*(1000 * tw[:3]), *(math.degrees(a) for a in tw[3:])]
+        if c.markers is not None and now - c.markers_at < 2.0:
+            v.markers = sorted(m.id for m in c.markers.markers)
+        if c.servo is not None:
+            v.camera = f"pan {math.degrees(c.servo.pan):+.0f}° tilt {math.degrees(c.servo.tilt):+.0f}°"
+        if c.torch is not None:
+            v.torch = f"{'on' if c.torch.on else 'off'} {100 * c.torch.brightness:.0f} %"
+        v.events = [
+            f"{time.strftime('%H:%M:%S', time.localtime(e.t))} {e.kind:<7} {e.status}: {e.reason}" for e in list(c.events)[-50:]
+        ]
+        return v
+

@@ -1,0 +1,88 @@
+"""What the console shows, computed from the client's state: pure functions, no UI, unit-tested.
+
+The force block is the reference system's traffic light done right: it is green only for a *fresh* message
+that says level 0 and not stale. No message yet → grey "NO DATA"; the edge says stale, or nothing arrived for
+``stale_after`` s (a silent sensor, a dead link) → grey "STALE".
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from iorthand.protocol import FORCE_LEVEL_COLOURS, ForceLevel, ForceLevelState
+from iorthand_operator.link import GRADE_COLOURS, LinkQuality, LinkThresholds
+
+GREY = "grey50"
+_SPARK = "▁▂▃▄▅▆▇█"
+
+
+@dataclass(frozen=True)
+class ForceView:
+    colour: str  # green / yellow / red / grey50
+    label: str  # SAFE / CAUTION / DANGER / NO DATA / STALE
+    detail: str  # "fz 4.2 N (caution 6, danger 8)"
+
+
+def force_view(msg: ForceLevelState | None, received_at: float, now: float, stale_after: float) -> ForceView:
+    if msg is None:
+        return ForceView(GREY, "NO DATA", "no force level received")
+    age = now - received_at
+    thresholds = f"(caution {msg.caution:g} N, danger {msg.danger:g} N)"
+    if msg.stale:
+        return ForceView(GREY, "STALE", f"edge reports the force sensor stale {thresholds}")
+    if age > stale_after:
+        return ForceView(GREY, "STALE", f"no force level for {age:.1f} s {thresholds}")
+    level = ForceLevel(msg.level)
+    return ForceView(
+        FORCE_LEVEL_COLOURS[level].replace("grey", GREY), level.name, f"{msg.quantity} {msg.value:.1f} N {thresholds}"
+    )
+
+
+def sparkline(values: Sequence[float], width: int = 30, top: float | None = None) -> str:
+    """The last ``width`` values as block characters scaled to ``top`` (default: their maximum)."""
+    vals = [v for v in list(values)[-width:] if math.isfinite(v)]
+    if not vals:
+        return ""
+    hi = top if top and top > 0 else max(max(vals), 1e-9)
+    return "".join(_SPARK[min(len(_SPARK) - 1, max(0, int(v / hi * (len(_SPARK) - 1) + 0.5)))] for v in vals)
+
+
+def fmt_ms(v: float) -> str:
+    return "—" if math.isnan(v) else f"{v:.1f} ms"
+
+
+def fmt_pct(v: float) -> str:
+    return "—" if math.isnan(v) else f"{100 * v:.1f} %"
+
+
+@dataclass(frozen=True)
+class LinkRow:
+    label: str
+    text: str
+    colour: str
+
+
+def link_rows(q: LinkQuality, t: LinkThresholds) -> list[LinkRow]:
+    g = q.grades(t)
+    return [
+        LinkRow("RTT p50/p95", f"{fmt_ms(q.rtt_p50_ms)} / {fmt_ms(q.rtt_p95_ms)}", GRADE_COLOURS[g["rtt"]]),
+        LinkRow("jitter", fmt_ms(q.jitter_ms), GRADE_COLOURS[g["jitter"]]),
+        LinkRow(
+            "loss up/down",
+            f"{fmt_pct(q.uplink_loss)} / {fmt_pct(q.downlink_loss)}",
+            GRADE_COLOURS[max(g["uplink_loss"], g["downlink_loss"], key=_rank)],
+        ),
+    ]
+
+
+def _rank(grade: str) -> int:
+    return {"none": 0, "good": 1, "warn": 2, "bad": 3}[grade]
+
+
+def next_profile(current: str, profiles: Sequence[str]) -> str:
+    """The profile after ``current`` in the configured cycle (the first one if current is not listed)."""
+    if current in profiles:
+        return profiles[(list(profiles).index(current) + 1) % len(profiles)]
+    return profiles[0]

@@ -1,0 +1,171 @@
+"""Link quality over a sliding window: command→echo round trip (p50/p95), jitter and loss. Pure logic.
+
+The operator sends twists with sequence numbers; the edge echoes every one it receives on ``state/applied``
+(accepted or refused). From that:
+
+- **RTT**: echo receive time − send time, both on this machine's clock (no clock sync needed).
+- **Jitter**: the mean absolute difference of consecutive RTTs (RFC 3550's idea, without its smoothing),
+  i.e. how irregular the delay is — what trips a deadman timeout, more than a constant delay does.
+- **Uplink loss**: commands sent in the window that were never echoed. A command counts only once it is
+  older than ``echo_grace`` (its echo may still be on its way), so a healthy link reads 0 %, not a few %.
+- **Downlink loss**: gaps in the edge's ``state/robot`` sequence numbers.
+
+Everything takes explicit times (ns) so tests drive it without a clock. The console colours each figure
+against :class:`LinkThresholds`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+from iorthand import stats
+
+GOOD, WARN, BAD, NONE = "good", "warn", "bad", "none"
+GRADE_COLOURS = {GOOD: "green", WARN: "yellow", BAD: "red", NONE: "grey50"}
+
+
+@dataclass
+class LinkThresholds:
+    """Above ``*_warn`` a figure shows yellow, above ``*_bad`` red. Defaults suit a 150 ms edge timeout."""
+
+    rtt_warn_ms: float = 80.0
+    rtt_bad_ms: float = 150.0
+    jitter_warn_ms: float = 10.0
+    jitter_bad_ms: float = 30.0
+    loss_warn: float = 0.01  # fraction
+    loss_bad: float = 0.05
+
+    def check(self) -> None:
+        for name, warn, bad in (
+            ("rtt", self.rtt_warn_ms, self.rtt_bad_ms),
+            ("jitter", self.jitter_warn_ms, self.jitter_bad_ms),
+            ("loss", self.loss_warn, self.loss_bad),
+        ):
+            if warn > bad:
+                raise ValueError(f"{name}: the warning threshold {warn} exceeds the bad one {bad}")
+
+
+@dataclass(frozen=True)
+class LinkQuality:
+    """One snapshot of the window. NaN figures mean "no data" (shown grey, never green)."""
+
+    rtt_p50_ms: float
+    rtt_p95_ms: float
+    jitter_ms: float
+    uplink_loss: float  # fraction of commands sent and not echoed
+    downlink_loss: float  # fraction of state messages missing (sequence gaps)
+    echoes: int
+    sent: int
+
+    def grades(self, t: LinkThresholds) -> dict[str, str]:
+        return {
+            "rtt": grade(self.rtt_p95_ms, t.rtt_warn_ms, t.rtt_bad_ms),
+            "jitter": grade(self.jitter_ms, t.jitter_warn_ms, t.jitter_bad_ms),
+            "uplink_loss": grade(self.uplink_loss, t.loss_warn, t.loss_bad),
+            "downlink_loss": grade(self.downlink_loss, t.loss_warn, t.loss_bad),
+        }
+
+    def overall(self, t: LinkThresholds) -> str:
+        gs = list(self.grades(t).values())
+        for g in (BAD, WARN):
+            if g in gs:
+                return g
+        return NONE if all(g == NONE for g in gs) or math.isnan(self.rtt_p95_ms) else GOOD
+
+
+def grade(value: float, warn: float, bad: float) -> str:
+    if value is None or math.isnan(value):
+        return NONE
+    if value > bad:
+        return BAD
+    if value > warn:
+        return WARN
+    return GOOD
+
+
+def jitter(rtts: list[float]) -> float:
+    """Mean absolute difference of consecutive values; NaN with fewer than two."""
+    if len(rtts) < 2:
+        return math.nan
+    return sum(abs(b - a) for a, b in itertools.pairwise(rtts)) / (len(rtts) - 1)
+
+
+def gap_loss(seqs: list[int]) -> float:
+    """Fraction of sequence numbers missing between the first and last of ``seqs`` (duplicates ignored;
+    a restart — a sequence going backwards — starts a new run). NaN with fewer than two."""
+    if len(seqs) < 2:
+        return math.nan
+    expected = received = 0
+    run_start = prev = seqs[0]
+    count = 1
+    for s in seqs[1:]:
+        if s == prev:
+            continue
+        if s < prev:  # the publisher restarted: close this run
+            expected += prev - run_start + 1
+            received += count
+            run_start, count = s, 1
+        else:
+            count += 1
+        prev = s
+    expected += prev - run_start + 1
+    received += count
+    return max(0.0, 1.0 - received / expected) if expected else math.nan
+
+
+class LinkWindow:
+    """Thread-safe sliding window of sends, echoes and state sequence numbers (times in ns)."""
+
+    def __init__(self, window_s: float = 5.0, echo_grace_s: float = 0.5) -> None:
+        self.window_ns = int(window_s * 1e9)
+        self.grace_ns = int(echo_grace_s * 1e9)
+        self._lock = threading.Lock()
+        self._sent: deque[tuple[int, int]] = deque()  # (send ns, seq)
+        self._echoed: dict[int, int] = {}  # seq → rtt ns, for seqs still in _sent
+        self._echoes: deque[tuple[int, float]] = deque()  # (echo ns, rtt ms), arrival order
+        self._states: deque[tuple[int, int]] = deque()  # (receive ns, seq)
+
+    def sent(self, seq: int, t_ns: int) -> None:
+        with self._lock:
+            self._sent.append((t_ns, seq))
+
+    def echoed(self, seq: int, sent_ns: int, echo_ns: int) -> None:
+        with self._lock:
+            self._echoed[seq] = echo_ns - sent_ns
+            self._echoes.append((echo_ns, (echo_ns - sent_ns) / 1e6))
+
+    def state(self, seq: int, t_ns: int) -> None:
+        with self._lock:
+            self._states.append((t_ns, seq))
+
+    def _trim(self, now_ns: int) -> None:
+        cut = now_ns - self.window_ns
+        while self._sent and self._sent[0][0] < cut:
+            _, seq = self._sent.popleft()
+            self._echoed.pop(seq, None)
+        while self._echoes and self._echoes[0][0] < cut:
+            self._echoes.popleft()
+        while self._states and self._states[0][0] < cut:
+            self._states.popleft()
+
+    def snapshot(self, now_ns: int) -> LinkQuality:
+        with self._lock:
+            self._trim(now_ns)
+            rtts = [r for _, r in self._echoes]
+            due = [seq for t, seq in self._sent if t <= now_ns - self.grace_ns]
+            missing = sum(1 for seq in due if seq not in self._echoed)
+            state_seqs = [s for _, s in self._states]
+            sent = len(self._sent)
+        return LinkQuality(
+            rtt_p50_ms=stats.percentile(rtts, 50),
+            rtt_p95_ms=stats.percentile(rtts, 95),
+            jitter_ms=jitter(rtts),
+            uplink_loss=missing / len(due) if due else math.nan,
+            downlink_loss=gap_loss(state_seqs),
+            echoes=len(rtts),
+            sent=sent,
+        )

@@ -1,0 +1,168 @@
+"""Headless operator: ``iorthand operator script FILE.yaml`` plays timed twists and actions, prints JSON.
+
+A script file::
+
+    name: square
+    profile: local            # optional: speed profile asked for on acquire
+    steps:
+      - {twist: [0.01, 0, 0, 0, 0, 0], duration: 1.0}   # m/s, rad/s, deadman held
+      - {wait: 0.5}                                     # deadman released (zero twists, then quiet)
+      - {action: torch, torch_on: true}          # ("on" would be a YAML 1.1 boolean key)
+      - {action: servo, pan_deg: 10, tilt_deg: -5}
+      - {action: profile, profile: remote}
+      - {action: silence, duration: 0.5}                # sender muted with the deadman held: a dead link
+      - {action: stop, reason: end of scan}
+
+Steps run on the same client and fixed-rate sender as the console; the summary reports per step what was
+sent, echoed, accepted or refused (with the distinct refusal reasons) and how far the tool moved.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from iorthand import stats
+from iorthand.config import setting
+from iorthand_operator.client import ControlRefused, OperatorClient
+
+STEP_ACTIONS = ("stop", "torch", "servo", "profile", "silence")
+
+
+@dataclass
+class ScriptStep:
+    twist: list[float] | None = setting(None, length=6, lo=-10.0, hi=10.0)
+    duration: float = setting(0.0, lo=0.0, hi=3600.0)
+    deadman: bool = True
+    wait: float | None = setting(None, lo=0.0, hi=3600.0)
+    action: str | None = setting(None, choices=STEP_ACTIONS)
+    reason: str = "script stop"
+    torch_on: bool = True
+    brightness: float = setting(1.0, lo=0.0, hi=1.0)
+    pan_deg: float | None = setting(None, lo=-180.0, hi=180.0)
+    tilt_deg: float | None = setting(None, lo=-180.0, hi=180.0)
+    profile: str = ""
+
+    def check(self) -> None:
+        given = [k for k in ("twist", "wait", "action") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"a step needs exactly one of twist, wait, action (got {given or 'none'})")
+        if self.twist is not None and self.duration <= 0:
+            raise ValueError("a twist step needs a duration > 0 s")
+        if self.action == "profile" and not self.profile:
+            raise ValueError("a profile step needs 'profile'")
+
+    @property
+    def kind(self) -> str:
+        return "twist" if self.twist is not None else "wait" if self.wait is not None else str(self.action)
+
+
+@dataclass
+class Script:
+    name: str = "script"
+    profile: str = ""
+    settle: float = setting(0.5, lo=0.0, hi=30.0, help="s to wait for echoes and rest after the last step")
+    steps: list[ScriptStep] = field(default_factory=list)
+
+    def check(self) -> None:
+        if not self.steps:
+            raise ValueError("steps: a script needs at least one step")
+
+
+def _pos(client: OperatorClient) -> np.ndarray | None:
+    s = client.robot_state
+    return None if s is None else np.array(s.tcp_pose[:3])
+
+
+def _mm(p: np.ndarray | None) -> list[float] | None:
+    return None if p is None else (1000 * p).round(2).tolist()
+
+
+def run_step(client: OperatorClient, step: ScriptStep) -> dict[str, Any]:
+    start, sent0, echo0, ev0 = _pos(client), client.sent_count, len(client.echoes), len(client.events)
+    t0 = time.monotonic()
+    zero = np.zeros(3)
+    if step.twist is not None:
+        tw = np.asarray(step.twist, float)
+        client.set_twist(tw[:3], tw[3:], deadman=step.deadman)
+        time.sleep(step.duration)
+    elif step.wait is not None:
+        client.set_twist(zero, zero, deadman=False)
+        time.sleep(step.wait)
+    elif step.action == "stop":
+        client.emergency_stop(step.reason)
+        time.sleep(step.duration)
+    elif step.action == "torch":
+        client.set_torch(step.torch_on, step.brightness)
+        time.sleep(step.duration)
+    elif step.action == "servo":
+        client.send_servo(
+            None if step.pan_deg is None else np.radians(step.pan_deg),
+            None if step.tilt_deg is None else np.radians(step.tilt_deg),
+        )
+        time.sleep(step.duration)
+    elif step.action == "profile":
+        try:
+            client.switch_profile(step.profile)
+        except ControlRefused as exc:
+            client.log_event("refused", "profile", f"profile {step.profile!r} refused: {exc}")
+        time.sleep(step.duration)
+    elif step.action == "silence":
+        client.muted = True
+        time.sleep(step.duration)
+        client.muted = False
+    end = _pos(client)
+    echoes = client.echoes[echo0:]
+    return {
+        "kind": step.kind,
+        "seconds": round(time.monotonic() - t0, 3),
+        "start_mm": _mm(start),
+        "end_mm": _mm(end),
+        "moved_mm": None if start is None or end is None else round(1000 * float(np.linalg.norm(end - start)), 2),
+        "sent": client.sent_count - sent0,
+        "echoed": len(echoes),
+        "accepted": sum(e.accepted for e in echoes),
+        "refused": sum(not e.accepted for e in echoes),
+        "events": [f"{e.kind} {e.status}: {e.reason}" for e in list(client.events)[ev0:]],
+    }
+
+
+def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
+    """Play ``script`` on a started client that holds control; return the JSON-able summary."""
+    start, sent0, echo0 = _pos(client), client.sent_count, len(client.echoes)
+    steps = [run_step(client, step) for step in script.steps]
+    client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
+    time.sleep(script.settle)
+    end = _pos(client)
+    echoes = client.echoes[echo0:]
+    q = client.link_quality()
+    safety = client.safety
+    refusals = sorted({f"{e.status}: {e.reason}" for e in client.events if e.kind == "refused"})
+    return {
+        "script": script.name,
+        "robot": client.keys.robot,
+        "operator": client.operator_id,
+        "profile": safety.profile if safety else "",
+        "steps": steps,
+        "commands_sent": client.sent_count - sent0,
+        "commands_echoed": len(echoes),
+        "commands_accepted": sum(e.accepted for e in echoes),
+        "commands_refused": sum(not e.accepted for e in echoes),
+        "refusals": refusals,
+        "net_displacement_mm": None if start is None or end is None else round(1000 * float(np.linalg.norm(end - start)), 2),
+        "start_mm": _mm(start),
+        "end_mm": _mm(end),
+        "command_to_echo_ms": {k: round(v, 3) for k, v in stats.summary([e.rtt_ms for e in echoes]).items()},
+        "link": {
+            "rtt_p50_ms": round(q.rtt_p50_ms, 3), "rtt_p95_ms": round(q.rtt_p95_ms, 3),
+            "jitter_ms": round(q.jitter_ms, 3), "uplink_loss": q.uplink_loss, "downlink_loss": q.downlink_loss,
+        },
+        "final_status": {"status": safety.status, "reason": safety.reason, "owner": safety.owner} if safety else {},
+        "edge_counters": {
+            "received": safety.received, "applied": safety.applied, "rejected": safety.rejected,
+            "malformed": safety.malformed, "stops": safety.stops,
+        } if safety else {},
+    }

@@ -1,0 +1,213 @@
+"""The console, headless (textual's run_test pilot), against a real router and a simulated edge."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import numpy as np
+import pytest
+from textual import events
+
+from iorthand import keys
+from iorthand.protocol import ForceLevelState
+from iorthand.transport import publisher
+from iorthand_operator.console.app import OperatorConsole
+from iorthand_operator.console.controller import ConsoleController
+from iorthand_operator.console.settings import ConsoleSettings
+from iorthand_operator.inputs import KeyboardInput, KeymapConfig
+from tests.conftest import wait_until
+
+
+async def _wait(pred, timeout: float = 5.0, message: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        await asyncio.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout} s waiting for {message}")
+
+
+async def _key(app: OperatorConsole, name: str, after: float = 0.05) -> None:
+    """A key event as the terminal delivers it (pilot.press waits for the screen to settle, ~1-2 s here:
+    too slow to model key repeats at 15-30 Hz)."""
+    app.post_message(events.Key(name, name if len(name) == 1 else None))
+    await asyncio.sleep(after)
+
+
+def _text(app: OperatorConsole, wid: str) -> str:
+    """What a panel shows, as plain text (rendered into the headless screen)."""
+    widget = app.query_one(f"#{wid}")
+    return "\n".join(strip.text for strip in widget.render_lines(widget.region.reset_offset))
+
+
+def _console(operator_factory, robot: str = "sim1", operator: str = "op1", **settings: object):
+    client = operator_factory(robot, operator)
+    device = KeyboardInput(KeymapConfig(initial_hold=0.4, repeat_hold=0.15))
+    ctrl = ConsoleController(client, device, ConsoleSettings(**settings), router="test router")
+    return client, ctrl, OperatorConsole(ctrl)
+
+
+def test_hold_deadman_and_move_key_moves_release_stops(edge_factory, operator_factory) -> None:
+    edge = edge_factory()
+    client, ctrl, app = _console(operator_factory)
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    ctrl.start()
+
+    async def run() -> dict[str, float]:
+        async with app.run_test(size=(160, 50)) as pilot:
+            x0 = client.robot_state.tcp_pose[0]
+            await _key(app, "space")  # deadman on (toggle)
+            for _ in range(30):  # "hold" w: a press, then repeats at ~20 Hz
+                await _key(app, "w", 0.05)
+            last_key = time.monotonic()
+            assert client.robot_state.tcp_pose[0] > x0 + 0.002, "the tool did not move +x"
+            assert app.view_model.deadman and app.view_model.edge_deadman
+            # Key released: no more repeats → zero twist within repeat_hold, the robot stops.
+            await _wait(lambda: not np.any(client.robot_state.commanded), 3.0, "motion to stop")
+            stop_s = time.monotonic() - last_key
+            await _wait(lambda: "ms" in app.view_model.link[0].text, 3.0, "RTT figures")
+            await pilot.pause(0.2)
+            link = _text(app, "link")
+            assert "RTT p50/p95" in link and " ms" in link
+            # Deadman off: the sender sends its zero tail, then goes quiet.
+            await _key(app, "space")
+            await _wait(lambda: not client.safety.deadman, 2.0, "edge deadman off")
+            sent = client.sent_count
+            await asyncio.sleep(client.release_tail + 0.3)
+            quiet_sent = client.sent_count - sent
+            moved = client.robot_state.tcp_pose[0] - x0
+            await pilot.press("q")
+            return {"stop_s": stop_s, "quiet_sent": quiet_sent, "moved": moved}
+
+    result = asyncio.run(run())
+    ctrl.stop()
+    assert result["moved"] > 0.002
+    # repeat_hold (0.15 s) + transport; generous for a loaded 2-core machine.
+    assert result["stop_s"] < 1.5, result
+    assert result["quiet_sent"] <= 60 * (client.release_tail + 0.1)
+    assert edge.supervisor.counters.applied > 0
+
+
+def test_force_block_colours_and_stale(session_factory, operator_factory) -> None:
+    """The force block from state/force_level messages published here (the sensor is another issue)."""
+    robot = "forcebot"  # no edge: only our messages reach this robot's keys
+    _client, ctrl, app = _console(operator_factory, robot=robot, force_stale_after=0.4)
+    pub = publisher(session_factory(), keys.RobotKeys(robot).key(keys.STATE_FORCE_LEVEL))
+    current: dict[str, ForceLevelState | None] = {"msg": None}
+    stop = threading.Event()
+
+    def publish() -> None:
+        seq = 0
+        while not stop.wait(0.05):
+            msg = current["msg"]
+            if msg is not None:
+                seq += 1
+                pub.put(msg.stamp(seq).encode())
+
+    t = threading.Thread(target=publish, daemon=True)
+    t.start()
+
+    async def run() -> list[tuple[str, str]]:
+        seen = []
+        async with app.run_test(size=(160, 50)) as pilot:
+            await pilot.pause(0.3)
+            seen.append((app.view_model.force.label, app.view_model.force.colour))  # nothing yet
+            for level, value in ((0, 2.0), (1, 6.5), (2, 8.5)):
+                current["msg"] = ForceLevelState(level=level, stale=False, value=value)
+                want = ("SAFE", "CAUTION", "DANGER")[level]
+                await _wait(lambda w=want: app.view_model.force.label == w, 3.0, want)
+                await pilot.pause(0.15)
+                assert want in _text(app, "force")
+                seen.append((app.view_model.force.label, app.view_model.force.colour))
+            current["msg"] = ForceLevelState(level=0, stale=True, value=0.0)  # the edge says: stale
+            await _wait(lambda: app.view_model.force.label == "STALE", 3.0, "edge-reported stale")
+            seen.append((app.view_model.force.label, app.view_model.force.colour))
+            current["msg"] = ForceLevelState(level=0, stale=False, value=1.0)
+            await _wait(lambda: app.view_model.force.label == "SAFE", 3.0, "safe again")
+            current["msg"] = None  # the sensor (or link) goes silent
+            await _wait(lambda: app.view_model.force.label == "STALE", 3.0, "silent sensor → stale")
+            await pilot.pause(0.15)
+            assert "STALE" in _text(app, "force")
+            seen.append((app.view_model.force.label, app.view_model.force.colour))
+            await pilot.press("ctrl+c")
+        return seen
+
+    try:
+        seen = asyncio.run(run())
+    finally:
+        stop.set()
+        t.join(1)
+        ctrl.stop()
+    assert seen == [
+        ("NO DATA", "grey50"), ("SAFE", "green"), ("CAUTION", "yellow"), ("DANGER", "red"),
+        ("STALE", "grey50"), ("STALE", "grey50"),
+    ]
+
+
+def test_refused_control_shows_the_reason(edge_factory, operator_factory) -> None:
+    from iorthand_operator.client import ControlRefused
+
+    edge_factory(safety={"auto_arm": True, "allowed_operators": ["someone_else"]})
+    client, ctrl, app = _console(operator_factory)
+    client.wait_for_state()
+    with pytest.raises(ControlRefused):
+        client.acquire()
+    client.start()
+    ctrl.start()
+
+    async def run() -> str:
+        async with app.run_test(size=(160, 50)) as pilot:
+            await _key(app, "space")
+            await _key(app, "w")  # the edge refuses these: not the owner
+            await _wait(lambda: any(e.kind == "refused" for e in client.events), 3.0, "a refusal")
+            await pilot.pause(0.3)
+            log = app.query_one("#events")
+            text = "\n".join(line.text for line in log.lines)
+            await pilot.press("q")
+            return text
+
+    text = asyncio.run(run())
+    ctrl.stop()
+    assert "allow-list" in text  # the acquire refusal, with the edge's reason
+    assert "no operator holds control" in text  # the command refusals
+
+
+def test_gamepad_unplugged_mid_session_stops_motion(edge_factory, operator_factory) -> None:
+    """SDL event path with injected events: enable + axis moves the tool; unplugging stops it and says so."""
+    from iorthand.config import from_dict
+    from iorthand_operator.inputs.gamepad import GamepadInput
+    from iorthand_operator.inputs.mapping import GamepadConfig
+
+    edge_factory()
+    client = operator_factory()
+    pad = GamepadInput(from_dict({"enable_button": 4, "axes": {"linear_y": {"axis": 0, "scale": 0.006}}}, GamepadConfig))
+    ctrl = ConsoleController(client, pad, ConsoleSettings())
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    pg = pad._pg
+    # Polled from this thread only (SDL's queue); the input thread is not started.
+    pad.poll(time.monotonic())
+    if pad.connected:
+        pytest.skip("a real joystick is attached")
+    y0 = client.robot_state.tcp_pose[1]
+    pg.event.post(pg.event.Event(pg.JOYDEVICEADDED, device_index=0, guid="test"))
+    pg.event.post(pg.event.Event(pg.JOYAXISMOTION, instance_id=0, joy=0, axis=0, value=1.0))
+    pg.event.post(pg.event.Event(pg.JOYBUTTONDOWN, instance_id=0, joy=0, button=4))
+    t_end = time.monotonic() + 0.8
+    while time.monotonic() < t_end:
+        ctrl.poll_once(time.monotonic())
+        time.sleep(0.02)
+    assert client.robot_state.tcp_pose[1] > y0 + 0.002
+    pg.event.post(pg.event.Event(pg.JOYDEVICEREMOVED, instance_id=0))
+    ctrl.poll_once(time.monotonic())
+    v = ctrl.view()
+    assert not v.input_connected and "UNPLUGGED" in v.input_status
+    assert any(e.kind == "input" and e.status == "input_lost" for e in client.events)
+    wait_until(lambda: not np.any(client.robot_state.commanded), 2.0, message="motion to stop")
+    wait_until(lambda: client.safety is not None and not client.safety.deadman, 2.0, message="deadman off")
+    ctrl.stop()

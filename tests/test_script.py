@@ -1,0 +1,65 @@
+"""Headless scripts: ``iorthand operator script FILE.yaml`` and run_script."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from iorthand.config import ConfigError, from_dict, load
+from iorthand_operator.script import Script, run_script
+from tests.conftest import iorthand_cmd
+
+SCRIPT = """
+name: test
+steps:
+  - {twist: [0.006, 0, 0, 0, 0, 0], duration: 0.6}
+  - {wait: 0.3}
+  - {action: torch, torch_on: true}
+  - {action: profile, profile: warp}
+  - {action: stop, reason: end of test, duration: 0.2}
+"""
+
+
+def test_script_validation() -> None:
+    with pytest.raises(ConfigError, match="exactly one of"):
+        from_dict({"steps": [{"twist": [0] * 6, "wait": 1.0, "duration": 1}]}, Script)
+    with pytest.raises(ConfigError, match="duration"):
+        from_dict({"steps": [{"twist": [0] * 6}]}, Script)
+    with pytest.raises(ConfigError, match="6 values"):
+        from_dict({"steps": [{"twist": [0, 0], "duration": 1}]}, Script)
+    with pytest.raises(ConfigError, match="action"):
+        from_dict({"steps": [{"action": "dance"}]}, Script)
+
+
+def test_run_script_moves_and_reports(edge_factory, operator_factory, tmp_path: Path) -> None:
+    edge_factory()
+    client = operator_factory()
+    (tmp_path / "s.yaml").write_text(SCRIPT)
+    script = load(tmp_path / "s.yaml", Script)
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    summary = run_script(client, script)
+    move = summary["steps"][0]
+    assert move["kind"] == "twist" and move["moved_mm"] > 2.0 and move["accepted"] > 0
+    assert summary["steps"][3]["events"] and "warp" in summary["steps"][3]["events"][0]  # refused profile
+    assert summary["final_status"]["status"] == "stopped"
+    assert summary["commands_echoed"] > 0 and summary["link"]["rtt_p50_ms"] > 0
+    json.dumps(summary)
+
+
+def test_script_command_line(edge_factory, router_endpoint: str, tmp_path: Path) -> None:
+    edge_factory()
+    path = tmp_path / "s.yaml"
+    path.write_text("steps:\n  - {twist: [0, 0.006, 0, 0, 0, 0], duration: 0.5}\n  - {wait: 0.2}\n")
+    out = subprocess.run(
+        iorthand_cmd("--log-level", "warning", "operator", "script", str(path), "--robot", "sim1",
+                     "--operator-id", "scripter", "--connect", router_endpoint),
+        capture_output=True, text=True, timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout)
+    assert summary["operator"] == "scripter" and summary["steps"][0]["moved_mm"] > 1.5
