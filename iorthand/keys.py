@@ -33,11 +33,23 @@ CONTROL_RELEASE = "control/release"
 CONTROL_ARM = "control/arm"
 CONTROL_POSES = "control/poses"
 CONTROL_GOTO = "control/goto"
+CONTROL_FORCE_ZERO = "control/force_zero"
+CONTROL_PREVIEW = "control/preview"  # edge queryable: plan a named pose, answer the verdict and a token
 ALIVE_EDGE = "alive/edge"
 ALIVE_OPERATOR = "alive/operator"
 
 TWIN = "_twin"
 RECORDER = "_recorder"
+TWIN_SNAPSHOT = "snapshot"  # iorthand/_twin/<robot>/snapshot: latest state of one robot, with ages
+TWIN_PREVIEW = "preview"  # iorthand/_twin/<robot>/preview: forwarded to the edge's control/preview, drawn
+
+# Recorder service keys, under iorthand/_recorder/ (see service_key): queryables, and the status stream that
+# also carries errors (a full disk must be visible to every client, not only in the recorder's log).
+RECORDER_START = "start"
+RECORDER_STOP = "stop"
+RECORDER_ANNOTATE = "annotate"
+RECORDER_STATUS = "status"
+RECORDER_ANNOTATIONS = "annotations"  # the channel annotations are stored on, inside recordings
 
 
 class KeyExprError(ValueError):

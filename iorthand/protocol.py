@@ -135,7 +135,7 @@ def _to_wire(value: Any) -> Any:
         return [_to_wire(v) for v in items]
     if isinstance(value, bool) or value is None or isinstance(value, (str, bytes)):
         return value
-    if isinstance(value, float) or hasattr(value, "__float__") and not isinstance(value, int):
+    if isinstance(value, float) or (hasattr(value, "__float__") and not isinstance(value, int)):
         return float(value)
     return value
 
@@ -283,6 +283,7 @@ class Status:
     SPEED_LIMITED = "speed_limited"
     ACCEL_LIMITED = "accel_limited"
     WORKSPACE = "workspace_limit"
+    FORCE_CAUTION = "force_caution"
     FORCE_DANGER = "force_danger"
     FORCE_STALE = "force_stale"
     STOPPED = "stopped"
@@ -491,6 +492,103 @@ class Annotation(Message):
     text: str = spec("", max_len=4000)
     tags: list[str] = spec(default_factory=list, max_len=32)
     score: float | None = spec(None, lo=-1e6, hi=1e6)
+
+
+@dataclass(kw_only=True)
+class RecorderRequest(Message):
+    """Payload of ``iorthand/_recorder/start`` and ``.../stop`` queries."""
+
+    operator: str = spec("", max_len=64)
+    session: str = spec("", max_len=64)  # start: the session id asked for ("" = the recorder names it)
+    robots: list[str] = spec(default_factory=list, max_len=32)
+    note: str = spec("", max_len=4000)
+
+
+@dataclass(kw_only=True)
+class RecorderStatus(Message):
+    """The recorder's state: the reply to every recorder query and the ``iorthand/_recorder/status`` stream.
+    ``error`` is set when a recording stopped on its own (full disk, unwritable folder)."""
+
+    ok: bool = True
+    reason: str = spec("", max_len=1000)
+    recording: bool = False
+    session: str = spec("", max_len=64)
+    path: str = spec("", max_len=4096)
+    error: str = spec("", max_len=1000)
+    messages: int = spec(0, lo=0)
+    bytes: int = spec(0, lo=0)
+    malformed: int = spec(0, lo=0)
+    gaps: int = spec(0, lo=0)  # sequence numbers missing, all keys
+    dropped: int = spec(0, lo=0)  # samples the recorder itself could not queue
+    started_t: int = spec(0, lo=0)  # ns: the start query was handled
+    first_message_t: int = spec(0, lo=0)  # ns: the first message of the session was flushed to its file
+    closed_t: int = spec(0, lo=0)  # ns: the files were closed (stop)
+
+
+@dataclass(kw_only=True)
+class StreamInfo(Struct):
+    """How fresh one stream of a robot is, as seen by the twin."""
+
+    key: str = spec("", max_len=64)  # suffix under iorthand/<robot>/
+    age: float = spec(-1.0, lo=-1.0)  # s since the twin received the latest sample; -1 = never
+    latency: float = spec(-1.0)  # s between the sample's source time and its arrival; -1 = unknown
+    count: int = spec(0, lo=0)
+    rejected: int = spec(0, lo=0)
+
+
+@dataclass(kw_only=True)
+class ImageInfo(Struct):
+    source: str = spec("", max_len=32)
+    seq: int = spec(0, lo=0)
+    t: int = spec(0, lo=0)
+    age: float = spec(-1.0, lo=-1.0)
+    width: int = spec(0, lo=0, hi=8192)
+    height: int = spec(0, lo=0, hi=8192)
+    encoding: str = spec("", max_len=16)
+    data: bytes = spec(b"", max_len=MAX_VIDEO_PAYLOAD)  # empty unless images were asked for
+
+
+@dataclass(kw_only=True)
+class TwinSnapshot(Message):
+    """Reply of ``iorthand/_twin/<robot>/snapshot``: the twin's latest view of one robot and how old it is.
+
+    ``online`` follows the edge's liveliness token ``alive/edge``; ``age`` is the time since the latest robot
+    state arrived (the pose itself was taken at ``robot_t``, the edge's source time). ``t`` is when the
+    snapshot was made."""
+
+    MAX_BYTES: ClassVar[int] = MAX_VIDEO_PAYLOAD
+    robot: str = spec("", max_len=64)
+    known: bool = False  # the twin has heard of this robot at all
+    online: bool = False
+    reason: str = spec("", max_len=200)  # why offline or stale
+    age: float = spec(-1.0, lo=-1.0)
+    robot_seq: int = spec(0, lo=0)
+    robot_t: int = spec(0, lo=0)
+    tcp_pose: list[float] = vec(6, lo=-_POSITION, hi=_POSITION)
+    tcp_speed: list[float] = vec(6, lo=-_SPEED, hi=_SPEED)
+    q: list[float] = vec(6, lo=-4 * math.pi, hi=4 * math.pi)  # reported joint angles
+    q_drawn: list[float] = vec(6, lo=-4 * math.pi, hi=4 * math.pi)  # joints drawn (IK of the TCP pose)
+    mode: str = spec("", max_len=40)
+    fault: str = spec("", max_len=200)
+    armed: bool = False
+    owner: str = spec("", max_len=64)
+    safety_status: str = spec("", max_len=40)
+    safety_reason: str = spec("", max_len=200)
+    profile: str = spec("", max_len=32)
+    limits_hit: list[str] = spec(default_factory=list, max_len=16)
+    force: list[float] = vec(3, lo=-1e5, hi=1e5)
+    torque: list[float] = vec(3, lo=-1e5, hi=1e5)
+    force_level: int = spec(0, lo=0, hi=2)
+    force_stale: bool = True
+    force_value: float = spec(0.0, lo=-1e5, hi=1e5)
+    servo_pan: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
+    servo_tilt: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
+    torch_on: bool = False
+    markers: list[MarkerPose] = spec(default_factory=list, max_len=256)
+    markers_t: int = spec(0, lo=0)
+    images: list[ImageInfo] = spec(default_factory=list, max_len=8)
+    streams: list[StreamInfo] = spec(default_factory=list, max_len=32)
+    events: list[str] = spec(default_factory=list, max_len=200)  # latest safety events, newest last (≤ 200 chars each)
 
 
 MESSAGES_BY_KEY: dict[str, type[Message]] = {

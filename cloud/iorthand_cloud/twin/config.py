@@ -1,0 +1,141 @@
+"""The twin's configuration (``iorthand twin --config configs/twin.yaml``), validated at start-up."""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from iorthand import keys
+from iorthand.config import ConfigError, load, setting
+from iorthand.transport import ZenohConfig
+
+
+def _zero_pose() -> list[float]:
+    return [0.0] * 6
+
+
+@dataclass
+class CameraView:
+    """Camera intrinsics and the mount chain (same keys as the edge's ``perception.mount``), to draw the
+    camera frustum: ``T_tcp_camera = T_tcp_mount · R(pan_axis, pan) · R(tilt_axis, tilt) · T_tilt_camera``."""
+
+    width: int = setting(640, lo=1, hi=8192)
+    height: int = setting(480, lo=1, hi=8192)
+    fx: float = setting(600.0, lo=1.0)
+    fy: float = setting(600.0, lo=1.0)
+    cx: float = setting(319.5)
+    cy: float = setting(239.5)
+    intrinsics_file: Path | None = setting(None, help="an intrinsics calibration YAML; overrides fx..height")
+    tcp_mount: list[float] = setting(default_factory=lambda: [0.0, 0.05, -0.02, 0.0, 0.0, 0.0], length=6)
+    pan_axis: list[float] = setting(default_factory=lambda: [0.0, 0.0, 1.0], length=3)
+    tilt_axis: list[float] = setting(default_factory=lambda: [1.0, 0.0, 0.0], length=3)
+    tilt_camera: list[float] = setting(default_factory=_zero_pose, length=6)
+    frustum_depth: float = setting(0.08, lo=0.005, hi=2.0, help="m: drawn depth of the image plane")
+
+    def check(self) -> None:
+        for name in ("pan_axis", "tilt_axis"):
+            if np.linalg.norm(getattr(self, name)) < 1e-9:
+                raise ValueError(f"{name} must not be zero")
+        if self.intrinsics_file is not None:
+            try:
+                data = yaml.safe_load(Path(self.intrinsics_file).read_text(encoding="utf-8"))
+                k = data["camera_matrix"]
+                self.width, self.height = int(data["image_width"]), int(data["image_height"])
+                self.fx, self.fy, self.cx, self.cy = float(k[0][0]), float(k[1][1]), float(k[0][2]), float(k[1][2])
+            except (OSError, KeyError, TypeError, IndexError, ValueError, yaml.YAMLError) as exc:
+                raise ValueError(f"intrinsics_file {self.intrinsics_file}: cannot read image size and camera_matrix ({exc})") from None
+
+
+@dataclass
+class SceneObject:
+    """A box in the robot's base frame (bed, phantom, table): centre and full size in metres."""
+
+    name: str
+    center: list[float] = setting(length=3)
+    size: list[float] = setting(length=3, lo=0.0)
+    color: list[int] = setting(default_factory=lambda: [160, 160, 160, 255], length=4, lo=0, hi=255)
+
+
+def _default_scene() -> list[SceneObject]:
+    return [
+        SceneObject("table", [0.0, 0.0, -0.01], [0.6, 0.6, 0.02], [110, 90, 70, 255]),
+        SceneObject("bed", [0.32, 0.0, -0.05], [0.35, 0.55, 0.10], [200, 200, 215, 255]),
+        SceneObject("phantom", [0.32, 0.0, 0.03], [0.14, 0.10, 0.06], [230, 180, 160, 255]),
+    ]
+
+
+@dataclass
+class RobotView:
+    """How one robot is drawn. ``base`` places its base frame in the world (several robots side by side)."""
+
+    model: str = setting("ur3e", choices=("ur3e", "ur5e"))
+    base: list[float] | None = setting(None, length=6, help="world pose of the base; default: a row along y")
+    tcp_offset: list[float] = setting(default_factory=_zero_pose, length=6, help="TCP in the flange frame")
+    probe_length: float = setting(0.10, lo=0.0, hi=0.5, help="m, drawn along -z of the TCP (back to the flange)")
+    workspace_min: list[float] | None = setting(default_factory=lambda: [0.10, -0.30, 0.02], length=3)
+    workspace_max: list[float] | None = setting(default_factory=lambda: [0.45, 0.30, 0.45], length=3)
+    camera: CameraView = field(default_factory=CameraView)
+    scene: list[SceneObject] = field(default_factory=_default_scene)
+
+
+@dataclass
+class ViewerConfig:
+    """Where the rerun data goes and how much of it."""
+
+    enabled: bool = setting(True, help="false: no rerun at all (snapshots and previews only)")
+    serve: bool = setting(True, help="serve the web viewer (an operator opens a URL)")
+    bind: str = setting("127.0.0.1", help="address the viewer's HTTP and gRPC ports listen on")
+    public_host: str = setting("", help="host name put in the printed URL (default: the bind address)")
+    grpc_port: int = setting(9876, lo=0, hi=65535)
+    web_port: int = setting(9090, lo=0, hi=65535)
+    memory_limit: str = setting("256MiB", help="the gRPC server's buffer; older data is dropped first")
+    save: Path | None = setting(None, help=".rrd file written with the same data")
+    relay_start_timeout: float = setting(20.0, lo=1.0, hi=120.0)
+    queue: int = setting(1024, lo=16, hi=100_000, help="items between the Zenoh side and rerun (oldest dropped)")
+    pose_hz: float = setting(30.0, lo=0.1, hi=500.0, help="robot drawing rate per robot")
+    force_batch_s: float = setting(0.1, lo=0.01, hi=5.0, help="force samples are sent in batches this long")
+    image_fps: float = setting(10.0, lo=0.1, hi=60.0, help="images per second and source at most")
+    markers_hz: float = setting(10.0, lo=0.1, hi=100.0)
+    stale_after: float = setting(0.5, lo=0.05, hi=10.0, help="s without force: arrow grey")
+
+    def check(self) -> None:
+        try:
+            ipaddress.ip_address(self.bind)
+        except ValueError:
+            raise ValueError(f"bind {self.bind!r} must be an IP address such as 127.0.0.1 or 0.0.0.0") from None
+        if self.serve and self.grpc_port != 0 and self.grpc_port == self.web_port:
+            raise ValueError("grpc_port and web_port must differ")
+
+
+@dataclass
+class TwinConfig:
+    zenoh: ZenohConfig
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
+    robots: dict[str, RobotView] = setting(default_factory=dict, help="per-robot drawing; others use default_robot")
+    default_robot: RobotView = field(default_factory=RobotView)
+    robot_spacing: float = setting(1.0, lo=0.0, hi=100.0, help="m along y between robots without a base pose")
+    state_timeout: float = setting(1.0, lo=0.05, hi=60.0, help="s without state/robot: shown as stale")
+    preview_timeout: float = setting(3.0, lo=0.1, hi=60.0, help="s to wait for the edge's preview answer")
+    snapshot_images: bool = setting(False, help="include the latest JPEGs in snapshots (also: ?images=1)")
+
+    def check(self) -> None:
+        for robot in self.robots:
+            keys.check_robot_id(robot)
+
+    def view(self, robot: str, index: int) -> RobotView:
+        """The drawing settings of ``robot``; the ``index``-th robot without a base pose goes at y = index·spacing."""
+        v = self.robots.get(robot, self.default_robot)
+        if v.base is None:
+            v = replace(v, base=[0.0, index * self.robot_spacing, 0.0, 0.0, 0.0, 0.0])
+        return v
+
+
+def load_twin_config(path: str | Path) -> TwinConfig:
+    return load(path, TwinConfig)
+
+
+__all__ = ["CameraView", "ConfigError", "RobotView", "SceneObject", "TwinConfig", "ViewerConfig", "load_twin_config"]

@@ -1,0 +1,134 @@
+"""Where the twin's rerun data goes: the web viewer an operator opens in a browser, and/or an .rrd file.
+
+Choice (issue 6 §4, FACTS.md): ``rr.serve_grpc`` / ``rr.serve_web_viewer`` always bind 0.0.0.0 and have no
+option to change it, so they cannot honour ``viewer.bind: 127.0.0.1`` (the default: expose the viewer only
+through a reverse proxy or an SSH tunnel). The twin therefore runs rerun's own relay as a child process,
+
+    rerun --serve-web --bind <bind> --port <grpc_port> --web-viewer-port <web_port> --server-memory-limit <limit>
+
+and streams to it with ``connect_grpc``. One code path for every bind address, and a side benefit: the
+relay's buffering and the HTTP serving use another process's CPU and memory, never the twin's (the memory
+limit drops the oldest data; static data — the robot model — is kept). The relay dies with the twin
+(PR_SET_PDEATHSIG) and is terminated on shutdown. The viewer's assets are inside the wheel: no network.
+
+``viewer.save`` adds a file sink with the same data (``set_sinks``), with or without serving.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import time
+import urllib.parse
+from pathlib import Path
+
+import rerun as rr
+
+from .config import ViewerConfig
+
+log = logging.getLogger("iorthand.twin.server")
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    with contextlib.suppress(OSError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def rerun_executable() -> str:
+    """The ``rerun`` binary of the installed rerun-sdk (same version as the SDK).
+
+    Not the ``bin/rerun`` entry point: that is a Python wrapper which runs the binary as *its* child, so
+    terminating the wrapper would leave the relay running (seen in testing)."""
+    try:
+        import rerun_cli
+
+        binary = Path(rerun_cli.__file__).parent / "rerun"
+        if binary.exists():
+            return str(binary)
+    except ImportError:
+        pass
+    found = shutil.which("rerun")
+    if found is None:
+        raise RuntimeError("the rerun CLI (from rerun-sdk) is not installed: pip install rerun-sdk==0.41.0")
+    return found
+
+
+def viewer_url(host: str, grpc_port: int, web_port: int) -> str:
+    """The URL to open in a browser: the web viewer, told where its data (the gRPC proxy) is."""
+    data = f"rerun+http://{host}:{grpc_port}/proxy"
+    return f"http://{host}:{web_port}/?url={urllib.parse.quote(data, safe='')}"
+
+
+def _wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen[bytes]) -> None:
+    target = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the rerun relay exited with code {proc.returncode} (port {port} in use?)")
+        try:
+            with socket.create_connection((target, port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise RuntimeError(f"the rerun relay did not listen on {host}:{port} within {timeout:g} s")
+
+
+class ViewerServer:
+    """Starts the relay (when serving) and points a recording stream at the relay and/or a file."""
+
+    def __init__(self, config: ViewerConfig, save: Path | None = None, log_dir: Path | None = None) -> None:
+        self.config = config
+        self.save = save if save is not None else config.save
+        self.log_dir = log_dir
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.url = ""
+        self.grpc_url = ""
+
+    def start(self, rec: rr.RecordingStream, default_blueprint: object | None = None) -> None:
+        c = self.config
+        sinks: list[object] = []
+        if c.serve:
+            host = c.public_host or ("127.0.0.1" if c.bind in ("0.0.0.0", "::") else c.bind)
+            argv = [
+                rerun_executable(), "--serve-web", "--bind", c.bind, "--port", str(c.grpc_port),
+                "--web-viewer-port", str(c.web_port), "--server-memory-limit", c.memory_limit,
+            ]
+            out = subprocess.DEVNULL
+            if self.log_dir is not None:
+                self.log_dir.mkdir(parents=True, exist_ok=True)
+                out = (self.log_dir / "rerun-relay.log").open("wb")  # type: ignore[assignment]
+            env = {**os.environ, "RERUN_ANALYTICS": "0"}
+            self.proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                         preexec_fn=_die_with_parent, env=env)
+            _wait_port(c.bind, c.grpc_port, c.relay_start_timeout, self.proc)
+            _wait_port(c.bind, c.web_port, c.relay_start_timeout, self.proc)
+            self.grpc_url = f"rerun+http://{'127.0.0.1' if c.bind in ('0.0.0.0', '::') else c.bind}:{c.grpc_port}/proxy"
+            self.url = viewer_url(host, c.grpc_port, c.web_port)
+            sinks.append(rr.GrpcSink(self.grpc_url))
+            log.info("rerun web viewer on %s:%d (data %s:%d); open %s", c.bind, c.web_port, c.bind, c.grpc_port, self.url)
+        if self.save is not None:
+            Path(self.save).parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(self.save)))
+            log.info("saving the twin's rerun data to %s", self.save)
+        if sinks:
+            rec.set_sinks(*sinks, default_blueprint=default_blueprint)  # type: ignore[arg-type]
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(2)
+        self.proc = None
+
+
+__all__ = ["ViewerServer", "rerun_executable", "viewer_url"]

@@ -1,0 +1,273 @@
+"""Preview and goto of named poses on the edge: the safety authority plans, issues tokens and drives. Pure.
+
+Flow (DESIGN.md "Safety model", issue 6 §5):
+
+1. ``control/preview`` (name) → :meth:`GotoController.preview` plans a straight line from the *current* pose
+   to the named pose at the *active* speed limits, checks the workspace box and the arm's reach, and — only
+   if the plan is acceptable — issues a single-use token valid for ``token_ttl`` seconds. The reply carries
+   the verdict and the path (the twin draws it as a ghost trajectory).
+2. ``control/goto`` (name, token) → :meth:`GotoController.start` refuses unless the token is known, unused,
+   fresh, for the same pose, issued to the same operator, and the robot is still where the preview started
+   (the approved path begins there). Then the move is active.
+3. While active, the operator keeps sending ``cmd/twist`` with the deadman held (hold-to-run): the agent
+   replaces the command's velocity with :meth:`GotoController.twist` (:func:`substitute`) and passes it
+   through the supervisor as any command — owner, sequence, age, deadman, speed and workspace limits and the
+   force reaction all apply. Releasing the deadman, a refused command, a stop, a fault or a tracking error
+   cancels the move (:meth:`GotoController.cancel`); nothing resumes by itself.
+
+Tracking: the twist is the path's feed-forward velocity plus a proportional correction toward the path's
+reference pose at the current time; at the end it converges on the goal and reports done within
+``position_tolerance`` (0.5 mm by default) and ``angle_tolerance``.
+"""
+
+from __future__ import annotations
+
+import math
+import secrets
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from iorthand import geometry, motion
+from iorthand.config import setting
+from iorthand.protocol import TwistCommand
+
+Vector = NDArray[np.float64]
+
+
+@dataclass
+class GotoConfig:
+    """The ``goto`` section of the edge configuration."""
+
+    enabled: bool = setting(True, help="serve control/preview and control/goto")
+    poses: dict[str, list[float]] = setting(
+        default_factory=lambda: {"home": [0.30, 0.0, 0.25, math.pi, 0.0, 0.0]},
+        help="named safety poses [x,y,z,rx,ry,rz] in the base frame (m, rotation vector)",
+    )
+    token_ttl: float = setting(10.0, lo=0.5, hi=300.0, help="s a preview token stays valid")
+    retract_distance: float = setting(0.05, lo=0.0, hi=0.3, help="m straight up for 'retract' if not in poses")
+    marker_standoff: float = setting(0.10, lo=0.01, hi=0.5, help="m above a marker for above_marker:<id>")
+    model: str = setting("ur3e", choices=("ur3e", "ur5e"))
+    tcp_offset: list[float] = setting(default_factory=lambda: [0.0] * 6, length=6, help="TCP in the flange frame")
+    start_tolerance: float = setting(0.005, lo=0.0, hi=0.1, help="m the robot may have moved since the preview")
+    start_angle_tolerance: float = setting(0.05, lo=0.0, hi=1.0, help="rad, idem for orientation")
+    position_tolerance: float = setting(0.0005, lo=1e-5, hi=0.01, help="m: goal reached")
+    angle_tolerance: float = setting(0.005, lo=1e-4, hi=0.1, help="rad: goal reached")
+    max_tracking_error: float = setting(0.01, lo=0.001, hi=0.1, help="m off the path → cancel")
+    gain: float = setting(3.0, lo=0.1, hi=20.0, help="1/s proportional correction toward the path")
+    settle_timeout: float = setting(3.0, lo=0.1, hi=30.0, help="s after the path's end to reach the tolerance")
+
+    def check(self) -> None:
+        for name, pose in self.poses.items():
+            if len(pose) != 6:
+                raise ValueError(f"poses.{name}: expected 6 numbers [x,y,z,rx,ry,rz], got {len(pose)}")
+            if name == motion.RETRACT or name.startswith(motion.ABOVE_MARKER):
+                continue
+            if ":" in name:
+                raise ValueError(f"poses.{name}: ':' is reserved for above_marker:<id>")
+
+
+@dataclass
+class Preview:
+    """A preview's outcome: the plan with its verdict, and the token when accepted."""
+
+    plan: motion.Plan
+    token: str = ""
+    ttl: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.plan.ok and bool(self.token)
+
+    def detail(self) -> dict[str, Any]:
+        return self.plan.summary(token=self.token, ttl=self.ttl)
+
+
+@dataclass
+class _Issued:
+    name: str
+    operator: str
+    plan: motion.Plan
+    issued_at: float
+    limits: motion.Limits
+
+
+@dataclass
+class _Active:
+    plan: motion.Plan
+    operator: str
+    started_at: float
+    limits: motion.Limits
+
+
+@dataclass
+class GotoController:
+    """Preview tokens and the execution of one named-pose move at a time. Times are monotonic seconds."""
+
+    config: GotoConfig
+    workspace_min: Sequence[float]
+    workspace_max: Sequence[float]
+    max_tokens: int = 16
+    status: str = "idle"  # idle | moving | done | cancelled
+    reason: str = ""
+    _tokens: OrderedDict[str, _Issued] = field(default_factory=OrderedDict)
+    _active: _Active | None = None
+
+    # ------------------------------------------------------------------ preview
+
+    def limits(self, linear_speed: float, angular_speed: float, acceleration: float) -> motion.Limits:
+        return motion.Limits(
+            linear_speed=linear_speed, angular_speed=angular_speed, acceleration=acceleration,
+            workspace_min=tuple(self.workspace_min), workspace_max=tuple(self.workspace_max),
+            model=self.config.model, tcp_offset=tuple(self.config.tcp_offset) if any(self.config.tcp_offset) else None,
+        )
+
+    def preview(
+        self,
+        name: str,
+        operator: str,
+        current_pose: ArrayLike,
+        now: float,
+        limits: motion.Limits,
+        markers: Mapping[int, ArrayLike] | None = None,
+        current_q: ArrayLike | None = None,
+    ) -> Preview:
+        """Plan ``name`` from ``current_pose`` at ``limits``; a token only for an acceptable plan."""
+        if not self.config.enabled:
+            plan = motion.plan_to(name, current_pose, limits, {}, None)
+            plan.inside_workspace = plan.reachable = False
+            plan.reason = "preview/goto is disabled in this edge's configuration"
+            return Preview(plan)
+        plan = motion.plan_to(
+            name, current_pose, limits, self.config.poses, markers,
+            self.config.retract_distance, self.config.marker_standoff, current_q,
+        )
+        if not plan.ok:
+            return Preview(plan)
+        self._expire(now)
+        token = secrets.token_hex(12)
+        self._tokens[token] = _Issued(name, operator, plan, now, limits)
+        while len(self._tokens) > self.max_tokens:
+            self._tokens.popitem(last=False)
+        return Preview(plan, token, self.config.token_ttl)
+
+    def _expire(self, now: float) -> None:
+        for token in [t for t, v in self._tokens.items() if now - v.issued_at > self.config.token_ttl]:
+            del self._tokens[token]
+
+    # ------------------------------------------------------------------ goto
+
+    def start(self, name: str, token: str, operator: str, current_pose: ArrayLike, now: float,
+              limits: motion.Limits) -> tuple[bool, str]:
+        """Validate a goto. Tokens are single-use: a refused goto for a known token also consumes it unless
+        the refusal is only that another move is active."""
+        if not self.config.enabled:
+            return False, "preview/goto is disabled in this edge's configuration"
+        if self._active is not None:
+            return False, f"a move to {self._active.plan.name!r} is already running"
+        if not token:
+            return False, f"no preview token: preview {name!r} first"
+        issued = self._tokens.get(token)
+        if issued is None:
+            return False, "unknown or already used preview token: preview again"
+        age = now - issued.issued_at
+        del self._tokens[token]
+        if age > self.config.token_ttl:
+            return False, f"preview token expired ({age:.1f} s old, valid {self.config.token_ttl:g} s): preview again"
+        if issued.name != name:
+            return False, f"the token was issued for {issued.name!r}, not {name!r}"
+        if issued.operator != operator:
+            return False, f"the token was issued to {issued.operator!r}, not {operator!r}"
+        here = geometry.pose_to_matrix(current_pose)
+        there = geometry.pose_to_matrix(issued.plan.start)
+        moved = geometry.translation_distance(here, there)
+        turned = geometry.rotation_angle(here, there)
+        if moved > self.config.start_tolerance or turned > self.config.start_angle_tolerance:
+            return False, (f"the robot moved {1000 * moved:.1f} mm / {math.degrees(turned):.1f}° since the preview:"
+                           " preview again")
+        if (limits.linear_speed < issued.limits.linear_speed - 1e-12
+                or limits.angular_speed < issued.limits.angular_speed - 1e-12):
+            return False, "the speed limits are lower than at the preview (profile changed): preview again"
+        # Run the path exactly as previewed (its timing was approved), never faster.
+        self._active = _Active(issued.plan, operator, now, issued.limits)
+        self.status, self.reason = "moving", f"moving to {name!r} ({issued.plan.duration:.1f} s)"
+        return True, self.reason
+
+    @property
+    def active(self) -> bool:
+        return self._active is not None
+
+    @property
+    def operator(self) -> str:
+        return self._active.operator if self._active else ""
+
+    @property
+    def target(self) -> str:
+        return self._active.plan.name if self._active else ""
+
+    def cancel(self, reason: str) -> bool:
+        """Abort the move (deadman released, stop, refusal, fault). Returns True if one was active."""
+        if self._active is None:
+            return False
+        self._active = None
+        self.status, self.reason = "cancelled", reason
+        return True
+
+    def twist(self, current_pose: ArrayLike, now: float) -> Vector:
+        """The tool twist for this cycle (base frame). Zero, and the move ends, when done or off the path."""
+        act = self._active
+        if act is None:
+            return np.zeros(6)
+        t = now - act.started_at
+        plan, limits = act.plan, act.limits
+        ref, s = motion.reference_at(plan, t, limits)
+        ahead, _ = motion.reference_at(plan, t + 0.02, limits)
+        cur = geometry.pose_to_matrix(current_pose)
+        ref_m = geometry.pose_to_matrix(ref)
+        goal_m = geometry.pose_to_matrix(plan.goal)
+        # Off the path (blocked by a limit, a force reaction or a collision): stop rather than push on.
+        err = geometry.translation_distance(cur, ref_m)
+        if err > self.config.max_tracking_error:
+            self.cancel(f"{1000 * err:.1f} mm off the planned path (max {1000 * self.config.max_tracking_error:.0f} mm):"
+                        " move cancelled")
+            return np.zeros(6)
+        if s >= 1.0:
+            pos_err = geometry.translation_distance(cur, goal_m)
+            ang_err = geometry.rotation_angle(cur, goal_m)
+            if pos_err <= self.config.position_tolerance and ang_err <= self.config.angle_tolerance:
+                self._active = None
+                self.status, self.reason = "done", f"reached {plan.name!r} ({1000 * pos_err:.2f} mm)"
+                return np.zeros(6)
+            if t > plan.duration + self.config.settle_timeout:
+                self.cancel(f"did not settle on {plan.name!r} within {self.config.settle_timeout:g} s"
+                            f" ({1000 * pos_err:.1f} mm off)")
+                return np.zeros(6)
+        # Feed-forward: the path's velocity over the next 20 ms; feedback: toward the reference now.
+        ahead_m = geometry.pose_to_matrix(ahead)
+        v_ff = (ahead_m[:3, 3] - ref_m[:3, 3]) / 0.02
+        w_ff = geometry.matrix_to_rotvec(ahead_m[:3, :3] @ ref_m[:3, :3].T) / 0.02
+        v = v_ff + self.config.gain * (ref_m[:3, 3] - cur[:3, 3])
+        w = w_ff + self.config.gain * geometry.matrix_to_rotvec(ref_m[:3, :3] @ cur[:3, :3].T)
+        # Stay within the limits here already, so the supervisor's clipping never bends the path.
+        v = _clip_norm(v, limits.linear_speed)
+        w = _clip_norm(w, limits.angular_speed)
+        return np.concatenate([v, w])
+
+
+def _clip_norm(v: Vector, limit: float) -> Vector:
+    n = float(np.linalg.norm(v))
+    return v * (limit / n) if n > limit > 0 else (v if limit > 0 else np.zeros_like(v))
+
+
+def substitute(cmd: TwistCommand, twist: ArrayLike) -> TwistCommand:
+    """The operator's command with its velocity replaced by the goto's twist (same operator, seq, time and
+    deadman), to pass through :meth:`Supervisor.on_command` like any command."""
+    tw = np.asarray(twist, dtype=float)
+    return replace(cmd, linear=[float(v) for v in tw[:3]], angular=[float(v) for v in tw[3:]])
+
+
+__all__ = ["GotoConfig", "GotoController", "Preview", "substitute"]

@@ -1,0 +1,136 @@
+"""The twin's pure parts: rate gates, force batches, colours, the drawing geometry, the drop-oldest queue,
+and every visualiser handler run against an in-memory rerun recording (no viewer)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+import rerun as rr
+
+from iorthand import geometry, keys, kinematics
+from iorthand.config import from_dict
+from iorthand.protocol import ForceLevelState, ForceSample, MarkerPose, Markers, RobotState, ServoState, VideoFrame
+from iorthand.transport import Inbox
+from iorthand_cloud.twin import model
+from iorthand_cloud.twin.config import RobotView, TwinConfig
+from iorthand_cloud.twin.state import Event, TwinStore
+from iorthand_cloud.twin.viz import ForceBatcher, RateGate, Visualizer, VizFeeder, blueprint
+
+
+def config(**viewer: object) -> TwinConfig:
+    return from_dict({"zenoh": {"mode": "peer"}, "viewer": {"serve": False, **viewer}}, TwinConfig, source="<test>")
+
+
+def test_rate_gate_keeps_the_mean_rate():
+    gate = RateGate(30.0)
+    passed = sum(gate.due("r", t) for t in np.arange(0, 10, 1 / 125))
+    assert passed == pytest.approx(300, abs=2)
+    assert gate.due("other", 0.0)  # per key
+
+
+def test_force_batcher_hands_over_every_period():
+    b = ForceBatcher(0.1)
+    out = [b.add("r", i, [0, 0, float(i)], i / 100) for i in range(31)]
+    batches = [x for x in out if x is not None]
+    assert len(batches) >= 2 and all(10 <= len(x.t_ns) <= 12 for x in batches)
+
+
+def test_force_colours():
+    assert model.force_colour(0, False) == model.COLOURS["green"]
+    assert model.force_colour(1, False) == model.COLOURS["yellow"]
+    assert model.force_colour(2, False) == model.COLOURS["red"]
+    assert model.force_colour(2, True) == model.COLOURS["grey"]
+
+
+def test_capsules_follow_the_links():
+    arm = model.ArmModel(RobotView())
+    q = arm.solve([0.30, 0.0, 0.20, math.pi, 0.0, 0.0])
+    assert q is not None and arm.reachable
+    caps = arm.capsules(q)
+    pts = kinematics.link_points(arm.model, q)
+    assert len(caps.lengths) >= 6 and np.all(caps.lengths > 0)
+    # each capsule: start + R(quaternion)·[0,0,length] is the next point
+    for t, qn, length in zip(caps.translations, caps.quaternions, caps.lengths, strict=True):
+        x, y, z, w = qn
+        r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        end = t + r @ [0, 0, length]
+        assert np.min(np.linalg.norm(pts - end, axis=1)) < 1e-9
+    # unreachable pose: keeps the last drawing, says so
+    assert arm.solve([2.0, 0.0, 0.2, math.pi, 0, 0]) is None and not arm.reachable and arm.q is not None
+
+
+def test_quaternions():
+    for rv in ([0, 0, 0], [0.3, -0.2, 0.1], [math.pi, 0, 0], [0, 0, 3.0]):
+        r = geometry.rotvec_to_matrix(rv)
+        x, y, z, w = model.matrix_to_quaternion(r)
+        assert np.allclose(geometry.rotvec_to_matrix(
+            2 * math.acos(max(-1.0, min(1.0, w))) * np.array([x, y, z]) / max(np.linalg.norm([x, y, z]), 1e-12)), r,
+            atol=1e-9)
+
+
+def test_queue_drops_the_oldest_and_counts():
+    q = Inbox(4, keep="newest")
+    feeder = VizFeeder(config(pose_hz=500.0), q)
+    for i in range(10):
+        feeder.offer("r", keys.STATE_ROBOT, RobotState().stamp(i + 1, i + 1), now=i * 0.01)
+    items = q.drain()
+    assert [it.data.seq for it in items] == [7, 8, 9, 10] and q.dropped == 6
+
+
+def test_store_events_on_changes_only():
+    store = TwinStore()
+    k = keys.RobotKeys("r1")
+    for i, (level, stale) in enumerate([(0, True), (0, False), (0, False), (2, False), (2, False), (0, True)]):
+        store.ingest(k.key(keys.STATE_FORCE_LEVEL), ForceLevelState(level=level, stale=stale).stamp(i + 1).encode(), 0)
+    texts = [e.text for e in store.robots["r1"].events]
+    assert texts[0] == "force sensor stale" and "safe" in texts[1] and "danger" in texts[2] and texts[3] == "force sensor stale"
+    assert len(texts) == 4
+    _, _, msg, _, _ = store.ingest(k.key(keys.STATE_ROBOT), b"\x00junk", 0)
+    assert msg is None and store.robots["r1"].streams[keys.STATE_ROBOT].rejected == 1
+
+
+def test_every_handler_logs_without_error_to_a_memory_recording():
+    cfg = config(pose_hz=500.0, image_fps=60.0, markers_hz=100.0, force_batch_s=0.01)
+    rec = rr.RecordingStream("iorthand-twin-test")
+    mem = rec.memory_recording()
+    drawn: list[tuple[str, list[float]]] = []
+    viz = Visualizer(cfg, rec, on_drawn=lambda r, q: drawn.append((r, q)))
+    viz.start()
+    try:
+        f = viz.feeder
+        now = time.monotonic()
+        f.robot_added("a", 0)
+        f.robot_added("b", 1)
+        f.offer("a", keys.STATE_ROBOT, RobotState(tcp_pose=[0.3, 0, 0.2, math.pi, 0, 0]).stamp(1), now)
+        f.offer("a", keys.STATE_FORCE, ForceSample(force=[0, 0, 5.0]).stamp(1), now)
+        f.offer("a", keys.STATE_FORCE_LEVEL, ForceLevelState(level=1, stale=False, value=6.5).stamp(1), now)
+        f.offer("a", keys.STATE_SERVO, ServoState(pan=0.3, tilt=0.1).stamp(1), now)
+        m = geometry.flatten(np.eye(4))
+        f.offer("a", keys.MARKERS, Markers(markers=[MarkerPose(id=3, pose=m, raw=m)]).stamp(1), now)
+        f.offer("a", keys.MARKERS, Markers(markers=[]).stamp(2), now + 1)  # marker 3 lost: cleared
+        f.offer("a", keys.VIDEO_CAMERA, VideoFrame(width=2, height=2, data=b"\xff\xd8\xff\xd9").stamp(1), now)
+        f.offer("b", keys.VIDEO_ULTRASOUND, VideoFrame(width=2, height=2, data=b"\xff\xd8\xff\xd9").stamp(1), now)
+        f.event(Event("a", time.time_ns(), "WARN", "stopped: test"))
+        f.online("a", False)
+        f.preview("a", {"name": "home", "ok": True, "duration": 2.0, "path": [[0.3, 0, 0.2], [0.32, 0.05, 0.25]],
+                        "goal": [0.32, 0.05, 0.25, math.pi, 0, 0]})
+        f.preview("a", {"name": "far", "ok": False, "path": [], "goal": []})
+        deadline = time.monotonic() + 5
+        while (viz.handled < 13 or len(viz.queue)) and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        viz.stop()
+    assert viz.errors == 0 and viz.handled >= 13
+    assert drawn and drawn[0][0] == "a"
+    assert len(mem.drain_as_bytes()) > 1000
+
+
+def test_blueprint_lists_each_robots_images():
+    bp = blueprint(["a", "b"])
+    assert bp is not None
+    assert blueprint([]) is not None
