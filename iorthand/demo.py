@@ -72,6 +72,10 @@ def demo_edge_config(robot: str, endpoint: str) -> dict:
         "zenoh": {"mode": "client", "connect": [endpoint]},
         "robot": {"kind": "sim", "initial_pose": [0.30, 0.0, 0.20, 3.14159, 0.0, 0.0]},
         "safety": {"auto_arm": True, "profile": "local"},
+        "phantom": {"surface_z": 0.15},  # below the demo's path: the sensor reads ~0 N, the supervisor is armed for contact
+        "force": {"sensor": {"kind": "sim"}},
+        "servos": {}, "torch": {},
+        "video": {"camera": {"width": 320, "height": 240, "fps": 15}, "ultrasound": {"source": "ultrasound_sim", "width": 320, "height": 240, "fps": 10}},
     }
 
 

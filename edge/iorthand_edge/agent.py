@@ -5,7 +5,11 @@ Threads (all named):
   timeout, limits), sends the twist, publishes ``state/robot`` and ``state/safety``.
 - ``commands``: decodes twists as they arrive and applies them at once (low latency), publishing the
   supervisor's verdict on ``state/applied``.
-- ``control-plane``: stop commands, ownership queries and operator liveliness, in arrival order.
+- ``control-plane``: stop commands, ownership queries, operator liveliness, servo and torch commands and the
+  force-zero request, in arrival order (only the owner may move the servos, switch the torch or zero the sensor).
+- Optional components, each from its own config section and with its own named thread(s): ``edge-force``
+  (sensor, warning levels; a change goes straight to the supervisor), ``edge-servos``, ``edge-torch``, and
+  ``edge-video-<source>-capture/-send`` on a separate Zenoh session so video never delays control traffic.
 
 Zenoh callbacks only queue bytes into bounded inboxes. The supervisor is shared under one lock; nothing outside
 this process can move the robot except through it.
@@ -13,6 +17,7 @@ this process can move the robot except through it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import signal
@@ -30,18 +35,25 @@ from iorthand.protocol import (
     ControlReply,
     ControlRequest,
     DecodeError,
+    ForceLevel,
     RejectCounter,
     RobotState,
     SafetyStatus,
     Sequencer,
+    ServoCommand,
     Status,
     StopCommand,
+    TorchCommand,
     TwistCommand,
 )
 from iorthand.transport import Inbox, Worker, open_session, publisher, subscribe
+from iorthand_edge.actuators import ServoUnit, TorchUnit
 from iorthand_edge.config import EdgeConfig
+from iorthand_edge.force import LevelState, SensorError, contact_wrench, make_force_sensor
+from iorthand_edge.force.monitor import ForceMonitor
 from iorthand_edge.robots import Robot, RobotFault, RobotReading, make_robot
 from iorthand_edge.supervisor import Decision, Supervisor
+from iorthand_edge.video import VideoStream, make_source
 
 log = logging.getLogger("iorthand.edge")
 
@@ -72,7 +84,7 @@ class EdgeAgent:
         self.keys = keys.RobotKeys(config.robot_id)
         self.robot = robot if robot is not None else make_robot(config.robot)
         self.period = self.robot.control_period
-        self.supervisor = Supervisor(config.safety, period=self.period)
+        self.supervisor = Supervisor(config.safety, period=self.period, force_required=config.force is not None)
         self.lock = threading.RLock()
         self.stop_event = threading.Event()
         self.rejects = RejectCounter()
@@ -90,6 +102,24 @@ class EdgeAgent:
         self.session: zenoh.Session | None = None
         # Components (force, servos, perception, video) register per-cycle hooks here.
         self.cycle_hooks: list[Callable[[RobotReading], None]] = []
+        self.force: ForceMonitor | None = None
+        if config.force is not None:
+            sensor = make_force_sensor(config.force.sensor, config.phantom, lambda: self.reading)
+            self.force = ForceMonitor(config.force, sensor, self._on_force_change)
+        self.servos = ServoUnit(config.servos) if config.servos is not None else None
+        self.torch = TorchUnit(config.torch) if config.torch is not None else None
+        self.video: list[VideoStream] = []
+        if config.video is not None:
+            for name, suffix, stream in (
+                ("camera", keys.VIDEO_CAMERA, config.video.camera),
+                ("ultrasound", keys.VIDEO_ULTRASOUND, config.video.ultrasound),
+            ):
+                if stream is not None:
+                    self.video.append(VideoStream(name, suffix, stream, make_source(stream, self._contact_force)))
+        self.video_session: zenoh.Session | None = None
+        # Servos, torch and video stop with the agent but a crash of theirs must not stop the robot's control:
+        # they get their own stop event. The force worker shares the agent's: losing it is a safety fault.
+        self._aux_stop = threading.Event()
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -104,6 +134,9 @@ class EdgeAgent:
         self._declared = [
             subscribe(s, k.key(keys.CMD_TWIST), self._twists),
             subscribe(s, k.key(keys.CMD_STOP), self._control),
+            subscribe(s, k.key(keys.CMD_SERVO), self._control),
+            subscribe(s, k.key(keys.CMD_TORCH), self._control),
+            s.declare_queryable(k.key(keys.CONTROL_FORCE_ZERO), lambda q: self._control.put(("force_zero", q))),
             s.declare_queryable(k.key(keys.CONTROL_ACQUIRE), lambda q: self._control.put(("acquire", q))),
             s.declare_queryable(k.key(keys.CONTROL_RELEASE), lambda q: self._control.put(("release", q))),
             s.declare_queryable(k.key(keys.CONTROL_ARM), lambda q: self._control.put(("arm", q))),
@@ -114,11 +147,36 @@ class EdgeAgent:
             w = Worker(f"edge-{name}", fn, self.stop_event)
             w.start()
             self._workers.append(w)
+        self._start_components()
         log.info(
             "edge agent %r up: robot %s, %s, armed=%s, profile %s (%.0f mm/s)",
             self.config.robot_id, type(self.robot).__name__, ", ".join(self.config.zenoh.connect) or self.config.zenoh.mode,
             self.supervisor.armed, self.supervisor.profile, 1000 * self.supervisor.limits.linear,
         )
+
+    def _start_components(self) -> None:
+        assert self.session is not None
+        if self.force is not None:
+            self.force.start(self.session, self.keys, self.stop_event)
+        for unit in (self.servos, self.torch):
+            if unit is not None:
+                unit.start(self.session, self.keys, self._aux_stop)
+        if self.video:
+            # Video gets a session of its own: its large samples then never share a receive path or a
+            # transmission queue with commands (FACTS: a busy session delays everything on it).
+            assert self.config.video is not None
+            self.video_session = open_session(self.config.video.zenoh or self.config.zenoh, stop=self.stop_event)
+            for stream in self.video:
+                stream.start(self.video_session, self.keys, self._aux_stop)
+
+    def _stop_components(self) -> None:
+        self._aux_stop.set()
+        for comp in (self.force, self.servos, self.torch, *self.video):
+            if comp is not None:
+                comp.join()
+        if self.video_session is not None:
+            self.video_session.close()
+            self.video_session = None
 
     def run_forever(self) -> None:
         self.start()
@@ -133,6 +191,7 @@ class EdgeAgent:
         self._control.close()
         for w in self._workers:
             w.join(timeout=2.0)
+        self._stop_components()
         with self.lock:
             self.supervisor.disarm("edge agent shutting down")
             try:
@@ -140,10 +199,8 @@ class EdgeAgent:
             finally:
                 self.robot.disconnect()
         if self.session is not None:
-            try:
+            with contextlib.suppress(zenoh.ZError):
                 self._publish_safety(force=True)
-            except zenoh.ZError:
-                pass
             self.session.close()
             self.session = None
         log.info("edge agent %r stopped", self.config.robot_id)
@@ -172,6 +229,7 @@ class EdgeAgent:
                     self.supervisor.set_fault(fault)
                 decision = self.supervisor.step(now, reading.tcp_pose)
                 self._drive(decision)
+                self._log_interventions()
                 state = RobotState(
                     tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=reading.q,
                     commanded=self._commanded, mode=reading.mode, connected=reading.connected,
@@ -204,6 +262,35 @@ class EdgeAgent:
             log.error("robot refused the command: %s — stopping", exc)
             self.supervisor.set_fault(str(exc))
             self.robot.stop(self.config.safety.stop_deceleration)
+
+    def _log_interventions(self) -> None:
+        """Log each safety intervention of the supervisor once, with its reason (caller holds the lock)."""
+        if self.supervisor.interventions:
+            for status, reason in self.supervisor.interventions:
+                log.warning("safety intervention [%s]: %s", status, reason)
+            self.supervisor.interventions.clear()
+
+    # ------------------------------------------------------------------ components
+
+    def _on_force_change(self, state: LevelState) -> None:
+        """From the force thread: a new level or staleness goes to the supervisor and takes effect at once
+        (not at the next control cycle)."""
+        with self.lock:
+            now = time.monotonic()
+            self.supervisor.update_force(state.level, state.stale, now)
+            pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
+            self._drive(self.supervisor.step(now, pose))
+            self._log_interventions()
+        self._publish_safety(force=True)
+
+    def _contact_force(self) -> float:
+        """The contact force (N) the simulated ultrasound image responds to."""
+        if self.force is not None:
+            return 0.0 if self.force.state.stale else self.force.state.value
+        reading = self.reading
+        if self.config.phantom is not None and reading is not None:
+            return float(np.linalg.norm(contact_wrench(self.config.phantom, reading.tcp_pose, reading.tcp_speed)[:3]))
+        return 0.0
 
     def _publish_safety(self, force: bool = False) -> None:
         with self.lock:
@@ -245,6 +332,7 @@ class EdgeAgent:
             with self.lock:
                 pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
                 decision = self.supervisor.on_command(cmd, recv_ns / 1e9, time.monotonic(), pose)
+                self._log_interventions()
                 if decision.accepted:
                     self._drive(decision)
                     self._last_cmd_seq, self._last_cmd_recv = cmd.seq, recv_ns
@@ -269,13 +357,17 @@ class EdgeAgent:
             "release": self._on_release,
             "arm": self._on_arm,
             "operator_gone": self._on_operator_gone,
+            "force_zero": self._on_force_zero,
         }
+        by_key = {self.keys.key(keys.CMD_SERVO): self._on_servo, self.keys.key(keys.CMD_TORCH): self._on_torch}
         while not stop.is_set():
             item = self._control.get(timeout=0.1)
             if item is None:
                 continue
             if isinstance(item[0], str) and item[0] in handlers:
                 handlers[item[0]](item[1])
+            elif item[0] in by_key:
+                by_key[item[0]](item)
             else:
                 self._on_stop(item)
 
@@ -335,6 +427,75 @@ class EdgeAgent:
         if lost:
             log.warning("owner %r lost: robot stopped, control released", operator)
             self._publish_safety(force=True)
+
+    def _not_owner(self, operator: str) -> str:
+        owner = self.supervisor.owner
+        if operator == owner and owner:
+            return ""
+        return f"{operator!r} does not hold control" + (f" ({owner!r} does)" if owner else " (nobody does)")
+
+    def _on_servo(self, item: tuple[str, bytes, int]) -> None:
+        key, payload, _ = item
+        if self.servos is None:
+            self._rlog.warning("no-servos", "servo command ignored: this robot has no servos configured")
+            return
+        try:
+            cmd = ServoCommand.decode(payload)
+        except DecodeError as exc:
+            self.rejects.add(key, str(exc))
+            self._rlog.warning(f"malformed:{key}", f"rejected servo command: {exc}")
+            self.servos.reject(f"rejected: {exc}")
+            return
+        with self.lock:
+            refusal = self._not_owner(cmd.operator)
+        if refusal:
+            self._rlog.warning("servo-owner", f"servo command refused: {refusal}")
+            self.servos.reject(f"refused: {refusal}")
+            return
+        self.servos.command(cmd.pan, cmd.tilt)
+
+    def _on_torch(self, item: tuple[str, bytes, int]) -> None:
+        key, payload, _ = item
+        if self.torch is None:
+            self._rlog.warning("no-torch", "torch command ignored: this robot has no torch configured")
+            return
+        try:
+            cmd = TorchCommand.decode(payload)
+        except DecodeError as exc:
+            self.rejects.add(key, str(exc))
+            self._rlog.warning(f"malformed:{key}", f"rejected torch command: {exc}")
+            self.torch.reject(f"rejected: {exc}")
+            return
+        with self.lock:
+            refusal = self._not_owner(cmd.operator)
+        if refusal:
+            self._rlog.warning("torch-owner", f"torch command refused: {refusal}")
+            self.torch.reject(f"refused: {refusal}")
+            return
+        self.torch.command(cmd.on, cmd.brightness)
+
+    def _on_force_zero(self, query: zenoh.Query) -> None:
+        req = self._request(query)
+        if req is None:
+            return
+        with self.lock:
+            refusal = self._not_owner(req.operator)
+        state = self.force.state if self.force is not None else None
+        if self.force is None or state is None:
+            ok, reason = False, "this robot has no force sensor"
+        elif refusal:
+            ok, reason = False, refusal
+        elif state.stale or state.level != ForceLevel.SAFE:
+            # Zeroing in contact would hide the contact force from every threshold afterwards.
+            ok, reason = False, f"force sensor not zeroed: level {int(state.level)}{', stale' if state.stale else ''}; lift the tool out of contact first"
+        else:
+            try:
+                self.force.zero()
+                ok, reason = True, "force sensor zeroed"
+            except SensorError as exc:
+                ok, reason = False, f"force sensor not zeroed: {exc}"
+        (log.info if ok else log.warning)("force zero by %r: %s", req.operator, reason)
+        self._reply(query, ok, reason)
 
     def _on_stop(self, item: tuple[str, bytes, int]) -> None:
         key, payload, _ = item

@@ -8,8 +8,12 @@ from pathlib import Path
 from iorthand import keys
 from iorthand.config import load, setting
 from iorthand.transport import ZenohConfig
+from iorthand_edge.actuators.config import ServosConfig, TorchConfig
+from iorthand_edge.force.config import ForceConfig, SimForceSensorConfig
+from iorthand_edge.force.contact import PhantomConfig
 from iorthand_edge.robots.config import RobotConfig, SimRobotConfig
 from iorthand_edge.supervisor import SafetyConfig
+from iorthand_edge.video.config import VideoConfig
 
 
 @dataclass
@@ -20,11 +24,22 @@ class EdgeConfig:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     safety_rate_hz: float = setting(20.0, lo=1.0, hi=200.0)
     local_socket: Path | None = setting(None, help="Unix socket for local commands (arming confirmation)")
+    # Optional end-effector components: absent (null) = not fitted.
+    phantom: PhantomConfig | None = setting(None, help="simulated patient phantom (simulated robot only)")
+    force: ForceConfig | None = setting(None, help="force/torque sensor, warning levels, supervisor reaction")
+    servos: ServosConfig | None = setting(None, help="camera pan/tilt servos")
+    torch: TorchConfig | None = setting(None, help="the torch (LED) next to the camera")
+    video: VideoConfig | None = setting(None, help="camera and ultrasound JPEG streams")
 
     def check(self) -> None:
         keys.check_robot_id(self.robot_id)
         if self.safety.auto_arm and not isinstance(self.robot, SimRobotConfig):
             raise ValueError("safety.auto_arm is allowed only for the simulated robot: a real arm needs local confirmation")
+        simulated = isinstance(self.robot, SimRobotConfig)
+        if self.force is not None and isinstance(self.force.sensor, SimForceSensorConfig) and not simulated:
+            raise ValueError("force.sensor.kind sim measures the simulated robot: use a real sensor (netft) with a real arm")
+        if self.phantom is not None and not simulated:
+            raise ValueError("phantom: a simulated phantom only makes sense with the simulated robot (robot.kind sim)")
 
 
 def load_edge_config(path: str | Path) -> EdgeConfig:

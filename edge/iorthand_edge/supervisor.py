@@ -144,6 +144,7 @@ class Supervisor:
         self._target = np.zeros(6)  # the last accepted command, already limited
         self._latched = ""  # status that keeps the robot stopped until cleared (see module doc)
         self._latch_reason = ""
+        self._now = 0.0  # the latest monotonic time given to on_command/step
         self._retreat_until = -math.inf  # monotonic time until which the tool backs off from contact
         self._force_active = ""  # the force intervention in effect (edge-triggers ``interventions``)
         self.interventions: list[tuple[str, str]] = []  # (status, reason), drained by the agent to log
@@ -221,9 +222,11 @@ class Supervisor:
         elif not reason:
             self.fault = ""
 
-    def update_force(self, level: int, stale: bool, now: float) -> None:
-        """A change of the force level or staleness (``now``: monotonic time)."""
+    def update_force(self, level: int, stale: bool, now: float | None = None) -> None:
+        """A change of the force level or staleness. ``now`` (monotonic) times the retreat; by default the
+        latest time the supervisor was given."""
         level = ForceLevel(level)
+        now = self._now if now is None else now
         was_danger = self.force_level == ForceLevel.DANGER and not self.force_stale
         became_stale = stale and not self.force_stale
         self.force_level, self.force_stale = level, stale
@@ -251,6 +254,7 @@ class Supervisor:
         """A decoded twist command. ``recv_wall`` is the receive time (s since the epoch, to compare with
         ``cmd.t``); ``now`` is the monotonic time; ``tcp_pose`` the latest ``[x,y,z,rx,ry,rz]``."""
         self.counters.received += 1
+        self._now = now
         refusal = self._refuse(cmd, recv_wall)
         if refusal is not None:
             self.counters.rejected += 1
@@ -279,6 +283,7 @@ class Supervisor:
 
     def step(self, now: float, tcp_pose: Vector) -> Decision:
         """One control cycle: apply the timeout and the limits to the current target."""
+        self._now = now
         if self.owner and now >= self._lease_until and now - self._last_accepted > self.config.lease:
             self.owner_lost(self.owner, f"lease of {self.owner!r} expired")
         if self._latched or not self.armed:

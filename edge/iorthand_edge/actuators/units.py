@@ -1,0 +1,218 @@
+"""The servo and torch units of the edge agent: decisions from :mod:`.control`, hardware writes and
+publishing in their own named worker threads (a serial microcontroller that answers slowly must never hold
+up the control plane, where stop commands are handled).
+
+A driver that cannot open (no I²C bus, no serial port, no library) is logged with its reason and retried
+every few seconds; commands are still accepted and reported, with the driver's error in ``reason``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from iorthand import keys
+from iorthand.protocol import Sequencer, ServoState, TorchState
+from iorthand.transport import Worker, publisher
+from iorthand_edge.actuators.config import ServosConfig, TorchConfig
+from iorthand_edge.actuators.control import AngleHistory, ServoController, ServoOutcome, TorchOutcome, torch_command
+from iorthand_edge.actuators.drivers import ActuatorDriver, ActuatorError, make_driver
+
+log = logging.getLogger("iorthand.edge.actuators")
+
+REOPEN_S = 3.0
+
+
+class _DriverHolder:
+    """Opens a driver, remembers why it failed, re-tries now and then."""
+
+    def __init__(self, name: str, driver: ActuatorDriver) -> None:
+        self.name = name
+        self.driver = driver
+        self.ready = False
+        self.error = ""
+        self._next_try = 0.0
+
+    def ensure(self, now: float) -> bool:
+        if self.ready or now < self._next_try:
+            return self.ready
+        try:
+            self.driver.open()
+        except ActuatorError as exc:
+            if str(exc) != self.error:
+                log.error("%s driver unavailable: %s (retrying every %.0f s)", self.name, exc, REOPEN_S)
+            self.error = str(exc)
+            self._next_try = now + REOPEN_S
+            return False
+        log.info("%s driver %s ready", self.name, type(self.driver).__name__)
+        self.ready, self.error = True, ""
+        return True
+
+    def write(self, fn_name: str, channel: int, value: float) -> None:
+        try:
+            getattr(self.driver, fn_name)(channel, value)
+        except ActuatorError as exc:
+            if str(exc) != self.error:
+                log.error("%s: %s — re-opening the driver", self.name, exc)
+            self.error = str(exc)
+            self.driver.close()
+            self.ready = False
+            self._next_try = time.monotonic() + REOPEN_S
+
+    def close(self) -> None:
+        self.driver.close()
+        self.ready = False
+
+
+class ServoUnit:
+    def __init__(self, config: ServosConfig, driver: ActuatorDriver | None = None) -> None:
+        self.config = config
+        self.controller = ServoController(config)
+        self.history = AngleHistory(config.history_s, self.controller.angles)
+        self.driver = _DriverHolder("servo", driver or make_driver(config.driver))
+        self._lock = threading.Lock()
+        self._outcome = ServoOutcome(*self.controller.angles, clamped=False, reason="")
+        self._dirty = True  # publish soon (new command or rejection)
+        self._written: dict[str, float] = {}
+        self._seq = Sequencer()
+        self._pub: zenoh.Publisher | None = None
+        self._worker: Worker | None = None
+        self.last_state: ServoState | None = None
+
+    def start(self, session: zenoh.Session | None, robot_keys: keys.RobotKeys, stop: threading.Event) -> None:
+        if session is not None:
+            self._pub = publisher(session, robot_keys.key(keys.STATE_SERVO))
+        self._worker = Worker("edge-servos", self._loop, stop)
+        self._worker.start()
+
+    def join(self, timeout: float = 2.0) -> None:
+        if self._worker is not None:
+            self._worker.join(timeout)
+        self.driver.close()
+
+    def command(self, pan: Any = None, tilt: Any = None) -> ServoOutcome:
+        """New absolute targets (rad; None keeps an axis). Raises TypeError/ValueError on NaN or a wrong type;
+        out-of-range angles are clamped and reported (also on ``state/servo``)."""
+        with self._lock:
+            outcome = self.controller.command(pan, tilt)
+            self._outcome, self._dirty = outcome, True
+        if outcome.clamped:
+            log.warning("servo command clamped: %s", outcome.reason)
+        return outcome
+
+    def reject(self, reason: str) -> None:
+        """Report a refused command on ``state/servo`` (the targets do not change)."""
+        with self._lock:
+            self._outcome = ServoOutcome(self._outcome.pan_target, self._outcome.tilt_target, False, reason)
+            self._dirty = True
+
+    def servo_angles_at(self, t_ns: int) -> tuple[float, float]:
+        """(pan, tilt) in rad at wall-clock time ``t_ns`` (for the perception chain)."""
+        return self.history.at(t_ns)
+
+    def _loop(self, stop: threading.Event) -> None:
+        period = 1.0 / self.config.rate_hz
+        last_pub = -math.inf
+        while not stop.is_set():
+            now = time.monotonic()
+            with self._lock:
+                self.controller.step(now)
+                pan, tilt = self.controller.angles
+                outcome, dirty = self._outcome, self._dirty
+                self._dirty = False
+            self.history.add(time.time_ns(), (pan, tilt))
+            if self.driver.ensure(now):
+                for axis, angle in (("pan", pan), ("tilt", tilt)):
+                    if self._written.get(axis) != angle:
+                        channel = getattr(self.config, axis).channel
+                        self.driver.write("set_angle", channel, math.degrees(angle))
+                        if self.driver.ready:
+                            self._written[axis] = angle
+            moved = self.last_state is not None and (pan, tilt) != (self.last_state.pan, self.last_state.tilt)
+            if dirty or moved or now - last_pub >= 1.0 / self.config.publish_hz:
+                last_pub = now
+                self._publish(pan, tilt, outcome)
+            stop.wait(period)
+
+    def _publish(self, pan: float, tilt: float, outcome: ServoOutcome) -> None:
+        reason = outcome.reason
+        if self.driver.error:
+            reason = f"{reason}; driver: {self.driver.error}" if reason else f"driver: {self.driver.error}"
+        state = ServoState(
+            pan=pan, tilt=tilt, pan_target=outcome.pan_target, tilt_target=outcome.tilt_target,
+            clamped=outcome.clamped, reason=reason[:200],
+        ).stamp(self._seq.next())
+        self.last_state = state
+        if self._pub is not None:
+            self._pub.put(state.encode())
+
+
+class TorchUnit:
+    def __init__(self, config: TorchConfig, driver: ActuatorDriver | None = None) -> None:
+        self.config = config
+        self.driver = _DriverHolder("torch", driver or make_driver(config.driver))
+        self._lock = threading.Lock()
+        self._outcome = TorchOutcome(False, 0.0, "")
+        self._wake = threading.Event()
+        self._written: float | None = None
+        self._seq = Sequencer()
+        self._pub: zenoh.Publisher | None = None
+        self._worker: Worker | None = None
+        self.last_state: TorchState | None = None
+
+    def start(self, session: zenoh.Session | None, robot_keys: keys.RobotKeys, stop: threading.Event) -> None:
+        if session is not None:
+            self._pub = publisher(session, robot_keys.key(keys.STATE_TORCH))
+        self._stop = stop
+        self._worker = Worker("edge-torch", self._loop, stop)
+        self._worker.start()
+
+    def join(self, timeout: float = 2.0) -> None:
+        self._wake.set()
+        if self._worker is not None:
+            self._worker.join(timeout)
+        self.driver.close()
+
+    def command(self, on: Any, brightness: Any = 1.0) -> TorchOutcome:
+        """Raises TypeError/ValueError on a wrong type or NaN; clamps the brightness and says so."""
+        outcome = torch_command(self.config, on, brightness)
+        with self._lock:
+            self._outcome = outcome
+        if outcome.reason:
+            log.warning("torch command: %s", outcome.reason)
+        self._wake.set()
+        return outcome
+
+    def reject(self, reason: str) -> None:
+        with self._lock:
+            o = self._outcome
+            self._outcome = TorchOutcome(o.on, o.brightness, reason)
+        self._wake.set()
+
+    def _loop(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            with self._lock:
+                outcome = self._outcome
+            if self.driver.ensure(time.monotonic()) and self._written != outcome.output:
+                self.driver.write("set_level", self.config.channel, outcome.output)
+                if self.driver.ready:
+                    self._written = outcome.output
+            self._publish(outcome)
+            self._wake.wait(1.0 / self.config.publish_hz)
+            self._wake.clear()
+
+    def _publish(self, outcome: TorchOutcome) -> None:
+        reason = outcome.reason
+        if self.driver.error:
+            reason = f"{reason}; driver: {self.driver.error}" if reason else f"driver: {self.driver.error}"
+        # Report what the lamp really does: off while the driver is down.
+        lit = outcome.on and self.driver.ready
+        state = TorchState(on=lit, brightness=outcome.brightness if lit else 0.0, reason=reason[:200])
+        self.last_state = state.stamp(self._seq.next())
+        if self._pub is not None:
+            self._pub.put(self.last_state.encode())

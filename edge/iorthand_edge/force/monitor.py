@@ -1,0 +1,150 @@
+"""The force worker: samples the sensor, tracks the warning level, publishes, and tells the agent.
+
+Runs in its own named thread at ``force.rate_hz``. Each tick it reads the newest sample (waiting at most one
+period), updates the :class:`LevelTracker`, publishes ``state/force``, and publishes ``state/force_level`` on
+every change of level or staleness and at ``level_rate_hz``. Changes go to ``on_change`` (the agent, which
+passes them to the supervisor) at once, from this thread. A sensor that fails to start or dies is retried
+every second; meanwhile it is stale, which the supervisor treats as a stop.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from iorthand import keys
+from iorthand.protocol import ForceLevelState, ForceSample, Sequencer
+from iorthand.transport import Worker, publisher
+from iorthand_edge.force.config import ForceConfig
+from iorthand_edge.force.levels import LevelState, LevelTracker
+from iorthand_edge.force.sensors import ForceSensor, SensorError, WrenchSample
+
+log = logging.getLogger("iorthand.edge.force")
+
+RETRY_S = 1.0
+
+
+class ForceMonitor:
+    def __init__(self, config: ForceConfig, sensor: ForceSensor, on_change: Callable[[LevelState], None]) -> None:
+        self.config = config
+        self.sensor = sensor
+        self.tracker = LevelTracker(config.levels)
+        self.on_change = on_change
+        self.period = 1.0 / config.rate_hz
+        self.state = self.tracker.state(time.monotonic())
+        self.samples = 0
+        self.last_wrench = [0.0] * 6
+        self.stale_since: float | None = None  # monotonic time the current stale spell was detected
+        self._started = False
+        self._seq_force = Sequencer()
+        self._seq_level = Sequencer()
+        self._worker: Worker | None = None
+        self._pub_force: zenoh.Publisher | None = None
+        self._pub_level: zenoh.Publisher | None = None
+        self._last_level_pub = 0.0
+        self._reported_errors = 0
+
+    def start(self, session: zenoh.Session, robot_keys: keys.RobotKeys, stop: threading.Event) -> None:
+        self._pub_force = publisher(session, robot_keys.key(keys.STATE_FORCE))
+        self._pub_level = publisher(session, robot_keys.key(keys.STATE_FORCE_LEVEL))
+        self._worker = Worker("edge-force", self._loop, stop)
+        self._worker.start()
+
+    def join(self, timeout: float = 2.0) -> None:
+        if self._worker is not None:
+            self._worker.join(timeout)
+        self.sensor.close()
+
+    def zero(self) -> None:
+        """Bias the sensor (raises SensorError). The caller checks it is safe (see the agent)."""
+        self.sensor.zero()
+
+    # ------------------------------------------------------------------ the worker
+
+    def _ensure_started(self, now: float) -> bool:
+        if self._started:
+            return True
+        try:
+            self.sensor.start()
+        except SensorError as exc:
+            log.error("force sensor cannot start: %s — contact motion refused; retrying in %.0f s", exc, RETRY_S)
+            return False
+        self._started = True
+        log.info("force sensor %s started", type(self.sensor).__name__)
+        return True
+
+    def _loop(self, stop: threading.Event) -> None:
+        next_retry = 0.0
+        next_tick = time.monotonic()
+        while not stop.is_set():
+            now = time.monotonic()
+            sample = None
+            if not self._started and now >= next_retry and not self._ensure_started(now):
+                next_retry = now + RETRY_S
+            if self._started:
+                try:
+                    # Wait at most half a period for a sample so the schedule (and stale detection) holds.
+                    sample = self.sensor.read(timeout=self.period / 2)
+                except SensorError as exc:
+                    log.error("force sensor failed: %s — restarting it in %.0f s", exc, RETRY_S)
+                    self.sensor.close()
+                    self._started = False
+                    next_retry = now + RETRY_S
+            self._report_errors()
+            self.tick(sample, time.monotonic())
+            next_tick += self.period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                stop.wait(delay)
+            else:
+                next_tick = time.monotonic()
+
+    def _report_errors(self) -> None:
+        errors = getattr(self.sensor, "errors", 0)
+        if errors != self._reported_errors:
+            log.warning("force sensor: %d invalid samples so far, last: %s", errors, self.sensor.last_error)
+            self._reported_errors = errors
+
+    def tick(self, sample: WrenchSample | None, now: float) -> LevelState:
+        """One cycle with the newest sample (or None). Public for tests that drive it by hand."""
+        if sample is not None:
+            self.tracker.add(sample.wrench, now)
+            self.samples += 1
+            self.last_wrench = [float(v) for v in sample.wrench]
+            if self._pub_force is not None:
+                msg = ForceSample(force=self.last_wrench[:3], torque=self.last_wrench[3:])
+                self._pub_force.put(msg.stamp(self._seq_force.next(), sample.t_ns).encode())
+        state = self.tracker.state(now)
+        changed = (state.level, state.stale) != (self.state.level, self.state.stale)
+        if changed:
+            if state.stale and not self.state.stale:
+                self.stale_since = now
+                log.error(
+                    "force sensor stale: no sample for %.0f ms — stopping, contact motion refused",
+                    1000 * (now - state.last_sample),
+                )
+            elif not state.stale and self.state.stale:
+                log.info("force sensor fresh again (level %d)", state.level)
+            else:
+                log.info("force level %d → %d (%.2f N)", self.state.level, state.level, state.value)
+        self.state = state
+        if changed:
+            self.on_change(state)
+        if changed or now - self._last_level_pub >= 1.0 / self.config.level_rate_hz:
+            self._publish_level(state, now)
+        return state
+
+    def _publish_level(self, state: LevelState, now: float) -> None:
+        self._last_level_pub = now
+        if self._pub_level is None:
+            return
+        lv = self.config.levels
+        msg = ForceLevelState(
+            level=int(state.level), stale=state.stale, value=min(state.value, 1e5), quantity=lv.quantity,
+            caution=lv.caution, danger=lv.danger,
+        )
+        self._pub_level.put(msg.stamp(self._seq_level.next()).encode())

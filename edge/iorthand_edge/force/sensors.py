@@ -1,0 +1,275 @@
+"""Force/torque sensors behind one interface: a 6-axis wrench (N, N·m) with its capture time.
+
+- :class:`SimForceSensor`: the simulated robot pressing on the phantom (:mod:`.contact`), plus bias and noise.
+- :class:`NetFTSensor`: ATI Net F/T (and Axia) over the Raw Data Transfer protocol (UDP).
+
+Decoding the RDT wire format is pure (:func:`encode_rdt_request`, :func:`decode_rdt_record`); the sensor
+class is the thin socket adapter around it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import struct
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from iorthand_edge.force.config import ForceSensorConfig, NetFTSensorConfig, SimForceSensorConfig
+from iorthand_edge.force.contact import PhantomConfig, contact_wrench
+from iorthand_edge.robots.base import RobotReading
+
+Wrench = NDArray[np.float64]
+
+
+class SensorError(RuntimeError):
+    """The sensor cannot be used (no device, bad data); the message says why."""
+
+
+@dataclass(frozen=True)
+class WrenchSample:
+    wrench: Wrench  # [Fx, Fy, Fz, Tx, Ty, Tz], N and N·m, sensor frame, bias removed
+    t_ns: int  # capture time on the agent's wall clock (ns since the epoch)
+
+
+class ForceSensor(ABC):
+    """A force/torque sensor. One thread (the force worker) calls everything but :meth:`zero`."""
+
+    errors: int = 0  # samples rejected as invalid (garbage, bad status)
+    last_error: str = ""
+
+    @abstractmethod
+    def start(self) -> None:
+        """Open the device and start streaming; raise SensorError with the reason if it cannot."""
+
+    @abstractmethod
+    def read(self, timeout: float) -> WrenchSample | None:
+        """The newest sample since the last call, waiting at most ``timeout`` s; None if there is none."""
+
+    @abstractmethod
+    def zero(self) -> None:
+        """Take the current reading as zero (bias). Only meaningful with the tool in free space."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Stop streaming and release the device. Never raises."""
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Simulated
+
+
+class SimForceSensor(ForceSensor):
+    """Reads the simulated robot's latest state (``reading``) and the phantom; adds bias and noise.
+
+    ``silent`` makes it stop answering, as an unplugged sensor would (tests, demos).
+    """
+
+    def __init__(
+        self,
+        config: SimForceSensorConfig,
+        phantom: PhantomConfig | None,
+        reading: Callable[[], RobotReading | None],
+    ) -> None:
+        self.config = config
+        self.phantom = phantom
+        self._reading = reading
+        self._rng = np.random.default_rng(config.seed)
+        self._offset = np.zeros(6)
+        self._lock = threading.Lock()
+        self.silent = False
+
+    def start(self) -> None:
+        pass
+
+    def _raw(self) -> Wrench | None:
+        r = self._reading()
+        if r is None:
+            return None
+        contact = np.zeros(6) if self.phantom is None else contact_wrench(self.phantom, r.tcp_pose, r.tcp_speed)
+        noise = self._rng.normal(0.0, self.config.noise, 6) * np.array([1, 1, 1, 0.1, 0.1, 0.1])
+        return contact + np.asarray(self.config.bias, dtype=float) + noise
+
+    def read(self, timeout: float) -> WrenchSample | None:
+        if self.silent:
+            return None
+        raw = self._raw()
+        if raw is None:
+            return None
+        with self._lock:
+            return WrenchSample(raw - self._offset, time.time_ns())
+
+    def zero(self) -> None:
+        raws = [w for w in (self._raw() for _ in range(16)) if w is not None]
+        if not raws:
+            raise SensorError("simulated force sensor: no robot state yet, nothing to zero")
+        with self._lock:
+            self._offset = np.mean(raws, axis=0)
+
+    def close(self) -> None:
+        pass
+
+
+# ---------------------------------------------------------------------------------------------------------
+# ATI Net F/T, Raw Data Transfer (RDT) over UDP. Request: 8 bytes big-endian (header 0x1234, command,
+# sample count; 0 = stream forever). Record: 36 bytes big-endian (rdt_sequence, ft_sequence, status,
+# Fx, Fy, Fz, Tx, Ty, Tz as signed counts; divide by counts-per-force/torque from the calibration).
+
+RDT_HEADER = 0x1234
+RDT_STOP = 0x0000
+RDT_START_REALTIME = 0x0002
+RDT_SET_BIAS = 0x0042
+_REQUEST = struct.Struct(">HHI")
+_RECORD = struct.Struct(">III6i")
+RDT_RECORD_SIZE = _RECORD.size  # 36
+
+
+@dataclass(frozen=True)
+class RdtRecord:
+    rdt_sequence: int
+    ft_sequence: int
+    status: int
+    counts: tuple[int, int, int, int, int, int]
+
+
+def encode_rdt_request(command: int, count: int = 0) -> bytes:
+    return _REQUEST.pack(RDT_HEADER, command, count)
+
+
+def decode_rdt_request(data: bytes) -> tuple[int, int]:
+    """(command, count) of a request; raises ValueError if it is not one (used by test responders)."""
+    if len(data) != _REQUEST.size:
+        raise ValueError(f"an RDT request has {_REQUEST.size} bytes, got {len(data)}")
+    header, command, count = _REQUEST.unpack(data)
+    if header != RDT_HEADER:
+        raise ValueError(f"RDT request header 0x{header:04x} is not 0x{RDT_HEADER:04x}")
+    return command, count
+
+
+def encode_rdt_record(rdt_sequence: int, ft_sequence: int, status: int, counts: tuple[int, ...]) -> bytes:
+    return _RECORD.pack(rdt_sequence, ft_sequence, status, *counts)
+
+
+def decode_rdt_record(data: bytes) -> RdtRecord:
+    """One RDT record; raises ValueError naming what is wrong with a packet that is not one."""
+    if len(data) != RDT_RECORD_SIZE:
+        raise ValueError(f"RDT record must be {RDT_RECORD_SIZE} bytes, got {len(data)}")
+    rdt_seq, ft_seq, status, *counts = _RECORD.unpack(data)
+    return RdtRecord(rdt_seq, ft_seq, status, tuple(counts))  # type: ignore[arg-type]
+
+
+def rdt_wrench(record: RdtRecord, counts_per_force: float, counts_per_torque: float) -> Wrench:
+    c = np.asarray(record.counts, dtype=float)
+    return np.concatenate([c[:3] / counts_per_force, c[3:] / counts_per_torque])
+
+
+def seq_newer(a: int, b: int) -> bool:
+    """Whether 32-bit sequence ``a`` comes after ``b`` (wrap-around aware): UDP may reorder datagrams."""
+    return 0 < (a - b) % 2**32 < 2**31
+
+
+class NetFTSensor(ForceSensor):
+    RESTART_AFTER = 1.0  # s of silence before the streaming request is sent again (the box may have rebooted)
+
+    def __init__(self, config: NetFTSensorConfig) -> None:
+        self.config = config
+        self._sock: socket.socket | None = None
+        self._last_rdt: int | None = None
+        self._last_packet = 0.0
+        self._last_start = 0.0
+        self.errors = 0
+        self.last_error = ""
+        self.received = 0
+
+    def start(self) -> None:
+        address = (self.config.host, self.config.port)
+        try:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            # connect(): the kernel then drops datagrams from any other address (spoofed or stray).
+            sock.connect(address)
+            sock.send(encode_rdt_request(RDT_START_REALTIME))
+        except OSError as exc:
+            raise SensorError(f"Net F/T at {address[0]}:{address[1]}: cannot start streaming ({exc})") from None
+        self._sock = sock
+        self._last_start = self._last_packet = time.monotonic()
+        if self.config.bias_on_start:
+            self.zero()
+
+    def _send(self, command: int) -> None:
+        if self._sock is None:
+            raise SensorError("Net F/T: not started")
+        try:
+            self._sock.send(encode_rdt_request(command))
+        except OSError as exc:
+            raise SensorError(f"Net F/T at {self.config.host}:{self.config.port}: {exc}") from None
+
+    def _error(self, problem: str) -> None:
+        self.errors += 1
+        self.last_error = problem
+
+    def read(self, timeout: float) -> WrenchSample | None:
+        sock = self._sock
+        if sock is None:
+            raise SensorError("Net F/T: read before start")
+        now = time.monotonic()
+        if now - self._last_packet > self.RESTART_AFTER and now - self._last_start > self.RESTART_AFTER:
+            self._last_start = now
+            try:
+                sock.send(encode_rdt_request(RDT_START_REALTIME))
+            except OSError as exc:
+                self._error(f"cannot re-send the streaming request: {exc}")
+        newest: WrenchSample | None = None
+        sock.settimeout(max(timeout, 1e-4))
+        while True:
+            try:
+                data = sock.recv(2048)
+            except (TimeoutError, BlockingIOError):
+                break
+            except OSError as exc:  # e.g. ICMP port unreachable: nobody listens at that address
+                self._error(f"receive failed: {exc}")
+                break
+            sock.settimeout(0.0)  # got one: drain the rest without waiting, keep the newest
+            t_ns = time.time_ns()
+            try:
+                record = decode_rdt_record(data)
+            except ValueError as exc:
+                self._error(f"garbage packet: {exc}")
+                continue
+            if record.status != 0:
+                # The box flags saturation, broken gauges, etc.: the values cannot be trusted.
+                self._error(f"sensor reports status 0x{record.status:08x}")
+                continue
+            if self._last_rdt is not None and not seq_newer(record.rdt_sequence, self._last_rdt):
+                continue  # a late, reordered datagram: older than what we have
+            self._last_rdt = record.rdt_sequence
+            self._last_packet = time.monotonic()
+            self.received += 1
+            wrench = rdt_wrench(record, self.config.counts_per_force, self.config.counts_per_torque)
+            newest = WrenchSample(wrench, t_ns)
+        return newest
+
+    def zero(self) -> None:
+        self._send(RDT_SET_BIAS)
+
+    def close(self) -> None:
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.send(encode_rdt_request(RDT_STOP))
+            self._sock.close()
+            self._sock = None
+
+
+def make_force_sensor(
+    config: ForceSensorConfig, phantom: PhantomConfig | None, reading: Callable[[], RobotReading | None]
+) -> ForceSensor:
+    if isinstance(config, SimForceSensorConfig):
+        return SimForceSensor(config, phantom, reading)
+    if isinstance(config, NetFTSensorConfig):
+        return NetFTSensor(config)
+    raise ValueError(f"no force sensor driver for {type(config).__name__}")

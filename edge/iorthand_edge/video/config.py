@@ -1,0 +1,32 @@
+"""Video configuration: one stream per source (camera, ultrasound), on a Zenoh session of its own."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from iorthand.config import setting
+from iorthand.transport import ZenohConfig
+
+SOURCES = ("pattern", "opencv", "ultrasound_sim")
+
+
+@dataclass
+class StreamConfig:
+    source: str = setting("pattern", choices=SOURCES, help="pattern: synthetic test image; opencv: a capture "
+                          "device; ultrasound_sim: speckle that responds to the contact force")
+    device: str = setting("0", help="opencv: device index or path/URL (the ultrasound grabber is one too)")
+    width: int = setting(640, lo=16, hi=4096)
+    height: int = setting(480, lo=16, hi=4096)
+    fps: float = setting(30.0, lo=0.5, hi=120.0)
+    quality: int = setting(80, lo=10, hi=100, help="JPEG quality")
+
+
+@dataclass
+class VideoConfig:
+    camera: StreamConfig | None = setting(default_factory=StreamConfig)
+    ultrasound: StreamConfig | None = None
+    zenoh: ZenohConfig | None = setting(None, help="the video session; default: the edge's own zenoh settings")
+
+    def check(self) -> None:
+        if self.ultrasound is not None and self.ultrasound.source == "pattern":
+            raise ValueError("ultrasound.source: use ultrasound_sim or opencv (a capture device)")

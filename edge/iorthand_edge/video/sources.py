@@ -1,0 +1,146 @@
+"""Frame sources: a synthetic camera pattern, an OpenCV capture device, and a simulated ultrasound probe.
+
+The ultrasound image is rendered by a pure function of the contact force and a random generator: out of
+contact the probe sees only its own ring-down; in contact, tissue layers appear under a speckle pattern,
+brighter with better coupling (more force) and compressed by the pressure, and the speckle changes every
+frame as real speckle does when the probe moves.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from functools import lru_cache
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from iorthand_edge.video.config import StreamConfig
+
+Image = NDArray[np.uint8]
+
+
+class VideoError(RuntimeError):
+    """A frame source that cannot be used; the message says why."""
+
+
+class FrameSource(ABC):
+    @abstractmethod
+    def open(self) -> None: ...
+
+    @abstractmethod
+    def grab(self) -> Image | None:
+        """The next frame (BGR or grey), or None if none is available now."""
+
+    def close(self) -> None:  # noqa: B027 (optional)
+        pass
+
+
+class PatternSource(FrameSource):
+    """Colour bars drifting over a fixed noise texture, with a frame counter: JPEG sizes like a real scene."""
+
+    def __init__(self, width: int, height: int, seed: int = 1) -> None:
+        self.size = (width, height)
+        rng = np.random.default_rng(seed)
+        noise = rng.integers(0, 60, (height, width, 1), dtype=np.uint8)
+        bars = np.zeros((height, width, 3), dtype=np.uint8)
+        colours = [(255, 255, 255), (0, 255, 255), (255, 255, 0), (0, 255, 0), (255, 0, 255), (0, 0, 255), (255, 0, 0)]
+        for i, c in enumerate(colours):
+            bars[:, i * width // 7 : (i + 1) * width // 7] = c
+        self._base = cv2.add(bars // 2, np.repeat(noise, 3, axis=2))
+        self._n = 0
+
+    def open(self) -> None:
+        pass
+
+    def grab(self) -> Image:
+        self._n += 1
+        frame = np.roll(self._base, (self._n * 4) % self.size[0], axis=1)
+        cv2.putText(frame, f"{self._n}", (20, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.2, (255, 255, 255), 2)
+        return frame
+
+
+class OpenCVSource(FrameSource):
+    def __init__(self, config: StreamConfig) -> None:
+        self.config = config
+        self._cap: cv2.VideoCapture | None = None
+
+    def open(self) -> None:
+        device: int | str = int(self.config.device) if self.config.device.isdigit() else self.config.device
+        cap = cv2.VideoCapture(device)
+        if not cap.isOpened():
+            raise VideoError(f"cannot open video device {self.config.device!r}: is it plugged in and free?")
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.config.width)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.config.height)
+        cap.set(cv2.CAP_PROP_FPS, self.config.fps)
+        self._cap = cap
+
+    def grab(self) -> Image | None:
+        if self._cap is None:
+            raise VideoError("video device used before open()")
+        ok, frame = self._cap.read()
+        return frame if ok else None
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+@lru_cache(maxsize=4)
+def _tissue(width: int, height: int) -> NDArray[np.float32]:
+    """Echogenicity of a phantom (rows = depth): skin line, fat, striated muscle, a round anechoic vessel."""
+    y = np.linspace(0.0, 1.0, height, dtype=np.float32)[:, None]
+    x = np.linspace(0.0, 1.0, width, dtype=np.float32)[None, :]
+    echo = np.full((height, width), 0.35, dtype=np.float32)
+    echo = np.where(y < 0.04, 1.0, echo)  # skin: a bright line
+    echo = np.where((y >= 0.04) & (y < 0.20), 0.18, echo)  # fat: dark
+    striae = 0.45 + 0.25 * np.sin(2 * np.pi * (y * 28 + 0.15 * np.sin(2 * np.pi * x * 2)))
+    echo = np.where((y >= 0.20) & (y < 0.75), striae, echo)  # muscle: striated
+    echo = np.where(np.abs(y - 0.75) < 0.01, 1.0, echo)  # fascia / bone surface: bright
+    vessel = (x - 0.55) ** 2 * (width / height) ** 2 + (y - 0.45) ** 2 < 0.09**2
+    echo = np.where(vessel, 0.03, echo)  # vessel: anechoic
+    return echo.astype(np.float32)
+
+
+def render_ultrasound(width: int, height: int, force: float, rng: np.random.Generator) -> Image:
+    """One B-mode frame (grey) for a contact force in N. Pure given ``rng``."""
+    y = np.linspace(0.0, 1.0, height, dtype=np.float32)[:, None]
+    ringdown = 0.5 * np.exp(-y * 40.0) * (0.6 + 0.4 * np.cos(y * 300.0))  # the probe's own reverberation
+    coupling = 1.0 - np.exp(-max(force, 0.0) / 1.5)  # gel contact improves with pressure
+    image = ringdown + 0.02
+    if coupling > 0.01:
+        # Pressure compresses the tissue toward the probe: sample the tissue map deeper for each row.
+        compression = 1.0 + min(force, 20.0) * 0.015
+        rows = np.clip((np.arange(height) * compression).astype(int), 0, height - 1)
+        tissue = _tissue(width, height)[rows]
+        attenuation = np.exp(-y * 1.6)
+        image = image + coupling * tissue * attenuation
+    speckle = rng.rayleigh(0.8, (height // 2, width // 2)).astype(np.float32)
+    speckle = cv2.resize(speckle, (width, height), interpolation=cv2.INTER_LINEAR)
+    out = np.clip(image * speckle * 180.0, 0, 255).astype(np.uint8)
+    return out
+
+
+class UltrasoundSimSource(FrameSource):
+    def __init__(self, config: StreamConfig, contact_force: Callable[[], float], seed: int | None = None) -> None:
+        self.config = config
+        self.contact_force = contact_force
+        self._rng = np.random.default_rng(seed)
+
+    def open(self) -> None:
+        pass
+
+    def grab(self) -> Image:
+        return render_ultrasound(self.config.width, self.config.height, self.contact_force(), self._rng)
+
+
+def make_source(config: StreamConfig, contact_force: Callable[[], float]) -> FrameSource:
+    if config.source == "pattern":
+        return PatternSource(config.width, config.height)
+    if config.source == "opencv":
+        return OpenCVSource(config)
+    if config.source == "ultrasound_sim":
+        return UltrasoundSimSource(config, contact_force)
+    raise ValueError(f"unknown video source {config.source!r}")

@@ -1,0 +1,170 @@
+"""Video streams: capture at a fixed rate, encode JPEG, publish on the video session with DATA_LOW priority.
+
+Two named threads per stream. The capture thread grabs frames on schedule and stamps each with its capture
+time and a sequence number; it hands them over through a one-frame slot. The sender takes the newest frame,
+encodes it and ``put()``s it. When encoding or the network is slower than the camera, the frame waiting in
+the slot is replaced — dropped before it costs any encoding — so nothing queues and latency stays one
+frame; the gaps in ``seq`` tell the receiver how many were dropped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import zenoh
+
+from iorthand import keys
+from iorthand.protocol import VideoFrame
+from iorthand.transport import Worker, publisher
+from iorthand_edge.video.config import StreamConfig
+from iorthand_edge.video.sources import FrameSource, Image, VideoError
+
+log = logging.getLogger("iorthand.edge.video")
+
+VIDEO_NICE = 10  # scheduling niceness of the video threads (0 = as the control threads, 19 = lowest)
+
+
+@dataclass(frozen=True)
+class Captured:
+    seq: int
+    t_ns: int  # capture time, wall clock
+    image: Image
+
+
+class LatestSlot:
+    """A one-item hand-over that keeps the newest item; replaced items are counted as dropped."""
+
+    def __init__(self) -> None:
+        self._item: Captured | None = None
+        self._cond = threading.Condition()
+        self.dropped = 0
+
+    def put(self, item: Captured) -> None:
+        with self._cond:
+            if self._item is not None:
+                self.dropped += 1
+            self._item = item
+            self._cond.notify()
+
+    def take(self, timeout: float) -> Captured | None:
+        with self._cond:
+            if self._item is None:
+                self._cond.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+
+def encode_jpeg(image: Image, quality: int) -> bytes:
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise VideoError(f"JPEG encoding failed for a {image.shape} image")
+    return buf.tobytes()
+
+
+def encode_frame(source: str, item: Captured, quality: int) -> VideoFrame:
+    h, w = item.image.shape[:2]
+    return VideoFrame(source=source, width=w, height=h, data=encode_jpeg(item.image, quality)).stamp(item.seq, item.t_ns)
+
+
+def decode_frame(frame: VideoFrame) -> Image:
+    """The image of a frame (receivers, tests)."""
+    image = cv2.imdecode(np.frombuffer(frame.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise VideoError(f"frame {frame.seq} from {frame.source} is not a valid JPEG")
+    return image
+
+
+class VideoStream:
+    def __init__(self, name: str, key_suffix: str, config: StreamConfig, source: FrameSource) -> None:
+        self.name = name
+        self.key_suffix = key_suffix
+        self.config = config
+        self.source = source
+        self.slot = LatestSlot()
+        self.captured = 0
+        self.sent = 0
+        self.bytes_sent = 0
+        self.encode_s = 0.0
+        self.error = ""
+        self._pub: Any = None
+        self._workers: list[Worker] = []
+
+    @property
+    def dropped(self) -> int:
+        return self.slot.dropped
+
+    def start(self, session: zenoh.Session, robot_keys: keys.RobotKeys, stop: threading.Event) -> None:
+        self.start_with(publisher(session, robot_keys.key(self.key_suffix)), stop)
+
+    def start_with(self, pub: zenoh.Publisher | Any, stop: threading.Event) -> None:
+        """Start the threads publishing through ``pub`` (anything with ``put(bytes)``)."""
+        self._pub = pub
+        for part, fn in (("capture", self._capture_loop), ("send", self._send_loop)):
+            w = Worker(f"edge-video-{self.name}-{part}", self._guarded(fn), stop)
+            w.start()
+            self._workers.append(w)
+
+    def _guarded(self, fn: Callable[[threading.Event], None]) -> Callable[[threading.Event], None]:
+        """A failing source or encoder ends this stream only (logged, kept in ``error``), never the others."""
+
+        def run(stop: threading.Event) -> None:
+            try:
+                # Encoding is the agent's biggest CPU cost: on a busy 2-4 core computer the kernel should run
+                # the control threads first (a per-thread nice value on Linux; best effort elsewhere).
+                with contextlib.suppress(AttributeError, OSError):
+                    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), VIDEO_NICE)
+                fn(stop)
+            except Exception as exc:
+                self.error = f"{type(exc).__name__}: {exc}"
+                log.exception("video %s stopped", self.name)
+
+        return run
+
+    def join(self, timeout: float = 2.0) -> None:
+        for w in self._workers:
+            w.join(timeout)
+        self.source.close()
+
+    def _capture_loop(self, stop: threading.Event) -> None:
+        try:
+            self.source.open()
+        except VideoError as exc:
+            # A missing camera must not take the robot down: report and stop this stream only.
+            self.error = str(exc)
+            log.error("video %s unavailable: %s", self.name, exc)
+            return
+        period = 1.0 / self.config.fps
+        next_tick = time.monotonic()
+        while not stop.is_set():
+            image = self.source.grab()
+            t_ns = time.time_ns()
+            if image is not None:
+                self.captured += 1
+                self.slot.put(Captured(self.captured, t_ns, image))
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                stop.wait(delay)
+            else:
+                next_tick = time.monotonic()  # a slow source: never burst to catch up
+
+    def _send_loop(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            item = self.slot.take(timeout=0.2)
+            if item is None or self._pub is None:
+                continue
+            t0 = time.perf_counter()
+            payload = encode_frame(self.name, item, self.config.quality).encode()
+            self.encode_s += time.perf_counter() - t0
+            self._pub.put(payload)
+            self.sent += 1
+            self.bytes_sent += len(payload)

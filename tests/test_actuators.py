@@ -1,0 +1,235 @@
+"""Servos and torch: clamping, rate limit, validation, history, drivers (simulated; PCA9685 and serial with
+their hardware faked, since no I²C bus or serial device exists here), and the wire path through a router."""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import types
+
+import msgpack
+import pytest
+
+from iorthand import keys
+from iorthand.protocol import DecodeError, ServoCommand, ServoState, TorchCommand, TorchState
+from iorthand_edge.actuators import (
+    ActuatorError,
+    PCA9685DriverConfig,
+    SerialDriverConfig,
+    ServosConfig,
+    ServoUnit,
+    TorchConfig,
+)
+from iorthand_edge.actuators.control import AngleHistory, ServoController, torch_command
+from iorthand_edge.actuators.drivers import ActuatorDriver, PCA9685Driver, SerialDriver, format_serial_command
+from tests.conftest import wait_until
+
+HOME = math.radians(90)
+
+
+def test_defaults_home_at_90_degrees_range_0_to_180() -> None:
+    c = ServoController(ServosConfig())
+    assert c.angles == (pytest.approx(HOME), pytest.approx(HOME))
+    assert c.limits["pan"].lo == 0.0 and c.limits["pan"].hi == pytest.approx(math.pi)
+
+
+def test_out_of_range_is_clamped_and_reported() -> None:
+    c = ServoController(ServosConfig())
+    out = c.command(pan=math.radians(200), tilt=math.radians(-10))
+    assert out.clamped
+    assert out.pan_target == pytest.approx(math.pi) and out.tilt_target == pytest.approx(0.0)
+    assert "pan 200.0° clamped to 180.0°" in out.reason and "tilt -10.0° clamped to 0.0°" in out.reason
+    ok = c.command(pan=math.radians(45))
+    assert not ok.clamped and ok.reason == "" and ok.tilt_target == pytest.approx(0.0)  # None keeps tilt
+
+
+@pytest.mark.parametrize(
+    ("pan", "error", "text"),
+    [(math.nan, ValueError, "finite"), (math.inf, ValueError, "finite"), ("90", TypeError, "str"), (True, TypeError, "bool")],
+)
+def test_nan_and_wrong_types_are_rejected_with_a_clear_error(pan: object, error: type, text: str) -> None:
+    c = ServoController(ServosConfig())
+    with pytest.raises(error, match=f"servo pan.*{text}"):
+        c.command(pan=pan, tilt=0.5)
+    assert c.target["tilt"] == pytest.approx(HOME)  # nothing applied from a rejected command
+
+
+def test_nan_on_the_wire_is_rejected_by_decode_naming_the_field() -> None:
+    payload = msgpack.packb({"v": 1, "seq": 1, "t": 1, "operator": "op1", "pan": float("nan"), "tilt": None})
+    with pytest.raises(DecodeError, match=r"ServoCommand\.pan: must be finite"):
+        ServoCommand.decode(payload)
+    payload = msgpack.packb({"v": 1, "seq": 1, "t": 1, "operator": "op1", "pan": "left", "tilt": None})
+    with pytest.raises(DecodeError, match=r"ServoCommand\.pan: expected float, got str"):
+        ServoCommand.decode(payload)
+
+
+def test_rate_limit() -> None:
+    c = ServoController(ServosConfig(max_rate_deg_s=90.0))
+    c.step(0.0)
+    c.command(pan=math.radians(180))
+    c.step(0.5)
+    assert math.degrees(c.angles[0]) == pytest.approx(135.0)
+    c.step(1.5)
+    assert math.degrees(c.angles[0]) == pytest.approx(180.0)
+
+
+def test_angle_history_interpolates_at_frame_times() -> None:
+    h = AngleHistory(2.0, (HOME, HOME))
+    assert h.at(5) == (HOME, HOME)  # before anything: the initial (home) angles
+    h.add(1_000_000_000, (0.0, 1.0))
+    h.add(1_100_000_000, (1.0, 1.0))
+    assert h.at(1_050_000_000) == (pytest.approx(0.5), pytest.approx(1.0))
+    assert h.at(2_000_000_000) == (1.0, 1.0)  # servos hold their last position
+    h.add(9_000_000_000, (2.0, 2.0))
+    h.add(9_000_000_001, (2.0, 2.0))
+    assert h.at(1_050_000_000) == (1.0, 1.0)  # pruned beyond the span: the oldest kept sample
+
+
+def test_torch_clamps_and_validates() -> None:
+    out = torch_command(TorchConfig(max_brightness=0.6), True, 0.9)
+    assert out.brightness == 0.6 and "clamped" in out.reason and out.output == 0.6
+    assert torch_command(TorchConfig(), False, 0.5).output == 0.0
+    with pytest.raises(TypeError, match="torch on"):
+        torch_command(TorchConfig(), 1, 0.5)
+    with pytest.raises(ValueError, match="finite"):
+        torch_command(TorchConfig(), True, math.nan)
+
+
+# ------------------------------------------------------------------------------------------------- drivers
+
+
+def test_pca9685_without_its_library_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "adafruit_servokit", None)  # as if not installed
+    with pytest.raises(ActuatorError, match=r"adafruit-circuitpython-servokit.*pip install 'iorthand-edge\[pi\]'"):
+        PCA9685Driver(PCA9685DriverConfig()).open()
+
+
+def test_pca9685_with_no_i2c_bus_gives_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    # FAKE HARDWARE: no I²C bus exists on this machine. The fake ServoKit raises what Blinka raises then.
+    fake = types.ModuleType("adafruit_servokit")
+
+    class ServoKit:
+        def __init__(self, **kwargs: object) -> None:
+            raise ValueError("No Hardware I2C on (scl,sda)=(3, 2)")
+
+    fake.ServoKit = ServoKit  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "adafruit_servokit", fake)
+    with pytest.raises(ActuatorError, match=r"no PCA9685 reachable at I²C address 0x40: No Hardware I2C.*enabled"):
+        PCA9685Driver(PCA9685DriverConfig()).open()
+
+
+def test_serial_without_pyserial_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "serial", None)
+    with pytest.raises(ActuatorError, match="pyserial"):
+        SerialDriver(SerialDriverConfig()).open()
+
+
+class FakePort:
+    """FAKE HARDWARE: a serial device (none exists here). Records lines; answers ``reply``; can be closed."""
+
+    def __init__(self, reply: bytes = b"OK\n") -> None:
+        self.lines: list[bytes] = []
+        self.reply = reply
+        self.open = True
+
+    def write(self, data: bytes) -> int:
+        if not self.open:
+            raise OSError("Attempting to use a port that is not open")  # what pyserial's PortNotOpenError says
+        self.lines.append(data)
+        return len(data)
+
+    def readline(self) -> bytes:
+        return self.reply
+
+    def close(self) -> None:
+        self.open = False
+
+
+def test_serial_protocol_lines_and_acknowledgement() -> None:
+    port = FakePort()
+    cfg = SerialDriverConfig(ack="OK", servo_format="P{channel},{degrees:.0f}\n", level_format="T{pwm}\n")
+    driver = SerialDriver(cfg, opener=lambda c: port)
+    driver.open()
+    driver.set_angle(1, 42.4)
+    driver.set_level(2, 0.5)
+    assert port.lines == [b"P1,42\n", b"T128\n"]
+    port.reply = b""
+    with pytest.raises(ActuatorError, match=r"expected 'OK'.*no reply within the timeout"):
+        driver.set_angle(1, 10.0)
+    assert format_serial_command("S{channel}:{degrees:.1f}\n", 0, 0.0, 90.0) == b"S0:90.0\n"
+
+
+def test_closed_serial_port_gives_a_clear_error() -> None:
+    port = FakePort()
+    driver = SerialDriver(SerialDriverConfig(), opener=lambda c: port)
+    driver.open()
+    port.close()  # unplugged / closed under us
+    with pytest.raises(ActuatorError, match=r"serial port /dev/ttyACM0: Attempting to use a port that is not open"):
+        driver.set_angle(0, 90.0)
+
+
+def test_bad_serial_template_fails_at_config_time() -> None:
+    from iorthand.config import ConfigError, from_dict
+
+    with pytest.raises(ConfigError, match=r"servo_format.*unknown fields \['angle'\]"):
+        from_dict({"kind": "serial", "servo_format": "S{angle}\n"}, SerialDriverConfig.__mro__[1])
+
+
+class BrokenDriver(ActuatorDriver):
+    def open(self) -> None:
+        raise ActuatorError("no PCA9685 reachable at I²C address 0x40: [Errno 2] No such file: '/dev/i2c-1'")
+
+    def set_angle(self, channel: int, degrees: float) -> None: ...
+    def set_level(self, channel: int, value: float) -> None: ...
+    def close(self) -> None: ...
+
+
+def test_servo_unit_survives_a_missing_driver_and_reports_it() -> None:
+    unit = ServoUnit(ServosConfig(), driver=BrokenDriver())
+    stop = threading.Event()
+    unit.start(None, keys.RobotKeys("sim1"), stop)
+    try:
+        unit.command(pan=1.0)
+        wait_until(lambda: unit.last_state is not None and "I²C" in unit.last_state.reason, message="driver error reported")
+        wait_until(lambda: abs(unit.servo_angles_at(2**62)[0] - 1.0) < 1e-9, message="angles still tracked")
+        assert unit._worker is not None and unit._worker.is_alive()
+    finally:
+        stop.set()
+        unit.join()
+
+
+# ------------------------------------------------------------------------------------------------- wire path
+
+
+def test_servo_and_torch_commands_through_the_router(edge_factory, operator_factory, session_factory) -> None:
+    agent = edge_factory(servos={"max_rate_deg_s": 1000.0}, torch={"max_brightness": 0.8})
+    states: dict[str, list] = {"servo": [], "torch": []}
+    s = session_factory()
+    k = keys.RobotKeys("sim1")
+    s.declare_subscriber(k.key(keys.STATE_SERVO), lambda x: states["servo"].append(ServoState.decode(x.payload.to_bytes())))
+    s.declare_subscriber(k.key(keys.STATE_TORCH), lambda x: states["torch"].append(TorchState.decode(x.payload.to_bytes())))
+    op = operator_factory()
+    op.wait_for_state()
+    pub_servo = s.declare_publisher(k.key(keys.CMD_SERVO))
+    pub_torch = s.declare_publisher(k.key(keys.CMD_TORCH))
+
+    # Not the owner: refused and reported.
+    pub_servo.put(ServoCommand(operator="op1", pan=0.5).stamp(1).encode())
+    wait_until(lambda: any("refused" in m.reason for m in states["servo"]), message="refusal on state/servo")
+    op.acquire()
+    pub_servo.put(ServoCommand(operator="op1", pan=math.radians(250), tilt=math.radians(30)).stamp(2).encode())
+    wait_until(lambda: any(m.clamped and "clamped to 180.0°" in m.reason for m in states["servo"]), message="clamp report")
+    wait_until(lambda: abs(agent.servos.servo_angles_at(2**62)[0] - math.pi) < 1e-9, message="servo at 180°")
+    assert agent.servos.servo_angles_at(2**62)[1] == pytest.approx(math.radians(30))
+    assert agent.servos.driver.driver.angles[0] == pytest.approx(180.0)  # the (simulated) hardware got degrees
+
+    bad = msgpack.packb({"v": 1, "seq": 3, "t": 1, "operator": "op1", "pan": float("nan"), "tilt": None})
+    pub_servo.put(bad)
+    wait_until(lambda: any("ServoCommand.pan: must be finite" in m.reason for m in states["servo"]), message="NaN rejection")
+    assert agent.rejects.counts.get(k.key(keys.CMD_SERVO)) == 1
+
+    pub_torch.put(TorchCommand(operator="op1", on=True, brightness=1.0).stamp(4).encode())
+    wait_until(lambda: any(m.on and m.brightness == pytest.approx(0.8) for m in states["torch"]), message="torch on")
+    assert agent.torch.driver.driver.levels[2] == pytest.approx(0.8)
+    assert agent.supervisor.status != "stopped"  # neither command was taken for a stop

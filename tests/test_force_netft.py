@@ -1,0 +1,165 @@
+"""The ATI Net F/T RDT client against a real UDP responder on 127.0.0.1 (speaking the RDT protocol)."""
+
+from __future__ import annotations
+
+import socket
+import struct
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from iorthand_edge.force.config import NetFTSensorConfig
+from iorthand_edge.force.sensors import (
+    RDT_SET_BIAS,
+    RDT_START_REALTIME,
+    RDT_STOP,
+    NetFTSensor,
+    decode_rdt_record,
+    decode_rdt_request,
+    encode_rdt_record,
+    encode_rdt_request,
+    seq_newer,
+)
+
+
+class NetFTResponder:
+    """A minimal Net F/T box: streams 36-byte records to whoever sent START, applies BIAS, stops on STOP."""
+
+    def __init__(self, wrench_counts: tuple[int, ...] = (1_500_000, -250_000, -7_000_000, 10_000, 0, -20_000)) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.005)
+        self.port = self.sock.getsockname()[1]
+        self.counts = np.array(wrench_counts, dtype=np.int64)
+        self.bias = np.zeros(6, dtype=np.int64)
+        self.client: tuple[str, int] | None = None
+        self.commands: list[int] = []
+        self.extra: list[bytes] = []  # packets to send before the next record (garbage injection)
+        self.status = 0
+        self.seq = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="netft-responder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, addr = self.sock.recvfrom(64)
+                command, _ = decode_rdt_request(data)
+                self.commands.append(command)
+                if command == RDT_START_REALTIME:
+                    self.client = addr
+                elif command == RDT_STOP:
+                    self.client = None
+                elif command == RDT_SET_BIAS:
+                    self.bias = self.counts.copy()
+            except (TimeoutError, ValueError):
+                pass
+            if self.client is not None:
+                for packet in self.extra:
+                    self.sock.sendto(packet, self.client)
+                self.extra = []
+                self.seq += 1
+                record = encode_rdt_record(self.seq, self.seq, self.status, tuple(int(c) for c in self.counts - self.bias))
+                self.sock.sendto(record, self.client)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+        self.sock.close()
+
+
+@pytest.fixture
+def responder() -> Iterator[NetFTResponder]:
+    r = NetFTResponder()
+    yield r
+    r.close()
+
+
+def read_until(sensor: NetFTSensor, predicate, timeout: float = 3.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        sample = sensor.read(0.02)
+        if sample is not None and predicate(sample):
+            return sample
+    raise AssertionError("no matching sample")
+
+
+def test_wire_format_round_trip() -> None:
+    assert encode_rdt_request(RDT_START_REALTIME) == bytes([0x12, 0x34, 0x00, 0x02, 0, 0, 0, 0])
+    record = decode_rdt_record(encode_rdt_record(7, 9, 0, (1, -2, 3, -4, 5, -6)))
+    assert (record.rdt_sequence, record.ft_sequence, record.status, record.counts) == (7, 9, 0, (1, -2, 3, -4, 5, -6))
+    with pytest.raises(ValueError, match="36 bytes"):
+        decode_rdt_record(b"\x00" * 35)
+    with pytest.raises(ValueError, match="header"):
+        decode_rdt_request(struct.pack(">HHI", 0xBEEF, 2, 0))
+
+
+def test_sequence_comparison_survives_wrap_around() -> None:
+    assert seq_newer(2, 1) and not seq_newer(1, 2) and not seq_newer(5, 5)
+    assert seq_newer(3, 2**32 - 2)  # wrapped
+
+
+def test_streams_and_scales_counts(responder: NetFTResponder) -> None:
+    sensor = NetFTSensor(NetFTSensorConfig(host="127.0.0.1", port=responder.port, counts_per_force=1e6, counts_per_torque=1e6))
+    sensor.start()
+    try:
+        sample = read_until(sensor, lambda s: True)
+        assert sample.wrench == pytest.approx([1.5, -0.25, -7.0, 0.01, 0.0, -0.02])
+        assert abs(sample.t_ns - time.time_ns()) < 5e9
+        assert responder.commands[0] == RDT_START_REALTIME
+    finally:
+        sensor.close()
+    time.sleep(0.05)
+    assert responder.commands[-1] == RDT_STOP
+
+
+def test_bias_on_request(responder: NetFTResponder) -> None:
+    sensor = NetFTSensor(NetFTSensorConfig(host="127.0.0.1", port=responder.port))
+    sensor.start()
+    try:
+        read_until(sensor, lambda s: abs(s.wrench[2]) > 1.0)
+        sensor.zero()
+        sample = read_until(sensor, lambda s: abs(s.wrench[2]) < 1e-9)
+        assert np.allclose(sample.wrench, 0.0)
+        assert RDT_SET_BIAS in responder.commands
+    finally:
+        sensor.close()
+
+
+def test_garbage_packets_are_counted_and_never_crash(responder: NetFTResponder) -> None:
+    sensor = NetFTSensor(NetFTSensorConfig(host="127.0.0.1", port=responder.port))
+    sensor.start()
+    try:
+        read_until(sensor, lambda s: True)
+        responder.extra = [b"", b"hello", b"\xff" * 35, b"\x00" * 37, bytes(range(200))]
+        deadline = time.monotonic() + 3.0
+        while sensor.errors < 4 and time.monotonic() < deadline:  # the empty datagram may be merged away
+            sensor.read(0.02)
+        assert sensor.errors >= 4 and "garbage packet" in sensor.last_error
+        assert read_until(sensor, lambda s: True).wrench[2] == pytest.approx(-7.0)  # still streaming
+        responder.status = 0x80000001  # the box reports an error: its values are not used
+        errors = sensor.errors
+        deadline = time.monotonic() + 3.0
+        while sensor.errors == errors and time.monotonic() < deadline:
+            assert sensor.read(0.02) is None or responder.status == 0
+        assert "status 0x80000001" in sensor.last_error
+    finally:
+        sensor.close()
+
+
+def test_no_device_gives_no_samples_and_a_reason() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # then closed: nothing listens there
+    sensor = NetFTSensor(NetFTSensorConfig(host="127.0.0.1", port=port))
+    sensor.start()
+    try:
+        for _ in range(5):
+            assert sensor.read(0.01) is None
+        assert sensor.errors >= 1 and "refused" in sensor.last_error.lower()
+    finally:
+        sensor.close()

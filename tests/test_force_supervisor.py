@@ -1,0 +1,190 @@
+"""The force reaction closed loop, deterministic: the simulated robot, the phantom, the level tracker and the
+supervisor stepped together on a simulated clock, with the agent's rates and reaction path (sensor 100 Hz
+reading the control loop's latest state, control 125 Hz, commands 60 Hz, a level change applied at once)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from iorthand.protocol import ForceLevel, Status, TwistCommand
+from iorthand_edge.force.contact import PhantomConfig, contact_wrench
+from iorthand_edge.force.levels import LevelConfig, LevelTracker
+from iorthand_edge.force.monitor import ForceMonitor
+from iorthand_edge.force.sensors import ForceSensor, WrenchSample
+from iorthand_edge.robots.config import SimRobotConfig
+from iorthand_edge.robots.sim import SimRobot
+from iorthand_edge.supervisor import ForceReaction, SafetyConfig, Supervisor
+
+START = [0.30, 0.0, 0.20, math.pi, 0.0, 0.0]  # tool pointing down: pressing is −z in the base frame
+PHANTOM = PhantomConfig(surface_z=0.199, stiffness=2000.0, damping=20.0)
+
+
+class Rig:
+    def __init__(self, reaction: ForceReaction | None = None, profile: str = "local") -> None:
+        self.t = 1000.0
+        self.robot = SimRobot(SimRobotConfig(initial_pose=START), clock=lambda: self.t)
+        self.robot.connect()
+        self.safety = SafetyConfig(auto_arm=True, profile=profile, force=reaction or ForceReaction())
+        self.sv = Supervisor(self.safety, period=0.008, force_required=True)
+        self.tracker = LevelTracker(LevelConfig())
+        self.reading = self.robot.read_state()
+        self.commanded = np.zeros(6)
+        self.seq = 0
+        self.levels: list[tuple[float, int, float, float]] = []  # (t, level, value, depth)
+        self.max_depth = 0.0
+        self.depths: list[tuple[float, float]] = []  # (t, depth) at each control cycle
+        self.danger_depth: float | None = None
+        self.twist_cmd = np.zeros(6)
+        self.deadman = False
+        self.sensor_on = True
+        self.sv.acquire("op", self.t)
+
+    def depth(self) -> float:
+        return PHANTOM.depth(self.reading.tcp_pose)
+
+    def drive(self, decision) -> None:
+        if np.any(decision.twist):
+            self.commanded = self.robot.send_twist(decision.twist, self.safety.max_linear_acceleration)
+        elif np.any(self.commanded):
+            self.robot.stop(self.safety.stop_deceleration)
+            self.commanded = np.zeros(6)
+
+    def run(self, seconds: float) -> None:
+        steps = round(seconds * 1000)
+        for _ in range(steps):
+            self.t = round(self.t + 0.001, 6)
+            ms = round((self.t - 1000.0) * 1000)
+            if ms % 8 == 0:  # control loop
+                self.reading = self.robot.read_state()
+                self.drive(self.sv.step(self.t, self.reading.tcp_pose))
+                self.max_depth = max(self.max_depth, self.depth())
+                self.depths.append((self.t, self.depth()))
+            if ms % 10 == 0 and self.sensor_on:  # force worker: reads the control loop's latest state
+                w = contact_wrench(PHANTOM, self.reading.tcp_pose, self.reading.tcp_speed)
+                before = (self.tracker.level, self.tracker.stale(self.t))
+                self.tracker.add(w, self.t)
+                self.on_level(before)
+            elif ms % 10 == 0:
+                self.on_level((self.tracker.level, self.tracker.stale(self.t - 0.01)))
+            if ms % 17 == 0:  # operator at ~60 Hz
+                self.seq += 1
+                cmd = TwistCommand(operator="op", linear=self.twist_cmd[:3], angular=self.twist_cmd[3:], deadman=self.deadman)
+                cmd.stamp(self.seq, int(self.t * 1e9))
+                d = self.sv.on_command(cmd, self.t, self.t, self.reading.tcp_pose)
+                if d.accepted:
+                    self.drive(d)
+
+    def on_level(self, before: tuple[int, bool]) -> None:
+        state = self.tracker.state(self.t)
+        if (state.level, state.stale) != before:
+            self.levels.append((self.t, int(state.level), state.value, self.depth()))
+            if state.level == ForceLevel.DANGER and self.danger_depth is None:
+                self.danger_depth = self.depth()
+            self.sv.update_force(state.level, state.stale, self.t)
+            self.drive(self.sv.step(self.t, self.reading.tcp_pose))
+
+    def press(self, vz: float) -> None:
+        self.twist_cmd = np.array([0.0, 0.0, vz, 0.0, 0.0, 0.0])
+        self.deadman = True
+
+
+def fresh_rig(**kwargs) -> Rig:
+    rig = Rig(**kwargs)
+    rig.run(0.05)  # first samples: the sensor is fresh and SAFE
+    assert not rig.sv.force_stale
+    rig.levels.clear()  # the stale → fresh change at start
+    return rig
+
+
+@pytest.mark.parametrize("profile", ["local", "remote"])
+def test_pressing_raises_levels_at_thresholds_and_stops_within_the_margin(profile: str) -> None:
+    rig = fresh_rig(profile=profile)
+    rig.press(-0.05)  # faster than any profile: clipped to the profile's speed
+    rig.run(3.0)
+    levels = [lv for _, lv, _, _ in rig.levels]
+    assert levels[:2] == [1, 2], rig.levels  # 0 → 1 → 2, no flicker on the way in
+    for _, lv, value, _ in rig.levels[:2]:
+        assert value >= LevelConfig().thresholds[lv - 1]
+    assert rig.danger_depth is not None
+    overshoot = rig.max_depth - rig.danger_depth
+    assert overshoot <= rig.safety.force.overshoot_margin, f"{1000 * overshoot:.2f} mm past red"
+    assert rig.sv.status in (Status.FORCE_DANGER, Status.FORCE_CAUTION)
+    # Still pressing: the tool does not go deeper. Retreat is allowed.
+    depth = rig.depth()
+    rig.run(0.5)
+    assert rig.depth() <= depth + 1e-6
+    rig.press(+0.005)
+    rig.run(0.5)
+    assert rig.depth() < depth - 0.001
+
+
+def test_danger_retracts_the_configured_distance_even_with_the_deadman_held() -> None:
+    rig = fresh_rig(reaction=ForceReaction(retract_distance=0.003, retract_speed=0.01), profile="remote")
+    rig.press(-0.008)  # and keeps pressing throughout
+    rig.run(1.5)
+    assert rig.danger_depth is not None
+    t_danger = next(t for t, lv, _, _ in rig.levels if lv == 2)
+    after = [d for t, d in rig.depths if t_danger <= t <= t_danger + 0.5]
+    assert rig.danger_depth - min(after) > 0.0025  # backed off ~3 mm along the normal
+    assert rig.max_depth - rig.danger_depth <= rig.safety.force.overshoot_margin
+    assert any(s == Status.FORCE_DANGER and "retract" in r for s, r in rig.sv.interventions)
+
+
+def test_stale_sensor_stops_then_refuses_contact_motion_but_allows_retreat() -> None:
+    rig = fresh_rig(profile="remote")
+    rig.press(-0.005)
+    rig.run(0.2)
+    assert np.any(rig.commanded)
+    rig.sensor_on = False
+    last_sample = rig.tracker.last_sample
+    rig.run(0.15)
+    stale = [t for t, _, _, _ in rig.levels if rig.tracker.stale(t)]
+    assert stale, "never flagged stale"
+    assert stale[0] - last_sample <= LevelConfig().stale_after + 0.010 + 1e-9  # 100 ms + one sensor period
+    assert any(s == Status.FORCE_STALE for s, _ in rig.sv.interventions)
+    z = rig.reading.tcp_pose[2]
+    rig.run(0.3)  # operator still pressing down
+    assert rig.reading.tcp_pose[2] >= z - 0.0005  # only the braking distance after the stop
+    z = rig.reading.tcp_pose[2]
+    rig.press(+0.005)
+    rig.run(0.3)
+    assert rig.reading.tcp_pose[2] > z + 0.001
+
+
+def test_no_sample_yet_refuses_contact_motion() -> None:
+    rig = Rig(profile="remote")
+    rig.sensor_on = False
+    rig.press(-0.005)
+    rig.run(0.3)
+    assert rig.reading.tcp_pose[2] == pytest.approx(START[2], abs=1e-9)
+
+
+def test_approach_speed_cap_stops_within_the_margin() -> None:
+    r = ForceReaction(overshoot_margin=0.002, reaction_time=0.04)
+    v = r.approach_speed_cap(0.25)
+    assert v * 0.04 + v * v / (2 * 0.25) == pytest.approx(0.002)
+
+
+class _Silent(ForceSensor):
+    def start(self) -> None: ...
+    def read(self, timeout: float) -> WrenchSample | None: return None
+    def zero(self) -> None: ...
+    def close(self) -> None: ...
+
+
+def test_monitor_flags_stale_at_the_first_tick_past_the_limit() -> None:
+    from iorthand_edge.force.config import ForceConfig
+
+    changes = []
+    monitor = ForceMonitor(ForceConfig(), _Silent(), changes.append)
+    t = 0.0
+    monitor.tick(WrenchSample(np.zeros(6), 0), t)
+    assert changes and not changes[-1].stale  # fresh after the first sample
+    while not monitor.state.stale:
+        t = round(t + 0.01, 6)
+        monitor.tick(None, t)
+    assert 0.1 < t <= 0.1 + 0.01 + 1e-9
+    assert changes[-1].stale and monitor.stale_since == t
