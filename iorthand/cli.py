@@ -19,10 +19,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="iorthand", description="Safe robot teleoperation over Zenoh.")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    from iorthand import demo, router
+    from iorthand import check, demo, router
+    from iorthand.security import cli as security_cli
 
     router.register(sub)
     demo.register(sub)
+    security_cli.register(sub)
+    check.register(sub)
     for ep in sorted(entry_points(group="iorthand.commands"), key=lambda e: e.name):
         try:
             ep.load()(sub)

@@ -63,13 +63,18 @@ QOS_BY_KEY: dict[str, QosProfile] = {
 
 @dataclass
 class TlsConfig:
-    """Zenoh TLS settings (paths to PEM files). ``mtls`` makes both sides present a certificate."""
+    """Zenoh TLS settings (paths to PEM files). ``mtls`` makes both sides present a certificate: a client must
+    set it too, or Zenoh sends no certificate and an mTLS router refuses the link.
 
-    root_ca: Path | None = None
-    certificate: Path | None = None
-    private_key: Path | None = None
+    ``verify_name`` checks that the router's certificate names the host dialled. Keep it on: with a private
+    CA, skipping it lets any certificate of that CA pose as the router (Zenoh warns "Skipping name
+    verification"). ``iorthand certs issue router --host NAME`` puts the names in the certificate."""
+
+    root_ca: Path | None = setting(None, help="the deployment's CA certificate (ca.pem)")
+    certificate: Path | None = setting(None, help="this role's certificate (e.g. edge-<robot>.pem)")
+    private_key: Path | None = setting(None, help="its private key (mode 0600)")
     mtls: bool = True
-    verify_name: bool = False
+    verify_name: bool = True
 
 
 @dataclass
@@ -92,12 +97,16 @@ class ZenohConfig:
         for ep in [*self.connect, *self.listen]:
             if "/" not in ep:
                 raise ValueError(f"endpoint {ep!r} must look like tcp/HOST:PORT or tls/HOST:PORT")
+            if ep.startswith(("tls/", "quic/")) and self.tls is None:
+                raise ValueError(f"endpoint {ep!r} needs a tls section (root_ca, certificate, private_key)")
+        if self.username and self.password_file is None:
+            raise ValueError(f"username {self.username!r} needs a password_file (a file with the password, mode 0600)")
 
 
-def zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+def zenoh_config(cfg: ZenohConfig, entries: dict[str, Any] | None = None) -> zenoh.Config:
     """The zenoh.Config for our settings (kept as a plain dict first, so it can be logged and tested)."""
     zc = zenoh.Config()
-    for path, value in zenoh_entries(cfg).items():
+    for path, value in (zenoh_entries(cfg) if entries is None else entries).items():
         zc.insert_json5(path, json.dumps(value))
     return zc
 
@@ -119,57 +128,110 @@ def zenoh_entries(cfg: ZenohConfig) -> dict[str, Any]:
         tls = cfg.tls
         if tls.root_ca:
             entries["transport/link/tls/root_ca_certificate"] = str(tls.root_ca)
-        if cfg.mode == "router":
+        # Key names checked against eclipse-zenoh 1.10.2 (Config.insert_json5 rejects unknown keys). A router
+        # presents listen_*, a client connect_*; a peer does both, so it gets both.
+        if cfg.mode in ("router", "peer"):
             if tls.certificate:
                 entries["transport/link/tls/listen_certificate"] = str(tls.certificate)
             if tls.private_key:
                 entries["transport/link/tls/listen_private_key"] = str(tls.private_key)
-        else:
+        if cfg.mode in ("client", "peer"):
             if tls.certificate:
                 entries["transport/link/tls/connect_certificate"] = str(tls.certificate)
             if tls.private_key:
                 entries["transport/link/tls/connect_private_key"] = str(tls.private_key)
         entries["transport/link/tls/enable_mtls"] = tls.mtls
         entries["transport/link/tls/verify_name_on_connect"] = tls.verify_name
+        # A certificate that expires while connected ends the link rather than living on until a restart.
+        entries["transport/link/tls/close_link_on_expiration"] = True
     if cfg.username:
         entries["transport/auth/usrpwd/user"] = cfg.username
         if cfg.password_file:
+            # The password lives in its own 0600 file, never in the YAML (which is shared and versioned).
             entries["transport/auth/usrpwd/password"] = Path(cfg.password_file).read_text().strip()
     entries.update(cfg.extra)
     return entries
 
 
 class ConnectError(RuntimeError):
-    pass
+    """No session could be opened. ``diagnosis`` (an :class:`iorthand.security.diagnose.Diagnosis`) says why."""
+
+    def __init__(self, message: str, diagnosis: Any = None) -> None:
+        super().__init__(message)
+        self.diagnosis = diagnosis
+
+
+# Back-off of open_session: 0.1 s doubling to this cap. Low enough that an edge started before its router
+# connects well within 2 s of the router appearing (plug-and-play); a refused connect costs ~1 ms.
+MAX_RETRY_DELAY = 0.5
+_RELOG_EVERY = 30.0  # s between "still no router" lines: a Pi waiting all night must not fill its SD card
+
+
+class _Diagnoser(threading.Thread):
+    """Runs the diagnosis of a failed connection in the background, so retries are not delayed by it."""
+
+    def __init__(self, cfg: ZenohConfig, entries: dict[str, Any]) -> None:
+        super().__init__(name="zenoh-diagnose", daemon=True)
+        self._cfg, self._entries = cfg, entries
+        self.result: Any = None
+
+    def run(self) -> None:
+        from iorthand.security.diagnose import diagnose
+
+        try:
+            self.result = diagnose(self._cfg, self._entries)
+        except Exception as exc:  # a diagnosis must never take the caller down
+            log.debug("diagnosis failed: %s", exc)
+            return
+        log.warning("zenoh: %s", self.result.message())
 
 
 def open_session(cfg: ZenohConfig, stop: threading.Event | None = None) -> zenoh.Session:
-    """Open a Zenoh session, retrying with back-off (0.1 s doubling to 2 s) for ``connect_retry_s``.
+    """Open a Zenoh session, retrying with back-off (0.1 s doubling to 0.5 s) for ``connect_retry_s``.
 
     zenoh.open() in client mode raises at once when no router answers; an edge that starts before its router
-    must keep trying (plug-and-play). ``stop`` aborts the retries.
+    must keep trying (plug-and-play). ``stop`` aborts the retries. Zenoh only says "Unable to connect to any
+    of [...]": at the first failure a background diagnosis (pre-checks of the certificate files, then one
+    probe connection with Zenoh's log at warn in a child process) logs which endpoint, which certificate and
+    the likely cause, and the final :class:`ConnectError` carries it.
     """
-    zc = zenoh_config(cfg)
+    try:
+        entries = zenoh_entries(cfg)
+    except OSError as exc:
+        raise ConnectError(f"cannot read {exc.filename}: {exc.strerror}") from None
+    zc = zenoh_config(cfg, entries)
     deadline = time.monotonic() + cfg.connect_retry_s
     delay = 0.1
     attempt = 0
+    diagnoser: _Diagnoser | None = None
+    last_log = time.monotonic()
     while True:
         attempt += 1
         try:
-            return zenoh.open(zc)
+            session = zenoh.open(zc)
+            if attempt > 1:
+                log.info("connected to %s after %d attempts", ", ".join(cfg.connect), attempt)
+            return session
         except zenoh.ZError as exc:
+            if diagnoser is None and cfg.mode == "client":
+                diagnoser = _Diagnoser(cfg, entries)
+                diagnoser.start()
+                log.warning("no router at %s yet (%s); retrying", ", ".join(cfg.connect), str(exc).split(" at ", 1)[0])
             if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
-                raise ConnectError(
-                    f"cannot reach a Zenoh router at {', '.join(cfg.connect) or '(no endpoint)'} after {attempt} "
-                    f"attempts: {exc}. Is the router running, and are the address, port and certificates right?"
-                ) from None
-            if attempt == 1:
-                log.warning("no router at %s yet (%s); retrying", ", ".join(cfg.connect), exc)
+                diag = None
+                if diagnoser is not None:
+                    diagnoser.join(timeout=20.0)
+                    diag = diagnoser.result
+                why = diag.message() if diag is not None else f"cannot reach a Zenoh router at {', '.join(cfg.connect)}: {exc}"
+                raise ConnectError(f"{why} (gave up after {attempt} attempts)", diag) from None
+            if time.monotonic() - last_log > _RELOG_EVERY:
+                last_log = time.monotonic()
+                log.warning("still no router at %s (attempt %d)", ", ".join(cfg.connect), attempt)
             if stop is not None:
                 stop.wait(delay)
             else:
                 time.sleep(delay)
-            delay = min(delay * 2, 2.0)
+            delay = min(delay * 2, MAX_RETRY_DELAY)
 
 
 def publisher(session: zenoh.Session, key: str, qos: QosProfile | None = None) -> zenoh.Publisher:

@@ -1,0 +1,180 @@
+"""Subcommands: ``recorder`` (the service, and start/stop/status of a running one), ``annotate``, ``replay``,
+``report``, ``export``. Registered through the ``iorthand.commands`` entry point."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from iorthand.config import from_dict, load
+from iorthand.transport import ZenohConfig, client_config, open_session
+from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
+
+log = logging.getLogger("iorthand.recorder")
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+
+
+def load_config(args: argparse.Namespace) -> RecorderConfig:
+    cfg = load(args.config, RecorderConfig) if getattr(args, "config", None) else from_dict({}, RecorderConfig)
+    if getattr(args, "connect", None):
+        cfg.zenoh = ZenohConfig(mode="client", connect=list(args.connect), connect_retry_s=cfg.zenoh.connect_retry_s)
+    elif cfg.zenoh.mode == "peer" and not cfg.zenoh.connect and not cfg.zenoh.listen:
+        cfg.zenoh = client_config(DEFAULT_CONNECT)
+    if getattr(args, "output", None):
+        cfg.output_dir = Path(args.output)
+    return cfg
+
+
+def _session(args: argparse.Namespace):
+    return open_session(load_config(args).zenoh)
+
+
+def _print_status(st) -> None:
+    print(json.dumps({k: getattr(st, k) for k in st.__dataclass_fields__}, indent=1))
+
+
+def _cmd_recorder(args: argparse.Namespace) -> int:
+    from iorthand_cloud.recorder import client
+    from iorthand_cloud.recorder.service import RecorderService
+
+    if args.action == "serve":
+        cfg = load_config(args)
+        if args.start_now:
+            cfg.start_on_launch = True
+        svc = RecorderService(cfg)
+        if args.session:
+            svc.launch_session = args.session
+        svc.run_forever()
+        return 1 if svc.status.error else 0
+    session = _session(args)
+    try:
+        if args.action == "start":
+            st = client.start(session, session_id=args.session or "", operator=args.operator or "",
+                              robots=args.robot or [], note=args.note or "")
+        elif args.action == "stop":
+            st = client.stop(session)
+        else:
+            st = client.status(session)
+        _print_status(st)
+        return 0 if st.ok else 1
+    finally:
+        session.close()
+
+
+def _cmd_annotate(args: argparse.Namespace) -> int:
+    from iorthand_cloud.recorder import client
+
+    session = _session(args)
+    try:
+        st = client.annotate(session, args.text, author=args.author, tags=args.tag or [], score=args.score)
+    finally:
+        session.close()
+    print(("annotation stored in " + st.session) if st.ok else f"annotation refused: {st.reason}")
+    return 0 if st.ok else 1
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from iorthand_cloud.recorder.replay import Replayer
+
+    session = _session(args)
+    try:
+        rp = Replayer(session, args.session, speed=args.speed, loop=args.loop, key_filter=args.keys,
+                      include_malformed=args.include_malformed, start=args.start, end=args.end)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: rp.stop_event.set())
+        t = threading.Thread(target=rp.run, name="replay", daemon=True)
+        t.start()
+        while t.is_alive():
+            t.join(0.2)
+        print(f"replayed {rp.stats.published} messages ({rp.stats.loops} pass(es)), "
+              f"at most {rp.stats.max_late_ms:.1f} ms late")
+    finally:
+        session.close()
+    return 0
+
+
+def _report_config(args: argparse.Namespace) -> ReportConfig:
+    cfg = load(args.config, RecorderConfig).report if args.config else ReportConfig()
+    if args.contact_threshold is not None:
+        cfg.contact_threshold = args.contact_threshold
+    return cfg
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from iorthand_cloud.recorder.report import build_report
+
+    data = build_report(args.session, _report_config(args), Path(args.out) if args.out else None)
+    for robot, r in data["robots"].items():
+        ix = r["index"]
+        print(f"{robot}: t_t {ix['t_t']:.2f} s, τ {ix['tau']:.2f} s, ψ {ix['psi']:.4f}, ω_R {ix['omega_R']}, "
+              f"ω_Y {ix['omega_Y']}, φ {ix['phi']:.2f} %")
+    print(f"report: {data['path']}")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from iorthand_cloud.recorder.export import export_rrd
+
+    path, n = export_rrd(args.session, args.out, args.start, args.end, args.video_fps)
+    print(f"exported {n} entries to {path}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    def connection(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--config", help="recorder YAML (configs/recorder.yaml)")
+        p.add_argument("--connect", action="append", help=f"router endpoint (default {DEFAULT_CONNECT})")
+
+    p = sub.add_parser("recorder", help="the MCAP recorder service, or start/stop/status of a running one")
+    p.add_argument("action", nargs="?", default="serve", choices=["serve", "start", "stop", "status"])
+    connection(p)
+    p.add_argument("--output", help="sessions folder (overrides output_dir)")
+    p.add_argument("--start-now", action="store_true", help="serve: start recording at once")
+    p.add_argument("--session", help="session id (start, or serve --start-now)")
+    p.add_argument("--operator", help="start: the operator's id, for the manifest")
+    p.add_argument("--robot", action="append", help="start: robot ids, for the manifest")
+    p.add_argument("--note", help="start: free text for the manifest")
+    p.set_defaults(func=_cmd_recorder)
+
+    p = sub.add_parser("annotate", help="add a comment, tags or a score to the recording in progress")
+    p.add_argument("text")
+    connection(p)
+    p.add_argument("--author", default="")
+    p.add_argument("--tag", action="append")
+    p.add_argument("--score", type=float)
+    p.set_defaults(func=_cmd_annotate)
+
+    p = sub.add_parser("replay", help="republish a recorded session into Zenoh with its original timing")
+    p.add_argument("session", help="session folder")
+    connection(p)
+    p.add_argument("--speed", type=float, default=1.0, help="2 = twice as fast")
+    p.add_argument("--loop", action="store_true")
+    p.add_argument("--keys", action="append", help="key expression to replay (repeatable; default: all)")
+    p.add_argument("--include-malformed", action="store_true")
+    p.add_argument("--start", type=float, help="s from the session's first message")
+    p.add_argument("--end", type=float)
+    p.set_defaults(func=_cmd_replay)
+
+    p = sub.add_parser("report", help="session report: performance index, latencies, plots (Markdown + JSON)")
+    p.add_argument("session")
+    p.add_argument("--config", help="recorder YAML whose `report:` section to use")
+    p.add_argument("--contact-threshold", type=float, help="N")
+    p.add_argument("--out", help="folder (default SESSION/report)")
+    p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("export", help="export a session (or a time range) to a rerun .rrd")
+    p.add_argument("session")
+    p.add_argument("--out", help=".rrd path (default SESSION/<id>.rrd)")
+    p.add_argument("--start", type=float, help="s from the session's first message")
+    p.add_argument("--end", type=float)
+    p.add_argument("--video-fps", type=float, default=5.0)
+    p.set_defaults(func=_cmd_export)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use `iorthand recorder`")

@@ -1,0 +1,162 @@
+"""The session manifest (``manifest.json``) and the per-key statistics it carries.
+
+:class:`KeyStats` is pure logic (counting messages, bytes, malformed payloads and sequence gaps); the manifest
+is written atomically (temporary file + rename) so a crash leaves either the previous or the new version.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import platform
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+MANIFEST = "manifest.json"
+FORMAT_VERSION = 1
+
+# Session status values.
+RECORDING = "recording"  # being written, or the recorder died while writing (repair on next start)
+COMPLETE = "complete"
+RECOVERED = "recovered"  # the recorder died; the readable part of its segments was repaired
+FAILED = "failed"  # stopped by an error (full disk, unwritable folder); what was written is kept
+
+
+@dataclass
+class KeyStats:
+    """Statistics of one key. ``missing`` counts sequence numbers never received, ``gaps`` the holes they make;
+    a sequence number at or below the last one is a publisher restart or a duplicate (``resets``)."""
+
+    type: str = ""
+    messages: int = 0
+    bytes: int = 0
+    malformed: int = 0
+    gaps: int = 0
+    missing: int = 0
+    resets: int = 0
+    first_seq: int | None = None
+    last_seq: int | None = None
+    first_t: int | None = None  # receive time, ns
+    last_t: int | None = None
+
+    def observe(self, size: int, recv_ns: int, seq: int | None, malformed: bool = False) -> None:
+        """One message of ``size`` bytes. ``seq`` is None when there is none to check: a malformed payload, or a
+        key without a message type whose payload carries no ``seq``."""
+        self.messages += 1
+        self.bytes += size
+        if self.first_t is None:
+            self.first_t = recv_ns
+        self.last_t = recv_ns
+        if malformed:
+            self.malformed += 1
+        if seq is None:
+            return
+        if self.last_seq is None:
+            self.first_seq = seq
+        elif seq > self.last_seq + 1:
+            self.gaps += 1
+            self.missing += seq - self.last_seq - 1
+        elif seq <= self.last_seq:
+            self.resets += 1
+        self.last_seq = seq
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> KeyStats:
+        return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
+
+
+def totals(stats: dict[str, KeyStats]) -> dict[str, int]:
+    return {
+        "messages": sum(s.messages for s in stats.values()),
+        "bytes": sum(s.bytes for s in stats.values()),
+        "malformed": sum(s.malformed for s in stats.values()),
+        "gaps": sum(s.gaps for s in stats.values()),
+        "missing": sum(s.missing for s in stats.values()),
+    }
+
+
+@dataclass
+class SegmentInfo:
+    file: str
+    stream: str  # "telemetry" or "video"
+    compression: str
+    opened_t: int
+    closed_t: int | None = None
+    messages: int = 0
+    bytes: int = 0
+    status: str = "open"  # open, closed, repaired, unreadable
+    recovered_messages: int | None = None
+    lost_bytes: int | None = None
+
+
+@dataclass
+class Manifest:
+    session_id: str
+    status: str = RECORDING
+    operator: str = ""
+    robots: list[str] = field(default_factory=list)
+    note: str = ""
+    start_t: int = 0
+    stop_t: int | None = None
+    start_iso: str = ""
+    stop_iso: str = ""
+    keys: dict[str, KeyStats] = field(default_factory=dict)
+    segments: list[SegmentInfo] = field(default_factory=list)
+    attachments: list[str] = field(default_factory=list)
+    annotations: int = 0
+    dropped: int = 0
+    error: str = ""
+    repaired: bool = False
+    software: dict[str, str] = field(default_factory=dict)
+    config: dict[str, Any] = field(default_factory=dict)
+    format_version: int = FORMAT_VERSION
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["totals"] = totals(self.keys)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Manifest:
+        data = dict(data)
+        data.pop("totals", None)
+        keys = {k: KeyStats.from_dict(v) for k, v in data.pop("keys", {}).items()}
+        segs = [SegmentInfo(**s) for s in data.pop("segments", [])]
+        known = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
+        return cls(keys=keys, segments=segs, **known)
+
+    def write(self, folder: Path, fsync: bool = True) -> None:
+        path = folder / MANIFEST
+        tmp = folder / (MANIFEST + ".tmp")
+        with tmp.open("w", encoding="utf-8") as f:
+            json.dump(self.to_dict(), f, indent=1, sort_keys=False)
+            f.flush()
+            if fsync:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+
+    @classmethod
+    def read(cls, folder: Path) -> Manifest:
+        with (folder / MANIFEST).open(encoding="utf-8") as f:
+            return cls.from_dict(json.load(f))
+
+
+def iso(ns: int | None) -> str:
+    return "" if not ns else datetime.fromtimestamp(ns / 1e9, UTC).isoformat(timespec="milliseconds")
+
+
+@functools.cache
+def software_versions() -> dict[str, str]:
+    """Versions for the manifest (cached: the first metadata lookup costs ~0.2 s, too much for a start)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {"python": platform.python_version(), "host": platform.node()}
+    for dist in ("iorthand", "iorthand-cloud", "eclipse-zenoh", "mcap"):
+        try:
+            out[dist] = version(dist)
+        except PackageNotFoundError:
+            out[dist] = "not installed"
+    return out

@@ -1,0 +1,77 @@
+"""Reading a session: its segments' messages merged in receive-time order, with decoding for analysis."""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+from mcap.reader import make_reader
+
+from iorthand_cloud.recorder.manifest import Manifest
+from iorthand_cloud.recorder.segments import MALFORMED_META
+
+
+@dataclass(frozen=True)
+class Record:
+    key: str
+    log_time: int  # receive time at the recorder, ns
+    publish_time: int  # source time, ns
+    sequence: int
+    data: bytes
+    malformed: bool
+    stream: str
+
+
+def session_dir(path: str | Path) -> Path:
+    """A session folder from a path to it or to its manifest."""
+    p = Path(path)
+    return p.parent if p.is_file() else p
+
+
+def segment_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.glob("*.mcap") if p.is_file())
+
+
+def _iter_file(path: Path, start: int | None, end: int | None) -> Iterator[Record]:
+    stream = path.name.rsplit("-", 1)[0]
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        for _schema, channel, message in reader.iter_messages(starting_at=start, ending_before=end, log_time_order=True):
+            yield Record(
+                key=channel.topic, log_time=message.log_time, publish_time=message.publish_time,
+                sequence=message.sequence, data=message.data,
+                malformed=channel.metadata.get(MALFORMED_META) == "true", stream=stream,
+            )
+
+
+def iter_records(folder: str | Path, start: int | None = None, end: int | None = None) -> Iterator[Record]:
+    """Every message of a session in receive-time order; ``start``/``end`` are receive times in ns."""
+    files = segment_files(session_dir(folder))
+    return heapq.merge(*(_iter_file(p, start, end) for p in files), key=lambda r: r.log_time)
+
+
+def read_manifest(folder: str | Path) -> Manifest:
+    return Manifest.read(session_dir(folder))
+
+
+def decode_map(data: bytes) -> dict[str, Any] | None:
+    """The msgpack map of a payload, or None (no validation: reports tolerate what the decoder would reject
+    only after the decoder has had its say — callers use protocol classes where validation matters)."""
+    try:
+        out = msgpack.unpackb(data, raw=False)
+    except Exception:  # garbage of any kind is simply not a map
+        return None
+    return out if isinstance(out, dict) else None
+
+
+def attachments(folder: str | Path) -> dict[str, bytes]:
+    out: dict[str, bytes] = {}
+    for path in segment_files(session_dir(folder)):
+        with path.open("rb") as f:
+            for att in make_reader(f).iter_attachments():
+                out.setdefault(att.name, att.data)
+    return out

@@ -1,0 +1,170 @@
+"""Crash repair: segments a killed recorder left without a footer are rewritten from their readable part.
+
+A segment is readable up to the last complete record (the writer flushes whole chunks at least once a second,
+so a kill -9 loses at most the chunk in progress). The rewrite goes to a temporary file that replaces the
+original only when complete; the manifest's statistics are then recomputed from the files themselves (the
+manifest on disk may be up to one ``manifest_interval`` old) and the session is marked ``recovered``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.reader import make_reader
+from mcap.records import Attachment, Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from iorthand_cloud.recorder import manifest as mf
+from iorthand_cloud.recorder.reader import iter_records, segment_files
+from iorthand_cloud.recorder.segments import LIBRARY, PROFILE
+
+log = logging.getLogger("iorthand.recorder")
+
+
+@dataclass
+class RepairResult:
+    path: Path
+    messages: int
+    lost_bytes: int
+
+
+def has_footer(path: Path) -> bool:
+    try:
+        with path.open("rb") as f:
+            make_reader(f).get_summary()
+        return True
+    except Exception:  # the mcap reader raises many kinds on a truncated file; all mean "no valid footer"
+        return False
+
+
+def repair_segment(path: Path) -> RepairResult:
+    """Rewrite ``path`` from its readable records; returns what was recovered."""
+    size = path.stat().st_size
+    tmp = path.with_suffix(".mcap.repair")
+    compression = CompressionType.NONE if path.name.startswith("video") else CompressionType.ZSTD
+    messages = 0
+    good_offset = 0
+    with path.open("rb") as src, tmp.open("wb") as dst:
+        writer = Writer(dst, compression=compression)
+        writer.start(profile=PROFILE, library=LIBRARY)
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        try:
+            for record in StreamReader(src, skip_magic=False).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+                elif isinstance(record, Channel):
+                    channels[record.id] = writer.register_channel(
+                        record.topic, record.message_encoding, schemas.get(record.schema_id, 0), record.metadata
+                    )
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    writer.add_message(channels[record.channel_id], record.log_time, record.data,
+                                       record.publish_time, record.sequence)
+                    messages += 1
+                elif isinstance(record, Attachment):
+                    writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
+                                          record.data)
+                elif isinstance(record, Metadata):
+                    writer.add_metadata(record.name, record.metadata)
+                good_offset = src.tell()
+        except Exception as exc:  # the torn tail: everything before it was taken
+            log.info("%s: readable up to byte %d of %d (%s)", path.name, good_offset, size, type(exc).__name__)
+        writer.finish()
+        dst.flush()
+        os.fsync(dst.fileno())
+    os.replace(tmp, path)
+    return RepairResult(path, messages, max(0, size - good_offset))
+
+
+def recompute_stats(folder: Path) -> tuple[dict[str, mf.KeyStats], int, int | None]:
+    """Per-key statistics, annotation count and last receive time, from the segment files."""
+    from iorthand import keys
+
+    stats: dict[str, mf.KeyStats] = {}
+    annotations = 0
+    last: int | None = None
+    ann_key = keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)
+    for rec in iter_records(folder):
+        last = rec.log_time
+        if rec.key == ann_key:
+            annotations += 1
+            continue
+        st = stats.get(rec.key)
+        if st is None:
+            st = stats[rec.key] = mf.KeyStats()
+        st.observe(len(rec.data), rec.log_time, None if rec.malformed or not rec.sequence else rec.sequence,
+                   malformed=rec.malformed)
+    return stats, annotations, last
+
+
+def repair_session(folder: Path) -> list[RepairResult]:
+    """Repair every footer-less segment of one session and bring its manifest up to date."""
+    results: list[RepairResult] = []
+    try:
+        manifest = mf.Manifest.read(folder)
+    except (OSError, ValueError) as exc:
+        log.warning("%s: no readable manifest (%s); rebuilding one from the segments", folder, exc)
+        manifest = mf.Manifest(session_id=folder.name)
+    by_file = {s.file: s for s in manifest.segments}
+    for path in segment_files(folder):
+        if has_footer(path):
+            seg = by_file.get(path.name)
+            if seg is not None and seg.status == "open":
+                seg.status = "closed"
+            continue
+        try:
+            res = repair_segment(path)
+        except OSError as exc:
+            log.error("%s: cannot repair (%s)", path, exc)
+            if path.name in by_file:
+                by_file[path.name].status = "unreadable"
+            continue
+        results.append(res)
+        log.warning("repaired %s: %d messages recovered, %d bytes of torn tail dropped",
+                    path, res.messages, res.lost_bytes)
+        seg = by_file.get(path.name)
+        if seg is None:
+            seg = mf.SegmentInfo(file=path.name, stream=path.name.rsplit("-", 1)[0],
+                                 compression="none" if path.name.startswith("video") else "zstd", opened_t=0)
+            manifest.segments.append(seg)
+            by_file[path.name] = seg
+        seg.status, seg.recovered_messages, seg.lost_bytes = "repaired", res.messages, res.lost_bytes
+        seg.messages, seg.bytes = res.messages, path.stat().st_size
+    stats, annotations, last = recompute_stats(folder)
+    # The dropped counter is the recorder's own and cannot be rebuilt from the files: keep the last one written.
+    manifest.keys, manifest.annotations = stats, annotations
+    if manifest.status == mf.RECORDING:
+        manifest.status = mf.RECOVERED
+        manifest.stop_t = last
+        manifest.stop_iso = mf.iso(last)
+        manifest.error = manifest.error or "the recorder stopped without closing this session (crash or kill)"
+    manifest.repaired = manifest.repaired or bool(results)
+    manifest.write(folder)
+    return results
+
+
+def repair_all(root: Path) -> dict[str, list[RepairResult]]:
+    """Repair every unfinished session under ``root`` (sessions left ``recording`` or ``failed``)."""
+    out: dict[str, list[RepairResult]] = {}
+    if not root.is_dir():
+        return out
+    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
+        manifest_path = folder / mf.MANIFEST
+        status = None
+        if manifest_path.exists():
+            try:
+                status = mf.Manifest.read(folder).status
+            except (OSError, ValueError):
+                status = None
+        elif not segment_files(folder):
+            continue
+        if status in (mf.COMPLETE, mf.RECOVERED):
+            continue
+        if status == mf.FAILED and all(has_footer(p) for p in segment_files(folder)):
+            continue
+        out[folder.name] = repair_session(folder)
+    return out

@@ -1,0 +1,268 @@
+"""``iorthand report SESSION``: the session report (Markdown + JSON + PNG plots) in ``SESSION/report/``.
+
+Reads the session's messages (validated by their protocol classes; malformed ones are counted, not used),
+extracts per-robot series, and hands them to :mod:`metrics` for the figures. Times are the messages' source
+times (``t``): they measure what happened at the robot, not when the recorder heard of it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from iorthand import keys, stats
+from iorthand.protocol import (
+    Annotation,
+    AppliedCommand,
+    DecodeError,
+    ForceLevelState,
+    ForceSample,
+    RobotState,
+    SafetyStatus,
+    Status,
+    TwistCommand,
+)
+from iorthand_cloud.recorder import metrics
+from iorthand_cloud.recorder.config import ReportConfig
+from iorthand_cloud.recorder.manifest import Manifest, totals
+from iorthand_cloud.recorder.reader import iter_records, session_dir
+
+DEADMAN_STATES = {Status.COMMAND_TIMEOUT, Status.NO_DEADMAN}
+
+
+@dataclass
+class RobotSeries:
+    force: list[tuple[float, float]] = field(default_factory=list)  # (t s, value N)
+    levels: list[tuple[float, int, bool]] = field(default_factory=list)
+    commands: list[tuple[float, bool]] = field(default_factory=list)  # (t, deadman)
+    latency_ms: list[float] = field(default_factory=list)  # operator send → edge receive
+    refusals: Counter[str] = field(default_factory=Counter)
+    applied: int = 0
+    safety: list[tuple[float, str]] = field(default_factory=list)
+    pose: list[tuple[float, list[float]]] = field(default_factory=list)
+    malformed: int = 0
+
+
+def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list[dict[str, Any]]]:
+    robots: dict[str, RobotSeries] = {}
+    annotations: list[dict[str, Any]] = []
+    ann_key = keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)
+    for rec in iter_records(folder):
+        if rec.key == ann_key:
+            try:
+                a = Annotation.decode(rec.data)
+                annotations.append({"t": a.t / 1e9, "author": a.author, "text": a.text, "tags": a.tags,
+                                    "score": a.score})
+            except DecodeError:
+                pass
+            continue
+        try:
+            robot, suffix = keys.split_key(rec.key)
+        except keys.KeyExprError:
+            continue
+        s = robots.setdefault(robot, RobotSeries())
+        if rec.malformed:
+            s.malformed += 1
+            continue
+        try:
+            if suffix == keys.STATE_FORCE:
+                m = ForceSample.decode(rec.data)
+                s.force.append((m.t / 1e9, metrics.force_value(m.force, cfg.force_quantity)))
+            elif suffix == keys.STATE_FORCE_LEVEL:
+                lv = ForceLevelState.decode(rec.data)
+                s.levels.append((lv.t / 1e9, lv.level, lv.stale))
+            elif suffix == keys.CMD_TWIST:
+                c = TwistCommand.decode(rec.data)
+                s.commands.append((c.t / 1e9, c.deadman))
+            elif suffix == keys.STATE_APPLIED:
+                ap = AppliedCommand.decode(rec.data)
+                s.applied += 1
+                if ap.recv_t and ap.cmd_t:
+                    s.latency_ms.append((ap.recv_t - ap.cmd_t) / 1e6)
+                if not ap.accepted:
+                    s.refusals[ap.status] += 1
+            elif suffix == keys.STATE_SAFETY:
+                sf = SafetyStatus.decode(rec.data)
+                s.safety.append((sf.t / 1e9, sf.status))
+            elif suffix == keys.STATE_ROBOT:
+                rs = RobotState.decode(rec.data)
+                s.pose.append((rs.t / 1e9, rs.tcp_pose))
+        except DecodeError:
+            s.malformed += 1
+    for s in robots.values():  # merge order is by receive time; the maths wants source-time order
+        for series in (s.force, s.levels, s.commands, s.safety, s.pose):
+            series.sort(key=lambda x: x[0])
+    return robots, annotations
+
+
+def robot_figures(s: RobotSeries, cfg: ReportConfig, session_span: float) -> dict[str, Any]:
+    use_commands = cfg.teleop_time == "commands" and s.commands
+    t_t = metrics.teleoperation_time(s.commands) if use_commands else session_span
+    tau = metrics.contact_time(s.force, cfg.contact_threshold, cfg.max_sample_gap)
+    levels = s.levels or [(t, lv, False) for t, lv in
+                          metrics.levels_from_force(s.force, cfg.caution, cfg.danger, cfg.hysteresis)]
+    red, yellow, edges = metrics.warning_edges(levels)
+    index = metrics.PerformanceIndex(t_t, tau, red, yellow, cfg.alpha, cfg.beta)
+    stops = metrics.rising_edges(s.safety, DEADMAN_STATES)
+    return {
+        "index": index.as_dict(),
+        "levels_source": "state/force_level" if s.levels else "state/force thresholds",
+        "warning_edges": [{"t": t, "level": lv} for t, lv in edges],
+        "command_latency_ms": {k: v if k == "count" else _num(v) for k, v in stats.summary(s.latency_ms).items()},
+        "commands": len(s.commands),
+        "applied": s.applied,
+        "refusals": dict(s.refusals),
+        "refusals_total": sum(s.refusals.values()),
+        "deadman_stops": len(stops),
+        "force_samples": len(s.force),
+        "malformed": s.malformed,
+    }
+
+
+def _num(v: float) -> float | None:
+    return None if v is None or (isinstance(v, float) and not math.isfinite(v)) else round(float(v), 4)
+
+
+def _plots(robot: str, s: RobotSeries, cfg: ReportConfig, out: Path, t0: float) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files: list[str] = []
+    if s.force:
+        fig, ax = plt.subplots(figsize=(10, 3.5))
+        ax.plot([t - t0 for t, _ in s.force], [v for _, v in s.force], lw=0.8, label=f"force ({cfg.force_quantity})")
+        for y, colour, name in ((cfg.contact_threshold, "grey", "contact"), (cfg.caution, "gold", "caution"),
+                                (cfg.danger, "red", "danger")):
+            ax.axhline(y, color=colour, ls="--", lw=0.8, label=name)
+        ax.set_xlabel("time since session start (s)")
+        ax.set_ylabel("N")
+        ax.set_title(f"{robot}: contact force")
+        ax.legend(loc="upper right", fontsize=8)
+        fig.tight_layout()
+        name = f"force_{robot}.png"
+        fig.savefig(out / name, dpi=100)
+        plt.close(fig)
+        files.append(name)
+    if s.pose:
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+        xs = [1000 * p[0] for _, p in s.pose]
+        ys = [1000 * p[1] for _, p in s.pose]
+        ax1.plot(xs, ys, lw=0.8)
+        ax1.set_aspect("equal", adjustable="datalim")
+        ax1.set_xlabel("x (mm, base)")
+        ax1.set_ylabel("y (mm, base)")
+        ax1.set_title(f"{robot}: tool path")
+        ts = [t - t0 for t, _ in s.pose]
+        for i, axis in enumerate("xyz"):
+            ax2.plot(ts, [1000 * p[i] for _, p in s.pose], lw=0.8, label=axis)
+        ax2.set_xlabel("time since session start (s)")
+        ax2.set_ylabel("mm")
+        ax2.legend(fontsize=8)
+        fig.tight_layout()
+        name = f"trajectory_{robot}.png"
+        fig.savefig(out / name, dpi=100)
+        plt.close(fig)
+        files.append(name)
+    return files
+
+
+def build_report(session: str | Path, cfg: ReportConfig | None = None, out_dir: Path | None = None) -> dict[str, Any]:
+    """Compute the report of a session, write ``report.md``, ``report.json`` and the plots; return the data."""
+    cfg = cfg or ReportConfig()
+    folder = session_dir(session)
+    manifest = Manifest.read(folder)
+    out = out_dir or folder / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    robots, annotations = _load(folder, cfg)
+    start = manifest.start_t / 1e9
+    stop = (manifest.stop_t or manifest.start_t) / 1e9
+    data: dict[str, Any] = {
+        "session": manifest.session_id, "status": manifest.status, "operator": manifest.operator,
+        "start": manifest.start_iso, "stop": manifest.stop_iso, "duration_s": round(stop - start, 3),
+        "recording": {**totals(manifest.keys), "dropped": manifest.dropped, "repaired": manifest.repaired,
+                      "error": manifest.error},
+        "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
+        "robots": {}, "annotations": annotations, "plots": [],
+    }
+    for robot, s in sorted(robots.items()):
+        data["robots"][robot] = robot_figures(s, cfg, stop - start)
+        if cfg.plots:
+            data["plots"] += _plots(robot, s, cfg, out, start)
+    (out / "report.json").write_text(json.dumps(_clean(data), indent=1, default=str, allow_nan=False))
+    (out / "report.md").write_text(render_markdown(data))
+    data["path"] = str(out / "report.md")
+    return data
+
+
+def _clean(v: Any) -> Any:
+    """JSON has no NaN or infinity: those become null."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _clean(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_clean(x) for x in v]
+    return v
+
+
+def _fmt(v: Any, digits: int = 2) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def render_markdown(data: dict[str, Any]) -> str:
+    rec = data["recording"]
+    lines = [
+        f"# Session {data['session']}",
+        "",
+        f"- status: **{data['status']}**{' (repaired after a crash)' if rec['repaired'] else ''}"
+        f"{' — ' + rec['error'] if rec['error'] else ''}",
+        f"- operator: {data['operator'] or 'n/a'}; {data['start']} → {data['stop']} ({data['duration_s']:.1f} s)",
+        f"- recorded: {rec['messages']} messages, {rec['bytes'] / 1e6:.1f} MB, {rec['malformed']} malformed, "
+        f"{rec['missing']} missing by sequence ({rec['gaps']} gaps), {rec['dropped']} dropped by the recorder",
+        "",
+    ]
+    for robot, r in data["robots"].items():
+        ix = r["index"]
+        lat = r["command_latency_ms"]
+        lines += [
+            f"## Robot {robot}",
+            "",
+            "| figure | value |",
+            "|---|---|",
+            f"| teleoperation time t_t | {_fmt(ix['t_t'])} s |",
+            f"| body-contact time τ (force > {data['config']['contact_threshold']} N) | {_fmt(ix['tau'])} s |",
+            f"| contact ratio ψ = τ/t_t | {_fmt(ix['psi'], 4)} |",
+            f"| danger warnings ω_R (rising edges into level 2) | {ix['omega_R']} |",
+            f"| caution warnings ω_Y (rising edges into level 1) | {ix['omega_Y']} |",
+            f"| Ω = 4·ω_R + ω_Y | {ix['Omega']} |",
+            f"| **performance index φ = α·ψ − β·Ω/(1−ψ)** (α = {ix['alpha']}, β = {ix['beta']}) | "
+            f"**{_fmt(ix['phi'])} %** |",
+            f"| command latency (operator → edge) p50 / p90 / p99 | {_fmt(lat['p50'])} / {_fmt(lat['p90'])} / "
+            f"{_fmt(lat['p99'])} ms ({lat['count']} commands) |",
+            f"| deadman stops | {r['deadman_stops']} |",
+            f"| refusals | {r['refusals_total']} {r['refusals'] or ''} |",
+            f"| malformed messages | {r['malformed']} |",
+            "",
+            f"Warning levels from {r['levels_source']}.",
+            "",
+        ]
+        for plot in data["plots"]:
+            if plot.endswith(f"_{robot}.png"):
+                lines.append(f"![{plot}]({plot})")
+        lines.append("")
+    if data["annotations"]:
+        lines += ["## Annotations", "", "| time | author | text | tags | score |", "|---|---|---|---|---|"]
+        for a in data["annotations"]:
+            lines.append(f"| {a['t']:.3f} | {a['author']} | {a['text']} | {', '.join(a['tags'])} | "
+                         f"{_fmt(a['score'])} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,168 @@
+"""MCAP segment files: one :class:`Stream` per kind of data (zstd telemetry, uncompressed video), each split
+into numbered segments by size and duration.
+
+Each message is stored as received, with ``log_time`` = the recorder's receive time, ``publish_time`` = the
+source time ``t`` carried by the message, and ``sequence`` = the publisher's sequence number (MCAP keeps 32
+bits: at 125 Hz that wraps after a year). :meth:`Stream.flush` ends the current chunk and hands it to the
+kernel (and the disk, with ``fsync``): a killed recorder loses at most what arrived since the last flush.
+Errors (``OSError``: full disk, missing folder) are raised to the caller, which stops the recording.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO
+
+from mcap.writer import CompressionType, Writer
+
+PROFILE = "iorthand"
+LIBRARY = "iorthand-recorder"
+MALFORMED_META = "iorthand.malformed"
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """A channel: the key plus how its bytes are encoded; malformed payloads of a key get their own channel
+    (same topic, metadata ``iorthand.malformed``) so a reader decoding the normal one never meets garbage."""
+
+    topic: str
+    encoding: str
+    schema_name: str = ""
+    schema_encoding: str = ""
+    schema_data: bytes = b""
+    malformed: bool = False
+
+    @property
+    def metadata(self) -> dict[str, str]:
+        return {MALFORMED_META: "true"} if self.malformed else {}
+
+
+@dataclass(frozen=True)
+class Attachment:
+    name: str
+    media_type: str
+    data: bytes
+    create_time: int = 0
+
+
+class Segment:
+    """One open MCAP file."""
+
+    def __init__(
+        self, path: Path, compression: CompressionType, chunk_size: int, attachments: list[Attachment],
+        opener: Callable[[Path], BinaryIO] | None = None,
+    ) -> None:
+        self.path = path
+        self.file: BinaryIO = opener(path) if opener else path.open("xb")
+        self.writer = Writer(self.file, chunk_size=chunk_size, compression=compression)
+        self.writer.start(profile=PROFILE, library=LIBRARY)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[ChannelSpec, int] = {}
+        self.messages = 0
+        self.opened_t = time.time_ns()
+        self.opened_mono = time.monotonic()
+        for att in attachments:
+            now = time.time_ns()
+            self.writer.add_attachment(att.create_time or now, now, att.name, att.media_type, att.data)
+
+    def channel(self, spec: ChannelSpec) -> int:
+        cid = self._channels.get(spec)
+        if cid is None:
+            sid = 0
+            if spec.schema_name:
+                sid = self._schemas.get(spec.schema_name, 0)
+                if not sid:
+                    sid = self.writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_data)
+                    self._schemas[spec.schema_name] = sid
+            cid = self.writer.register_channel(spec.topic, spec.encoding, sid, spec.metadata)
+            self._channels[spec] = cid
+        return cid
+
+    def write(self, spec: ChannelSpec, log_time: int, publish_time: int, seq: int, data: bytes) -> None:
+        self.writer.add_message(self.channel(spec), log_time, data, publish_time, seq & 0xFFFFFFFF)
+        self.messages += 1
+
+    def flush(self, fsync: bool) -> None:
+        self.writer.flush()
+        if fsync:
+            os.fsync(self.file.fileno())
+
+    @property
+    def size(self) -> int:
+        return self.file.tell()
+
+    def close(self, fsync: bool = True) -> None:
+        try:
+            self.writer.finish()
+            self.file.flush()
+            if fsync:
+                os.fsync(self.file.fileno())
+        finally:
+            self.file.close()
+
+
+@dataclass
+class Stream:
+    """A sequence of segments ``<name>-0001.mcap``, ``<name>-0002.mcap``… in ``folder``."""
+
+    name: str
+    folder: Path
+    compression: CompressionType
+    max_bytes: int
+    max_seconds: float
+    chunk_size: int
+    attachments: list[Attachment] = field(default_factory=list)
+    on_open: Callable[[Segment], None] | None = None
+    on_close: Callable[[Segment], None] | None = None
+    opener: Callable[[Path], BinaryIO] | None = None
+    current: Segment | None = None
+    index: int = 0
+    dirty: bool = False
+    closed: list[Path] = field(default_factory=list)
+
+    def open_next(self) -> Segment:
+        self.index += 1
+        seg = Segment(self.folder / f"{self.name}-{self.index:04d}.mcap", self.compression, self.chunk_size,
+                      self.attachments, self.opener)
+        self.current = seg
+        if self.on_open:
+            self.on_open(seg)
+        return seg
+
+    def write(self, spec: ChannelSpec, log_time: int, publish_time: int, seq: int, data: bytes) -> None:
+        seg = self.current or self.open_next()
+        seg.write(spec, log_time, publish_time, seq, data)
+        self.dirty = True
+
+    def flush(self, fsync: bool) -> None:
+        """Flush, then start a new segment if this one is full (checked here, where the size is exact)."""
+        seg = self.current
+        if seg is None or not self.dirty:
+            return
+        seg.flush(fsync)
+        self.dirty = False
+        if seg.size >= self.max_bytes or time.monotonic() - seg.opened_mono >= self.max_seconds:
+            self.close()
+
+    def close(self, fsync: bool = True) -> None:
+        seg, self.current = self.current, None
+        self.dirty = False
+        if seg is not None:
+            self.closed.append(seg.path)
+            try:
+                seg.close(fsync)
+            finally:
+                if self.on_close:
+                    self.on_close(seg)
+
+    def abandon(self) -> None:
+        """Close the file without a footer after an error (the next start's repair recovers it)."""
+        seg, self.current = self.current, None
+        if seg is not None:
+            with contextlib.suppress(OSError):
+                seg.file.close()

@@ -1,0 +1,504 @@
+"""The emulated controller: robot/safety/program state, RTDE registers, the 'real-time' tick.
+
+One :class:`Controller` is shared by every server (RTDE, dashboard, script, fault control). All state is
+guarded by one lock; the tick thread advances the kinematic model and the running program at the controller
+frequency and publishes an immutable :class:`Snapshot` that the RTDE streams encode.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any
+
+from .kinematics import HOME_Q, MotionMode, ToolModel
+from .protocol import N_REGISTERS, register_type
+
+log = logging.getLogger("iorthand_edge.ur_emulator")
+
+
+class RuntimeState(IntEnum):
+    STOPPING = 0
+    STOPPED = 1
+    PLAYING = 2
+    PAUSING = 3
+    PAUSED = 4
+    RESUMING = 5
+
+
+class RobotMode(IntEnum):
+    NO_CONTROLLER = -1
+    DISCONNECTED = 0
+    CONFIRM_SAFETY = 1
+    BOOTING = 2
+    POWER_OFF = 3
+    POWER_ON = 4
+    IDLE = 5
+    BACKDRIVE = 6
+    RUNNING = 7
+
+
+class SafetyMode(IntEnum):
+    NORMAL = 1
+    REDUCED = 2
+    PROTECTIVE_STOP = 3
+    RECOVERY = 4
+    SAFEGUARD_STOP = 5
+    SYSTEM_EMERGENCY_STOP = 6
+    ROBOT_EMERGENCY_STOP = 7
+    VIOLATION = 8
+    FAULT = 9
+
+
+# Bit positions of safety_status_bits (RTDE guide).
+_SAFETY_BITS = {
+    SafetyMode.NORMAL: (0,),
+    SafetyMode.REDUCED: (1,),
+    SafetyMode.PROTECTIVE_STOP: (2,),
+    SafetyMode.RECOVERY: (3,),
+    SafetyMode.SAFEGUARD_STOP: (4,),
+    SafetyMode.SYSTEM_EMERGENCY_STOP: (5, 7),
+    SafetyMode.ROBOT_EMERGENCY_STOP: (6, 7),
+    SafetyMode.VIOLATION: (8,),
+    SafetyMode.FAULT: (9,),
+}
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Everything an output recipe can read, frozen at one tick."""
+
+    timestamp: float
+    values: dict[str, object]
+    out_int: tuple[int, ...]
+    out_double: tuple[float, ...]
+    out_bits: int  # 128 bits: output bit registers 0..127
+    in_int: tuple[int, ...]
+    in_double: tuple[float, ...]
+    in_bits: int
+
+
+@dataclass
+class ControllerConfig:
+    frequency: float = 500.0  # e-Series control loop rate
+    version: tuple[int, int, int, int] = (5, 15, 2, 0)
+    serial_number: str = "20235500001"
+    robot_model: str = "UR3"
+    unlock_delay: float = 5.0  # PolyScope refuses "unlock protective stop" this long after the stop
+    stop_deceleration: float = 10.0  # m/s^2 used for protective stops and program stops
+    exclusive_inputs: bool = True  # answer IN_USE when a second client claims input registers
+
+
+@dataclass
+class _Faults:
+    freeze: str | None = None  # None, "stale" (repeat the frozen state) or "silent" (send nothing)
+    frozen: Snapshot | None = None
+    hung: bool = False
+    link_down: bool = False
+
+
+class Program:
+    """A program executed by the controller, one step per control cycle."""
+
+    name = "<unnamed>"
+
+    def start(self, ctrl: Controller) -> None:
+        pass
+
+    def step(self, ctrl: Controller, now: float) -> bool:
+        """Run one cycle; return False when the program has ended."""
+        raise NotImplementedError
+
+
+class OpaqueProgram(Program):
+    """A URScript program the emulator cannot interpret (e.g. sendCustomScriptFunction).
+
+    It "runs" for ``duration`` seconds; the output-register writes it contains are applied in order (so
+    ur_rtde's custom-script handshake — ``write_output_integer_register(0 + offset, 2)`` — completes).
+    """
+
+    def __init__(self, name: str, text: str, duration: float = 0.05) -> None:
+        self.name = name
+        self.duration = duration
+        self._writes = [
+            (int(sum(int(x) for x in re.findall(r"\d+", idx))), float(val))
+            for idx, val in re.findall(
+                r"write_output_integer_register\(\s*([\d\s+]+?)\s*,\s*(-?\d+)\s*\)", text
+            )
+        ]
+        self._t0 = 0.0
+
+    def start(self, ctrl: Controller) -> None:
+        self._t0 = time.monotonic()
+        for idx, val in self._writes:
+            ctrl.write_out_int(idx, int(val))
+
+    def step(self, ctrl: Controller, now: float) -> bool:
+        return now - self._t0 < self.duration
+
+
+class DashboardProgram(Program):
+    """A program started with the dashboard's ``play`` (a loaded .urp): runs until stopped, does nothing."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def step(self, ctrl: Controller, now: float) -> bool:
+        return True
+
+
+class Controller:
+    def __init__(self, config: ControllerConfig | None = None) -> None:
+        self.config = config or ControllerConfig()
+        self.lock = threading.RLock()
+        self.model = ToolModel()
+        self.t0 = time.monotonic()
+        self._last_tick = self.t0
+        self.in_int = [0] * N_REGISTERS
+        self.in_double = [0.0] * N_REGISTERS
+        self.in_bits = 0
+        self.out_int = [0] * N_REGISTERS
+        self.out_double = [0.0] * N_REGISTERS
+        self.out_bits = 0
+        self.input_updated: dict[str, float] = {}  # input name -> monotonic time of the last package
+        self.input_owner: dict[str, int] = {}  # input name -> RTDE connection id that claimed it
+        self.external_ft = [0.0] * 6
+        self.raw_force = [0.0] * 6  # injected wrench at the TCP (N, N*m)
+        self.ft_offset = [0.0] * 6  # set by zeroFtSensor
+        self.payload = 0.0
+        self.payload_cog = [0.0, 0.0, 0.0]
+        self.digital_out = 0
+        self.speed_fraction = 1.0
+        self.robot_mode = RobotMode.RUNNING
+        self.safety_mode = SafetyMode.NORMAL
+        self.protective_stop_time = 0.0
+        self.program: Program | None = None
+        self.runtime_state = RuntimeState.STOPPED
+        self.loaded_program: str | None = None
+        self.watchdog: tuple[str, float] | None = None  # (input name, min frequency)
+        self.faults = _Faults()
+        self.events: list[str] = []  # human-readable log of notable things, exposed by status()
+        self.counters: dict[str, int] = {}
+        self.snapshot = self._build_snapshot(self.t0)
+        self._listeners: list[Callable[[Snapshot], None]] = []
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- lifecycle -------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="ur-emulator-tick", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def add_listener(self, fn: Callable[[Snapshot], None]) -> None:
+        with self.lock:
+            self._listeners.append(fn)
+
+    def remove_listener(self, fn: Callable[[Snapshot], None]) -> None:
+        with self.lock:
+            if fn in self._listeners:
+                self._listeners.remove(fn)
+
+    def _run(self) -> None:
+        period = 1.0 / self.config.frequency
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            next_t += period
+            now = time.monotonic()
+            if next_t < now - 10 * period:  # fell far behind (loaded machine): skip cycles, keep real time
+                next_t = now + period
+            try:
+                self.tick(now)
+            except Exception:  # a bug in one cycle must not kill the controller
+                log.exception("tick failed")
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+
+    # -- events ---------------------------------------------------------------------------------------
+
+    def event(self, text: str) -> None:
+        log.info("%s", text)
+        self.events.append(f"{time.monotonic() - self.t0:.3f} {text}")
+        del self.events[:-200]
+
+    def count(self, key: str) -> None:
+        self.counters[key] = self.counters.get(key, 0) + 1
+
+    # -- the control cycle -----------------------------------------------------------------------------
+
+    def tick(self, now: float) -> None:
+        with self.lock:
+            dt = min(now - self._last_tick, 0.1)
+            self._last_tick = now
+            if self.program is not None:
+                if self.watchdog is not None:
+                    name, freq = self.watchdog
+                    last = self.input_updated.get(name, 0.0)
+                    if freq > 0 and now - last > 1.0 / freq:
+                        self.stop_program(f"RTDE watchdog: no update of {name} for {now - last:.3f} s "
+                                          f"(minimum {freq:g} Hz)", decelerate=True)
+                program = self.program
+                # step() may itself stop the program (triggerProtectiveStop): only end it if still current.
+                if program is not None and not program.step(self, now) and self.program is program:
+                    self.stop_program(f"program {program.name} ended", decelerate=False)
+            self.model.step(dt)
+            snap = self._build_snapshot(now)
+            self.snapshot = snap
+            if self.faults.freeze == "stale" and self.faults.frozen is not None:
+                snap = self.faults.frozen
+            elif self.faults.freeze == "silent" or self.faults.hung:
+                return
+            listeners = list(self._listeners)
+        for fn in listeners:
+            fn(snap)
+
+    def _build_snapshot(self, now: float) -> Snapshot:
+        m = self.model
+        force = [r - o for r, o in zip(self.raw_force, self.ft_offset, strict=True)]
+        running = self.program is not None
+        powered = self.robot_mode >= RobotMode.POWER_ON
+        values: dict[str, object] = {
+            "actual_TCP_pose": tuple(m.pose),
+            "actual_TCP_speed": tuple(m.twist),
+            "target_TCP_pose": tuple(m.pose),
+            "target_TCP_speed": tuple(m.twist),
+            "actual_TCP_force": tuple(force),
+            "ft_raw_wrench": tuple(self.raw_force),
+            "tcp_force_scalar": math.sqrt(sum(f * f for f in force[:3])),
+            "actual_q": HOME_Q,
+            "target_q": HOME_Q,
+            "robot_mode": int(self.robot_mode),
+            "joint_mode": (253 if self.robot_mode == RobotMode.RUNNING else 251,) * 6,  # RUNNING / IDLE
+            "safety_mode": int(self.safety_mode),
+            "safety_status": int(self.safety_mode),
+            "safety_status_bits": sum(1 << b for b in _SAFETY_BITS[self.safety_mode]),
+            "robot_status_bits": (1 if powered else 0) | (2 if running else 0),
+            "runtime_state": int(self.runtime_state),
+            "speed_scaling": 1.0 if m.mode is not MotionMode.IDLE or running else 0.0,
+            "target_speed_fraction": self.speed_fraction,
+            "actual_digital_output_bits": self.digital_out,
+            "payload": self.payload,
+            "payload_cog": tuple(self.payload_cog),
+            "joint_temperatures": (30.0,) * 6,
+            "actual_main_voltage": 48.0,
+            "actual_robot_voltage": 48.0 if powered else 0.0,
+            "actual_robot_current": 0.5 if powered else 0.0,
+            "actual_joint_voltage": (48.0 if powered else 0.0,) * 6,
+            "actual_tool_accelerometer": (0.0, 0.0, 9.81),
+            "actual_execution_time": 0.2,
+        }
+        return Snapshot(
+            timestamp=now - self.t0,
+            values=values,
+            out_int=tuple(self.out_int),
+            out_double=tuple(self.out_double),
+            out_bits=self.out_bits,
+            in_int=tuple(self.in_int),
+            in_double=tuple(self.in_double),
+            in_bits=self.in_bits,
+        )
+
+    # -- registers ------------------------------------------------------------------------------------
+
+    def write_out_int(self, idx: int, value: int) -> None:
+        if 0 <= idx < N_REGISTERS:
+            self.out_int[idx] = int(value)
+
+    def write_out_double(self, idx: int, value: float) -> None:
+        if 0 <= idx < N_REGISTERS:
+            self.out_double[idx] = float(value)
+
+    def claim_inputs(self, conn_id: int, names: list[str]) -> set[str]:
+        """Claim input names for an RTDE connection; return the ones another connection already holds."""
+        with self.lock:
+            taken = {n for n in names if self.input_owner.get(n, conn_id) != conn_id}
+            if self.config.exclusive_inputs and taken:
+                return taken
+            for n in names:
+                self.input_owner.setdefault(n, conn_id)
+            return set()
+
+    def release_inputs(self, conn_id: int) -> None:
+        with self.lock:
+            for n in [n for n, c in self.input_owner.items() if c == conn_id]:
+                del self.input_owner[n]
+
+    def apply_inputs(self, names: list[str], values: list[Any]) -> None:
+        """Apply one RTDE input data package: registers take the new values at once (the script reads them at
+        its next cycle) and every name counts as updated for the RTDE watchdog."""
+        now = time.monotonic()
+        data = dict(zip(names, values, strict=True))
+        with self.lock:
+            for name, value in data.items():
+                self.input_updated[name] = now
+                reg = register_type(name)
+                if reg is not None:
+                    _, kind, idx = reg
+                    if kind == "int":
+                        self.in_int[idx] = int(value)
+                    elif kind == "double":
+                        self.in_double[idx] = float(value)
+                    else:
+                        self.in_bits = (self.in_bits | (1 << idx)) if value else (self.in_bits & ~(1 << idx))
+                elif name == "input_bit_registers0_to_31":
+                    self.in_bits = (self.in_bits & ~0xFFFFFFFF) | int(value)
+                elif name == "input_bit_registers32_to_63":
+                    self.in_bits = (self.in_bits & ~(0xFFFFFFFF << 32)) | (int(value) << 32)
+                elif name == "external_force_torque":
+                    self.external_ft = [float(v) for v in value]
+                elif name == "speed_slider_fraction":
+                    self.speed_fraction = float(value)
+                elif name == "standard_digital_output":
+                    mask = int(data.get("standard_digital_output_mask", 0xFF))
+                    self.digital_out = (self.digital_out & ~mask) | (int(value) & mask)
+
+    # -- programs -------------------------------------------------------------------------------------
+
+    def can_run_programs(self) -> str | None:
+        """None if a program may start, else the reason (what PolyScope would show in a popup)."""
+        if self.robot_mode != RobotMode.RUNNING:
+            return f"robot mode is {self.robot_mode.name}, not RUNNING (power on and release the brakes)"
+        if self.safety_mode not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
+            return f"safety mode is {self.safety_mode.name}"
+        return None
+
+    def load_program(self, program: Program, source: str) -> bool:
+        """A complete program arrived on a script port: it replaces the running one, like on a real UR."""
+        with self.lock:
+            reason = self.can_run_programs()
+            if reason is not None:
+                self.event(f"program {program.name} from {source} refused: {reason}")
+                return False
+            if self.program is not None:
+                self.stop_program(f"replaced by {program.name} from {source}", decelerate=True)
+            self.program = program
+            self.runtime_state = RuntimeState.PLAYING
+            self.event(f"program {program.name} from {source} started")
+            program.start(self)
+            return True
+
+    def stop_program(self, reason: str, decelerate: bool = True) -> None:
+        with self.lock:
+            if self.program is None:
+                return
+            self.event(f"program {self.program.name} stopped: {reason}")
+            self.program = None
+            self.runtime_state = RuntimeState.STOPPED
+            # rtde_set_watchdog lives in the program: it disappears with it (a new script must set it again).
+            self.watchdog = None
+            if decelerate or self.model.mode is MotionMode.SPEED:
+                # A stopped program stops the arm; nothing keeps a speedl alive.
+                self.model.stopl(self.config.stop_deceleration)
+
+    # -- safety ---------------------------------------------------------------------------------------
+
+    def protective_stop(self, reason: str) -> None:
+        with self.lock:
+            self.event(f"protective stop: {reason}")
+            self.count("protective_stops")
+            self.safety_mode = SafetyMode.PROTECTIVE_STOP
+            self.protective_stop_time = time.monotonic()
+            self.stop_program("protective stop", decelerate=True)
+            self.model.stopl(self.config.stop_deceleration)
+
+    def unlock_protective_stop(self) -> tuple[bool, str]:
+        with self.lock:
+            if self.safety_mode != SafetyMode.PROTECTIVE_STOP:
+                return True, "Protective stop releasing"
+            elapsed = time.monotonic() - self.protective_stop_time
+            if elapsed < self.config.unlock_delay:
+                return False, (
+                    f"Cannot unlock protective stop until {self.config.unlock_delay:g}s after occurrence. "
+                    "Always inspect cause of protective stop before unlocking"
+                )
+            self.safety_mode = SafetyMode.NORMAL
+            self.event("protective stop unlocked")
+            return True, "Protective stop releasing"
+
+    def emergency_stop(self, reason: str) -> None:
+        with self.lock:
+            self.event(f"emergency stop: {reason}")
+            self.safety_mode = SafetyMode.ROBOT_EMERGENCY_STOP
+            self.stop_program("emergency stop", decelerate=False)
+            self.model.halt()
+            self.robot_mode = RobotMode.IDLE  # brakes engage
+
+    def release_emergency_stop(self) -> None:
+        with self.lock:
+            if self.safety_mode in (SafetyMode.ROBOT_EMERGENCY_STOP, SafetyMode.SYSTEM_EMERGENCY_STOP):
+                self.safety_mode = SafetyMode.NORMAL
+                self.event("emergency stop released (robot IDLE: brake release needed)")
+
+    def set_power(self, on: bool) -> None:
+        with self.lock:
+            if on:
+                if self.robot_mode < RobotMode.IDLE:
+                    self.robot_mode = RobotMode.IDLE
+            else:
+                self.stop_program("power off", decelerate=False)
+                self.model.halt()
+                self.robot_mode = RobotMode.POWER_OFF
+            self.event(f"power {'on' if on else 'off'}")
+
+    def brake_release(self) -> None:
+        with self.lock:
+            if self.robot_mode in (RobotMode.IDLE, RobotMode.POWER_ON):
+                self.robot_mode = RobotMode.RUNNING
+                self.event("brakes released")
+
+    # -- status ---------------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, object]:
+        with self.lock:
+            return {
+                "timestamp": self.snapshot.timestamp,
+                "pose": list(self.model.pose),
+                "twist": list(self.model.twist),
+                "motion": self.model.mode.value,
+                "runtime_state": self.runtime_state.name,
+                "program": self.program.name if self.program else None,
+                "robot_mode": self.robot_mode.name,
+                "safety_mode": self.safety_mode.name,
+                "watchdog": list(self.watchdog) if self.watchdog else None,
+                "force": list(self.raw_force),
+                "ft_offset": list(self.ft_offset),
+                "faults": {
+                    "freeze": self.faults.freeze,
+                    "hung": self.faults.hung,
+                    "link_down": self.faults.link_down,
+                },
+                "out_int": self.out_int[:4],
+                "in_int": self.in_int[:4],
+                "counters": dict(self.counters),
+                "events": list(self.events[-30:]),
+            }
+
+
+@dataclass
+class _AsyncProgress:
+    """The async progress register protocol of rtde_control.script (output_int_register 2)."""
+
+    wr_count: int = 0
+    op_id: int = 0
+
+    def value(self, progress: int) -> int:
+        self.wr_count = (self.wr_count + 1) % 128
+        if progress == 0:
+            self.op_id = (self.op_id + 1) % 128
+        reg = self.wr_count * 65536 + self.op_id * 16777216
+        if progress >= 0:
+            reg += min(progress, 32767) + 32768
+        return reg

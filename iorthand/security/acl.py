@@ -1,0 +1,185 @@
+"""The router's configuration: TLS + mTLS + user/password + an access-control list by role. Pure functions.
+
+:func:`router_config` turns a :class:`Deployment` (robots, operators and their grants, viewers, where the
+certificates are) into the JSON-able dict that ``iorthand router --config`` runs and that a stock ``zenohd -c``
+reads unchanged. Nothing here opens a socket or reads a file, so the whole policy is unit-tested.
+
+Identity: every subject matches on its certificate common name *and* a username equal to it (Zenoh requires
+both to match when both are given): a stolen password without the key, or a key without the password, is not
+enough. Roles (common names as issued by :mod:`iorthand.security.certs`):
+
+- ``edge-<robot>``: publishes only ``iorthand/<robot>/state/**``, ``markers`` and ``video/**``; declares the
+  queryables (and replies) under ``iorthand/<robot>/control/**``; subscribes to its own commands; holds only
+  the ``alive/edge`` token. It receives traffic of its own robot only.
+- ``operator-<name>``: publishes ``cmd/**`` and queries ``control/**`` only for the robots it is granted;
+  its liveliness token is restricted to ``alive/operator/<name>`` so nobody can look like another operator
+  to the edge's owner-loss logic. It sees only its robots and the cloud services.
+- ``twin``, ``recorder`` (services) and ``viewer-<name>`` (observers): subscribe and query; the services also
+  serve their own ``iorthand/_twin/**`` / ``iorthand/_recorder/**`` space. Viewers cannot query a robot's
+  ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership).
+
+Default permission is deny. A session whose identity matches no subject can connect but nothing it sends is
+routed (Zenoh drops denied messages silently): that is why the edge also checks on its own (see
+:mod:`iorthand.security.identity`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from iorthand import keys
+from iorthand.config import setting
+
+ALL_MESSAGES = [
+    "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
+    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
+]
+SUBSCRIBE = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
+SERVICES = ("twin", "recorder")
+
+
+@dataclass
+class Deployment:
+    """Who may do what. Loaded from YAML (``deploy/deployment.example.yaml``) by ``iorthand certs router-config``."""
+
+    listen: list[str] = setting(default_factory=lambda: ["tls/0.0.0.0:7447"], help="router endpoints (tls/...)")
+    certs_dir: Path = setting(Path("/etc/iorthand/certs"), help="holds ca.pem, router.pem, router.key")
+    users_file: Path | None = setting(None, help="Zenoh user:password dictionary; None: no user/password layer")
+    robots: list[str] = setting(default_factory=list)
+    operators: dict[str, list[str]] = setting(default_factory=dict, help="operator name → robots it may command")
+    viewers: list[str] = setting(default_factory=list, help="observer names (certificates viewer-<name>)")
+    services: list[str] = setting(default_factory=lambda: list(SERVICES))
+    lease_ms: int = setting(2000, lo=500, hi=60_000)
+    connect: list[str] = setting(default_factory=list, help="other routers (a chain of sites)")
+    bind_operator_keys: bool = setting(
+        False, help="operators may publish commands only on .../cmd/<kind>/<their name> (identity-scoped keys)"
+    )
+
+    def check(self) -> None:
+        for r in self.robots:
+            keys.check_robot_id(r)
+        for op, robots in self.operators.items():
+            keys.check_operator_id(op)
+            for r in robots:
+                if r not in self.robots:
+                    raise ValueError(f"operator {op!r} is granted robot {r!r}, which is not in robots {self.robots}")
+        for s in self.services:
+            if s not in SERVICES:
+                raise ValueError(f"service {s!r} is not one of {list(SERVICES)}")
+        for ep in self.listen:
+            if not ep.startswith(("tls/", "quic/")):
+                raise ValueError(f"listen endpoint {ep!r} is not encrypted: use tls/HOST:PORT")
+
+
+def _rule(rid: str, messages: list[str], flows: list[str], key_exprs: list[str]) -> dict[str, Any]:
+    return {"id": rid, "messages": messages, "flows": flows, "permission": "allow", "key_exprs": key_exprs}
+
+
+def _service_space(name: str) -> str:
+    return f"{keys.ROOT}/_{name}/**"
+
+
+def acl_rules(dep: Deployment) -> dict[str, Any]:
+    """The ``access_control`` section (rules, subjects, policies) for ``dep``."""
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    services = [_service_space(s) for s in dep.services]
+
+    def add(subject: str, rule_list: list[dict[str, Any]]) -> None:
+        subjects.append({"id": subject, "cert_common_names": [subject], "usernames": [subject]} if dep.users_file
+                        else {"id": subject, "cert_common_names": [subject]})
+        rules.extend(rule_list)
+        policies.append({"id": f"policy-{subject}", "rules": [r["id"] for r in rule_list], "subjects": [subject]})
+
+    for robot in dep.robots:
+        k = keys.RobotKeys(robot)
+        sid = f"edge-{robot}"
+        add(sid, [
+            _rule(f"{sid}-publish", ["put", "delete"], ["ingress"],
+                  [k.key("state/**"), k.key(keys.MARKERS), k.key(f"{keys.MARKERS}/**"), k.key("video/**")]),
+            _rule(f"{sid}-serve", ["declare_queryable", "reply"], ["ingress"], [k.key("control/**")]),
+            _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all]),
+            _rule(f"{sid}-alive", ["liveliness_token"], ["ingress"], [k.key(keys.ALIVE_EDGE)]),
+            _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all]),
+        ])
+
+    for op, robots in dep.operators.items():
+        sid = f"operator-{op}"
+        rks = [keys.RobotKeys(r) for r in robots]
+        cmd_keys = [k.key(f"cmd/*/{op}") for k in rks] if dep.bind_operator_keys else [k.key("cmd/**") for k in rks]
+        if dep.bind_operator_keys:
+            cmd_keys += [k.key(keys.CMD_STOP) for k in rks]  # anyone granted may stop the robot: the safe side
+        rl = [
+            _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all for k in rks] + services),
+            _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all for k in rks] + services),
+        ]
+        if rks:
+            rl += [
+                _rule(f"{sid}-command", ["put"], ["ingress"], cmd_keys),
+                _rule(f"{sid}-control", ["query"], ["ingress"],
+                      [k.key(f"control/*/{op}") for k in rks] if dep.bind_operator_keys else [k.key("control/**") for k in rks]),
+                _rule(f"{sid}-alive", ["liveliness_token"], ["ingress"], [k.alive_operator(op) for k in rks]),
+            ]
+        if services:
+            rl.append(_rule(f"{sid}-services", ["query"], ["ingress"], services))
+        add(sid, rl)
+
+    everything = f"{keys.ROOT}/**"
+    for name in [*dep.services, *(f"viewer-{v}" for v in dep.viewers)]:
+        rl = [
+            _rule(f"{name}-subscribe", SUBSCRIBE, ["ingress"], [everything]),
+            _rule(f"{name}-receive", ALL_MESSAGES, ["egress"], [everything]),
+        ]
+        if services:
+            rl.append(_rule(f"{name}-query", ["query"], ["ingress"], services))
+        if name in SERVICES:
+            own = _service_space(name)
+            rl.append(_rule(f"{name}-serve", ["put", "delete", "declare_queryable", "reply", "liveliness_token"], ["ingress"], [own]))
+        add(name, rl)
+
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def router_config(dep: Deployment) -> dict[str, Any]:
+    """The full router configuration (a plain dict; :func:`to_json5` writes it)."""
+    certs = Path(dep.certs_dir)
+    tls = {
+        "root_ca_certificate": str(certs / "ca.pem"),
+        "listen_certificate": str(certs / "router.pem"),
+        "listen_private_key": str(certs / "router.key"),
+        "enable_mtls": True,
+        # A certificate that expires while connected ends the link instead of living on until the next restart.
+        "close_link_on_expiration": True,
+    }
+    transport: dict[str, Any] = {"link": {"tls": tls, "tx": {"lease": dep.lease_ms}}}
+    if dep.users_file is not None:
+        transport["auth"] = {"usrpwd": {"dictionary_file": str(dep.users_file)}}
+    cfg: dict[str, Any] = {
+        "mode": "router",
+        "listen": {"endpoints": list(dep.listen)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": transport,
+        "access_control": acl_rules(dep),
+    }
+    if dep.connect:
+        cfg["connect"] = {"endpoints": list(dep.connect)}
+    return cfg
+
+
+def to_json5(cfg: dict[str, Any]) -> str:
+    """JSON is valid JSON5; the header says where it came from so nobody hand-edits a generated file."""
+    return "// generated by `iorthand certs router-config`: edit the deployment YAML and regenerate\n" + json.dumps(cfg, indent=2) + "\n"
+
+
+def users_line(user: str, password: str) -> str:
+    """One line of Zenoh's usrpwd dictionary file (``user:password``)."""
+    if ":" in user or "\n" in user or "\n" in password:
+        raise ValueError("user names may not contain ':' or newlines, passwords no newlines")
+    return f"{user}:{password}\n"
+
+
+__all__ = ["Deployment", "acl_rules", "field", "router_config", "to_json5", "users_line"]

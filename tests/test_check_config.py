@@ -1,0 +1,68 @@
+"""``iorthand check --config``: validates a configuration and its certificate paths without starting anything."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from iorthand.check import check_file
+from iorthand.security.lab import Lab, make_lab
+from tests.conftest import iorthand_cmd
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory: pytest.TempPathFactory) -> Lab:
+    return make_lab(tmp_path_factory.mktemp("pki"), 7447, robots=["sim1"], operators={"alice": ["sim1"]})
+
+
+def _edge_yaml(lab: Lab, path: Path, cert: str = "edge-sim1") -> Path:
+    path.write_text(yaml.safe_dump({
+        "robot_id": "sim1",
+        "zenoh": {"connect": [lab.endpoint], "username": "edge-sim1", "password_file": str(lab.directory / "edge-sim1.password"),
+                  "tls": {"root_ca": str(lab.directory / "ca.pem"), "certificate": str(lab.directory / f"{cert}.pem"),
+                          "private_key": str(lab.directory / f"{cert}.key")}},
+        "robot": {"kind": "sim"},
+    }))
+    return path
+
+
+def test_good_edge_config(lab: Lab, tmp_path: Path) -> None:
+    rep = check_file(_edge_yaml(lab, tmp_path / "edge.yaml"), router_config=lab.router_config)
+    assert rep.role == "edge" and rep.ok, rep.text(Path("edge.yaml"))
+
+
+def test_missing_certificate_and_unknown_subject(lab: Lab, tmp_path: Path) -> None:
+    rep = check_file(_edge_yaml(lab, tmp_path / "edge.yaml", cert="edge-nope"))
+    assert not rep.ok and any("does not exist" in f.message for f in rep.findings)
+    rep = check_file(_edge_yaml(lab, tmp_path / "edge2.yaml", cert="twin"), router_config=lab.router_config)
+    assert rep.ok  # twin has a subject
+    (lab.directory / "users.txt").exists()
+    from iorthand.security import certs
+
+    certs.issue(lab.directory, "operator-mallory")
+    rep = check_file(_edge_yaml(lab, tmp_path / "edge3.yaml", cert="operator-mallory"), router_config=lab.router_config)
+    assert any("silently ignored" in f.message for f in rep.findings)
+
+
+def test_router_and_deployment_configs(lab: Lab, tmp_path: Path) -> None:
+    assert check_file(lab.router_config).ok
+    dep = tmp_path / "deployment.yaml"
+    dep.write_text(yaml.safe_dump({"certs_dir": str(lab.directory), "robots": ["sim1"], "operators": {"alice": ["sim1"]},
+                                   "listen": ["tls/0.0.0.0:7447"]}))
+    rep = check_file(dep)
+    assert rep.role == "deployment" and rep.ok
+
+
+def test_cli_exit_codes(lab: Lab, tmp_path: Path) -> None:
+    good = _edge_yaml(lab, tmp_path / "edge.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("robot_id: [unclosed")
+    missing = _edge_yaml(lab, tmp_path / "missing.yaml", cert="edge-nope")
+    out = {name: subprocess.run(iorthand_cmd("check", "--config", str(p)), capture_output=True, text=True, timeout=60)
+           for name, p in (("good", good), ("bad", bad), ("missing", missing))}
+    assert out["good"].returncode == 0, out["good"].stdout + out["good"].stderr
+    assert out["bad"].returncode == 2 and "not valid YAML" in out["bad"].stdout
+    assert out["missing"].returncode == 1 and "edge-nope.pem" in out["missing"].stdout

@@ -1,0 +1,209 @@
+"""Recorder service: start/stop through queries on a real router, storage format, gaps, malformed input,
+annotations, error reporting, crash repair."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import msgpack
+import pytest
+from mcap.reader import make_reader
+
+from iorthand import keys
+from iorthand.config import from_dict
+from iorthand.protocol import Annotation, ForceSample, RecorderStatus, VideoFrame
+from iorthand_cloud.recorder import client
+from iorthand_cloud.recorder import manifest as mf
+from iorthand_cloud.recorder.config import RecorderConfig
+from iorthand_cloud.recorder.reader import iter_records, segment_files
+from iorthand_cloud.recorder.service import RecorderService
+from tests.conftest import wait_until
+
+
+def recorder_config(endpoint: str, out: Path, **extra: object) -> RecorderConfig:
+    data = {"zenoh": {"mode": "client", "connect": [endpoint]}, "output_dir": str(out), "fsync": False, **extra}
+    return from_dict(data, RecorderConfig, source="<test>")
+
+
+@pytest.fixture
+def recorder_factory(router_endpoint: str, tmp_path: Path):
+    services: list[RecorderService] = []
+
+    def make(**extra: object) -> RecorderService:
+        svc = RecorderService(recorder_config(router_endpoint, tmp_path / "rec", **extra))
+        svc.start()
+        services.append(svc)
+        return svc
+
+    yield make
+    for svc in services:
+        svc.shutdown()
+
+
+def _force(seq: int, fz: float = 1.0) -> bytes:
+    return ForceSample(force=[0.0, 0.0, fz]).stamp(seq).encode()
+
+
+def test_records_messages_with_times_sequence_and_gaps(recorder_factory, session_factory, tmp_path: Path) -> None:
+    svc = recorder_factory()
+    s = session_factory()
+    pub = s.declare_publisher("iorthand/sim1/state/force")
+    vid = s.declare_publisher("iorthand/sim1/video/camera")
+    time.sleep(0.3)  # the subscription propagates to the router
+    reply = client.start(s, session_id="t1", operator="alice", robots=["sim1"])
+    assert reply.ok and reply.recording, reply.reason
+    seqs = [1, 2, 3, 6, 7]  # 4 and 5 missing: one gap of two
+    for seq in seqs:
+        pub.put(_force(seq))
+    pub.put(b"\xc1 garbage")  # not msgpack: stored raw, counted malformed
+    frame = VideoFrame(width=4, height=2, data=b"\xff\xd8jpeg\xff\xd9").stamp(1)
+    vid.put(frame.encode())
+    wait_until(lambda: svc.status.messages >= 7, message="7 messages recorded")
+    ann = client.annotate(s, "probe slipped", author="alice", tags=["slip"], score=3.0)
+    assert ann.ok, ann.reason
+    stopped = client.stop(s)
+    assert stopped.ok and not stopped.recording and stopped.closed_t >= stopped.first_message_t > 0
+    folder = tmp_path / "rec" / "t1"
+    m = mf.Manifest.read(folder)
+    assert m.status == mf.COMPLETE and m.operator == "alice" and m.robots == ["sim1"]
+    force = m.keys["iorthand/sim1/state/force"]
+    assert (force.messages, force.malformed, force.gaps, force.missing) == (6, 1, 1, 2)
+    assert force.type == "ForceSample"
+    assert m.keys["iorthand/sim1/video/camera"].messages == 1
+    assert m.annotations == 1 and m.config["output_dir"].endswith("rec")
+    names = sorted(p.name for p in segment_files(folder))
+    assert names == ["telemetry-0001.mcap", "video-0001.mcap"]
+    # Telemetry is zstd-compressed, video is not; both have footers and schemas.
+    with (folder / "telemetry-0001.mcap").open("rb") as f:
+        summary = make_reader(f).get_summary()
+        assert summary is not None
+        assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        assert "ForceSample" in {sc.name for sc in summary.schemas.values()}
+    with (folder / "video-0001.mcap").open("rb") as f:
+        summary = make_reader(f).get_summary()
+        assert {c.compression for c in summary.chunk_indexes} == {""}
+    records = list(iter_records(folder))
+    good = [r for r in records if r.key.endswith("state/force") and not r.malformed]
+    assert [r.sequence for r in good] == seqs
+    assert all(r.publish_time == ForceSample.decode(r.data).t and r.log_time >= r.publish_time for r in good)
+    bad = [r for r in records if r.malformed]
+    assert len(bad) == 1 and bad[0].data == b"\xc1 garbage"
+    anns = [r for r in records if r.key == keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)]
+    decoded = Annotation.decode(anns[0].data)
+    assert decoded.text == "probe slipped" and decoded.tags == ["slip"] and decoded.score == 3.0
+
+
+def test_status_and_refusals(recorder_factory, session_factory) -> None:
+    recorder_factory()
+    s = session_factory()
+    time.sleep(0.2)
+    assert not client.status(s).recording
+    assert not client.stop(s).ok  # nothing to stop
+    assert not client.annotate(s, "nothing recording").ok
+    assert client.start(s, session_id="a").ok
+    again = client.start(s, session_id="b")
+    assert not again.ok and "already recording" in again.reason
+    st = client.status(s)
+    assert st.recording and st.session == "a"
+    assert client.stop(s).ok
+
+
+def test_unwritable_folder_is_reported_on_status(router_endpoint, session_factory, tmp_path: Path) -> None:
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the output folder should be")
+    svc = RecorderService(recorder_config(router_endpoint, blocker / "rec"))
+    svc.start()
+    try:
+        s = session_factory()
+        seen: list[RecorderStatus] = []
+        s.declare_subscriber(keys.service_key(keys.RECORDER, keys.RECORDER_STATUS),
+                             lambda sample: seen.append(RecorderStatus.decode(sample.payload.to_bytes())))
+        time.sleep(0.3)
+        reply = client.start(s, session_id="x")
+        assert not reply.ok and "cannot record" in reply.reason
+        wait_until(lambda: any(st.error and "cannot record" in st.error for st in seen), message="status error")
+    finally:
+        svc.shutdown()
+
+
+class _FullDisk:
+    """A file that accepts ``limit`` bytes, then fails like a full disk."""
+
+    def __init__(self, path: Path, limit: int) -> None:
+        self._f = path.open("xb")
+        self._left = limit
+
+    def write(self, data: bytes) -> int:
+        import errno
+
+        if len(data) > self._left:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self._f.name))
+        self._left -= len(data)
+        return self._f.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self._f, name)
+
+
+def test_full_disk_stops_recording_with_a_clear_error(router_endpoint, session_factory, tmp_path: Path) -> None:
+    svc = RecorderService(recorder_config(router_endpoint, tmp_path / "rec", flush_interval=0.05),
+                          opener=lambda p: _FullDisk(p, 4000))
+    svc.start()
+    try:
+        s = session_factory()
+        seen: list[RecorderStatus] = []
+        s.declare_subscriber(keys.service_key(keys.RECORDER, keys.RECORDER_STATUS),
+                             lambda sample: seen.append(RecorderStatus.decode(sample.payload.to_bytes())))
+        pub = s.declare_publisher("iorthand/sim1/state/force")
+        time.sleep(0.3)
+        assert client.start(s, session_id="full").ok
+        for seq in range(1, 400):
+            pub.put(_force(seq))
+            time.sleep(0.001)
+        wait_until(lambda: any("disk full" in st.error for st in seen), message="disk-full status")
+        assert not svc.recording
+        m = mf.Manifest.read(tmp_path / "rec" / "full")
+        assert m.status == mf.FAILED and "disk full" in m.error
+    finally:
+        svc.shutdown()
+
+
+def test_unknown_keys_are_stored_raw(recorder_factory, session_factory, tmp_path: Path) -> None:
+    svc = recorder_factory()
+    s = session_factory()
+    time.sleep(0.3)
+    assert client.start(s, session_id="raw").ok
+    s.put("iorthand/_twin/sim1/whatever", msgpack.packb({"seq": 5, "x": 1}))
+    wait_until(lambda: svc.status.messages >= 1)
+    client.stop(s)
+    m = mf.Manifest.read(tmp_path / "rec" / "raw")
+    st = m.keys["iorthand/_twin/sim1/whatever"]
+    assert st.messages == 1 and st.malformed == 0 and st.type == ""
+
+
+def test_segments_rotate_by_size_and_carry_calibration(recorder_factory, session_factory, tmp_path: Path) -> None:
+    from iorthand_cloud.recorder.reader import attachments
+
+    calib = tmp_path / "camera.yaml"
+    calib.write_text("image_size: [640, 480]\nmethod: test\n")
+    svc = recorder_factory(segment_max_mb=0.002, flush_interval=0.05, calibration_files=[str(calib)])
+    s = session_factory()
+    pub = s.declare_publisher("iorthand/sim1/state/force")
+    time.sleep(0.3)
+    assert client.start(s, session_id="rot").ok
+    for seq in range(1, 601):
+        pub.put(_force(seq, fz=float(seq % 13)))
+        if seq % 50 == 0:
+            time.sleep(0.06)  # let flushes (and so rotations) happen
+    wait_until(lambda: svc.status.messages >= 600, message="600 messages")
+    assert client.stop(s).ok
+    folder = tmp_path / "rec" / "rot"
+    files = segment_files(folder)
+    assert len(files) >= 3
+    m = mf.Manifest.read(folder)
+    assert [seg.file for seg in m.segments] == [p.name for p in files]
+    assert all(seg.status == "closed" for seg in m.segments)
+    assert [r.sequence for r in iter_records(folder)] == list(range(1, 601))
+    assert attachments(folder)["camera.yaml"] == calib.read_bytes()
+    assert m.attachments == ["camera.yaml"] and m.keys["iorthand/sim1/state/force"].missing == 0

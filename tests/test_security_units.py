@@ -1,0 +1,174 @@
+"""Certificates, the ACL generator, the diagnosis of failures and the edge's identity gate — no network."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import stat
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from iorthand.security import acl, certs, diagnose, identity
+from iorthand.transport import TlsConfig, ZenohConfig, zenoh_config, zenoh_entries
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("pki")
+    certs.init_ca(d)
+    certs.issue(d, "router", hosts=["router.example.org", "10.0.0.5"])
+    certs.issue(d, "edge-sim1")
+    certs.issue(d, "operator-alice")
+    return d
+
+
+def test_ca_and_role_certificates(pki: Path) -> None:
+    assert stat.S_IMODE(os.stat(pki).st_mode) == 0o700
+    assert stat.S_IMODE(os.stat(pki / "ca.key").st_mode) == 0o600
+    assert stat.S_IMODE(os.stat(pki / "edge-sim1.key").st_mode) == 0o600
+    info = certs.describe(pki / "router.pem")
+    assert info["common_name"] == "router" and not info["ca"] and 360 <= info["days_left"] <= 365
+    assert {"router.example.org", "10.0.0.5"} <= set(info["subject_alt_names"])
+    assert certs.describe(pki / "ca.pem")["ca"]
+    assert diagnose.check_certificate_files(pki / "ca.pem", pki / "operator-alice.pem", pki / "operator-alice.key") == []
+
+
+def test_refuses_bad_names_and_overwriting_the_ca(pki: Path) -> None:
+    with pytest.raises(certs.CertError):
+        certs.issue(pki, "admin")
+    with pytest.raises(certs.CertError):
+        certs.init_ca(pki)
+
+
+def test_precheck_finds_each_problem(pki: Path, tmp_path: Path) -> None:
+    other = tmp_path / "other"
+    certs.init_ca(other)
+    certs.issue(other, "operator-alice")
+    old = certs.issue(pki, "operator-old", days=1, not_before=dt.datetime.now(dt.UTC) - dt.timedelta(days=5))
+
+    def problems(ca: Path, cert: Path | None, key: Path | None) -> str:
+        return " | ".join(str(f) for f in diagnose.check_certificate_files(ca, cert, key) if f.level == "error")
+
+    assert "not signed by the CA" in problems(pki / "ca.pem", other / "operator-alice.pem", other / "operator-alice.key")
+    assert "expired" in problems(pki / "ca.pem", old.certificate, old.private_key)
+    assert "does not belong" in problems(pki / "ca.pem", pki / "operator-alice.pem", pki / "edge-sim1.key")
+    assert "does not exist" in problems(pki / "ca.pem", pki / "nobody.pem", pki / "nobody.key")
+    (tmp_path / "junk.pem").write_text("junk")
+    assert "not a PEM certificate" in problems(tmp_path / "junk.pem", None, None)
+
+
+def test_zenoh_entries_are_keys_zenoh_accepts(pki: Path, tmp_path: Path) -> None:
+    pw = tmp_path / "pw"
+    pw.write_text("secret\n")
+    for mode in ("client", "peer", "router"):
+        cfg = ZenohConfig(mode=mode, connect=["tls/127.0.0.1:7447"], listen=["tls/127.0.0.1:7448"] if mode != "client" else [],
+                          tls=TlsConfig(root_ca=pki / "ca.pem", certificate=pki / "router.pem", private_key=pki / "router.key"),
+                          username="edge-sim1", password_file=pw)
+        entries = zenoh_entries(cfg)
+        zenoh_config(cfg)  # insert_json5 raises on any key unknown to zenoh 1.10.2
+        assert entries["transport/auth/usrpwd/password"] == "secret"
+        assert entries["transport/link/tls/enable_mtls"] is True
+        assert entries["transport/link/tls/verify_name_on_connect"] is True
+        assert ("transport/link/tls/connect_certificate" in entries) == (mode != "router")
+        assert ("transport/link/tls/listen_certificate" in entries) == (mode != "client")
+
+
+def test_config_refuses_tls_endpoint_without_tls_and_user_without_password() -> None:
+    from iorthand.config import ConfigError, from_dict
+
+    with pytest.raises(ConfigError, match="needs a tls section"):
+        from_dict({"connect": ["tls/1.2.3.4:7447"]}, ZenohConfig)
+    with pytest.raises(ConfigError, match="password_file"):
+        from_dict({"connect": ["tcp/1.2.3.4:7447"], "username": "u"}, ZenohConfig)
+
+
+def _dep(**kw: object) -> acl.Deployment:
+    base = dict(listen=["tls/0.0.0.0:7447"], certs_dir=Path("/etc/iorthand/certs"), users_file=Path("/etc/iorthand/users.txt"),
+                robots=["r1", "r2"], operators={"alice": ["r1"], "bob": ["r1", "r2"]}, viewers=["eve"])
+    base.update(kw)
+    d = acl.Deployment(**base)  # type: ignore[arg-type]
+    d.check()
+    return d
+
+
+def _allowed(cfg: dict, subject: str, message: str, flow: str) -> list[str]:
+    ac = cfg["access_control"]
+    rules = {r["id"]: r for r in ac["rules"]}
+    out = []
+    for p in ac["policies"]:
+        if subject in p["subjects"]:
+            for rid in p["rules"]:
+                r = rules[rid]
+                if message in r["messages"] and flow in r["flows"]:
+                    out += r["key_exprs"]
+    return out
+
+
+def test_acl_policy_by_role() -> None:
+    cfg = acl.router_config(_dep())
+    assert cfg["access_control"]["default_permission"] == "deny"
+    assert cfg["transport"]["link"]["tls"]["enable_mtls"] is True
+    assert _allowed(cfg, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/**"]
+    assert sorted(_allowed(cfg, "operator-bob", "put", "ingress")) == ["iorthand/r1/cmd/**", "iorthand/r2/cmd/**"]
+    assert _allowed(cfg, "operator-alice", "liveliness_token", "ingress") == ["iorthand/r1/alive/operator/alice"]
+    edge_puts = _allowed(cfg, "edge-r1", "put", "ingress")
+    assert all(k.startswith("iorthand/r1/") and "/cmd" not in k for k in edge_puts)
+    assert _allowed(cfg, "edge-r1", "declare_queryable", "ingress") == ["iorthand/r1/control/**"]
+    for viewer in ("viewer-eve", "twin", "recorder"):
+        assert not [k for k in _allowed(cfg, viewer, "put", "ingress") if not k.startswith("iorthand/_")]
+        assert not [k for k in _allowed(cfg, viewer, "query", "ingress") if "/control" in k]
+    subj = {s["id"]: s for s in cfg["access_control"]["subjects"]}
+    assert subj["operator-alice"] == {"id": "operator-alice", "cert_common_names": ["operator-alice"], "usernames": ["operator-alice"]}
+
+
+def test_generated_config_is_accepted_by_zenoh(tmp_path: Path) -> None:
+    p = tmp_path / "router.json5"
+    p.write_text(acl.to_json5(acl.router_config(_dep(bind_operator_keys=True))))
+    zc = zenoh.Config.from_file(str(p))
+    assert json.loads(zc.get_json("access_control/enabled")) is True
+
+
+def test_deployment_validation() -> None:
+    with pytest.raises(ValueError, match="not in robots"):
+        _dep(operators={"alice": ["r9"]})
+    with pytest.raises(ValueError, match="not encrypted"):
+        _dep(listen=["tcp/0.0.0.0:7447"])
+
+
+@pytest.mark.parametrize(
+    ("log", "cause"),
+    [
+        ("Unable to connect to tls/1.2.3.4:7447! Can not create a new TLS link: [1.2.3.4:7447: Connection refused (os error 111)", "nothing listens"),
+        ("Unable to connect to tls/h:1! received fatal alert: DecryptError at /x/y.rs:226.", "not signed by the router's CA"),
+        ("Unable to connect to tls/h:1! received fatal alert: CertificateRequired", "requires a client certificate"),
+        ("Unable to connect to tls/h:1! received fatal alert: CertificateExpired", "expired"),
+        ("Unable to connect to tls/h:1! invalid peer certificate: BadSignature", "router's certificate is not signed"),
+        ("Unable to connect to tls/h:1! invalid peer certificate: NotValidForName", "does not name the host"),
+        ("Received a close message (reason GENERIC) in response to an OpenSyn on: ...", "wrong username or password"),
+        ("Unable to connect to tcp/h:1! Read error on TCP link: early eof", "expects TLS"),
+    ],
+)
+def test_explain_maps_zenoh_log_to_a_cause(log: str, cause: str) -> None:
+    text = diagnose.explain("\x1b[33m WARN\x1b[0m " + log)
+    assert text is not None and cause in text
+    assert "/x/y.rs" not in text  # source paths of zenoh are noise to a user
+
+
+def test_identity_gate() -> None:
+    assert identity.operator_from_common_name("operator-alice") == "alice"
+    assert identity.operator_from_common_name("edge-r1") is None
+    gate = identity.CommandGate(allowed=["alice", "bob"], bind_keys=True)
+    k = "iorthand/r1/control/acquire/alice"
+    assert not gate.check_acquire(k, "control/acquire", "alice")[0]  # no liveliness token yet
+    gate.operator_alive("alice")
+    assert gate.check_acquire(k, "control/acquire", "alice") == (True, "")
+    ok, why = gate.check_command("iorthand/r1/cmd/twist/alice", "cmd/twist", "bob")
+    assert not ok and "authenticated 'alice'" in why
+    assert not gate.check_command("iorthand/r1/cmd/twist", "cmd/twist", "alice")[0]
+    assert not gate.check_command("iorthand/r1/cmd/twist/carol", "cmd/twist", "carol")[0]  # not in the allow-list
+    gate.operator_gone("alice")
+    assert not gate.check_acquire(k, "control/acquire", "alice")[0]
+    assert identity.CommandGate().check_command("iorthand/r1/cmd/twist", "cmd/twist", "anyone") == (True, "")
