@@ -1,8 +1,12 @@
 """``iorthand demo``: the whole system on this machine, from one command.
 
-Starts a Zenoh router, a simulated edge agent and a scripted operator as separate processes on 127.0.0.1 with
-free ports, drives a short motion, prints a summary and exits 0. Ctrl-C (or SIGTERM) stops everything; each
-child also dies with the demo (PR_SET_PDEATHSIG), so no process is left behind even if the demo is killed.
+Starts, as separate processes on 127.0.0.1 with free ports: a Zenoh router, the recorder, the digital twin, a
+simulated edge agent (configs/edge-sim.yaml: robot, force sensor on a phantom, servos, torch, camera with ArUco
+markers, video) and a scripted operator (configs/demo-script.yaml). It records the session, writes its report,
+prints a summary and exits 0. ``--view`` keeps everything running and serves the twin in a browser.
+
+Ctrl-C (or SIGTERM) stops everything; each child also dies with the demo (PR_SET_PDEATHSIG), so no process is
+left behind even if the demo is killed. The core imports no role: the demo drives them by their commands.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import yaml
 
 from iorthand.transport import free_port
 
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 _PR_SET_PDEATHSIG = 1
 
 
@@ -43,8 +48,7 @@ class Child:
     def start(self) -> None:
         self.log = self.log_path.open("wb")
         self.proc = subprocess.Popen(
-            self.argv, stdout=subprocess.PIPE if self.name == "operator" else self.log, stderr=self.log,
-            preexec_fn=_die_with_parent, start_new_session=True,
+            self.argv, stdout=self.log, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent, start_new_session=True,
         )
 
     def stop(self, timeout: float = 5.0) -> int | None:
@@ -67,16 +71,19 @@ def iorthand_argv(*args: str) -> list[str]:
 
 
 def demo_edge_config(robot: str, endpoint: str) -> dict:
-    return {
-        "robot_id": robot,
-        "zenoh": {"mode": "client", "connect": [endpoint]},
-        "robot": {"kind": "sim", "initial_pose": [0.30, 0.0, 0.20, 3.14159, 0.0, 0.0]},
-        "safety": {"auto_arm": True, "profile": "local"},
-        "phantom": {"surface_z": 0.15},  # below the demo's path: the sensor reads ~0 N, the supervisor is armed for contact
-        "force": {"sensor": {"kind": "sim"}},
-        "servos": {}, "torch": {},
-        "video": {"camera": {"width": 320, "height": 240, "fps": 15}, "ultrasound": {"source": "ultrasound_sim", "width": 320, "height": 240, "fps": 10}},
-    }
+    """configs/edge-sim.yaml with the demo's robot id and router."""
+    config = yaml.safe_load((CONFIGS / "edge-sim.yaml").read_text())
+    config["robot_id"] = robot
+    config["zenoh"]["connect"] = [endpoint]
+    return config
+
+
+def run_step(argv: list[str], what: str, timeout: float = 60.0) -> str:
+    """Run one command to completion; its output, or RuntimeError with what it said."""
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, preexec_fn=_die_with_parent)
+    if done.returncode != 0:
+        raise RuntimeError(f"{what} failed (exit {done.returncode}): {(done.stderr or done.stdout).strip()[-500:]}")
+    return done.stdout
 
 
 def wait_for_line(child: Child, text: str, timeout: float) -> None:
@@ -90,17 +97,28 @@ def wait_for_line(child: Child, text: str, timeout: float) -> None:
     raise RuntimeError(f"{child.name} did not report {text!r} within {timeout} s; see {child.log_path}")
 
 
-def print_summary(result: dict, workdir: Path) -> None:
-    rtt = result["command_to_applied_ms"]
+def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, twin_url: str) -> None:
+    rtt = result["command_to_echo_ms"]
+    stops = result.get("deadman_stops_ms") or [float("nan")]
+    index = report.get("robots", {}).get(result["robot"], {}).get("index", {})
+    gaps = report.get("recording", {})
+    levels = {0: "green", 1: "yellow", 2: "red"}
     lines = [
         "",
         "iorthand demo — summary",
         f"  robot {result['robot']} (simulated), operator {result['operator']}, profile {result['profile']}",
-        f"  path travelled          {result['path_mm']:.1f} mm over {len(result['legs'])} moves",
-        f"  commands sent/applied/rejected  {result['commands_sent']} / {result['commands_applied']} / {result['commands_rejected']}",
-        f"  command→applied latency p50 {rtt['p50']:.2f} ms, p99 {rtt['p99']:.2f} ms (through the router, echo)",
-        f"  deadman stop (dead link) {result['deadman_stop_ms']:.0f} ms after the last command",
-        f"  logs and configs in {workdir}",
+        f"  commands sent/accepted/refused  {result['commands_sent']} / {result['commands_accepted']} / {result['commands_refused']}",
+        f"  command→applied latency   p50 {rtt['p50']:.2f} ms, p99 {rtt['p99']:.2f} ms (through the router, echo)",
+        f"  deadman stop (dead link)  {stops[0]:.0f} ms after the last command",
+        f"  force                     peak level {result['peak_force_level']} ({levels.get(result['peak_force_level'], '?')})",
+        f"  session index φ           {index.get('phi', float('nan')):.1f} % (contact {index.get('tau', 0):.1f} s of "
+        f"{index.get('t_t', 0):.1f} s, warnings red {index.get('omega_R', 0)}, yellow {index.get('omega_Y', 0)})",
+        f"  recording                 {gaps.get('messages', 0)} messages, {gaps.get('missing', 0)} missing by sequence, "
+        f"{gaps.get('malformed', 0)} malformed",
+        f"  refusals                  {'; '.join(r[:70] for r in result['refusals'][:3]) or 'none'}",
+        f"  report                    {report_path}",
+        f"  twin (rerun)              {workdir / 'twin.rrd'}  (rerun {workdir / 'twin.rrd'})" + (f"; live: {twin_url}" if twin_url else ""),
+        f"  logs, configs, recording  {workdir}",
     ]
     print("\n".join(lines), flush=True)
 
@@ -111,56 +129,67 @@ def run_demo(args: argparse.Namespace) -> int:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     edge_cfg = workdir / "edge.yaml"
     edge_cfg.write_text(yaml.safe_dump(demo_edge_config(args.robot, endpoint), sort_keys=False))
-    children = [
-        Child("router", iorthand_argv("router", "--listen", endpoint), workdir / "router.log"),
-        Child("edge", iorthand_argv("edge", "--config", str(edge_cfg)), workdir / "edge.log"),
-        Child(
-            "operator",
-            iorthand_argv("operator", "demo-script", "--robot", args.robot, "--operator-id", "demo-operator",
-                          "--connect", endpoint, "--profile", "local"),
-            workdir / "operator.log",
-        ),
-    ]
-    stopping = False
+    rec_cfg = workdir / "recorder.yaml"
+    recordings = workdir / "recordings"
+    rec_cfg.write_text(yaml.safe_dump({"zenoh": {"mode": "client", "connect": [endpoint]}, "output_dir": str(recordings)}))
+    session = f"demo-{time.strftime('%Y%m%d-%H%M%S')}"
+    twin_argv = ["twin", "--config", str(CONFIGS / "twin.yaml"), "--connect", endpoint, "--save", str(workdir / "twin.rrd"),
+                 "--log-dir", str(workdir)]
+    twin_argv += ["--web-port", str(free_port()), "--grpc-port", str(free_port())] if args.view else ["--no-serve"]
+    children = {
+        "router": Child("router", iorthand_argv("router", "--listen", endpoint), workdir / "router.log"),
+        "recorder": Child("recorder", iorthand_argv("recorder", "--config", str(rec_cfg)), workdir / "recorder.log"),
+        "twin": Child("twin", iorthand_argv(*twin_argv), workdir / "twin.log"),
+        "edge": Child("edge", iorthand_argv("edge", "--config", str(edge_cfg)), workdir / "edge.log"),
+    }
+    ready = {"router": "router ready", "recorder": "recorder ready", "twin": "twin ready", "edge": "edge agent"}
 
     def on_signal(signum: int, _frame: object) -> None:
-        nonlocal stopping
-        stopping = True
         raise KeyboardInterrupt
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
-    print(f"iorthand demo: router on {endpoint}, logs in {workdir}", flush=True)
+    print(f"iorthand demo: router on {endpoint}; logs in {workdir}", flush=True)
     code = 1
     try:
-        children[0].start()
-        wait_for_line(children[0], "router ready", 15.0)
-        children[1].start()
-        wait_for_line(children[1], "edge agent", 20.0)
-        children[2].start()
-        out, _ = children[2].proc.communicate(timeout=args.timeout)  # type: ignore[union-attr]
-        (workdir / "summary.json").write_bytes(out)
-        if children[2].proc.returncode != 0:  # type: ignore[union-attr]
-            print(f"operator failed (exit {children[2].proc.returncode}); see {children[2].log_path}", file=sys.stderr)  # type: ignore[union-attr]
-        else:
-            print_summary(json.loads(out), workdir)
-            code = 0
+        for name, child in children.items():
+            child.start()
+            wait_for_line(child, ready[name], 30.0)
+        twin_url = next((line.split(": ", 1)[1] for line in (workdir / "twin.log").read_text().splitlines()
+                         if line.startswith("twin viewer: ")), "")
+        run_step(iorthand_argv("recorder", "start", "--connect", endpoint, "--session", session, "--robot", args.robot,
+                               "--operator", "demo-operator", "--note", "iorthand demo"), "starting the recording")
+        out = run_step(iorthand_argv("operator", "script", str(CONFIGS / "demo-script.yaml"), "--robot", args.robot,
+                                     "--operator-id", "demo-operator", "--connect", endpoint),
+                       "the scripted operator", timeout=args.timeout)
+        (workdir / "summary.json").write_text(out)
+        run_step(iorthand_argv("recorder", "stop", "--connect", endpoint), "stopping the recording")
+        run_step(iorthand_argv("report", str(recordings / session)), "the session report", timeout=120.0)
+        report_dir = recordings / session / "report"
+        print_summary(json.loads(out), json.loads((report_dir / "report.json").read_text()), workdir,
+                      report_dir / "report.md", twin_url)
+        code = 0
+        if args.view:
+            print(f"\nthe twin is live at {twin_url} — Ctrl-C to stop everything", flush=True)
+            while all(c.proc is not None and c.proc.poll() is None for c in children.values()):
+                time.sleep(0.5)
     except KeyboardInterrupt:
         print("\niorthand demo: interrupted, stopping every process", flush=True)
-        code = 130
-    except (RuntimeError, subprocess.TimeoutExpired) as exc:
+        code = 130 if code else 0
+    except (RuntimeError, subprocess.TimeoutExpired, OSError, ValueError) as exc:
         print(f"iorthand demo failed: {exc}", file=sys.stderr)
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the clean-up
-        for child in reversed(children):
+        for child in reversed(children.values()):
             child.stop()
-    return code if not stopping else 130
+    return code
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run router + simulated edge + scripted operator and print a summary")
-    p.add_argument("--robot", default="demo")
-    p.add_argument("--workdir", help="where logs and configs go (default: a new temporary folder)")
-    p.add_argument("--timeout", type=float, default=60.0, help="s the scripted operator may take")
+    p = sub.add_parser("demo", help="the whole system on this machine: router, recorder, twin, simulated edge, "
+                                    "scripted operator; prints a summary and the session report")
+    p.add_argument("--robot", default="sim1")
+    p.add_argument("--workdir", help="where logs, configs and the recording go (default: a new temporary folder)")
+    p.add_argument("--timeout", type=float, default=120.0, help="s the scripted operator may take")
+    p.add_argument("--view", action="store_true", help="serve the twin in a browser and keep running until Ctrl-C")
     p.set_defaults(func=run_demo)
-

@@ -106,6 +106,20 @@ def rot_z(angle: float) -> Matrix:
     return make_transform([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
 
+def axis_rotation(axis: ArrayLike, angle: float) -> Matrix:
+    """Rotation by ``angle`` (rad) about ``axis`` (any non-zero length), as a 4×4."""
+    a = np.asarray(axis, dtype=float)
+    return make_transform(rotvec_to_matrix(a / np.linalg.norm(a) * angle))
+
+
+def pan_tilt_chain(
+    t_tcp_mount: ArrayLike, pan_axis: ArrayLike, pan: float, tilt_axis: ArrayLike, tilt: float, t_tilt_camera: ArrayLike
+) -> Matrix:
+    """``T_tcp_camera = T_tcp_mount · R(pan_axis, pan) · R(tilt_axis, tilt) · T_tilt_camera``: the camera on
+    its pan/tilt servos. ``pan``/``tilt`` are the chain's rotation angles (servo angle minus its zero)."""
+    return compose(t_tcp_mount, axis_rotation(pan_axis, pan), axis_rotation(tilt_axis, tilt), t_tilt_camera)
+
+
 def translation(x: float, y: float, z: float) -> Matrix:
     return make_transform(None, [x, y, z])
 

@@ -130,13 +130,10 @@ def _check(mtype: str, name: str, value: Any, hint: Any, meta: dict[str, Any]) -
 def _to_wire(value: Any) -> Any:
     if isinstance(value, Struct):
         return value._to_map()
-    if isinstance(value, (list, tuple)) or hasattr(value, "tolist"):
-        items = value.tolist() if hasattr(value, "tolist") else value
-        return [_to_wire(v) for v in items]
-    if isinstance(value, bool) or value is None or isinstance(value, (str, bytes)):
-        return value
-    if isinstance(value, float) or (hasattr(value, "__float__") and not isinstance(value, int)):
-        return float(value)
+    if hasattr(value, "tolist"):  # numpy arrays and scalars → plain Python values (lists, floats, ints, bools)
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [_to_wire(v) for v in value]
     return value
 
 

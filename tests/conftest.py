@@ -137,6 +137,31 @@ def operator_factory(session_factory):
             c.close()
 
 
+def twin_config(endpoint: str, tmp_path: Path, **viewer: object):
+    """A twin that saves to a file instead of serving a viewer (tests)."""
+    from iorthand_cloud.twin.config import TwinConfig
+
+    v = {"serve": False, "save": str(tmp_path / "twin.rrd"), **viewer}
+    return from_dict({"zenoh": {"mode": "client", "connect": [endpoint]}, "viewer": v}, TwinConfig, source="<test>")
+
+
+@pytest.fixture
+def twin_factory(router_endpoint, tmp_path):
+    from iorthand_cloud.twin.service import TwinService
+
+    twins: list[TwinService] = []
+
+    def make(**viewer: object) -> TwinService:
+        t = TwinService(twin_config(router_endpoint, tmp_path, **viewer))
+        t.start()
+        twins.append(t)
+        return t
+
+    yield make
+    for t in twins:
+        t.shutdown()
+
+
 def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01, message: str = "condition") -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -90,6 +90,15 @@ def test_garbage_payloads_are_rejected(payload: bytes) -> None:
     assert err.value.field == "payload"
 
 
+def test_numpy_values_encode_as_plain_numbers() -> None:
+    import numpy as np
+
+    cmd = protocol.ServoCommand(pan=np.radians(96.0), tilt=np.float32(1.5)).stamp(1)
+    twist = TwistCommand(linear=np.array([0.01, 0.0, 0.0]), deadman=np.bool_(True)).stamp(2)
+    assert protocol.ServoCommand.decode(cmd.encode()).pan == pytest.approx(np.radians(96.0))
+    assert TwistCommand.decode(twist.encode()).deadman is True
+
+
 def test_oversized_payload_rejected_before_parsing() -> None:
     with pytest.raises(DecodeError, match="exceeds the limit"):
         TwistCommand.decode(b"\x00" * (protocol.MAX_PAYLOAD + 1))

@@ -11,7 +11,6 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +18,6 @@ import yaml
 import zenoh
 
 from iorthand import geometry, keys
-from iorthand.config import from_dict
 from iorthand.protocol import (
     ControlReply,
     ControlRequest,
@@ -32,29 +30,7 @@ from iorthand.protocol import (
     VideoFrame,
 )
 from iorthand.transport import publisher, query
-from iorthand_cloud.twin.config import TwinConfig
-from iorthand_cloud.twin.service import TwinService
 from tests.conftest import wait_until
-
-
-def twin_config(endpoint: str, tmp_path: Path, **viewer: object) -> TwinConfig:
-    v = {"serve": False, "save": str(tmp_path / "twin.rrd"), **viewer}
-    return from_dict({"zenoh": {"mode": "client", "connect": [endpoint]}, "viewer": v}, TwinConfig, source="<test>")
-
-
-@pytest.fixture
-def twin_factory(router_endpoint, tmp_path):
-    twins: list[TwinService] = []
-
-    def make(**viewer: object) -> TwinService:
-        t = TwinService(twin_config(router_endpoint, tmp_path, **viewer))
-        t.start()
-        twins.append(t)
-        return t
-
-    yield make
-    for t in twins:
-        t.shutdown()
 
 
 def snapshot(session: zenoh.Session, robot: str, params: str = "") -> TwinSnapshot:

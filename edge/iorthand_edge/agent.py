@@ -18,9 +18,12 @@ this process can move the robot except through it.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
+import os
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -29,13 +32,14 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from iorthand import keys, protocol
+from iorthand import geometry, keys, motion
 from iorthand.protocol import (
     AppliedCommand,
     ControlReply,
     ControlRequest,
     DecodeError,
     ForceLevel,
+    Markers,
     RejectCounter,
     RobotState,
     SafetyStatus,
@@ -46,16 +50,27 @@ from iorthand.protocol import (
     TorchCommand,
     TwistCommand,
 )
+from iorthand.security import sdnotify
+from iorthand.security.identity import CommandGate
 from iorthand.transport import Inbox, Worker, open_session, publisher, subscribe
 from iorthand_edge.actuators import ServoUnit, TorchUnit
 from iorthand_edge.config import EdgeConfig
 from iorthand_edge.force import LevelState, SensorError, contact_wrench, make_force_sensor
 from iorthand_edge.force.monitor import ForceMonitor
+from iorthand_edge.goto import GotoController, substitute
+from iorthand_edge.perception.history import PoseHistory
+from iorthand_edge.perception.pipeline import PerceptionPipeline
 from iorthand_edge.robots import Robot, RobotFault, RobotReading, make_robot
 from iorthand_edge.supervisor import Decision, Supervisor
 from iorthand_edge.video import VideoStream, make_source
 
 log = logging.getLogger("iorthand.edge")
+
+# Supervisor states that end a previewed move (it never resumes by itself; the operator previews again).
+_HALTS = frozenset({
+    Status.STOPPED, Status.FAULT, Status.OWNER_LOST, Status.FORCE_DANGER, Status.FORCE_STALE,
+    Status.COMMAND_TIMEOUT, Status.DISARMED,
+})
 
 
 class RateLimitedLog:
@@ -115,8 +130,30 @@ class EdgeAgent:
                 ("ultrasound", keys.VIDEO_ULTRASOUND, config.video.ultrasound),
             ):
                 if stream is not None:
-                    self.video.append(VideoStream(name, suffix, stream, make_source(stream, self._contact_force)))
+                    shared = self._perception_image if config.perception is not None else None
+                    source = make_source(stream, self._contact_force, shared)
+                    self.video.append(VideoStream(name, suffix, stream, source))
         self.video_session: zenoh.Session | None = None
+        self.gate = CommandGate(
+            allowed=list(config.safety.allowed_operators),
+            require_alive=config.require_operator_alive,
+            bind_keys=config.bind_operator_keys,
+        )
+        self.goto = GotoController(config.goto, config.safety.workspace.min, config.safety.workspace.max)
+        self.markers: dict[int, np.ndarray] = {}  # latest filtered T_base_marker per id (for above_marker:<id>)
+        self.perception: PerceptionPipeline | None = None
+        self.pose_history: PoseHistory | None = None
+        if config.perception is not None:
+            self.pose_history = PoseHistory(config.perception.history_span, config.perception.max_extrapolation)
+            # Raises PerceptionError (a calibration for another image size, a corrupt file): refuse to start.
+            self.perception = PerceptionPipeline(
+                config.perception, self.pose_history.at, self._servo_angles_at, self._publish_markers
+            )
+            self.cycle_hooks.append(
+                lambda r: self.pose_history.add(r.timestamp_ns, geometry.pose_to_matrix(r.tcp_pose))  # type: ignore[union-attr]
+            )
+        self.cycle_hooks.append(sdnotify.cycle_hook())  # systemd: READY once, then the watchdog from the loop
+        self._local_server: socket.socket | None = None
         # Servos, torch and video stop with the agent but a crash of theirs must not stop the robot's control:
         # they get their own stop event. The force worker shares the agent's: losing it is a safety fault.
         self._aux_stop = threading.Event()
@@ -131,15 +168,22 @@ class EdgeAgent:
         self._pub_robot = publisher(s, k.key(keys.STATE_ROBOT))
         self._pub_safety = publisher(s, k.key(keys.STATE_SAFETY))
         self._pub_applied = publisher(s, k.key(keys.STATE_APPLIED))
+        self._pub_markers = publisher(s, k.key(keys.MARKERS))
+        # With bound keys, operators command on .../cmd/twist/<id> and query .../control/<verb>/<id>, keys the
+        # router's ACL grants only to that operator's certificate (iorthand.security.identity).
+        bound = "/*" if self.config.bind_operator_keys else ""
         self._declared = [
-            subscribe(s, k.key(keys.CMD_TWIST), self._twists),
+            subscribe(s, k.key(keys.CMD_TWIST) + bound, self._twists),
             subscribe(s, k.key(keys.CMD_STOP), self._control),
             subscribe(s, k.key(keys.CMD_SERVO), self._control),
             subscribe(s, k.key(keys.CMD_TORCH), self._control),
-            s.declare_queryable(k.key(keys.CONTROL_FORCE_ZERO), lambda q: self._control.put(("force_zero", q))),
-            s.declare_queryable(k.key(keys.CONTROL_ACQUIRE), lambda q: self._control.put(("acquire", q))),
-            s.declare_queryable(k.key(keys.CONTROL_RELEASE), lambda q: self._control.put(("release", q))),
-            s.declare_queryable(k.key(keys.CONTROL_ARM), lambda q: self._control.put(("arm", q))),
+            s.declare_queryable(k.key(keys.CONTROL_FORCE_ZERO) + bound, lambda q: self._control.put(("force_zero", q))),
+            s.declare_queryable(k.key(keys.CONTROL_ACQUIRE) + bound, lambda q: self._control.put(("acquire", q))),
+            s.declare_queryable(k.key(keys.CONTROL_RELEASE) + bound, lambda q: self._control.put(("release", q))),
+            s.declare_queryable(k.key(keys.CONTROL_ARM) + bound, lambda q: self._control.put(("arm", q))),
+            s.declare_queryable(k.key(keys.CONTROL_PREVIEW) + bound, lambda q: self._control.put(("preview", q))),
+            s.declare_queryable(k.key(keys.CONTROL_GOTO) + bound, lambda q: self._control.put(("goto", q))),
+            s.declare_queryable(k.key(keys.CONTROL_POSES) + bound, lambda q: self._control.put(("poses", q))),
             s.liveliness().declare_subscriber(k.alive_operators, self._on_operator_liveliness, history=True),
         ]
         self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
@@ -148,6 +192,7 @@ class EdgeAgent:
             w.start()
             self._workers.append(w)
         self._start_components()
+        self._start_local_socket()
         log.info(
             "edge agent %r up: robot %s, %s, armed=%s, profile %s (%.0f mm/s)",
             self.config.robot_id, type(self.robot).__name__, ", ".join(self.config.zenoh.connect) or self.config.zenoh.mode,
@@ -156,6 +201,8 @@ class EdgeAgent:
 
     def _start_components(self) -> None:
         assert self.session is not None
+        if self.perception is not None:
+            self.perception.start()
         if self.force is not None:
             self.force.start(self.session, self.keys, self.stop_event)
         for unit in (self.servos, self.torch):
@@ -171,6 +218,10 @@ class EdgeAgent:
 
     def _stop_components(self) -> None:
         self._aux_stop.set()
+        if self.perception is not None:
+            self.perception.stop()
+        if self._local_server is not None:
+            self._local_server.close()
         for comp in (self.force, self.servos, self.torch, *self.video):
             if comp is not None:
                 comp.join()
@@ -212,6 +263,63 @@ class EdgeAgent:
         with self.lock:
             self.supervisor.arm()
         log.info("armed by local confirmation")
+        self._publish_safety(force=True)
+
+    def disarm(self, reason: str) -> None:
+        with self.lock:
+            self.supervisor.disarm(reason)
+            self._drive(Decision(np.zeros(6), False, Status.DISARMED))
+        log.warning("disarmed: %s", reason)
+        self._publish_safety(force=True)
+
+    def _start_local_socket(self) -> None:
+        """The local command socket (``local_socket``): only a process on this computer, with the rights on
+        that file, can confirm arming — remote clients can only request it (``iorthand arm --config``)."""
+        path = self.config.local_socket
+        if path is None:
+            return
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+        server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        server.bind(str(path))
+        os.chmod(path, 0o600)
+        server.listen(2)
+        server.settimeout(0.2)
+        self._local_server = server
+        w = Worker("edge-local", self._local_loop, self._aux_stop)
+        w.start()
+        self._workers.append(w)
+
+    def _local_loop(self, stop: threading.Event) -> None:
+        assert self._local_server is not None
+        while not stop.is_set():
+            try:
+                conn, _ = self._local_server.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return  # the socket was closed at shutdown
+            with conn:
+                conn.settimeout(2.0)
+                try:
+                    line = conn.recv(256).decode(errors="replace").strip()
+                except OSError:
+                    continue
+                conn.sendall((self.local_command(line) + "\n").encode())
+
+    def local_command(self, line: str) -> str:
+        """One local command: ``arm``, ``disarm`` or ``status``; the answer is one line."""
+        if line == "arm":
+            self.arm()
+            return "ok: armed"
+        if line == "disarm":
+            self.disarm("disarmed by local command")
+            return "ok: disarmed"
+        if line == "status":
+            sv = self.supervisor
+            return json.dumps({"armed": sv.armed, "arm_requested": sv.arm_requested, "owner": sv.owner,
+                               "status": sv.status, "reason": sv.reason})
+        return f"error: unknown local command {line[:40]!r} (arm, disarm, status)"
 
     # ------------------------------------------------------------------ the control loop
 
@@ -228,6 +336,8 @@ class EdgeAgent:
                         log.error("robot fault: %s — stopping", fault)
                     self.supervisor.set_fault(fault)
                 decision = self.supervisor.step(now, reading.tcp_pose)
+                if self.goto.active and decision.status in _HALTS:
+                    self._cancel_goto(decision.reason or decision.status)
                 self._drive(decision)
                 self._log_interventions()
                 state = RobotState(
@@ -283,6 +393,22 @@ class EdgeAgent:
             self._log_interventions()
         self._publish_safety(force=True)
 
+    def _perception_image(self) -> np.ndarray | None:
+        return self.perception.latest_image if self.perception is not None else None
+
+    def _servo_angles_at(self, t_ns: int) -> tuple[float, float]:
+        """Servo angles (rad, as the servos report them) at a camera frame's time. Without servos the camera
+        is fixed at the chain's zero (``perception.geometry.pan_zero``/``tilt_zero``)."""
+        if self.servos is not None:
+            return self.servos.servo_angles_at(t_ns)
+        assert self.config.perception is not None
+        return self.config.perception.geometry.pan_zero, self.config.perception.geometry.tilt_zero
+
+    def _publish_markers(self, msg: Markers) -> None:
+        """From the perception thread: publish, and keep the filtered poses for ``above_marker:<id>``."""
+        self.markers = {m.id: geometry.unflatten(m.pose) for m in msg.markers}
+        self._pub_markers.put(msg.encode())
+
     def _contact_force(self) -> float:
         """The contact force (N) the simulated ultrasound image responds to."""
         if self.force is not None:
@@ -313,7 +439,8 @@ class EdgeAgent:
                 received=c.received, applied=c.applied, rejected=c.rejected,
                 malformed=self.rejects.total, stops=c.stops,
             ).stamp(self._seq["safety"].next())
-        self._pub_safety.put(msg.encode())
+            # Put under the lock: two threads publishing at once must not reorder the sequence numbers.
+            self._pub_safety.put(msg.encode())
 
     # ------------------------------------------------------------------ commands
 
@@ -329,9 +456,25 @@ class EdgeAgent:
                 self.rejects.add(key, str(exc))
                 self._rlog.warning(f"malformed:{key}", f"rejected malformed command on {key}: {exc}")
                 continue
+            ok, why = self.gate.check_command(key, keys.CMD_TWIST, cmd.operator)
+            if not ok:
+                # Refused at the door, before the supervisor: still answered, so the operator sees why.
+                self.rejects.add(key, why)
+                self._rlog.warning(f"gate:{key}", f"refused command from {cmd.operator!r}: {why}")
+                echo = AppliedCommand(
+                    operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns, accepted=False,
+                    status=Status.NOT_ALLOWED, reason=why[:200],
+                ).stamp(self._seq["applied"].next())
+                self._pub_applied.put(echo.encode())
+                continue
             with self.lock:
                 pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
-                decision = self.supervisor.on_command(cmd, recv_ns / 1e9, time.monotonic(), pose)
+                now = time.monotonic()
+                if self.goto.active:
+                    cmd = self._goto_command(cmd, pose, now)
+                decision = self.supervisor.on_command(cmd, recv_ns / 1e9, now, pose)
+                if self.goto.active and not decision.accepted:
+                    self._cancel_goto(decision.reason)
                 self._log_interventions()
                 if decision.accepted:
                     self._drive(decision)
@@ -345,11 +488,76 @@ class EdgeAgent:
                 ).stamp(self._seq["applied"].next())
             self._pub_applied.put(echo.encode())
 
+    # ------------------------------------------------------------------ preview and goto (hold-to-run)
+
+    def _goto_command(self, cmd: TwistCommand, pose: np.ndarray, now: float) -> TwistCommand:
+        """While a previewed move runs, the operator holds the deadman and the edge supplies the velocity. A
+        released deadman, another operator or a non-zero twist (the operator takes over) cancels it."""
+        if not cmd.deadman:
+            self._cancel_goto("deadman released")
+        elif cmd.operator != self.goto.operator:
+            self._cancel_goto(f"command from {cmd.operator!r} during {self.goto.operator!r}'s move")
+        elif any(cmd.linear) or any(cmd.angular):
+            self._cancel_goto("the operator took over with a manual twist")
+        else:
+            return substitute(cmd, self.goto.twist(pose, now))
+        return cmd
+
+    def _cancel_goto(self, reason: str) -> None:
+        if self.goto.cancel(reason):
+            log.warning("move cancelled: %s", reason)
+
+    def _limits(self) -> motion.Limits:
+        p = self.supervisor.limits
+        return self.goto.limits(p.linear, p.angular, self.config.safety.max_linear_acceleration)
+
+    def _on_poses(self, query: zenoh.Query) -> None:
+        if self._request(query) is None:
+            return
+        names = [*self.config.goto.poses, "retract", *(f"above_marker:{i}" for i in sorted(self.markers))]
+        detail = json.dumps([{"name": n} for n in names])
+        self._reply(query, True, f"{len(names)} poses", detail=detail)
+
+    def _on_preview(self, query: zenoh.Query) -> None:
+        req = self._request(query)
+        if req is None:
+            return
+        with self.lock:
+            reading = self.reading
+            limits = self._limits()
+        if reading is None:
+            self._reply(query, False, "no robot state yet")
+            return
+        # Planning (IK along the path) takes up to ~0.2 s: outside the lock, on this control-plane thread.
+        pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
+                               dict(self.markers), reading.q)
+        (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")
+        self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", detail=json.dumps(pv.detail()))
+
+    def _on_goto(self, query: zenoh.Query) -> None:
+        req = self._request(query)
+        if req is None:
+            return
+        with self.lock:
+            refusal = self._not_owner(req.operator)
+            if refusal:
+                ok, reason = False, refusal
+            elif self.reading is None:
+                ok, reason = False, "no robot state yet"
+            else:
+                ok, reason = self.goto.start(req.name, req.token, req.operator, self.reading.tcp_pose,
+                                             time.monotonic(), self._limits())
+        (log.info if ok else log.warning)("goto %r by %r: %s", req.name, req.operator, reason)
+        self._reply(query, ok, reason)
+
     # ------------------------------------------------------------------ control plane
 
     def _on_operator_liveliness(self, sample: zenoh.Sample) -> None:
+        operator = keys.operator_from_alive_key(str(sample.key_expr))
         if sample.kind == zenoh.SampleKind.DELETE:
-            self._control.put(("operator_gone", keys.operator_from_alive_key(str(sample.key_expr))))
+            self._control.put(("operator_gone", operator))
+        else:
+            self._control.put(("operator_alive", operator))
 
     def _control_plane_loop(self, stop: threading.Event) -> None:
         handlers: dict[str, Callable[[Any], None]] = {
@@ -358,6 +566,10 @@ class EdgeAgent:
             "arm": self._on_arm,
             "operator_gone": self._on_operator_gone,
             "force_zero": self._on_force_zero,
+            "operator_alive": self.gate.operator_alive,
+            "preview": self._on_preview,
+            "goto": self._on_goto,
+            "poses": self._on_poses,
         }
         by_key = {self.keys.key(keys.CMD_SERVO): self._on_servo, self.keys.key(keys.CMD_TORCH): self._on_torch}
         while not stop.is_set():
@@ -393,8 +605,12 @@ class EdgeAgent:
         req = self._request(query)
         if req is None:
             return
-        with self.lock:
-            ok, reason = self.supervisor.acquire(req.operator, time.monotonic(), req.profile)
+        ok, reason = self.gate.check_acquire(str(query.key_expr), keys.CONTROL_ACQUIRE, req.operator)
+        if not ok:
+            self.rejects.add(str(query.key_expr), reason)
+        else:
+            with self.lock:
+                ok, reason = self.supervisor.acquire(req.operator, time.monotonic(), req.profile)
         (log.info if ok else log.warning)("acquire by %r: %s", req.operator, reason)
         self._reply(query, ok, reason, lease=self.config.safety.lease)
         self._publish_safety(force=True)
@@ -420,7 +636,10 @@ class EdgeAgent:
         self._publish_safety(force=True)
 
     def _on_operator_gone(self, operator: str) -> None:
+        self.gate.operator_gone(operator)
         with self.lock:
+            if self.goto.operator == operator:
+                self._cancel_goto(f"{operator!r} disappeared")
             lost = self.supervisor.owner_lost(operator, f"owner {operator!r} disappeared (liveliness lost)")
             if lost:
                 self._drive(Decision(np.zeros(6), False, Status.OWNER_LOST))
@@ -506,6 +725,7 @@ class EdgeAgent:
             self.rejects.add(key, str(exc))
             cmd = StopCommand(operator="?", reason=f"malformed stop command ({exc.field})")
         with self.lock:
+            self._cancel_goto(f"stop from {cmd.operator!r}")
             self.supervisor.stop(f"stop from {cmd.operator!r}: {cmd.reason}")
             self._drive(Decision(np.zeros(6), False, Status.STOPPED))
         log.warning("stop from %r: %s", cmd.operator, cmd.reason)
@@ -516,4 +736,4 @@ def run(config: EdgeConfig) -> None:
     EdgeAgent(config).run_forever()
 
 
-__all__ = ["EdgeAgent", "protocol", "run"]
+__all__ = ["EdgeAgent", "run"]

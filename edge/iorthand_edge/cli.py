@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import socket
+import sys
 
 from iorthand_edge.agent import run
 from iorthand_edge.config import load_edge_config
@@ -16,7 +18,32 @@ def _edge(args: argparse.Namespace) -> int:
     return 0
 
 
+def _local(args: argparse.Namespace) -> int:
+    """Send one local command to a running agent through its Unix socket (needs the rights on that file)."""
+    config = load_edge_config(args.config)
+    if config.local_socket is None:
+        print(f"{args.config}: local_socket is not set: this agent takes no local commands", file=sys.stderr)
+        return 2
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
+            conn.settimeout(5.0)
+            conn.connect(str(config.local_socket))
+            conn.sendall(args.local_command.encode() + b"\n")
+            answer = conn.recv(4096).decode(errors="replace").strip()
+    except OSError as exc:
+        print(f"cannot reach the edge agent at {config.local_socket}: {exc} (is it running, are you allowed?)", file=sys.stderr)
+        return 1
+    print(answer)
+    return 0 if not answer.startswith("error") else 1
+
+
 def register(sub: argparse._SubParsersAction) -> None:
+    for name, text in (("arm", "confirm arming on the robot side (local to the edge computer)"),
+                       ("disarm", "disarm the robot (local)"), ("edge-status", "the agent's safety state (local)")):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("--config", required=True, help="the edge YAML of the running agent (its local_socket)")
+        p.set_defaults(func=_local, local_command={"edge-status": "status"}.get(name, name))
+
     p = sub.add_parser("edge", help="run the edge agent (robot driver and safety supervisor)")
     p.add_argument("--config", required=True, help="edge YAML, e.g. configs/edge-sim.yaml")
     p.add_argument("--connect", action="append", help="router endpoint, overrides the config (repeatable)")

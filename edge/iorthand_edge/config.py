@@ -11,6 +11,8 @@ from iorthand.transport import ZenohConfig
 from iorthand_edge.actuators.config import ServosConfig, TorchConfig
 from iorthand_edge.force.config import ForceConfig, SimForceSensorConfig
 from iorthand_edge.force.contact import PhantomConfig
+from iorthand_edge.goto import GotoConfig
+from iorthand_edge.perception.config import PerceptionConfig
 from iorthand_edge.robots.config import RobotConfig, SimRobotConfig
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.video.config import VideoConfig
@@ -30,6 +32,14 @@ class EdgeConfig:
     servos: ServosConfig | None = setting(None, help="camera pan/tilt servos")
     torch: TorchConfig | None = setting(None, help="the torch (LED) next to the camera")
     video: VideoConfig | None = setting(None, help="camera and ultrasound JPEG streams")
+    perception: PerceptionConfig | None = setting(None, help="ArUco markers → poses in the base frame")
+    goto: GotoConfig = field(default_factory=GotoConfig)
+    require_operator_alive: bool = setting(
+        True, help="acquire only for an operator whose liveliness token is present (ACL-bound to its certificate)"
+    )
+    bind_operator_keys: bool = setting(
+        False, help="commands and control queries only on keys that carry the operator id (with the generated ACL)"
+    )
 
     def check(self) -> None:
         keys.check_robot_id(self.robot_id)

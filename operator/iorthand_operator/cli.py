@@ -1,7 +1,7 @@
 """``iorthand operator ...``: teleoperation from the command line.
 
 ``iorthand operator --robot R --config configs/operator.yaml`` (no action) opens the console; actions:
-``script FILE.yaml`` (headless, JSON summary), ``move``, ``demo-script``, ``stop``.
+``script FILE.yaml`` (headless, JSON summary; what the demo runs), ``move``, ``stop``.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from iorthand.config import ConfigError, from_dict, load
 from iorthand.transport import open_session
 from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.config import OperatorConfig
-from iorthand_operator.scripted import demo_motion, move
+from iorthand_operator.scripted import move
 
 log = logging.getLogger("iorthand.operator")
 
@@ -58,7 +58,7 @@ def connect(config: OperatorConfig) -> OperatorClient:
     session = open_session(config.zenoh)
     return OperatorClient(
         session, config.robot, config.operator_id, rate_hz=config.rate_hz, release_tail=config.release_tail,
-        link_window=config.console.link_window,
+        link_window=config.console.link_window, bind_keys=config.bind_operator_keys,
     )
 
 
@@ -150,10 +150,6 @@ def _move(args: argparse.Namespace) -> int:
     return _run_with_control(args, lambda c: move(c, linear, np.zeros(3), args.seconds))
 
 
-def _demo_script(args: argparse.Namespace) -> int:
-    return _run_with_control(args, demo_motion)
-
-
 def _stop(args: argparse.Namespace) -> int:
     config = operator_config(args)
     client = connect(config)
@@ -204,11 +200,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--seconds", type=float, default=1.0)
     m.add_argument("--profile", help="speed profile to ask for (local, remote)", default=argparse.SUPPRESS)
     m.set_defaults(func=_move)
-
-    d = osub.add_parser("demo-script", help="the demo's scripted motion; prints a JSON summary")
-    _common(d)
-    d.add_argument("--profile", help="speed profile to ask for (local, remote)", default=argparse.SUPPRESS)
-    d.set_defaults(func=_demo_script)
 
     s = osub.add_parser("stop", help="send an emergency stop")
     _common(s)

@@ -49,7 +49,7 @@ from iorthand.protocol import (
     TorchState,
     TwistCommand,
 )
-from iorthand.transport import publisher, query
+from iorthand.transport import QOS_BY_KEY, publisher, query
 from iorthand_operator.link import LinkQuality, LinkWindow
 
 log = logging.getLogger("iorthand.operator")
@@ -102,6 +102,7 @@ class OperatorClient:
         link_window: float = 5.0,
         realtime: bool = True,
         gil_switch_interval: float | None = 0.0005,
+        bind_keys: bool = False,
     ) -> None:
         self.session = session
         self.keys = keys.RobotKeys(robot_id)
@@ -114,7 +115,11 @@ class OperatorClient:
         self._twist = np.zeros(6)
         self._deadman = False
         self._released_at = 0.0
-        self._seq = Sequencer()
+        # One sequence per key: the edge and the recorder count gaps per key, so a counter shared between
+        # twists and stops would look like lost twists.
+        self._seq = Sequencer()  # cmd/twist
+        self._seq_other = {name: Sequencer() for name in ("stop", "servo", "torch", "control")}
+        self.bind_keys = bind_keys  # commands and control queries on keys carrying our id (ACL-bound)
         self._sent: OrderedDict[int, int] = OrderedDict()  # seq → send time (ns), bounded
         self.echoes: list[Echo] = []
         self.sent_count = 0
@@ -133,6 +138,7 @@ class OperatorClient:
         self.events: deque[Event] = deque(maxlen=200)
         self.force_level: ForceLevelState | None = None
         self.force_level_at = 0.0  # monotonic receive time of force_level
+        self.peak_force_level = 0  # highest fresh level seen (scripts and the demo report it)
         self.force: ForceSample | None = None
         self.force_at = 0.0
         self.force_history: deque[float] = deque(maxlen=120)  # |F| N, for the sparkline
@@ -147,7 +153,8 @@ class OperatorClient:
         self._last_safety_status = ""
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._pub_twist = publisher(session, self.keys.key(keys.CMD_TWIST))
+        twist_key = self.keys.key(keys.CMD_TWIST) + (f"/{self.operator_id}" if bind_keys else "")
+        self._pub_twist = publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
         self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP))
         self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO))
         self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH))
@@ -167,8 +174,9 @@ class OperatorClient:
     # ------------------------------------------------------------------ control
 
     def _control(self, suffix: str, profile: str = "", *, key: str | None = None, **fields: str) -> ControlReply:
-        payload = ControlRequest(operator=self.operator_id, profile=profile, **fields).stamp(self._seq.next()).encode()
-        key = key or self.keys.key(suffix)
+        payload = ControlRequest(operator=self.operator_id, profile=profile, **fields)
+        payload = payload.stamp(self._seq_other["control"].next()).encode()
+        key = key or self.keys.key(suffix) + (f"/{self.operator_id}" if self.bind_keys else "")
         replies = query(self.session, key, payload, timeout=self.query_timeout)
         if not replies:
             raise ControlRefused(f"no answer from robot {self.keys.robot!r} on {suffix} (is its edge agent online?)")
@@ -179,6 +187,13 @@ class OperatorClient:
 
     def acquire(self, profile: str = "") -> ControlReply:
         reply = self._control(keys.CONTROL_ACQUIRE, profile)
+        # Our liveliness token, declared with this client, may not have reached the edge yet: the edge hands
+        # control only to an operator whose token it sees. Give it a moment before taking no for an answer.
+        for _ in range(10):
+            if reply.ok or "liveliness token" not in reply.reason:
+                break
+            time.sleep(0.1)
+            reply = self._control(keys.CONTROL_ACQUIRE, profile)
         if not reply.ok:
             self.log_event("control", Status.NOT_OWNER, f"control refused: {reply.reason}")
             raise ControlRefused(reply.reason)
@@ -218,7 +233,7 @@ class OperatorClient:
             self._servo_target[0] = pan
         if tilt is not None:
             self._servo_target[1] = tilt
-        cmd = ServoCommand(operator=self.operator_id, pan=pan, tilt=tilt).stamp(self._seq.next())
+        cmd = ServoCommand(operator=self.operator_id, pan=pan, tilt=tilt).stamp(self._seq_other["servo"].next())
         self._pub_servo.put(cmd.encode())
 
     def step_servo(self, dpan: float = 0.0, dtilt: float = 0.0, limit: float = math.pi / 2) -> tuple[float, float]:
@@ -231,7 +246,7 @@ class OperatorClient:
         return pan, tilt
 
     def set_torch(self, on: bool, brightness: float = 1.0) -> None:
-        self._pub_torch.put(TorchCommand(operator=self.operator_id, on=on, brightness=brightness).stamp(self._seq.next()).encode())
+        self._pub_torch.put(TorchCommand(operator=self.operator_id, on=on, brightness=brightness).stamp(self._seq_other["torch"].next()).encode())
 
     def toggle_torch(self) -> bool:
         on = not (self.torch.on if self.torch is not None else False)
@@ -263,7 +278,7 @@ class OperatorClient:
     def emergency_stop(self, reason: str = "operator e-stop") -> None:
         self.set_twist(np.zeros(3), np.zeros(3), deadman=False)
         self.log_event("stop", Status.STOPPED, f"e-stop sent: {reason}")
-        self._pub_stop.put(StopCommand(operator=self.operator_id, reason=reason).stamp(self._seq.next()).encode())
+        self._pub_stop.put(StopCommand(operator=self.operator_id, reason=reason).stamp(self._seq_other["stop"].next()).encode())
 
     # ------------------------------------------------------------------ the command stream
 
@@ -387,6 +402,8 @@ class OperatorClient:
         msg = self._decode(ForceLevelState, sample)
         if msg is not None:
             self.force_level, self.force_level_at = msg, time.monotonic()
+            if not msg.stale:
+                self.peak_force_level = max(self.peak_force_level, msg.level)
 
     def _on_force(self, sample: zenoh.Sample) -> None:
         msg = self._decode(ForceSample, sample)

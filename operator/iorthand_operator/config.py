@@ -19,6 +19,7 @@ class OperatorConfig:
     release_tail: float = setting(0.3, lo=0.0, hi=5.0, help="s of zero twists sent after the deadman is released")
     profile: str = setting("", help="speed profile to ask for (empty: the edge's default)")
     console: ConsoleSettings = field(default_factory=ConsoleSettings)  # the terminal UI and its inputs
+    bind_operator_keys: bool = setting(False, help="command on keys carrying this operator's id (the edge's setting)")
 
     def check(self) -> None:
         keys.check_robot_id(self.robot)

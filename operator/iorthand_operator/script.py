@@ -85,6 +85,7 @@ def run_step(client: OperatorClient, step: ScriptStep) -> dict[str, Any]:
     start, sent0, echo0, ev0 = _pos(client), client.sent_count, len(client.echoes), len(client.events)
     t0 = time.monotonic()
     zero = np.zeros(3)
+    stop_ms: float | None = None
     if step.twist is not None:
         tw = np.asarray(step.twist, float)
         client.set_twist(tw[:3], tw[3:], deadman=step.deadman)
@@ -111,9 +112,7 @@ def run_step(client: OperatorClient, step: ScriptStep) -> dict[str, Any]:
             client.log_event("refused", "profile", f"profile {step.profile!r} refused: {exc}")
         time.sleep(step.duration)
     elif step.action == "silence":
-        client.muted = True
-        time.sleep(step.duration)
-        client.muted = False
+        stop_ms = _silence(client, step.duration)
     end = _pos(client)
     echoes = client.echoes[echo0:]
     return {
@@ -127,7 +126,26 @@ def run_step(client: OperatorClient, step: ScriptStep) -> dict[str, Any]:
         "accepted": sum(e.accepted for e in echoes),
         "refused": sum(not e.accepted for e in echoes),
         "events": [f"{e.kind} {e.status}: {e.reason}" for e in list(client.events)[ev0:]],
+        **({"deadman_stop_ms": stop_ms} if step.action == "silence" else {}),
     }
+
+
+def _silence(client: OperatorClient, duration: float) -> float | None:
+    """Mute the sender with the deadman held (a dead link) for ``duration``. Returns the ms from the last
+    command sent to the edge's first state with a zero commanded twist (edge time stamps; one host clock in
+    the demo and tests), or None if the robot was not stopped within the silence."""
+    client.muted = True
+    time.sleep(2.0 / client.rate_hz)  # a send may still be under way
+    last_sent = client.last_sent_ns
+    deadline = time.monotonic() + duration
+    stop_ns = None
+    while time.monotonic() < deadline:
+        state = client.robot_state
+        if stop_ns is None and state is not None and state.t > last_sent and not np.any(state.commanded):
+            stop_ns = state.t
+        time.sleep(0.002)
+    client.muted = False
+    return None if stop_ns is None else round((stop_ns - last_sent) / 1e6, 1)
 
 
 def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
@@ -160,6 +178,8 @@ def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
             "rtt_p50_ms": round(q.rtt_p50_ms, 3), "rtt_p95_ms": round(q.rtt_p95_ms, 3),
             "jitter_ms": round(q.jitter_ms, 3), "uplink_loss": q.uplink_loss, "downlink_loss": q.downlink_loss,
         },
+        "peak_force_level": client.peak_force_level,
+        "deadman_stops_ms": [s["deadman_stop_ms"] for s in steps if s.get("deadman_stop_ms") is not None],
         "final_status": {"status": safety.status, "reason": safety.reason, "owner": safety.owner} if safety else {},
         "edge_counters": {
             "received": safety.received, "applied": safety.applied, "rejected": safety.rejected,

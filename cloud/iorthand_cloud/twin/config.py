@@ -34,6 +34,8 @@ class CameraView:
     pan_axis: list[float] = setting(default_factory=lambda: [0.0, 0.0, 1.0], length=3)
     tilt_axis: list[float] = setting(default_factory=lambda: [1.0, 0.0, 0.0], length=3)
     tilt_camera: list[float] = setting(default_factory=_zero_pose, length=6)
+    pan_zero: float = setting(0.0, lo=-7.0, hi=7.0, help="servo angle (rad) at which the pan rotation is zero")
+    tilt_zero: float = setting(0.0, lo=-7.0, hi=7.0, help="servo angle (rad) at which the tilt rotation is zero")
     frustum_depth: float = setting(0.08, lo=0.005, hi=2.0, help="m: drawn depth of the image plane")
 
     def check(self) -> None:

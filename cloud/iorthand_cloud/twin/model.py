@@ -125,15 +125,10 @@ class ArmModel:
         return np.array([f[:3, 3] for f in kinematics.joint_frames(self.model, q)])
 
 
-def axis_rotation(axis: ArrayLike, angle: float) -> Vector:
-    a = np.asarray(axis, dtype=float)
-    return geometry.make_transform(geometry.rotvec_to_matrix(a / np.linalg.norm(a) * angle))
-
-
 def tcp_camera(cam: CameraView, pan: float, tilt: float) -> Vector:
-    """``T_tcp_camera`` at the servo angles, as the edge's perception chain computes it."""
-    return geometry.compose(
-        geometry.pose_to_matrix(cam.tcp_mount), axis_rotation(cam.pan_axis, pan), axis_rotation(cam.tilt_axis, tilt),
+    """``T_tcp_camera`` at the servo angles (as published on state/servo), the edge's perception chain."""
+    return geometry.pan_tilt_chain(
+        geometry.pose_to_matrix(cam.tcp_mount), cam.pan_axis, pan - cam.pan_zero, cam.tilt_axis, tilt - cam.tilt_zero,
         geometry.pose_to_matrix(cam.tilt_camera),
     )
 

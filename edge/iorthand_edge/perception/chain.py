@@ -8,15 +8,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from iorthand.geometry import Matrix, compose, make_transform, pose_to_matrix, rotvec_to_matrix
+from iorthand.geometry import Matrix, axis_rotation, compose, pan_tilt_chain, pose_to_matrix
 
 from .config import MountGeometry
-
-
-def axis_rotation(axis: ArrayLike, angle: float) -> Matrix:
-    """4×4 rotation by ``angle`` (rad) about ``axis`` (any length, not zero)."""
-    a = np.asarray(axis, dtype=float)
-    return make_transform(rotvec_to_matrix(a / np.linalg.norm(a) * angle))
 
 
 class CameraChain:
@@ -27,11 +21,12 @@ class CameraChain:
         self.pan_axis = np.asarray(geometry.pan_axis, dtype=float)
         self.tilt_axis = np.asarray(geometry.tilt_axis, dtype=float)
         self.t_tilt_camera = pose_to_matrix(geometry.tilt_camera) if t_tilt_camera is None else t_tilt_camera
+        self.pan_zero, self.tilt_zero = geometry.pan_zero, geometry.tilt_zero
 
     def tcp_camera(self, pan: float, tilt: float) -> Matrix:
-        """T_tcp_camera at the given servo angles (rad)."""
-        return compose(
-            self.t_tcp_mount, axis_rotation(self.pan_axis, pan), axis_rotation(self.tilt_axis, tilt), self.t_tilt_camera
+        """T_tcp_camera at the given servo angles (rad, as the servos report them)."""
+        return pan_tilt_chain(
+            self.t_tcp_mount, self.pan_axis, pan - self.pan_zero, self.tilt_axis, tilt - self.tilt_zero, self.t_tilt_camera
         )
 
     def base_camera(self, t_base_tcp: ArrayLike, pan: float, tilt: float) -> Matrix:
@@ -42,5 +37,7 @@ class CameraChain:
 
     def tilt_camera_from_tcp_camera(self, t_tcp_camera: ArrayLike, pan: float, tilt: float) -> Matrix:
         """T_tilt_camera from a hand-eye result T_tcp_camera measured at servo angles (pan, tilt)."""
-        to_tilt = compose(self.t_tcp_mount, axis_rotation(self.pan_axis, pan), axis_rotation(self.tilt_axis, tilt))
+        to_tilt = compose(
+            self.t_tcp_mount, axis_rotation(self.pan_axis, pan - self.pan_zero), axis_rotation(self.tilt_axis, tilt - self.tilt_zero)
+        )
         return np.linalg.solve(to_tilt, np.asarray(t_tcp_camera, dtype=float))

@@ -178,6 +178,10 @@ class MountGeometry:
     tilt_camera: list[float] = setting(
         default_factory=_identity_pose, length=6, help="T_tilt_camera as a UR pose (a hand-eye file overrides it)"
     )
+    # The servo angle (rad) at which each rotation of the chain is zero. Servos report their own angle (home
+    # 90° = π/2 on a 0–180° servo): set these to the home angles when the geometry is measured at home.
+    pan_zero: float = setting(0.0, lo=-7.0, hi=7.0)
+    tilt_zero: float = setting(0.0, lo=-7.0, hi=7.0)
 
     def check(self) -> None:
         _check_axis("pan_axis", self.pan_axis)

@@ -79,6 +79,8 @@ class PerceptionPipeline:
         self.detector = make_aruco_detector(config.detector)
         self.filters = MarkerFilters(config.filter)
         self.stats = PipelineStats()
+        # The newest camera image (shared with the video stream, so one camera serves both).
+        self.latest_image: np.ndarray | None = None
         self.failure: str | None = None
         self._camera = camera
         self._sequencer = Sequencer()
@@ -236,7 +238,9 @@ class PerceptionPipeline:
             camera.open()
             log.info("perception: %s open", camera.description)
             while not self._stop.is_set():
-                message = self.process(camera.read())
+                frame = camera.read()
+                self.latest_image = frame.image
+                message = self.process(frame)
                 try:
                     self.publish(message)
                 except Exception:  # a failing publisher must not end perception; count and log it

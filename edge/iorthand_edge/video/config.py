@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from iorthand.config import setting
 from iorthand.transport import ZenohConfig
 
-SOURCES = ("pattern", "opencv", "ultrasound_sim")
+SOURCES = ("pattern", "opencv", "ultrasound_sim", "perception")
 
 
 @dataclass

@@ -136,7 +136,32 @@ class UltrasoundSimSource(FrameSource):
         return render_ultrasound(self.config.width, self.config.height, self.contact_force(), self._rng)
 
 
-def make_source(config: StreamConfig, contact_force: Callable[[], float]) -> FrameSource:
+class SharedFrameSource(FrameSource):
+    """The newest image another component already captured (the perception camera): one camera device feeds
+    both the marker detection and the video stream. Returns None until a new image arrives."""
+
+    def __init__(self, latest: Callable[[], Image | None]) -> None:
+        self._latest = latest
+        self._last: Image | None = None
+
+    def open(self) -> None:
+        pass
+
+    def grab(self) -> Image | None:
+        image = self._latest()
+        if image is None or image is self._last:
+            return None
+        self._last = image
+        return image
+
+
+def make_source(
+    config: StreamConfig, contact_force: Callable[[], float], shared_frame: Callable[[], Image | None] | None = None
+) -> FrameSource:
+    if config.source == "perception":
+        if shared_frame is None:
+            raise VideoError("video source 'perception' needs the perception section (its camera feeds the video)")
+        return SharedFrameSource(shared_frame)
     if config.source == "pattern":
         return PatternSource(config.width, config.height)
     if config.source == "opencv":

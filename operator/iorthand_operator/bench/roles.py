@@ -308,11 +308,36 @@ class BenchClient(OperatorClient):
     timestamps (t2 = recv_t, t3 = the echo's own stamp). The client keeps only a bounded map of sent
     commands and shares its sequence counter with control requests, so loss needs this log."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, shared_cpu: bool = False, **kwargs: Any) -> None:
         self.bench_sent: list[tuple[int, int]] = []
         self.bench_echo: list[tuple[bytes, int]] = []
+        self.shared_cpu = shared_cpu
+        if shared_cpu:
+            kwargs["realtime"] = False
         super().__init__(*args, **kwargs)
         self._bench_sub = self.session.declare_subscriber(self.keys.key(keys.STATE_APPLIED), self._bench_on_applied)
+
+    def _sender(self) -> None:
+        if not self.shared_cpu:
+            super()._sender()
+            return
+        # Many operators on one 2-core machine (scale runs): the shipped sender spins ~1.5 ms per tick (at
+        # SCHED_FIFO as root) for sub-ms regularity, which costs nothing on an operator's own laptop but, times
+        # twenty, takes the cores from the routers being measured. Same schedule, sleeping only.
+        period = 1.0 / self.rate_hz
+        next_tick = time.monotonic()
+        while not self._stop.is_set():
+            with self._lock:
+                twist, deadman = self._twist.copy(), self._deadman
+                quiet = not deadman and time.monotonic() - self._released_at > self.release_tail
+            if not quiet and not self.muted:
+                self._send(twist, deadman)
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                next_tick = time.monotonic()
 
     def _send(self, twist: np.ndarray, deadman: bool) -> None:
         super()._send(twist, deadman)
@@ -362,7 +387,8 @@ def operator_probe(args: argparse.Namespace) -> int:
     try:
         for i, robot in enumerate(robots):
             session = _zenoh(args)
-            clients.append(BenchClient(session, robot, f"{args.operator_id}-{i}", rate_hz=args.rate))
+            clients.append(BenchClient(session, robot, f"{args.operator_id}-{i}", rate_hz=args.rate,
+                                       shared_cpu=args.shared_cpu))
         for c in clients:
             c.wait_for_state(timeout=60.0)
             if not _acquire(c, stop, 30.0):
@@ -432,7 +458,99 @@ def state_monitor(args: argparse.Namespace) -> int:
     return 0
 
 
+class LightRobot:
+    """A light stand-in for one edge agent (scale runs): the same keys, messages and QoS — state/robot at
+    125 Hz, state/safety at 20 Hz, a state/applied echo for every twist, acquire/release answered — with no
+    supervisor or robot model behind them. A full ``iorthand edge`` costs ~8 % of a core idle; twenty of them
+    saturate this 2-core machine before the router is tested. Each robot has its own session (own link to
+    the router), as separate end-effector computers would."""
+
+    def __init__(self, session: zenoh.Session, robot: str) -> None:
+        from iorthand.transport import publisher
+
+        self.session = session
+        self.keys = k = keys.RobotKeys(robot)
+        self.owner = ""
+        self.last_seq = 0
+        self.last_recv = 0
+        self.commanded = [0.0] * 6
+        self._seq = {"robot": 0, "safety": 0, "applied": 0}
+        self._lock = threading.Lock()
+        self.pub_state = publisher(session, k.key(keys.STATE_ROBOT))
+        self.pub_safety = publisher(session, k.key(keys.STATE_SAFETY))
+        self.pub_applied = publisher(session, k.key(keys.STATE_APPLIED))
+        self._decl = [
+            session.declare_subscriber(k.key(keys.CMD_TWIST), self._on_twist),
+            session.declare_queryable(k.key(keys.CONTROL_ACQUIRE), lambda q: self._on_control(q, True)),
+            session.declare_queryable(k.key(keys.CONTROL_RELEASE), lambda q: self._on_control(q, False)),
+        ]
+
+    def _next(self, name: str) -> int:
+        self._seq[name] += 1
+        return self._seq[name]
+
+    def _on_twist(self, sample: zenoh.Sample) -> None:
+        from iorthand.protocol import AppliedCommand, TwistCommand
+
+        t2 = time.time_ns()
+        cmd = TwistCommand.decode(sample.payload.to_bytes())
+        with self._lock:
+            ok = cmd.operator == self.owner and cmd.seq > self.last_seq
+            if ok:
+                self.last_seq, self.last_recv = cmd.seq, t2
+                self.commanded = [*cmd.linear, *cmd.angular] if cmd.deadman else [0.0] * 6
+            echo = AppliedCommand(operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=t2,
+                                  applied=self.commanded if ok else [0.0] * 6, accepted=ok,
+                                  status="ok" if ok else "not_owner").stamp(self._next("applied"))
+        self.pub_applied.put(echo.encode())
+
+    def _on_control(self, query: zenoh.Query, acquire: bool) -> None:
+        from iorthand.protocol import ControlReply, ControlRequest
+
+        try:
+            req = ControlRequest.decode(query.payload.to_bytes() if query.payload is not None else b"")
+            with self._lock:
+                if acquire:
+                    if self.owner != req.operator:
+                        self.last_seq = 0
+                    self.owner = req.operator
+                elif self.owner == req.operator:
+                    self.owner = ""
+            reply = ControlReply(ok=True, reason="granted" if acquire else "released", owner=self.owner, lease=3.0)
+            query.reply(query.key_expr, reply.stamp(0).encode())
+        finally:
+            query.drop()
+
+    def tick(self, n: int) -> None:
+        from iorthand.protocol import SafetyStatus
+
+        with self._lock:
+            state = RobotState(commanded=self.commanded, mode="running", cmd_seq=self.last_seq,
+                               cmd_recv_t=self.last_recv).stamp(self._next("robot"))
+            owner = self.owner
+        self.pub_state.put(state.encode())
+        if n % 6 == 0:  # ≈ 20 Hz
+            self.pub_safety.put(SafetyStatus(armed=True, owner=owner, status="ok").stamp(self._next("safety")).encode())
+
+
+def robot_farm(args: argparse.Namespace) -> int:
+    """Light simulated robots (see :class:`LightRobot`), one session each, one 125 Hz loop for all."""
+    stop = _stop_event(args.max_seconds)
+    robots = [LightRobot(_zenoh(args), r) for r in args.robots.split(",")]
+    print("farm ready", flush=True)
+    t0, n = time.monotonic(), 0
+    while not stop.is_set():
+        for r in robots:
+            r.tick(n)
+        n += 1
+        _sleep_until(t0 + n / 125.0, stop)
+    for r in robots:
+        r.session.close()
+    return 0
+
+
 ROLES = {
+    "robot-farm": robot_farm,
     "zenoh-echo": zenoh_echo,
     "zenoh-ping": zenoh_ping,
     "mqtt-echo": mqtt_echo,
@@ -459,6 +577,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--robot", default="sim1")
     p.add_argument("--robots", default="sim1", help="comma-separated robot ids (operator-probe)")
     p.add_argument("--operator-id", default="bench")
+    p.add_argument("--shared-cpu", action="store_true",
+                   help="operator-probe: many operators share this machine (no real-time spinning sender)")
     p.add_argument("--speed", type=float, default=0.005, help="m/s of the probe's motion")
     p.add_argument("--flip-s", type=float, default=2.0, help="s between direction changes")
     p.add_argument("--fps", type=float, default=30.0)

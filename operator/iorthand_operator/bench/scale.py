@@ -1,6 +1,10 @@
-"""Scale: N simulated robots (one ``iorthand edge`` process each, full streams: state/robot 125 Hz, safety,
-command echo) and N operators (60 Hz commands each) through one router or a mesh of three routers; no video.
+"""Scale: N simulated robots (full streams: state/robot 125 Hz, safety 20 Hz, a command echo per twist) and N
+operators (OperatorClient, 60 Hz commands each) through one router or a mesh of three routers; no video.
 Reports per-robot command latency and loss as N grows, and the routers' CPU.
+
+Robots are either ``full`` (one ``iorthand edge`` process each: the real agent, ~8 % of a core each when idle,
+so twenty saturate this 2-core machine and measure its scheduler) or ``light`` (default: ``LightRobot`` in
+``roles.py``, the same keys, messages and QoS without the supervisor, several per process with a session each).
 
 Operators are grouped several per process (``per_process``), each with its own Zenoh session: 20 extra
 Python interpreters would measure this 2-core machine's scheduler more than the middleware.
@@ -36,18 +40,25 @@ def _routers(g: Group, topology: str) -> list[tuple[str, Any]]:
     raise ValueError(f"unknown scale topology {topology!r} (router, mesh)")
 
 
-def run_scale_point(workdir: Path, n: int, duration: float, topology: str = "router", per_process: int = 5) -> dict[str, Any]:
-    name = f"scale-{topology}-{n}"
+def run_scale_point(workdir: Path, n: int, duration: float, topology: str = "router", per_process: int = 5,
+                    edges: str = "light") -> dict[str, Any]:
+    name = f"scale-{topology}-{edges}-{n}"
     with Group(workdir / name) as g:
         routers = _routers(g, topology)
         robots = [f"r{i:03d}" for i in range(n)]
-        edges = []
-        for i, robot in enumerate(robots):
-            cfg = g.workdir / f"edge-{robot}.yaml"
-            cfg.write_text(yaml.safe_dump(edge_config(robot, [routers[i % len(routers)][0]]), sort_keys=False))
-            edges.append(g.start(f"edge-{robot}", iorthand_argv("edge", "--config", str(cfg))))
-        for e in edges:
-            e.wait_for("edge agent", 120.0)
+        children = []
+        if edges == "full":
+            for i, robot in enumerate(robots):
+                cfg = g.workdir / f"edge-{robot}.yaml"
+                cfg.write_text(yaml.safe_dump(edge_config(robot, [routers[i % len(routers)][0]]), sort_keys=False))
+                children.append((g.start(f"edge-{robot}", iorthand_argv("edge", "--config", str(cfg))), "edge agent"))
+        else:
+            for k in range(math.ceil(n / per_process)):
+                group_robots = robots[k * per_process:(k + 1) * per_process]
+                children.append((g.start(f"farm{k}", python_argv(ROLES, "robot-farm", "--connect", routers[k % len(routers)][0],
+                                                                 "--robots", ",".join(group_robots))), "farm ready"))
+        for child, ready in children:
+            child.wait_for(ready, 120.0)
         probes, outs = [], []
         for k in range(math.ceil(n / per_process)):
             group_robots = robots[k * per_process:(k + 1) * per_process]
@@ -56,7 +67,7 @@ def run_scale_point(workdir: Path, n: int, duration: float, topology: str = "rou
             outs.append(out)
             probes.append(g.start(f"probe{k}", python_argv(ROLES, "operator-probe", "--connect", router, "--robots",
                                                             ",".join(group_robots), "--operator-id", f"op{k}",
-                                                            "--duration", str(duration), "--out", str(out))))
+                                                            "--duration", str(duration), "--out", str(out), "--shared-cpu")))
         for p in probes:
             p.wait_for("probe ready", 180.0)
         meters = [CpuMeter(child.pid) for _, child in routers]
@@ -76,7 +87,7 @@ def run_scale_point(workdir: Path, n: int, duration: float, topology: str = "rou
     sent = sum(r["sequence"]["sent"] for r in per_robot.values())
     lost = sum(r["sequence"]["lost"] for r in per_robot.values())
     return {
-        "n": n, "topology": topology, "duration_s": duration, "cpu_window_s": window,
+        "n": n, "topology": topology, "edges": edges, "duration_s": duration, "cpu_window_s": window,
         "router_cpu_percent": cpu, "router_cpu_percent_total": sum(cpu),
         "rtt_ms": stats.latency_summary(all_rtt), "sent": sent, "lost": lost,
         "refused": sum(r["refused"] for r in per_robot.values()),
@@ -86,8 +97,10 @@ def run_scale_point(workdir: Path, n: int, duration: float, topology: str = "rou
     }
 
 
-def run_scale(workdir: Path, counts: list[int], duration: float, topologies: list[str], per_process: int = 5) -> dict[str, Any]:
+def run_scale(workdir: Path, counts: list[int], duration: float, topologies: list[str], per_process: int = 5,
+              edges: str = "light") -> dict[str, Any]:
     return {
         "counts": counts,
-        "points": [run_scale_point(workdir, n, duration, topo, per_process) for topo in topologies for n in counts],
+        "edges": edges,
+        "points": [run_scale_point(workdir, n, duration, topo, per_process, edges) for topo in topologies for n in counts],
     }

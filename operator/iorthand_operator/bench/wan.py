@@ -263,7 +263,9 @@ def blackout_trials(states: list[list[Any]], records: list[list[Any]], blackouts
         stop_ms = (stop[0] - stop[2]) / 1e6
         moved_during = any(s[3] for s in states if stop[0] < s[0] < b1)
         resume = next((s for s in states if s[0] > b1 and s[3]), None)
-        echo = next((r for r in records if r[4] > b1 and r[5]), None)
+        # The first command *sent after* the link returned that the edge applied: older commands held in TCP
+        # buffers arrive late and are refused as stale, so they say nothing about recovery.
+        echo = next((r for r in records if r[1] > b1 and r[5]), None)
         trial.update(
             stop_after_last_command_ms=stop_ms,
             stop_after_blackout_start_ms=(stop[0] - b0) / 1e6,
