@@ -28,12 +28,12 @@ def perception_section() -> dict:
 
 
 class MarkerLog:
-    def __init__(self, session, robot: str = "sim1") -> None:  # noqa: ANN001
+    def __init__(self, session, robot: str = "sim1") -> None:
         self.messages: list[Markers] = []
         self._lock = threading.Lock()
         self._sub = session.declare_subscriber(keys.RobotKeys(robot).key(keys.MARKERS), self._add)
 
-    def _add(self, sample) -> None:  # noqa: ANN001
+    def _add(self, sample) -> None:
         with self._lock:
             self.messages.append(Markers.decode(sample.payload.to_bytes()))
 

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from iorthand.geometry import compose, rot_x, rot_z, rotation_angle, translation, translation_distance
 from iorthand_edge.perception.calibration import (
     CalibrationError,
     TargetFinder,
@@ -21,8 +23,6 @@ from iorthand_edge.perception.calibration import (
 from iorthand_edge.perception.cli import register
 from iorthand_edge.perception.config import SyntheticCameraConfig
 from iorthand_edge.perception.synthetic import render_board_views
-
-from iorthand.geometry import compose, rot_x, rot_z, rotation_angle, translation, translation_distance
 
 TCP_CAMERA = compose(translation(0.01, 0.06, 0.05), rot_z(0.3), rot_x(-0.2))
 CAMERA = SyntheticCameraConfig(fx=610.0, fy=608.0, cx=322.0, cy=236.0, noise_sigma=2.0, blur_sigma=0.6)

@@ -10,11 +10,6 @@ import math
 
 import numpy as np
 import pytest
-from iorthand_edge.perception.chain import CameraChain
-from iorthand_edge.perception.config import PerceptionConfig
-from iorthand_edge.perception.history import PoseHistory, ServoHistory
-from iorthand_edge.perception.pipeline import PerceptionPipeline
-from iorthand_edge.perception.synthetic import SyntheticCamera, look_at
 
 from iorthand.config import from_dict
 from iorthand.geometry import (
@@ -26,6 +21,11 @@ from iorthand.geometry import (
     unflatten,
 )
 from iorthand.protocol import Markers
+from iorthand_edge.perception.chain import CameraChain
+from iorthand_edge.perception.config import PerceptionConfig
+from iorthand_edge.perception.history import PoseHistory, ServoHistory
+from iorthand_edge.perception.pipeline import PerceptionPipeline
+from iorthand_edge.perception.synthetic import SyntheticCamera, look_at
 
 T0 = 1_800_000_000_000_000_000  # ns: an arbitrary epoch time for the simulated clock
 ROBOT_PERIOD_NS = 8_000_000  # 125 Hz robot state

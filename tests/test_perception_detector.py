@@ -6,6 +6,8 @@ import math
 
 import cv2
 import numpy as np
+
+from iorthand.geometry import compose, rot_x, rot_y, rotation_angle, translation, translation_distance
 from iorthand_edge.perception.config import DetectorConfig, SyntheticCameraConfig
 from iorthand_edge.perception.detector import (
     choose_ippe_solution,
@@ -14,8 +16,6 @@ from iorthand_edge.perception.detector import (
     make_aruco_detector,
 )
 from iorthand_edge.perception.synthetic import camera_matrix, degrade, marker_texture, render
-
-from iorthand.geometry import compose, rot_x, rot_y, rotation_angle, translation, translation_distance
 
 K = camera_matrix(SyntheticCameraConfig())
 DICTIONARY = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)

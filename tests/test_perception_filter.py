@@ -5,8 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from iorthand_edge.perception.config import FilterConfig
-from iorthand_edge.perception.filter import MarkerFilter, MarkerFilters, robust_pose
 
 from iorthand.geometry import (
     compose,
@@ -19,6 +17,8 @@ from iorthand.geometry import (
     translation,
     translation_distance,
 )
+from iorthand_edge.perception.config import FilterConfig
+from iorthand_edge.perception.filter import MarkerFilter, MarkerFilters, robust_pose
 
 TRUTH = compose(translation(0.4, 0.05, 0.02), rot_z(0.7), rot_x(0.2))
 FRAME_NS = 33_000_000

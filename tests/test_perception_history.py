@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from iorthand_edge.perception.history import PoseHistory, ServoHistory
 
 from iorthand.geometry import compose, pose_to_matrix, rot_z, rotation_angle, translation, translation_distance
+from iorthand_edge.perception.history import PoseHistory, ServoHistory
 
 MS = 1_000_000
 

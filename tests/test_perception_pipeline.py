@@ -8,15 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from iorthand.config import ConfigError, from_dict, load
+from iorthand.geometry import compose, invert
+from iorthand.protocol import Markers
 from iorthand_edge.perception.camera import Frame
 from iorthand_edge.perception.chain import CameraChain
 from iorthand_edge.perception.config import PerceptionConfig
 from iorthand_edge.perception.pipeline import PerceptionError, PerceptionPipeline
 from iorthand_edge.perception.synthetic import SyntheticCamera, look_at
-
-from iorthand.config import ConfigError, from_dict, load
-from iorthand.geometry import compose, invert
-from iorthand.protocol import Markers
 
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "configs" / "scene-phantom.yaml"

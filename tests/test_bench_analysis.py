@@ -1,0 +1,66 @@
+"""Analysis of benchmark outputs (no processes): blackout trials, ping records, report targets."""
+
+from __future__ import annotations
+
+from iorthand_operator.bench import report
+from iorthand_operator.bench.transports import analyse_ping
+from iorthand_operator.bench.wan import blackout_trials, summarize_trials
+
+MS = 1_000_000
+
+
+def _states(stop_at_ms: float, last_recv_ms: float, b1_ms: float, end_ms: float) -> list[list[object]]:
+    """States every 8 ms: moving until ``stop_at_ms``, stopped until b1 + 40 ms, then moving again."""
+    out = []
+    t = 0.0
+    while t <= end_ms:
+        moving = t < stop_at_ms or t > b1_ms + 40
+        recv = min(t, last_recv_ms) if t < b1_ms else t
+        out.append([int(t * MS), 1, int(recv * MS), moving, int(t * MS)])
+        t += 8
+    return out
+
+
+def test_blackout_trial_within_limit() -> None:
+    states = _states(stop_at_ms=1150 + 152, last_recv_ms=1150, b1_ms=2500, end_ms=4000)
+    records = [[1, int(1000 * MS), 0, 0, int(2510 * MS), True, "ok"],  # sent before the blackout: ignored
+               [2, int(2550 * MS), 0, 0, int(2600 * MS), True, "ok"]]
+    (trial,) = blackout_trials(states, records, [(1160 * MS, 2500 * MS)])
+    assert trial["ok"] and trial["stayed_stopped"]
+    assert 150 <= trial["stop_after_last_command_ms"] <= 158
+    assert trial["operator_echo_after_ms"] == 100
+    assert trial["motion_resumed_after_ms"] is not None
+    summary = summarize_trials([trial])
+    assert summary["passed"] == 1 and summary["limit_ms"] == 158
+
+
+def test_blackout_trial_too_slow_fails() -> None:
+    states = _states(stop_at_ms=1150 + 250, last_recv_ms=1150, b1_ms=2500, end_ms=3000)
+    (trial,) = blackout_trials(states, [], [(1160 * MS, 2500 * MS)])
+    assert not trial["ok"] and trial["stop_after_last_command_ms"] > 158
+
+
+def test_blackout_trial_robot_not_moving_is_not_a_pass() -> None:
+    states = [[int(t * MS), 1, 0, False, 0] for t in range(0, 3000, 8)]
+    (trial,) = blackout_trials(states, [], [(1000 * MS, 2000 * MS)])
+    assert not trial["ok"]
+
+
+def test_analyse_ping_records() -> None:
+    data = {"status": "ok", "sent": [1, 2, 3, 4],
+            "records": [[1, 0, 1 * MS, 1 * MS, 2 * MS], [3, 10 * MS, 11 * MS, 11 * MS, 13 * MS], [2, 5 * MS, 6 * MS, 6 * MS, 7 * MS]]}
+    r = analyse_ping(data)
+    assert r["sequence"]["lost"] == 1 and r["sequence"]["reordered"] == 1
+    assert r["rtt_ms"]["max"] == 3.0 and r["rtt_ms"]["min"] == 2.0
+
+
+def test_targets_and_ratios() -> None:
+    def case(t: str, size: int, p50: float, p99: float) -> dict[str, object]:
+        return {"transport": t, "size": size, "rtt_ms": {"p50": p50, "p99": p99}}
+
+    cases = {"zenoh-router/small": case("zenoh-router", 64, 0.4, 1.0), "mqtt/small": case("mqtt", 64, 0.8, 4.0)}
+    ratios = report.transport_ratios(cases)
+    assert ratios == {"zenoh-router/small": {"p50": 0.5, "p99": 0.25}}
+    checks = report.targets({"transports": {"cases": cases, "ratios": ratios}})
+    assert checks[0]["ok"]
+    assert "p50 ms" in report.table(report.LATENCY_HEADERS[:3], [["x", 1, 0.5]])

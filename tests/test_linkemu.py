@@ -1,0 +1,123 @@
+"""The userspace link emulator on 127.0.0.1: delay, order under jitter, blackout, clean close."""
+
+from __future__ import annotations
+
+import random
+import socket
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from iorthand_operator.bench.linkemu import DelayLine, LinkEmulator, LinkProfile
+
+
+@pytest.fixture
+def echo_server() -> Iterator[tuple[str, int]]:
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    stop = threading.Event()
+
+    def serve(conn: socket.socket) -> None:
+        with conn:
+            while data := conn.recv(65536):
+                conn.sendall(data)
+
+    def accept() -> None:
+        while not stop.is_set():
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                return
+            threading.Thread(target=serve, args=(conn,), daemon=True).start()
+
+    threading.Thread(target=accept, daemon=True).start()
+    yield srv.getsockname()
+    stop.set()
+    srv.close()
+
+
+def _recv_exactly(s: socket.socket, n: int) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        chunk = s.recv(n - len(buf))
+        if not chunk:
+            break
+        buf += chunk
+    return buf
+
+
+def test_delay_line_keeps_order_and_bounds() -> None:
+    line = DelayLine(LinkProfile(20.0, 15.0), random.Random(3))
+    releases = [line.release_time(i * 0.001) for i in range(500)]
+    assert releases == sorted(releases)  # never out of order
+    assert all(r >= i * 0.001 + 0.005 - 1e-9 for i, r in enumerate(releases))  # at least delay − jitter
+    own = [line.sample_delay() for _ in range(2000)]
+    assert min(own) >= 0.005 and max(own) <= 0.035
+
+
+def test_stall_adds_head_of_line_delay() -> None:
+    line = DelayLine(LinkProfile(1.0, 0.0, stall_prob=1.0, stall_ms=100.0), random.Random(1))
+    assert line.sample_delay() == pytest.approx(0.101)
+
+
+def test_profile_rejects_nonsense() -> None:
+    with pytest.raises(ValueError):
+        LinkProfile(-1.0)
+    with pytest.raises(ValueError):
+        LinkProfile(1.0, stall_prob=2.0)
+
+
+def test_relay_adds_delay_both_ways(echo_server: tuple[str, int]) -> None:
+    with LinkEmulator(("127.0.0.1", 0), echo_server, LinkProfile(25.0)) as emu, \
+            socket.create_connection(("127.0.0.1", emu.port), timeout=5) as s:
+        t0 = time.monotonic()
+        s.sendall(b"ping")
+        assert _recv_exactly(s, 4) == b"ping"
+        rtt = time.monotonic() - t0
+    assert rtt >= 0.050  # 25 ms each way
+    assert rtt < 2.0
+
+
+def test_relay_preserves_stream_under_jitter(echo_server: tuple[str, int]) -> None:
+    payload = b"".join(i.to_bytes(4, "big") for i in range(5000))
+    with LinkEmulator(("127.0.0.1", 0), echo_server, LinkProfile(5.0, 5.0, 0.05, 20.0), seed=5) as emu:
+        with socket.create_connection(("127.0.0.1", emu.port), timeout=10) as s:
+            for k in range(0, len(payload), 700):  # many small writes → many chunks with their own delays
+                s.sendall(payload[k:k + 700])
+                time.sleep(0.0005)
+            assert _recv_exactly(s, len(payload)) == payload
+        deadline = time.monotonic() + 2.0  # the writer counts just after its last send
+        while emu.bytes_relayed < 2 * len(payload) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert emu.bytes_relayed == 2 * len(payload)
+
+
+def test_blackout_holds_traffic_then_delivers(echo_server: tuple[str, int]) -> None:
+    with LinkEmulator(("127.0.0.1", 0), echo_server, LinkProfile()) as emu, \
+            socket.create_connection(("127.0.0.1", emu.port), timeout=5) as s:
+        s.sendall(b"a")
+        assert _recv_exactly(s, 1) == b"a"
+        emu.blackout(True)
+        s.sendall(b"b")
+        s.settimeout(0.3)
+        with pytest.raises(TimeoutError):
+            s.recv(1)
+        emu.blackout(False)
+        s.settimeout(5)
+        assert _recv_exactly(s, 1) == b"b"
+
+
+def test_close_ends_connections(echo_server: tuple[str, int]) -> None:
+    emu = LinkEmulator(("127.0.0.1", 0), echo_server, LinkProfile()).start()
+    s = socket.create_connection(("127.0.0.1", emu.port), timeout=5)
+    s.sendall(b"x")
+    assert _recv_exactly(s, 1) == b"x"
+    emu.close()
+    s.settimeout(5)
+    assert s.recv(1) == b""  # the relay shut the connection down
+    s.close()
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", emu.port), timeout=1).close()
