@@ -25,24 +25,30 @@ def test_blackout_trial_within_limit() -> None:
     states = _states(stop_at_ms=1150 + 152, last_recv_ms=1150, b1_ms=2500, end_ms=4000)
     records = [[1, int(1000 * MS), 0, 0, int(2510 * MS), True, "ok"],  # sent before the blackout: ignored
                [2, int(2550 * MS), 0, 0, int(2600 * MS), True, "ok"]]
-    (trial,) = blackout_trials(states, records, [(1160 * MS, 2500 * MS)])
+    (trial,) = blackout_trials(states, records, [(1160 * MS, 2495 * MS, 2500 * MS)])
     assert trial["ok"] and trial["stayed_stopped"]
     assert 150 <= trial["stop_after_last_command_ms"] <= 158
-    assert trial["operator_echo_after_ms"] == 100
+    assert trial["operator_echo_after_ms"] == 105  # from the restore request (2495 ms)
     assert trial["motion_resumed_after_ms"] is not None
     summary = summarize_trials([trial])
     assert summary["passed"] == 1 and summary["limit_ms"] == 158
 
 
+def test_motion_while_the_restore_command_returns_is_not_motion_during_the_blackout() -> None:
+    states = _states(stop_at_ms=1150 + 152, last_recv_ms=1150, b1_ms=2480, end_ms=3000)  # moving from 2520 ms
+    (trial,) = blackout_trials(states, [], [(1160 * MS, 2490 * MS, 2530 * MS)])
+    assert trial["ok"] and trial["stayed_stopped"]
+
+
 def test_blackout_trial_too_slow_fails() -> None:
     states = _states(stop_at_ms=1150 + 250, last_recv_ms=1150, b1_ms=2500, end_ms=3000)
-    (trial,) = blackout_trials(states, [], [(1160 * MS, 2500 * MS)])
+    (trial,) = blackout_trials(states, [], [(1160 * MS, 2495 * MS, 2500 * MS)])
     assert not trial["ok"] and trial["stop_after_last_command_ms"] > 158
 
 
 def test_blackout_trial_robot_not_moving_is_not_a_pass() -> None:
     states = [[int(t * MS), 1, 0, False, 0] for t in range(0, 3000, 8)]
-    (trial,) = blackout_trials(states, [], [(1000 * MS, 2000 * MS)])
+    (trial,) = blackout_trials(states, [], [(1000 * MS, 1995 * MS, 2000 * MS)])
     assert not trial["ok"]
 
 

@@ -65,7 +65,27 @@ def test_owner_lost_stops_and_latches_until_reacquired() -> None:
     assert sv.owner == "" and sv.status == Status.OWNER_LOST
     assert not np.any(sv.step(c.mono, POSE).twist)
     sv.acquire("op1", c.mono)
+    d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert not d.accepted and "press it again" in d.reason  # acquiring only acknowledges
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
     assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+
+
+def test_lease_renewal_never_resumes_after_a_fault_or_a_stop() -> None:
+    """The client renews its lease with acquire every second while the operator may hold the deadman."""
+    sv, c = armed()
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+    sv.set_fault("protective stop")
+    sv.set_fault("")  # cleared on the robot side
+    for _ in range(3):  # renewals, deadman held all along
+        assert sv.acquire("op1", c.mono)[0]
+        d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+        assert not d.accepted and not np.any(d.twist) and not np.any(sv.step(c.mono, POSE).twist)
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+    sv.stop("e-stop")
+    sv.acquire("op1", c.mono)
+    assert not sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
 
 
 def test_allow_list() -> None:
@@ -147,6 +167,8 @@ def test_fault_refuses_and_needs_reacquire() -> None:
     d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
     assert not d.accepted and d.status == Status.FAULT  # cleared fault: still latched
     sv.acquire("op1", c.mono)
+    assert not sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted  # acknowledged, deadman still held
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
     assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
 
 

@@ -206,8 +206,8 @@ def test_protective_stop_reported_and_never_resumed(emu: UREmulator, make_robot:
     robot.connect()
     cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
     emu.protective_stop("test")
-    reading, _ = until(robot, lambda r: "protective stop" in r.fault, 2.0, "the protective stop")
-    assert "protective stop" in reading.mode
+    # The fault comes from the control stream; the mode from the receive stream, up to a period later.
+    until(robot, lambda r: "protective stop" in r.fault and "protective stop" in r.mode, 2.0, "the protective stop")
     with pytest.raises(RobotFault, match="protective stop"):
         robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
     wait_emu(lambda: emu.status()["motion"] == "idle", 2.0, "the arm at rest")
@@ -263,3 +263,10 @@ def test_unreachable_controller_raises_at_once() -> None:
         robot.connect()
     assert time.monotonic() - t0 < 5.0
     robot.disconnect()
+
+
+def test_connect_during_protective_stop_says_why(emu: UREmulator, make_robot: Callable[..., URRobot]) -> None:
+    emu.protective_stop("test")
+    robot = make_robot()
+    with pytest.raises(RobotFault, match="protective stop"):
+        robot.connect()

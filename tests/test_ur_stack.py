@@ -228,7 +228,17 @@ def test_link_kill_detected_within_100ms_and_motion_refused(ur_edge: Callable[..
     assert emulator.status()["twist"] == [0.0] * 6
     assert op.last_refusal is not None and op.last_refusal.status == Status.FAULT
     assert op.acquire().ok
-    wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after re-acquiring")
+    # Re-acquiring only acknowledges the fault: still nothing moves while the deadman stays held...
+    time.sleep(0.3)
+    assert emulator.status()["twist"] == [0.0] * 6
+    repress(op, [0.02, 0.0, 0.0])  # ...until the operator releases it and presses it again
+    wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after re-acquiring and a fresh press")
+
+
+def repress(op: Any, linear: list[float]) -> None:
+    op.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+    time.sleep(0.1)
+    op.set_twist(linear, [0.0, 0.0, 0.0], deadman=True)
 
 
 def test_protective_stop_reported_and_motion_refused_until_cleared_and_reacquired(
@@ -255,7 +265,11 @@ def test_protective_stop_reported_and_motion_refused_until_cleared_and_reacquire
     time.sleep(0.5)  # deadman still held: still latched
     assert emulator.status()["twist"] == [0.0] * 6
     assert op.acquire().ok
-    wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after re-acquiring")
+    # Re-acquiring only acknowledges the fault: still nothing moves while the deadman stays held...
+    time.sleep(0.3)
+    assert emulator.status()["twist"] == [0.0] * 6
+    repress(op, [0.02, 0.0, 0.0])  # ...until the operator releases it and presses it again
+    wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after re-acquiring and a fresh press")
 
 
 def test_hung_controller_does_not_freeze_the_agent(ur_edge: Callable[..., Any],

@@ -18,7 +18,8 @@ Rules (DESIGN.md, "Safety model"):
   contact. Motion away from contact is always allowed. Each intervention is recorded in ``interventions``
   (drained and logged by the agent) and shows in the status and reason.
 - After a stop command the robot stays stopped until the deadman is released and pressed again; after a fault
-  or the owner's loss, until an operator acquires control again. Nothing resumes by itself.
+  or the owner's loss, until an operator acquires control again *and then* releases and presses the deadman (a
+  lease renewal alone never moves the robot). Nothing resumes by itself.
 """
 
 from __future__ import annotations
@@ -190,8 +191,12 @@ class Supervisor:
         self._lease_until = now + self.config.lease
         if profile:
             self.profile = profile
-        if self._latched in (Status.FAULT, Status.OWNER_LOST, Status.STOPPED) and not self.fault:
-            self._latched = ""  # acquiring again is the operator's acknowledgement
+        if self._latched in (Status.FAULT, Status.OWNER_LOST) and not self.fault:
+            # Acquiring again acknowledges the fault, but never moves the robot by itself: the client renews
+            # its lease with acquire while the operator may still hold the deadman. Motion needs a fresh press.
+            self._latched = Status.STOPPED
+            self._latch_reason = f"{self._latch_reason} — acknowledged: release the deadman and press it again"
+            self._set(Status.STOPPED, self._latch_reason)
         return True, f"control granted to {operator!r} for {self.config.lease:g} s, profile {self.profile}"
 
     def release(self, operator: str, reason: str = "released by its owner") -> tuple[bool, str]:

@@ -119,3 +119,12 @@ def main(argv: list[str] | None = None) -> int:
         emu.stop()
         print("ur-emulator stopped", flush=True)
     return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """``iorthand ur-emulator ...``: every argument goes to :func:`main` unparsed, so the subcommand and
+    ``python -m iorthand_edge.ur_emulator`` accept exactly the same options (``--help`` included)."""
+    p = sub.add_parser("ur-emulator", add_help=False, prefix_chars="\0",
+                       help="UR controller emulator for ur_rtde, with fault injection (--help for options)")
+    p.add_argument("args", nargs=argparse.REMAINDER)
+    p.set_defaults(func=lambda args: main(args.args))

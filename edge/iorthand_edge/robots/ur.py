@@ -1,0 +1,402 @@
+"""Universal Robots backend over ur_rtde, safe against its traps.
+
+ur_rtde 1.6.5 facts this design follows (FACTS.md, issue 5):
+- Its constructors hold the GIL and can hang forever on a half-open socket. So the driver runs in a **child
+  process** (``_driver_main``), talking to the agent over a pipe; the agent gives it ``connect_timeout`` to
+  report ready and kills it otherwise. A dead or hung child is a fault: stop, report, reconnect with back-off.
+- ``speedL`` keeps the last velocity forever; only the controller's RTDE watchdog (``setWatchdog``) stops a
+  program whose inputs went silent. The child sets it after every connect and kicks it only while the agent
+  keeps talking to it (a heartbeat each control cycle): a frozen agent lets the controller stop the robot —
+  the second safety layer. The child also stops the robot itself when the agent goes silent.
+- On a lost link ``speedL`` still returns True: link health is ``isConnected()`` **and** an advancing
+  controller timestamp.
+- ``disconnect()`` stops neither motion nor the program: shut down with speedStop → stopScript → disconnect.
+- A re-uploaded control script replays the stale command left in the input registers: every connection
+  starts with speedStop, and reconnects always kill the old driver and use a fresh constructor, never
+  ``reuploadScript()``. A stale speedL never runs again (tested against the emulator).
+- A protective stop kills the script and the controller refuses to unlock for 5 s; the receive interface's
+  safety mode names it (the control and receive streams can disagree for one period: a stopped program only
+  leads to a reconnect once it has been stopped for ``link_timeout`` with no safety stop seen).
+- ur_rtde's commands block (speedStop until the arm is at rest): the child streams state from a reader
+  thread of its own so that a long stop never looks like a hung driver.
+- Faults never resume motion: after a reconnect the supervisor stays latched until an operator re-acquires.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing as mp
+import time
+from dataclasses import asdict
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from iorthand_edge.robots.base import Robot, RobotFault, RobotReading, Vector
+from iorthand_edge.robots.config import URRobotConfig
+
+log = logging.getLogger("iorthand.edge.ur")
+
+# UR safety modes (RTDE safety_mode) that forbid motion, with what the operator should do.
+SAFETY_MODES = {
+    3: "protective stop: clear it on the teach pendant (or the dashboard), then re-acquire control",
+    4: "safety recovery mode",
+    5: "safeguard stop",
+    6: "system emergency stop",
+    7: "robot emergency stop",
+    8: "safety violation",
+    9: "safety fault",
+}
+SAFETY_NAMES = {3: "protective stop", 4: "recovery", 5: "safeguard stop", 6: "system e-stop",
+                7: "robot e-stop", 8: "violation", 9: "safety fault"}
+ROBOT_MODE_RUNNING = 7
+MODE_MAX, FAULT_MAX = 40, 200  # the lengths RobotState accepts: a longer text would make its encode() fail
+SPAWN_TIMEOUT = 15.0  # s for the driver child to start Python and import ur_rtde (not the controller's fault)
+ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
+               4: "power on", 5: "idle", 6: "backdrive", 7: "running", 8: "updating firmware"}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The child process. It imports only ur_rtde, so it starts fast and a hang in it cannot freeze the agent.
+
+
+def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
+    """The driver child. Two threads: a **reader** that streams the controller's state to the agent at the RTDE
+    rate, and this main thread, which executes the agent's commands and kicks the watchdog. They are separate
+    because ur_rtde's commands block (``speedStop`` returns only once the arm is at rest, 0.2 s for 20 mm/s at
+    0.1 m/s², and ``speedL`` waits for the controller's acknowledgement): state must keep flowing meanwhile or
+    the agent would take a long stop for a hung driver. ur_rtde's methods release the GIL (its constructors do
+    not), so the threads really run side by side."""
+    import os
+    import threading
+
+    import rtde_control
+    import rtde_receive
+
+    period = 1.0 / cfg["rtde_frequency"]
+    # The connect timeout runs from here: starting Python and importing takes seconds on a busy Pi and says
+    # nothing about the controller.
+    conn.send(("connecting", ""))
+    try:
+        recv = rtde_receive.RTDEReceiveInterface(cfg["host"], cfg["rtde_frequency"])
+        # No script can run in a protective stop (or worse): say so instead of a confusing upload failure.
+        safety_mode = recv.getSafetyMode()
+        if safety_mode in SAFETY_MODES:
+            raise RuntimeError(f"controller in {SAFETY_MODES[safety_mode]}")
+        ctrl = rtde_control.RTDEControlInterface(cfg["host"], cfg["rtde_frequency"])
+        # The constructor uploads the control script. The controller's input registers outlive a program, and a
+        # re-uploaded script executes whatever command is still in them (the stale speedL of a driver that died
+        # mid-motion). So the first command of every connection is a stop; it also clears that register.
+        if not ctrl.speedStop(cfg["stop_deceleration"]):
+            raise RuntimeError("speedStop after connecting was refused (control script not running)")
+        # The watchdog lives in the program: every new script needs it set again.
+        if not ctrl.setWatchdog(cfg["watchdog_hz"]):
+            raise RuntimeError("setWatchdog was refused (control script not running)")
+    except Exception as exc:  # ur_rtde raises RuntimeError mostly; report whatever it is
+        with contextlib.suppress(OSError):
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        os._exit(0)  # no destructors: they talk to the controller and can block on a dead one
+
+    send_lock = threading.Lock()
+    done = threading.Event()
+
+    def send(msg: tuple[Any, ...]) -> bool:
+        with send_lock:
+            try:
+                conn.send(msg)
+                return True
+            except (BrokenPipeError, OSError):
+                done.set()  # the agent is gone
+                return False
+
+    def reader() -> None:
+        next_tick = time.monotonic()
+        while not done.is_set():
+            state = (
+                list(recv.getActualTCPPose()), list(recv.getActualTCPSpeed()), list(recv.getActualQ()),
+                recv.getTimestamp(), recv.getRobotMode(), recv.getSafetyMode(), recv.isConnected(),
+                ctrl.isProgramRunning(), list(recv.getActualTCPForce()), ctrl.isConnected(),
+            )
+            if not send(("state", state)):
+                return
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                done.wait(delay)
+            else:
+                next_tick = time.monotonic()
+
+    def shutdown() -> None:
+        done.set()
+        for step in (lambda: ctrl.speedStop(cfg["stop_deceleration"]), ctrl.stopScript, ctrl.disconnect,
+                     recv.disconnect):
+            with contextlib.suppress(Exception):  # best effort: the link may already be gone
+                step()
+        os._exit(0)
+
+    send(("ready", ""))
+    threading.Thread(target=reader, name="ur-driver-reader", daemon=True).start()
+    parent_timeout = cfg["parent_timeout"]
+    last_parent = time.monotonic()
+    moving = False
+    next_kick = time.monotonic()
+    while not done.is_set():
+        commanded = False
+        try:
+            if conn.poll(max(0.0, next_kick - time.monotonic())):
+                while conn.poll(0):
+                    kind, *args = conn.recv()
+                    last_parent = time.monotonic()
+                    if kind == "twist":
+                        twist, acceleration = args
+                        # speedL answers False when no script runs; on a dead link it answers True (the link
+                        # checks are the reader's job). A refusal is logged by the agent; the state decides.
+                        if not ctrl.speedL(twist, acceleration, 0.0):
+                            send(("refused", "speedL refused by the controller (program not running?)"))
+                        moving, commanded = any(twist), True
+                    elif kind == "stop":
+                        ctrl.speedStop(args[0])
+                        moving, commanded = False, True
+                    elif kind == "close":
+                        shutdown()
+        except (EOFError, OSError):  # the agent is gone: stop the robot and leave
+            shutdown()
+        now = time.monotonic()
+        if now < next_kick and not commanded:
+            continue
+        next_kick = now + period
+        agent_alive = now - last_parent < parent_timeout
+        if not agent_alive and moving:
+            # The agent went silent (hung, not killed: a killed one closes the pipe). Stop here first; the
+            # controller's watchdog, no longer kicked, is the next layer.
+            with contextlib.suppress(Exception):
+                ctrl.speedStop(cfg["stop_deceleration"])
+            moving = False
+        elif agent_alive and not commanded:
+            ctrl.kickWatchdog()  # a command written this cycle already counts as a kick
+    shutdown()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The agent side.
+
+
+class URRobot(Robot):
+    """The agent's side: a driver child process in one of three phases, ``down`` → ``connecting`` → ``up``.
+    Every method returns at once; a fault sends the phase back to ``down`` and schedules a reconnect with
+    back-off (0.5 s doubling to ``reconnect_max_s``)."""
+
+    def __init__(self, config: URRobotConfig) -> None:
+        self.config = config
+        self._ctx = mp.get_context("spawn")  # never fork a process that holds Zenoh threads
+        self._proc: mp.process.BaseProcess | None = None
+        self._conn: Connection | None = None
+        self._phase = "down"
+        self._connecting_since = 0.0
+        self._state: tuple | None = None
+        self._state_at = 0.0  # monotonic time the newest state arrived
+        self._stamp_changed_at = 0.0  # monotonic time the controller timestamp last advanced
+        self._fault = "not connected"
+        self._backoff = 0.5
+        self._retry_at = 0.0
+        self._closing = False
+        self._refusal_logged = 0.0
+        self._child_started = False
+        self._stopped_since: float | None = None  # monotonic time the program was first seen stopped
+
+    @property
+    def control_period(self) -> float:
+        return 1.0 / self.config.control_rate_hz
+
+    # ---------------------------------------------------------------- process management
+
+    def _spawn(self) -> None:
+        parent, child = self._ctx.Pipe()
+        cfg = {k: v for k, v in asdict(self.config).items() if k in (
+            "host", "rtde_frequency", "watchdog_hz", "stop_deceleration")}
+        # The agent heartbeats every control cycle; silence for two watchdog periods means it is frozen.
+        cfg["parent_timeout"] = max(2.0 / self.config.watchdog_hz, 3 * self.control_period)
+        self._proc = self._ctx.Process(target=_driver_main, args=(child, cfg), name="ur-driver", daemon=True)
+        self._proc.start()
+        child.close()
+        self._conn = parent
+        self._phase, self._connecting_since, self._child_started = "connecting", time.monotonic(), False
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(2.0)
+        if self._conn is not None:
+            self._conn.close()
+        self._proc, self._conn, self._phase = None, None, "down"
+
+    def _fail(self, reason: str) -> None:
+        """A fault: kill the driver, keep the reason, schedule a reconnect."""
+        if reason != self._fault:
+            log.error("UR driver fault: %s", reason)
+        self._fault = reason
+        self._kill()
+        self._retry_at = time.monotonic() + self._backoff
+        self._backoff = min(self._backoff * 2, self.config.reconnect_max_s)
+
+    def _check_ready(self) -> None:
+        """In ``connecting``: take the driver's first message if there is one, or time out."""
+        assert self._conn is not None and self._proc is not None
+        waited = time.monotonic() - self._connecting_since
+        if not self._conn.poll(0):
+            if not self._child_started and waited > SPAWN_TIMEOUT:
+                self._fail(f"UR driver process did not start within {SPAWN_TIMEOUT:g} s (machine overloaded?)")
+            elif self._child_started and waited > self.config.connect_timeout:
+                self._fail(f"UR controller at {self.config.host} did not answer within "
+                           f"{self.config.connect_timeout:g} s (hung or half-open connection?)")
+            elif not self._proc.is_alive():
+                self._fail(f"UR driver for {self.config.host} exited while connecting")
+            return
+        try:
+            kind, text = self._conn.recv()
+        except (EOFError, OSError):
+            self._fail(f"UR driver for {self.config.host} died while connecting")
+            return
+        if kind == "connecting":
+            self._connecting_since, self._child_started = time.monotonic(), True
+            return
+        if kind != "ready":
+            self._fail(f"cannot connect to the UR controller at {self.config.host}: {text}")
+            return
+        now = time.monotonic()
+        self._phase, self._fault, self._state = "up", "", None
+        self._stopped_since = None
+        self._state_at = self._stamp_changed_at = now
+        self._backoff = 0.5
+        log.info("connected to UR controller at %s (watchdog %.0f Hz)", self.config.host, self.config.watchdog_hz)
+
+    def connect(self) -> None:
+        """Connect, waiting up to ``connect_timeout``; raise RobotFault with the reason otherwise."""
+        self._closing = False
+        self._spawn()
+        while self._phase == "connecting":
+            if self._conn is not None:
+                self._conn.poll(0.01)  # wake on the driver's message rather than sleeping past it
+            self._check_ready()
+        if self._phase != "up":
+            raise RobotFault(self._fault)
+
+    # ---------------------------------------------------------------- Robot interface
+
+    def _pump(self) -> None:
+        """In ``up``: take every message the driver sent, check the link's health, send the heartbeat."""
+        assert self._conn is not None and self._proc is not None
+        try:
+            while self._conn.poll(0):
+                kind, payload = self._conn.recv()
+                if kind == "state":
+                    if self._state is None or payload[3] != self._state[3]:
+                        self._stamp_changed_at = time.monotonic()
+                    self._state, self._state_at = payload, time.monotonic()
+                elif kind == "refused":
+                    # Not a fault by itself: the state (program running, safety mode) tells why, next cycle.
+                    now = time.monotonic()
+                    if now - self._refusal_logged > 1.0:
+                        log.warning("UR driver: %s", payload)
+                        self._refusal_logged = now
+        except (EOFError, OSError):
+            self._fail(f"UR driver process died (exit code {self._proc.exitcode})")
+            return
+        now = time.monotonic()
+        if not self._proc.is_alive():
+            self._fail(f"UR driver process died (exit code {self._proc.exitcode})")
+        elif now - self._state_at > self.config.link_timeout:
+            self._fail(f"no state from the UR driver for {1000 * (now - self._state_at):.0f} ms (driver hung)")
+        elif self._state is not None and not (self._state[6] and self._state[9]):
+            which = "receive" if not self._state[6] else "control"
+            self._fail(f"RTDE link to the controller lost ({which} interface disconnected)")
+        elif now - self._stamp_changed_at > self.config.link_timeout:
+            self._fail(f"controller timestamp frozen for {1000 * (now - self._stamp_changed_at):.0f} ms (link lost)")
+        else:
+            try:
+                self._conn.send(("heartbeat",))
+            except (BrokenPipeError, OSError):
+                self._fail("UR driver pipe broken")
+
+    def _health(self) -> str:
+        if self._phase != "up" or self._fault:
+            return self._fault or "UR driver connecting"
+        if self._state is None:
+            return ""
+        robot_mode, safety_mode, program_running = self._state[4], self._state[5], self._state[7]
+        if safety_mode in SAFETY_MODES or program_running:
+            self._stopped_since = None
+        if safety_mode in SAFETY_MODES:
+            # The driver stays up: the controller must be cleared by a person first. Once it is, the stopped
+            # program below sends us through a reconnect.
+            return SAFETY_MODES[safety_mode]
+        if robot_mode != ROBOT_MODE_RUNNING:
+            return f"robot not running ({ROBOT_MODES.get(robot_mode, str(robot_mode))}): power it on and release the brakes"
+        if not program_running:
+            # ur_rtde's control and receive streams lag each other by up to a period: a protective stop may
+            # show as a stopped program before its safety mode arrives. Report at once, but decide to reconnect
+            # only once the program has been stopped for link_timeout with no safety stop seen meanwhile.
+            now = time.monotonic()
+            if self._stopped_since is None:
+                self._stopped_since = now
+            if now - self._stopped_since < self.config.link_timeout:
+                return "control script not running on the controller"
+            # A stopped program (watchdog, program stop) is recovered by a fresh connection, which uploads the
+            # control script and sets the watchdog again; the supervisor stays latched meanwhile.
+            self._fail("control script not running on the controller (watchdog or program stop)")
+            return self._fault
+        return ""
+
+    def read_state(self) -> RobotReading:
+        if self._phase == "up":
+            self._pump()
+        elif self._phase == "connecting":
+            self._check_ready()
+        elif not self._closing and time.monotonic() >= self._retry_at:
+            self._spawn()
+        fault = self._health()
+        if self._state is None:
+            zeros = np.zeros(6)
+            return RobotReading(zeros, zeros, zeros, time.time_ns(), mode="disconnected", connected=False,
+                                fault=(fault or "no state from the controller yet")[:FAULT_MAX])
+        pose, speed, q, stamp, robot_mode, safety_mode, connected, running, force, _ = self._state
+        # A short mode (state/robot allows 40 characters; the fault carries the long explanation).
+        mode = SAFETY_NAMES.get(safety_mode) or ROBOT_MODES.get(robot_mode, f"mode {robot_mode}")
+        if not running:
+            mode += ", no program"
+        return RobotReading(
+            tcp_pose=np.array(pose), tcp_speed=np.array(speed), q=np.array(q), timestamp_ns=time.time_ns(),
+            robot_time=float(stamp), mode=mode[:MODE_MAX],
+            connected=bool(connected) and self._phase == "up", fault=fault[:FAULT_MAX], tcp_force=np.array(force),
+        )
+
+    def send_twist(self, twist: Vector, acceleration: float) -> Vector:
+        fault = self._health()
+        if fault or self._conn is None:
+            raise RobotFault(fault or "UR driver not connected")
+        sent = [float(v) for v in twist]
+        try:
+            self._conn.send(("twist", sent, float(acceleration)))
+        except (BrokenPipeError, OSError):
+            self._fail("UR driver pipe broken")
+            raise RobotFault(self._fault) from None
+        return np.array(sent)
+
+    def stop(self, deceleration: float) -> None:
+        if self._phase != "up" or self._conn is None:
+            return  # no driver: nothing moves through us, and the controller's watchdog covers the rest
+        try:
+            self._conn.send(("stop", float(deceleration)))
+        except (BrokenPipeError, OSError):
+            self._fail("UR driver pipe broken")
+
+    def disconnect(self) -> None:
+        self._closing = True
+        if self._phase == "up" and self._conn is not None and self._proc is not None:
+            with contextlib.suppress(BrokenPipeError, OSError):
+                self._conn.send(("close",))
+                self._proc.join(self.config.connect_timeout)
+        self._kill()
+        self._fault = "disconnected"
