@@ -35,7 +35,7 @@ lint: install-test
 	$(BIN)/ruff check .
 
 bench: install-test
-	$(BIN)/python benchmarks/run_all.py
+	$(BIN)/iorthand bench all
 
 clean:
 	rm -rf $(VENV) build *.egg-info */*.egg-info .pytest_cache .ruff_cache

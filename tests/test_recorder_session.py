@@ -159,3 +159,32 @@ def test_cli_report_and_annotate(recorded, tmp_path: Path) -> None:
     ann = subprocess.run([sys.executable, "-m", "iorthand.cli", "annotate", "late note", "--connect", endpoint],
                          capture_output=True, text=True, timeout=60)
     assert ann.returncode == 1 and "no recording in progress" in ann.stdout
+
+
+def test_replay_drives_the_twin(recorded, tmp_path: Path) -> None:
+    """A replayed session looks live to the twin: its snapshot ends on the last recorded robot state."""
+    import numpy as np
+
+    from iorthand.protocol import ForceLevelState, RobotState
+    from iorthand_cloud.twin.service import TwinService
+    from tests.conftest import twin_config
+    from tests.test_twin_service import snapshot
+
+    endpoint, folder = recorded
+    twin = TwinService(twin_config(endpoint, tmp_path))
+    twin.start()
+    s = open_session(client_config(endpoint))
+    try:
+        time.sleep(0.3)
+        Replayer(s, folder, speed=4.0, key_filter=["iorthand/*/state/**"]).run()
+        records = list(iter_records(folder))
+        last_state = RobotState.decode([r for r in records if r.key == "iorthand/sim1/state/robot"][-1].data)
+        last_level = ForceLevelState.decode([r for r in records if r.key == "iorthand/sim1/state/force_level"][-1].data)
+        wait_until(lambda: snapshot(s, "sim1").robot_seq == last_state.seq, timeout=5.0, message="the twin caught up")
+        snap = snapshot(s, "sim1")
+        assert snap.known
+        assert np.allclose(snap.tcp_pose, last_state.tcp_pose)
+        assert snap.force_level == last_level.level and snap.force_stale == last_level.stale
+    finally:
+        s.close()
+        twin.shutdown()
