@@ -26,7 +26,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -38,32 +37,11 @@ from iorthand import keys
 from iorthand.protocol import RobotState
 from iorthand.stats import summary
 from iorthand.transport import client_config, free_port, open_session, router_json5
+from iorthand_edge.ur_emulator.process import EmulatorProcess
 from iorthand_operator.client import OperatorClient
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT / "edge"), str(ROOT), env.get("PYTHONPATH")) if p)
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
-def _free_loopback() -> str:
-    import random
-
-    for _ in range(50):
-        host = f"127.{random.randint(100, 250)}.{random.randint(0, 255)}.{random.randint(2, 254)}"
-        try:
-            for port in (30004, 29999, 30002, 30003, 30101):
-                with socket.socket() as s:
-                    s.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free loopback address")
 
 
 def _stop(proc: subprocess.Popen[Any]) -> None:
@@ -87,20 +65,13 @@ def _wait(pred: Any, timeout: float, what: str) -> None:
 def run(duration: float, step: float, speed: float, frequency: float) -> dict[str, Any]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(zenoh.Config.from_json5(router_json5(endpoint)))
-    host = _free_loopback()
+    emu = EmulatorProcess(frequency=frequency).wait_ready()
+    host = emu.host
     procs: list[subprocess.Popen[Any]] = []
     tmp = tempfile.TemporaryDirectory()
     op: OperatorClient | None = None
     session: zenoh.Session | None = None
     try:
-        emu = subprocess.Popen([sys.executable, "-m", "iorthand_edge.ur_emulator", "--host", host,
-                                "--frequency", str(frequency)], stdout=subprocess.PIPE, text=True, env=_env())
-        procs.append(emu)
-        assert emu.stdout is not None
-        for line in emu.stdout:
-            if line.startswith("READY"):
-                break
-        threading.Thread(target=lambda: [None for _ in emu.stdout or []], daemon=True).start()
         sock = Path(tmp.name) / "edge.sock"
         cfg = {
             "robot_id": "ur1",
@@ -112,7 +83,7 @@ def run(duration: float, step: float, speed: float, frequency: float) -> dict[st
         path = Path(tmp.name) / "edge-ur.yaml"
         path.write_text(yaml.safe_dump(cfg))
         procs.append(subprocess.Popen([sys.executable, "-m", "iorthand.cli", "--log-level", "warning", "edge",
-                                       "--config", str(path)], env=_env()))
+                                       "--config", str(path)]))
         session = open_session(client_config(endpoint))
         states: list[tuple[int, float]] = []  # (receive wall ns, tcp speed x)
 
@@ -181,6 +152,7 @@ def run(duration: float, step: float, speed: float, frequency: float) -> dict[st
                 session.close()
         for proc in reversed(procs):
             _stop(proc)
+        emu.stop()
         router.close()
         tmp.cleanup()
 

@@ -8,8 +8,6 @@ time bound asserted is the issue's link-loss detection (100 ms, against ~10 ms m
 
 from __future__ import annotations
 
-import random
-import socket
 import time
 from collections.abc import Callable, Iterator
 
@@ -22,28 +20,13 @@ from iorthand_edge.robots.base import RobotFault, RobotReading
 from iorthand_edge.robots.config import URRobotConfig
 from iorthand_edge.robots.ur import URRobot
 from iorthand_edge.ur_emulator import HOME_POSE, HOME_Q, ControllerConfig, EmulatorConfig, UREmulator
-
-UR_PORTS = (30004, 29999, 30002, 30003)
-
-
-def free_loopback() -> str:
-    """A 127.x.y.z address on which all UR ports are free (ur_rtde cannot be told other ports)."""
-    for _ in range(50):
-        host = f"127.{random.randint(100, 250)}.{random.randint(0, 255)}.{random.randint(2, 254)}"
-        try:
-            for port in UR_PORTS:
-                with socket.socket() as s:
-                    s.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free loopback address")
+from iorthand_edge.ur_emulator.process import UR_PORTS, free_loopback_host
 
 
 @pytest.fixture
 def emu() -> Iterator[UREmulator]:
     # 250 Hz instead of the e-Series' 500: the same protocol and behaviour at half the CPU on a 2-core runner.
-    config = EmulatorConfig(host=free_loopback(), control_port=None,
+    config = EmulatorConfig(host=free_loopback_host(UR_PORTS), control_port=None,
                             controller=ControllerConfig(frequency=250.0, unlock_delay=0.3))
     emulator = UREmulator(config).start()
     yield emulator
@@ -257,7 +240,7 @@ def test_disconnect_stops_motion_and_program(emu: UREmulator, make_robot: Callab
 
 
 def test_unreachable_controller_raises_at_once() -> None:
-    robot = URRobot(URRobotConfig(host=free_loopback(), connect_timeout=5.0))
+    robot = URRobot(URRobotConfig(host=free_loopback_host(UR_PORTS), connect_timeout=5.0))
     t0 = time.monotonic()
     with pytest.raises(RobotFault, match="cannot connect"):
         robot.connect()

@@ -12,9 +12,7 @@ import contextlib
 import importlib.util
 import json
 import math
-import os
 import queue
-import random
 import socket
 import struct
 import subprocess
@@ -32,42 +30,21 @@ if importlib.util.find_spec("iorthand_edge") is None:  # edge distribution not i
     sys.path.insert(0, str(REPO / "edge"))
 
 from iorthand_edge.ur_emulator import (  # noqa: E402
+    DEFAULT_CONTROL_PORT,
     HOME_POSE,
     HOME_Q,
-    ControlClient,
     EmulatorConfig,
     UREmulator,
 )
 from iorthand_edge.ur_emulator.kinematics import ToolModel, matrix_to_rotvec, rotvec_to_matrix  # noqa: E402
+from iorthand_edge.ur_emulator.process import EmulatorProcess, free_loopback_host  # noqa: E402
+from tests.conftest import stop_process  # noqa: E402
 
 _HAVE_UR_RTDE = importlib.util.find_spec("rtde_control") is not None and (
     importlib.util.find_spec("rtde_receive") is not None)
 needs_ur_rtde = pytest.mark.skipif(not _HAVE_UR_RTDE, reason="ur_rtde is not installed (import rtde_control failed)")
 
-UR_PORTS = (30004, 29999, 30002, 30003)
-CONTROL_PORT = 30101
 UNLOCK_DELAY = 0.3  # the emulator's protective-stop unlock refusal window (PolyScope: 5 s), short for tests
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO / "edge"), str(REPO), env.get("PYTHONPATH")) if p)
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
-def _free_loopback() -> str:
-    """A 127.x.y.z address on which all UR ports are free (other tests may hold 127.0.0.1:30004)."""
-    for _ in range(50):
-        host = f"127.{random.randint(100, 250)}.{random.randint(0, 255)}.{random.randint(2, 254)}"
-        try:
-            for port in (*UR_PORTS, CONTROL_PORT):
-                with socket.socket() as s:
-                    s.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free loopback address")
 
 
 class _Lines:
@@ -103,44 +80,11 @@ class _Lines:
             self.seen.append(line)
 
 
-def _stop(proc: subprocess.Popen[str], timeout: float = 5.0) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout)
-
-
-class Emulator:
-    def __init__(self, host: str, proc: subprocess.Popen[str]) -> None:
-        self.host, self.proc = host, proc
-        self.ctl = ControlClient(host, CONTROL_PORT)
-
-    def call(self, op: str, **args: Any) -> Any:
-        return self.ctl.call(op, **args)
-
-    def status(self) -> dict[str, Any]:
-        return self.call("status")
-
-
 @pytest.fixture
-def emulator() -> Iterator[Emulator]:
-    host = _free_loopback()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "iorthand_edge.ur_emulator", "--host", host, "--control-port", str(CONTROL_PORT),
-         "--frequency", "500", "--unlock-delay", str(UNLOCK_DELAY)],
-        stdout=subprocess.PIPE, text=True, env=_env(),
-    )
-    try:
-        _Lines(proc).wait_for("READY", timeout=10)
-        emu = Emulator(host, proc)
+def emulator() -> Iterator[EmulatorProcess]:
+    with EmulatorProcess(frequency=500.0, unlock_delay=UNLOCK_DELAY) as emu:
         yield emu
-        emu.ctl.close()
-        assert proc.poll() is None, "the emulator died during the test"
-    finally:
-        _stop(proc)
+        assert emu.alive, "the emulator died during the test"
 
 
 # --- the ur_rtde side, in a child process ------------------------------------------------------------------
@@ -216,7 +160,7 @@ class RtdeWorker:
 
     def __init__(self) -> None:
         self.proc = subprocess.Popen([sys.executable, "-c", WORKER], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, env=_env())
+                                     stdout=subprocess.PIPE, text=True)
         self.lines = _Lines(self.proc)
 
     def request(self, timeout: float = 10.0, **msg: Any) -> Any:
@@ -238,7 +182,7 @@ class RtdeWorker:
         if self.proc.poll() is None:
             with contextlib.suppress(TimeoutError, EOFError, OSError, RuntimeError):
                 self.request(op="quit", timeout=2.0)
-        _stop(self.proc, timeout=3.0)
+        stop_process(self.proc, timeout=3.0)
 
 
 @pytest.fixture
@@ -251,7 +195,7 @@ def worker() -> Iterator[RtdeWorker]:
 
 
 @pytest.fixture
-def robot(emulator: Emulator, worker: RtdeWorker) -> tuple[Emulator, RtdeWorker]:
+def robot(emulator: EmulatorProcess, worker: RtdeWorker) -> tuple[EmulatorProcess, RtdeWorker]:
     """Receive + control interfaces connected to a fresh emulator."""
     worker.request(op="new_receive", host=emulator.host, timeout=10)
     worker.request(op="new_control", host=emulator.host, timeout=15)
@@ -271,7 +215,7 @@ def _wait(pred: Any, timeout: float, period: float = 0.02) -> bool:
 
 
 @needs_ur_rtde
-def test_connect_read_state_and_dashboard(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_connect_read_state_and_dashboard(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     pose = w.call("r", "getActualTCPPose")
     assert pose == pytest.approx(list(HOME_POSE), abs=1e-9)
@@ -302,7 +246,7 @@ def test_connect_read_state_and_dashboard(robot: tuple[Emulator, RtdeWorker]) ->
 
 
 @needs_ur_rtde
-def test_speedl_moves_tool_and_speedstop_stops_it(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_speedl_moves_tool_and_speedstop_stops_it(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     v, duration = 0.05, 0.5
     res = w.fn("speedl_run", [v, 0, 0, 0, 0, 0], 1.0, duration, 10.0)
@@ -332,7 +276,7 @@ def test_speedl_moves_tool_and_speedstop_stops_it(robot: tuple[Emulator, RtdeWor
 
 
 @needs_ur_rtde
-def test_speedl_persists_without_watchdog_after_client_disconnects(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_speedl_persists_without_watchdog_after_client_disconnects(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     """The trap the edge agent must cover: the robot keeps the last speedL after the client is gone."""
     emu, w = robot
     assert w.call("c", "speedL", [0.0, 0.02, 0, 0, 0, 0], 1.0, 0.0) is True
@@ -347,7 +291,7 @@ def test_speedl_persists_without_watchdog_after_client_disconnects(robot: tuple[
 
 
 @needs_ur_rtde
-def test_watchdog_stops_program_and_tool(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_watchdog_stops_program_and_tool(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     # 4 Hz: generous enough that a loaded machine's scheduling gaps between kicks do not trip it.
     assert w.call("c", "setWatchdog", 4.0) is True
@@ -370,7 +314,7 @@ def test_watchdog_stops_program_and_tool(robot: tuple[Emulator, RtdeWorker]) -> 
 
 
 @needs_ur_rtde
-def test_protective_stop_visible_and_commands_refused(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_protective_stop_visible_and_commands_refused(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     assert w.call("c", "speedL", [0.03, 0, 0, 0, 0, 0], 1.0, 0.0) is True
     emu.call("protective_stop", reason="test")
@@ -395,7 +339,7 @@ def test_protective_stop_visible_and_commands_refused(robot: tuple[Emulator, Rtd
 
 
 @needs_ur_rtde
-def test_reupload_after_stop_replays_stale_speedl(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_reupload_after_stop_replays_stale_speedl(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     """Trap: the input registers outlive the program. reuploadScript() does not clear the command register,
     so a new control script executes the last speedL again unless some command cleared it first."""
     emu, w = robot
@@ -411,7 +355,7 @@ def test_reupload_after_stop_replays_stale_speedl(robot: tuple[Emulator, RtdeWor
 
 
 @needs_ur_rtde
-def test_force_and_zero_ft_sensor(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_force_and_zero_ft_sensor(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     emu.call("set_force", wrench=[1.0, -2.0, 10.0, 0.1, 0.0, 0.0])
     assert _wait(lambda: w.call("r", "getActualTCPForce")[2] == pytest.approx(10.0), timeout=1.0)
@@ -423,7 +367,7 @@ def test_force_and_zero_ft_sensor(robot: tuple[Emulator, RtdeWorker]) -> None:
 
 
 @needs_ur_rtde
-def test_link_drop(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_link_drop(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     assert w.call("c", "speedL", [0.02, 0, 0, 0, 0, 0], 1.0, 0.0) is True
     emu.call("drop_link")
@@ -446,7 +390,7 @@ def test_link_drop(robot: tuple[Emulator, RtdeWorker]) -> None:
 
 
 @needs_ur_rtde
-def test_freeze_stops_timestamps(robot: tuple[Emulator, RtdeWorker]) -> None:
+def test_freeze_stops_timestamps(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     emu.call("freeze", mode="stale")
     time.sleep(0.05)
@@ -465,7 +409,7 @@ def test_freeze_stops_timestamps(robot: tuple[Emulator, RtdeWorker]) -> None:
 
 
 @needs_ur_rtde
-def test_hung_controller_blocks_constructor(emulator: Emulator, worker: RtdeWorker) -> None:
+def test_hung_controller_blocks_constructor(emulator: EmulatorProcess, worker: RtdeWorker) -> None:
     emulator.call("hang")
     with pytest.raises(TimeoutError):
         worker.request(op="new_receive", host=emulator.host, timeout=2.0)
@@ -481,11 +425,11 @@ def test_hung_controller_blocks_constructor(emulator: Emulator, worker: RtdeWork
         w2.close()
 
 
-def test_cli_inject(emulator: Emulator) -> None:
+def test_cli_inject(emulator: EmulatorProcess) -> None:
     out = subprocess.run(
         [sys.executable, "-m", "iorthand_edge.ur_emulator", "--host", emulator.host, "--control-port",
-         str(CONTROL_PORT), "--inject", "set_force", "--wrench", "0", "0", "5", "0", "0", "0"],
-        capture_output=True, text=True, env=_env(), timeout=20,
+         str(DEFAULT_CONTROL_PORT), "--inject", "set_force", "--wrench", "0", "0", "5", "0", "0", "0"],
+        capture_output=True, text=True, timeout=20,
     )
     assert out.returncode == 0, out.stderr
     assert emulator.status()["force"] == [0.0, 0.0, 5.0, 0.0, 0.0, 0.0]
@@ -513,7 +457,7 @@ def _rtde_read(sock: socket.socket) -> tuple[int, bytes]:
 
 
 def test_in_process_raw_protocol() -> None:
-    host = _free_loopback()
+    host = free_loopback_host()
     with UREmulator(EmulatorConfig(host=host, control_port=None)) as emu:
         with socket.create_connection((host, 30004), timeout=5) as s:
             assert _rtde_request(s, ord("V"), struct.pack(">H", 2)) == (ord("V"), b"\x01")

@@ -11,12 +11,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import random
 import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -29,94 +27,20 @@ pytest.importorskip("rtde_control", reason="ur-rtde is not installed on this pla
 
 from iorthand.config import from_dict
 from iorthand.protocol import Status
-from iorthand_edge.ur_emulator import HOME_POSE, ControlClient
+from iorthand_edge.ur_emulator import HOME_POSE
+from iorthand_edge.ur_emulator.process import EmulatorProcess
 
-from .conftest import wait_until
+from .conftest import stop_process, wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
-UR_PORTS = (30004, 29999, 30002, 30003)
-CONTROL_PORT = 30101
 ROBOT_ID = "ur1"
 
 
-def free_loopback() -> str:
-    for _ in range(50):
-        host = f"127.{random.randint(100, 250)}.{random.randint(0, 255)}.{random.randint(2, 254)}"
-        try:
-            for port in (*UR_PORTS, CONTROL_PORT):
-                with socket.socket() as s:
-                    s.bind((host, port))
-        except OSError:
-            continue
-        return host
-    raise RuntimeError("no free loopback address")
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT / "edge"), str(ROOT), env.get("PYTHONPATH")) if p)
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
-
-
-def _stop_process(proc: subprocess.Popen[Any], timeout: float = 5.0) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout)
-
-
-class Emulator:
-    """A UR emulator subprocess and its fault-injection client (one connection, used from the test thread)."""
-
-    def __init__(self, host: str, proc: subprocess.Popen[str]) -> None:
-        self.host, self.proc = host, proc
-        self.ctl = ControlClient(host, CONTROL_PORT)
-
-    def call(self, op: str, **args: Any) -> Any:
-        return self.ctl.call(op, **args)
-
-    def status(self) -> dict[str, Any]:
-        return self.call("status")
-
-
-def start_emulator(frequency: float = 250.0) -> Emulator:
-    host = free_loopback()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "iorthand_edge.ur_emulator", "--host", host, "--control-port", str(CONTROL_PORT),
-         "--frequency", str(frequency), "--unlock-delay", "0.3"],
-        stdout=subprocess.PIPE, text=True, env=_env(),
-    )
-    assert proc.stdout is not None
-    ready = threading.Event()
-
-    def pump() -> None:  # keep draining stdout so the emulator never blocks on a full pipe
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("READY"):
-                ready.set()
-
-    threading.Thread(target=pump, daemon=True).start()
-    if not ready.wait(15):
-        _stop_process(proc)
-        raise RuntimeError("the UR emulator did not start")
-    return Emulator(host, proc)
-
-
 @pytest.fixture
-def emulator() -> Iterator[Emulator]:
+def emulator() -> Iterator[EmulatorProcess]:
     # 250 Hz: the e-Series protocol at half the emulator's CPU (2-core runners).
-    emu = start_emulator()
-    try:
+    with EmulatorProcess(frequency=250.0) as emu:
         yield emu
-        with contextlib.suppress(OSError, RuntimeError):
-            emu.call("clear_faults")
-        emu.ctl.close()
-    finally:
-        _stop_process(emu.proc)
 
 
 def ur_config_dict(endpoint: str, host: str, **safety: Any) -> dict[str, Any]:
@@ -131,7 +55,7 @@ def ur_config_dict(endpoint: str, host: str, **safety: Any) -> dict[str, Any]:
 
 
 @pytest.fixture
-def ur_edge(router_endpoint: str, emulator: Emulator) -> Iterator[Callable[..., Any]]:
+def ur_edge(router_endpoint: str, emulator: EmulatorProcess) -> Iterator[Callable[..., Any]]:
     from iorthand_edge.agent import EdgeAgent
     from iorthand_edge.config import EdgeConfig
 
@@ -150,11 +74,11 @@ def ur_edge(router_endpoint: str, emulator: Emulator) -> Iterator[Callable[..., 
         agent.shutdown()
 
 
-def moving_x(emu: Emulator, speed: float) -> bool:
+def moving_x(emu: EmulatorProcess, speed: float) -> bool:
     return bool(emu.status()["twist"][0] == pytest.approx(speed))
 
 
-def drive(op: Any, emu: Emulator, speed: float = 0.02) -> None:
+def drive(op: Any, emu: EmulatorProcess, speed: float = 0.02) -> None:
     """Acquire, hold the deadman with ``speed`` along x, and wait until the emulated tool does it."""
     reply = op.acquire("local")
     assert reply.ok, reply.reason
@@ -163,7 +87,7 @@ def drive(op: Any, emu: Emulator, speed: float = 0.02) -> None:
 
 
 def test_teleop_moves_tool_and_deadman_stops_it(ur_edge: Callable[..., Any], operator_factory: Callable[..., Any],
-                                                emulator: Emulator) -> None:
+                                                emulator: EmulatorProcess) -> None:
     ur_edge()
     op = operator_factory(ROBOT_ID)
     state = op.wait_for_state()
@@ -197,7 +121,7 @@ def test_teleop_moves_tool_and_deadman_stops_it(ur_edge: Callable[..., Any], ope
 
 def test_link_kill_detected_within_100ms_and_motion_refused(ur_edge: Callable[..., Any],
                                                             operator_factory: Callable[..., Any],
-                                                            emulator: Emulator) -> None:
+                                                            emulator: EmulatorProcess) -> None:
     agent = ur_edge()
     op = operator_factory(ROBOT_ID)
     op.wait_for_state()
@@ -242,7 +166,7 @@ def repress(op: Any, linear: list[float]) -> None:
 
 
 def test_protective_stop_reported_and_motion_refused_until_cleared_and_reacquired(
-        ur_edge: Callable[..., Any], operator_factory: Callable[..., Any], emulator: Emulator) -> None:
+        ur_edge: Callable[..., Any], operator_factory: Callable[..., Any], emulator: EmulatorProcess) -> None:
     ur_edge()
     op = operator_factory(ROBOT_ID)
     op.wait_for_state()
@@ -274,7 +198,7 @@ def test_protective_stop_reported_and_motion_refused_until_cleared_and_reacquire
 
 def test_hung_controller_does_not_freeze_the_agent(ur_edge: Callable[..., Any],
                                                    operator_factory: Callable[..., Any],
-                                                   emulator: Emulator) -> None:
+                                                   emulator: EmulatorProcess) -> None:
     ur_edge()
     op = operator_factory(ROBOT_ID)
     op.wait_for_state()
@@ -297,7 +221,7 @@ def test_hung_controller_does_not_freeze_the_agent(ur_edge: Callable[..., Any],
     wait_until(lambda: not op.robot_state.fault, 10.0, message="the reconnect after the hang")
 
 
-def test_sigstop_agent_controller_watchdog_stops_tool(router_endpoint: str, emulator: Emulator,
+def test_sigstop_agent_controller_watchdog_stops_tool(router_endpoint: str, emulator: EmulatorProcess,
                                                       operator_factory: Callable[..., Any], tmp_path: Path) -> None:
     """The second safety layer: the agent and its driver child freeze (SIGSTOP to the process group); only the
     controller's RTDE watchdog is left to stop the tool."""
@@ -309,7 +233,7 @@ def test_sigstop_agent_controller_watchdog_stops_tool(router_endpoint: str, emul
     path = tmp_path / "edge-ur.yaml"
     path.write_text(yaml.safe_dump(cfg))
     proc = subprocess.Popen([sys.executable, "-m", "iorthand.cli", "--log-level", "warning", "edge", "--config",
-                             str(path)], env=_env(), start_new_session=True,
+                             str(path)], start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     pgid = os.getpgid(proc.pid)
     try:
@@ -342,14 +266,14 @@ def test_sigstop_agent_controller_watchdog_stops_tool(router_endpoint: str, emul
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(pgid, signal.SIGCONT)
-        _stop_process(proc)
+        stop_process(proc)
         with contextlib.suppress(ProcessLookupError):
             os.killpg(pgid, signal.SIGKILL)  # the driver child, if the agent could not take it down
 
 
 def test_ur_emulator_subcommand() -> None:
     out = subprocess.run([sys.executable, "-m", "iorthand.cli", "ur-emulator", "--help"], capture_output=True,
-                         text=True, env=_env(), timeout=30)
+                         text=True, timeout=30)
     assert out.returncode == 0, out.stderr
     assert "--unlock-delay" in out.stdout and "--inject" in out.stdout
 

@@ -654,44 +654,32 @@ class EdgeAgent:
         return f"{operator!r} does not hold control" + (f" ({owner!r} does)" if owner else " (nobody does)")
 
     def _on_servo(self, item: tuple[str, bytes, int]) -> None:
-        key, payload, _ = item
-        if self.servos is None:
-            self._rlog.warning("no-servos", "servo command ignored: this robot has no servos configured")
-            return
-        try:
-            cmd = ServoCommand.decode(payload)
-        except DecodeError as exc:
-            self.rejects.add(key, str(exc))
-            self._rlog.warning(f"malformed:{key}", f"rejected servo command: {exc}")
-            self.servos.reject(f"rejected: {exc}")
-            return
-        with self.lock:
-            refusal = self._not_owner(cmd.operator)
-        if refusal:
-            self._rlog.warning("servo-owner", f"servo command refused: {refusal}")
-            self.servos.reject(f"refused: {refusal}")
-            return
-        self.servos.command(cmd.pan, cmd.tilt)
+        self._on_actuator(item, self.servos, ServoCommand, "servo", lambda cmd: self.servos.command(cmd.pan, cmd.tilt))  # type: ignore[union-attr]
 
     def _on_torch(self, item: tuple[str, bytes, int]) -> None:
+        self._on_actuator(item, self.torch, TorchCommand, "torch", lambda cmd: self.torch.command(cmd.on, cmd.brightness))  # type: ignore[union-attr]
+
+    def _on_actuator(self, item: tuple[str, bytes, int], unit: ServoUnit | TorchUnit | None,
+                     cls: type[ServoCommand] | type[TorchCommand], name: str, apply: Callable[[Any], None]) -> None:
+        """A servo or torch command: decoded, from the owner only; every refusal is published by the unit."""
         key, payload, _ = item
-        if self.torch is None:
-            self._rlog.warning("no-torch", "torch command ignored: this robot has no torch configured")
+        if unit is None:
+            self._rlog.warning(f"no-{name}", f"{name} command ignored: this robot has no {name} configured")
             return
         try:
-            cmd = TorchCommand.decode(payload)
+            cmd = cls.decode(payload)
         except DecodeError as exc:
             self.rejects.add(key, str(exc))
-            self._rlog.warning(f"malformed:{key}", f"rejected torch command: {exc}")
-            self.torch.reject(f"rejected: {exc}")
+            self._rlog.warning(f"malformed:{key}", f"rejected {name} command: {exc}")
+            unit.reject(f"rejected: {exc}")
             return
         with self.lock:
             refusal = self._not_owner(cmd.operator)
         if refusal:
-            self._rlog.warning("torch-owner", f"torch command refused: {refusal}")
-            self.torch.reject(f"refused: {refusal}")
+            self._rlog.warning(f"{name}-owner", f"{name} command refused: {refusal}")
+            unit.reject(f"refused: {refusal}")
             return
-        self.torch.command(cmd.on, cmd.brightness)
+        apply(cmd)
 
     def _on_force_zero(self, query: zenoh.Query) -> None:
         req = self._request(query)
