@@ -8,8 +8,9 @@ PIP    := $(BIN)/python -m pip
 
 .PHONY: demo test install install-test lint bench clean
 
+# Debian's python3 has no venv module unless python3-venv is installed: fall back to virtualenv from PyPI.
 $(BIN)/python:
-	$(PYTHON) -m venv $(VENV)
+	$(PYTHON) -m venv $(VENV) || { rm -rf $(VENV); $(PYTHON) -m pip install --quiet --user virtualenv && $(PYTHON) -m virtualenv $(VENV); }
 	$(PIP) install --quiet --upgrade pip
 
 $(VENV)/.installed: $(BIN)/python pyproject.toml edge/pyproject.toml cloud/pyproject.toml operator/pyproject.toml
