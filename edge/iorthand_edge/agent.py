@@ -422,9 +422,9 @@ class EdgeAgent:
         with self.lock:
             sv = self.supervisor
             c = sv.counters
-            age = -1.0 if math.isinf(sv._last_accepted) else max(0.0, time.monotonic() - sv._last_accepted)
+            age = sv.command_age(time.monotonic())
             fields = (
-                sv.armed, sv.arm_requested, sv.owner, sv._deadman, sv.profile, sv.status, sv.reason,
+                sv.armed, sv.arm_requested, sv.owner, sv.deadman, sv.profile, sv.status, sv.reason,
                 tuple(sv.limits_hit), int(sv.force_level), sv.force_stale,
             )
             now = time.monotonic()
@@ -432,7 +432,7 @@ class EdgeAgent:
                 return
             self._last_safety, self._last_safety_pub = fields, now
             msg = SafetyStatus(
-                armed=sv.armed, arm_requested=sv.arm_requested, owner=sv.owner, deadman=sv._deadman,
+                armed=sv.armed, arm_requested=sv.arm_requested, owner=sv.owner, deadman=sv.deadman,
                 profile=sv.profile, linear_limit=sv.limits.linear, angular_limit=sv.limits.angular,
                 limits_hit=list(sv.limits_hit), command_age=age, status=sv.status, reason=sv.reason,
                 force_level=int(sv.force_level), force_stale=sv.force_stale,

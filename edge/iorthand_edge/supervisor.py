@@ -157,6 +157,15 @@ class Supervisor:
     # ---------------------------------------------------------------- arming and ownership
 
     @property
+    def deadman(self) -> bool:
+        """The owner holds the deadman (its last fresh command had the flag set)."""
+        return self._deadman
+
+    def command_age(self, now: float) -> float:
+        """Seconds since the last accepted command (monotonic ``now``); -1 before the first."""
+        return -1.0 if math.isinf(self._last_accepted) else max(0.0, now - self._last_accepted)
+
+    @property
     def limits(self) -> SpeedProfile:
         return self.config.profiles[self.profile]
 
