@@ -2,9 +2,11 @@
 
 Runs a Zenoh router and the operator console (textual, headless via run_test) in this process, as on an
 operator's laptop; a CPU-bound thread in the same process stands for heavy rendering, and the console is fed
-key presses and log lines continuously. Measures the sender's inter-send intervals (monotonic send instants):
-p99 of |interval − period| (jitter) and the largest gap. Two scenarios: the client as shipped (lower GIL switch
-interval + real-time policy for the sender thread when allowed) and plain Python defaults, for comparison.
+key presses and log lines continuously. Measures the sender's inter-send intervals (monotonic send instants,
+taken by the sender itself): p99 of |interval − period| (jitter) and the largest gap. The main scenario is the
+console as shipped: the sender in its own process (``sender_config``, as ``iorthand operator console`` builds
+the client), real-time policy when allowed. ``--thread`` adds the in-process thread sender (lower GIL switch
+interval + real-time policy for the thread) for comparison, ``--untuned`` plain Python defaults for that thread.
 
     .venv/bin/python benchmarks/bench_sender.py [--seconds 10] [--out benchmarks/results/sender.json]
 """
@@ -34,12 +36,13 @@ from iorthand_operator.console.settings import ConsoleSettings
 from iorthand_operator.inputs import KeyboardInput
 
 
-def scenario(endpoint: str, seconds: float, tuned: bool, cpu_hog: bool = False) -> dict:
+def scenario(endpoint: str, seconds: float, tuned: bool, cpu_hog: bool = False, process: bool = True) -> dict:
     default_switch = 0.005
     sys.setswitchinterval(default_switch)  # each scenario starts from Python's default
     session = open_session(client_config(endpoint))
     client = OperatorClient(
-        session, "benchbot", "bench", rate_hz=60.0, realtime=tuned, gil_switch_interval=0.0005 if tuned else None
+        session, "benchbot", "bench", rate_hz=60.0, realtime=tuned, gil_switch_interval=0.0005 if tuned else None,
+        sender_config=client_config(endpoint) if process else None,
     )
     ctrl = ConsoleController(client, KeyboardInput(), ConsoleSettings(refresh_hz=60.0, input_hz=100.0), router=endpoint)
     app = OperatorConsole(ctrl)
@@ -82,6 +85,7 @@ def scenario(endpoint: str, seconds: float, tuned: bool, cpu_hog: bool = False) 
     gaps = np.diff(times) * 1000.0
     dev = np.abs(gaps - period_ms)
     result = {
+        "sender": "process" if process else "thread",
         "tuned": tuned,
         "in_process_cpu_hog": cpu_hog,
         "sender_priority": client.sender_priority,
@@ -107,7 +111,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "sender.json"))
-    ap.add_argument("--untuned", action="store_true", help="also run with plain Python defaults")
+    ap.add_argument("--thread", action="store_true", help="also run the in-process thread sender")
+    ap.add_argument("--untuned", action="store_true", help="also run the thread sender with plain Python defaults")
     ap.add_argument("--cpu-hog", action="store_true", help="also run with a CPU-bound thread in this process")
     args = ap.parse_args()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -115,8 +120,10 @@ def main() -> None:
     try:
         load_before = os.getloadavg()
         results = [scenario(endpoint, args.seconds, tuned=True)]
+        if args.thread:
+            results.append(scenario(endpoint, args.seconds, tuned=True, process=False))
         if args.untuned:
-            results.append(scenario(endpoint, args.seconds, tuned=False))
+            results.append(scenario(endpoint, args.seconds, tuned=False, process=False))
         if args.cpu_hog:
             results.append(scenario(endpoint, args.seconds, tuned=True, cpu_hog=True))
         load_after = os.getloadavg()

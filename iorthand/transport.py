@@ -49,7 +49,7 @@ QOS_BY_KEY: dict[str, QosProfile] = {
     keys.CMD_TORCH: CONTROL,
     keys.CMD_STOP: CONTROL,
     keys.STATE_ROBOT: STATE,
-    keys.STATE_APPLIED: STATE,
+    keys.STATE_APPLIED: COMMAND,  # the command's echo: its own leg of the command path, at the command's priority
     keys.STATE_SAFETY: SAFETY,
     keys.STATE_FORCE: STATE,
     keys.STATE_FORCE_LEVEL: SAFETY,

@@ -470,9 +470,11 @@ class EdgeAgent:
             with self.lock:
                 pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
                 now = time.monotonic()
+                # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
+                received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
                 if self.goto.active:
                     cmd = self._goto_command(cmd, pose, now)
-                decision = self.supervisor.on_command(cmd, recv_ns / 1e9, now, pose)
+                decision = self.supervisor.on_command(cmd, recv_ns / 1e9, received, pose)
                 if self.goto.active and not decision.accepted:
                     self._cancel_goto(decision.reason)
                 self._log_interventions()

@@ -398,6 +398,7 @@ def operator_probe(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         direction = 1.0
         next_flip = t0 + args.flip_s
+        handled: dict[str, int] = {}
         for c in clients:
             c.set_twist([0.0, direction * args.speed, 0.0], np.zeros(3), deadman=True)
         while not stop.is_set() and time.monotonic() - t0 < args.duration:
@@ -413,9 +414,27 @@ def operator_probe(args: argparse.Namespace) -> int:
                 if lost:
                     events.append([time.time_ns(), c.keys.robot, "reacquire", s.owner if s else ""])
                     _acquire(c, stop, 2.0)
+                # After a stop the edge latches until the deadman is released and pressed again (as a person
+                # would after a lost link): do that once per fresh latched refusal.
+                r = c.last_refusal
+                if (r is not None and r.status == "stopped" and r.seq != handled.get(c.keys.robot)
+                        and time.time_ns() - r.t < 1e9):
+                    handled[c.keys.robot] = r.seq
+                    events.append([time.time_ns(), c.keys.robot, "re-press deadman", r.reason])
+                    c.set_twist(np.zeros(3), np.zeros(3), deadman=False)
+                    stop.wait(0.1)
+                    c.set_twist([0.0, direction * args.speed, 0.0], np.zeros(3), deadman=True)
         for c in clients:
             c.set_twist(np.zeros(3), np.zeros(3), deadman=False)
-        stop.wait(0.5)
+        # Wait for the last echoes: until none has arrived for 1 s (a CPU stall can hold them), at most 5 s.
+        deadline = time.monotonic() + 5.0
+        last = -1
+        while time.monotonic() < deadline and not stop.is_set():
+            n = sum(len(c.bench_echo) for c in clients)
+            if n == last:
+                break
+            last = n
+            stop.wait(1.0)
         out = {
             "robots": {
                 c.keys.robot: {

@@ -170,7 +170,7 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
     lan = PROFILES["lan"].link
     op_link = profile.link if links == "both" else lan
     out, mon_out = workdir / f"{name}-probe.json", workdir / f"{name}-monitor.json"
-    blackouts: list[tuple[int, int]] = []
+    blackouts: list[tuple[int, int, int]] = []  # (cut, restore requested, restore done), ns
     with Group(workdir / name) as g:
         if netns is not None:
             ns_op, ns_cloud, ns_edge = netns.op, netns.cloud, netns.edge
@@ -202,7 +202,7 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
                 time.sleep(length)
                 b_end_req = time.time_ns()
                 _blackout(netns, relay_edge, False)
-                blackouts.append((b0, max(b_end_req, time.time_ns())))
+                blackouts.append((b0, b_end_req, max(b_end_req, time.time_ns())))
                 # A blackout longer than the 2 s lease ends the Zenoh sessions: give them time to come back.
                 time.sleep(plan.recover_s if length < 2.0 else plan.long_recover_s)
         probe.wait(total + 120.0)
@@ -222,6 +222,7 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
     if profile.blackout:
         result["trials"] = blackout_trials(states, rd["records"], blackouts)
         result["blackout_s"] = plan.blackout_s
+        result["blackout_times_ns"] = blackouts
     return result
 
 
@@ -232,26 +233,26 @@ def _blackout(netns: Namespaces | None, relay: Any, on: bool) -> None:
         relay.signal(signal.SIGUSR1 if on else signal.SIGUSR2)
 
 
-def _spurious_stops(states: list[list[Any]], blackouts: list[tuple[int, int]]) -> int:
+def _spurious_stops(states: list[list[Any]], blackouts: list[tuple[int, int, int]]) -> int:
     """Moving → stopped transitions at the edge outside blackouts: deadman timeouts the operator felt."""
     states = sorted(states, key=lambda s: s[0])
     last_moving = max((s[0] for s in states if s[3]), default=0)
     n = 0
     for prev, cur in itertools.pairwise(states):
         # The operator's final release is not a stop it suffered: count only stops the robot came back from.
-        if prev[3] and not cur[3] and cur[0] < last_moving and not any(b0 <= cur[0] <= b1 + 1e9 for b0, b1 in blackouts):
+        if prev[3] and not cur[3] and cur[0] < last_moving and not any(b[0] <= cur[0] <= b[2] + 1e9 for b in blackouts):
             n += 1
     return n
 
 
-def blackout_trials(states: list[list[Any]], records: list[list[Any]], blackouts: list[tuple[int, int]],
+def blackout_trials(states: list[list[Any]], records: list[list[Any]], blackouts: list[tuple[int, int, int]],
                     limit_s: float = COMMAND_TIMEOUT_S + CONTROL_PERIOD_S) -> list[dict[str, Any]]:
-    """Per blackout: the edge's stop time after the last command it received (state t − cmd_recv_t of the
+    """Per blackout (cut, restore requested, restore done; ns): the edge's stop time after the last command it received (state t − cmd_recv_t of the
     first state with a zero commanded twist), whether it stayed stopped, and when motion and the operator's
     echoes came back after the link did. States are (t, cmd_seq, cmd_recv_t, moving, arrival)."""
     states = sorted(states, key=lambda s: s[0])
     trials = []
-    for i, (b0, b1) in enumerate(blackouts):
+    for i, (b0, b_req, b1) in enumerate(blackouts):
         before = [s for s in states if s[0] < b0]
         moving_before = bool(before) and bool(before[-1][3])
         stop = next((s for s in states if s[0] >= b0 and not s[3]), None)
@@ -261,17 +262,19 @@ def blackout_trials(states: list[list[Any]], records: list[list[Any]], blackouts
             trials.append(trial)
             continue
         stop_ms = (stop[0] - stop[2]) / 1e6
-        moved_during = any(s[3] for s in states if stop[0] < s[0] < b1)
-        resume = next((s for s in states if s[0] > b1 and s[3]), None)
+        # Until the restore was *requested*: the link is back while the nft command is still returning.
+        moved_during = any(s[3] for s in states if stop[0] < s[0] < b_req)
+        # Recovery is timed from the restore request (the rule is gone at some instant before b1): an upper bound.
+        resume = next((s for s in states if s[0] > b_req and s[3]), None)
         # The first command *sent after* the link returned that the edge applied: older commands held in TCP
         # buffers arrive late and are refused as stale, so they say nothing about recovery.
-        echo = next((r for r in records if r[1] > b1 and r[5]), None)
+        echo = next((r for r in records if r[1] > b_req and r[5]), None)
         trial.update(
             stop_after_last_command_ms=stop_ms,
             stop_after_blackout_start_ms=(stop[0] - b0) / 1e6,
             stayed_stopped=not moved_during,
-            motion_resumed_after_ms=(resume[0] - b1) / 1e6 if resume else None,
-            operator_echo_after_ms=(echo[4] - b1) / 1e6 if echo else None,
+            motion_resumed_after_ms=(resume[0] - b_req) / 1e6 if resume else None,
+            operator_echo_after_ms=(echo[4] - b_req) / 1e6 if echo else None,
             ok=stop_ms <= limit_s * 1000 and not moved_during,
         )
         trials.append(trial)
