@@ -99,6 +99,7 @@ class ViewerConfig:
     relay_start_timeout: float = setting(20.0, lo=1.0, hi=120.0)
     queue: int = setting(1024, lo=16, hi=100_000, help="items between the Zenoh side and rerun (oldest dropped)")
     pose_hz: float = setting(30.0, lo=0.1, hi=500.0, help="robot drawing rate per robot")
+    arm_hz: float = setting(10.0, lo=0.1, hi=500.0, help="arm redraws (inverse kinematics) per robot; the tool at pose_hz")
     force_batch_s: float = setting(0.1, lo=0.01, hi=5.0, help="force samples are sent in batches this long")
     image_fps: float = setting(10.0, lo=0.1, hi=60.0, help="images per second and source at most")
     markers_hz: float = setting(10.0, lo=0.1, hi=100.0)

@@ -213,6 +213,7 @@ class _Drawn:
     arrow_colour: tuple[int, int, int, int] = (0, 0, 0, 0)
     online: bool = True
     marker_poses: dict[int, Any] = field(default_factory=dict)
+    arm_pose: tuple[float, ...] | None = None  # the TCP pose the arm was last drawn at
     drawn_pose: tuple[float, ...] = ()
 
 
@@ -226,6 +227,7 @@ class Visualizer:
         self.queue = Inbox(config.viewer.queue, keep="newest")
         self.feeder = VizFeeder(config, self.queue)
         self.on_drawn = on_drawn
+        self._arm_gate = RateGate(config.viewer.arm_hz)
         self._robots: dict[str, _Drawn] = {}
         self._stop = threading.Event()
         self._worker: Worker | None = None
@@ -321,18 +323,29 @@ class Visualizer:
         root = f"robots/{robot}"
         pose = tuple(st.tcp_pose)
         if pose == drawn.drawn_pose:
-            return  # a robot at rest: nothing to redraw (the viewer keeps the latest value)
+            # A robot at rest: nothing to redraw, except an arm that the rate gate left behind the tool.
+            if drawn.arm_pose != pose:
+                self._draw_arm(robot, drawn, st)
+            return
         drawn.drawn_pose = pose
-        q = drawn.arm.solve(st.tcp_pose, st.q)
-        if q is not None:
-            caps = drawn.arm.capsules(q)
-            colour = model.ARM_COLOUR if drawn.online else model.COLOURS["grey"]
-            self.rec.log(f"{root}/arm", rr.Capsules3D(lengths=caps.lengths, radii=caps.radii, translations=caps.translations,
-                                                      quaternions=caps.quaternions, colors=[colour]))
-            if self.on_drawn is not None:
-                self.on_drawn(robot, [float(v) for v in q])
+        # The arm (inverse kinematics + capsules) at arm_hz; the tool frame at every drawn pose.
+        if self._arm_gate.due(robot, time.monotonic()):
+            self._draw_arm(robot, drawn, st)
         tr, quat = model.transform_parts(geometry.pose_to_matrix(st.tcp_pose))
         self.rec.log(f"{root}/tcp", rr.Transform3D(translation=tr, quaternion=rr.Quaternion(xyzw=quat)), rr.TransformAxes3D(0.05))
+
+    def _draw_arm(self, robot: str, drawn: _Drawn, st: RobotState) -> None:
+        drawn.arm_pose = tuple(st.tcp_pose)
+        q = drawn.arm.solve(st.tcp_pose, st.q)
+        if q is None:
+            return
+        caps = drawn.arm.capsules(q)
+        colour = model.ARM_COLOUR if drawn.online else model.COLOURS["grey"]
+        self.rec.log(f"robots/{robot}/arm", rr.Capsules3D(lengths=caps.lengths, radii=caps.radii,
+                                                          translations=caps.translations, quaternions=caps.quaternions,
+                                                          colors=[colour]))
+        if self.on_drawn is not None:
+            self.on_drawn(robot, [float(v) for v in q])
 
     def _draw_arrow(self, robot: str, drawn: _Drawn, stale: bool) -> None:
         colour = model.force_colour(drawn.level, stale)
