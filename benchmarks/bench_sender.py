@@ -98,6 +98,8 @@ def scenario(endpoint: str, seconds: float, tuned: bool, cpu_hog: bool = False, 
         "jitter_max_ms": round(float(dev.max()), 4),
         "max_gap_ms": round(float(gaps.max()), 3),
         "gaps_over_50ms": int((gaps > 50).sum()),
+        "gaps_over_20ms": [[round(float(times[i] - times[0]), 3), round(float(gaps[i]), 1)]
+                           for i in np.flatnonzero(gaps > 20)][:20],  # [s into the run, gap ms]
         "ui_key_events": keys,
         "ui_key_events_per_s": round(keys / (seconds + 1.0), 1),
         "ui_polls": ctrl.polls,

@@ -59,6 +59,7 @@ def connect(config: OperatorConfig) -> OperatorClient:
     return OperatorClient(
         session, config.robot, config.operator_id, rate_hz=config.rate_hz, release_tail=config.release_tail,
         link_window=config.console.link_window, bind_keys=config.bind_operator_keys,
+        sender_config=config.zenoh,  # the sender in its own process, out of reach of the UI's GIL
     )
 
 

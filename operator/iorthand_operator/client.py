@@ -1,7 +1,10 @@
 """The operator's library client: acquire control, stream twists at a fixed rate, watch the robot.
 
-The sender runs in its own thread on an absolute schedule (``rate_hz``, default 60), independent of input
-events: the reference system's irregular, event-driven publishing tripped safety stops. Each twist carries a
+The sender runs on an absolute schedule (``rate_hz``, default 60), independent of input
+events: the reference system's irregular, event-driven publishing tripped safety stops. Given ``sender_config`` (the
+console and the ``iorthand operator`` CLI), it runs in its own process with its own Zenoh session
+(:mod:`iorthand_operator.sender`), out of reach of a busy UI's GIL; without it, in a thread of this process
+(library users, tests). Each twist carries a
 sequence number, its send time and the deadman flag. When the deadman is released the sender keeps sending
 zero twists with ``deadman=False`` for ``release_tail`` seconds, then goes quiet. A liveliness token tells
 the edge this operator is alive; the edge releases control when it disappears (a crash, a kill, Ctrl-C).
@@ -17,7 +20,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import sys
 import threading
 import time
@@ -49,8 +51,9 @@ from iorthand.protocol import (
     TorchState,
     TwistCommand,
 )
-from iorthand.transport import QOS_BY_KEY, publisher, query
+from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query
 from iorthand_operator.link import LinkQuality, LinkWindow
+from iorthand_operator.sender import ProcessSender, raise_priority
 
 log = logging.getLogger("iorthand.operator")
 
@@ -103,6 +106,8 @@ class OperatorClient:
         realtime: bool = True,
         gil_switch_interval: float | None = 0.0005,
         bind_keys: bool = False,
+        sender_config: ZenohConfig | None = None,
+        ui_timeout: float = 0.5,
     ) -> None:
         self.session = session
         self.keys = keys.RobotKeys(robot_id)
@@ -130,7 +135,7 @@ class OperatorClient:
         self.last_refusal: AppliedCommand | None = None
         self.owner = False
         self.lease = 0.0
-        self.muted = False  # True: the sender skips its sends (models a dead link; tests and demo)
+        self._muted = False
         self.link = LinkWindow(link_window)
         self.realtime = realtime
         self.gil_switch_interval = gil_switch_interval
@@ -154,6 +159,14 @@ class OperatorClient:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         twist_key = self.keys.key(keys.CMD_TWIST) + (f"/{self.operator_id}" if bind_keys else "")
+        self.ui_timeout = ui_timeout
+        # The process sender (own session; twists go out from the child) or, without a config, the thread one.
+        self._proc_sender: ProcessSender | None = None
+        if sender_config is not None:
+            self._proc_sender = ProcessSender(
+                sender_config, twist_key, self.operator_id, rate_hz, release_tail, ui_timeout, realtime,
+                self._lock, self._on_send_record,
+            )
         self._pub_twist = publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
         self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP))
         self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO))
@@ -282,6 +295,23 @@ class OperatorClient:
 
     # ------------------------------------------------------------------ the command stream
 
+    @property
+    def muted(self) -> bool:
+        """True: the sender skips its sends (models a dead link; tests and demo)."""
+        return self._muted
+
+    @muted.setter
+    def muted(self, value: bool) -> None:
+        with self._lock:
+            self._muted = bool(value)
+            if self._proc_sender is not None:
+                self._proc_sender.write(muted=self._muted)
+
+    @property
+    def sender_process(self):
+        """The sender's ``multiprocessing.Process`` (None with the thread sender or before ``start``)."""
+        return self._proc_sender.proc if self._proc_sender is not None else None
+
     def set_twist(self, linear, angular, deadman: bool) -> None:
         """What the sender sends from its next tick on (linear m/s, angular rad/s, base frame)."""
         with self._lock:
@@ -291,13 +321,30 @@ class OperatorClient:
             self._deadman = bool(deadman)
             if not deadman:
                 self._twist[:] = 0.0
+            if self._proc_sender is not None:  # shared memory only: microseconds, never blocks on the child
+                self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at)
 
     def start(self) -> None:
         """Start the fixed-rate sender and, while we own the robot, the lease renewal."""
-        for name, fn in (("sender", self._sender), ("lease", self._renew_lease)):
+        fns: list[tuple[str, Any]] = [("lease", self._renew_lease)]
+        if self._proc_sender is not None:
+            if self.gil_switch_interval is not None and sys.getswitchinterval() > self.gil_switch_interval:
+                sys.setswitchinterval(self.gil_switch_interval)  # keeps the heartbeat and echo matching prompt
+            with self._lock:
+                self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at,
+                                        muted=self._muted)
+            self._proc_sender.start()
+            self.sender_priority = f"{self._proc_sender.priority} (process {self._proc_sender.proc.pid})"
+        else:
+            fns.insert(0, ("sender", self._sender))
+        for name, fn in fns:
             t = threading.Thread(target=fn, name=f"operator-{name}", daemon=True)
             t.start()
             self._threads.append(t)
+
+    def _on_send_record(self, seq: int, t_ns: int, mono: float) -> None:
+        """One send by the sender process (called by its link thread, or by an echo arriving first)."""
+        self._record_send(seq, t_ns, mono)
 
     def _raise_priority(self) -> None:
         """Best effort: make the sender hard to delay. Two things delay a Python thread that wakes on time:
@@ -306,14 +353,7 @@ class OperatorClient:
         this thread only, when the OS allows it: root or CAP_SYS_NICE). Measured by benchmarks/bench_sender.py."""
         if self.gil_switch_interval is not None and sys.getswitchinterval() > self.gil_switch_interval:
             sys.setswitchinterval(self.gil_switch_interval)
-        if not self.realtime or not hasattr(os, "sched_setscheduler"):
-            return
-        try:
-            os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO, os.sched_param(10))
-            self.sender_priority = "SCHED_FIFO"
-        except (PermissionError, OSError) as exc:
-            self.sender_priority = f"normal ({exc.strerror or exc})"
-            log.debug("sender stays at normal priority: %s", exc)
+        self.sender_priority = raise_priority(self.realtime)
 
     def _sender(self) -> None:
         self._raise_priority()
@@ -340,17 +380,20 @@ class OperatorClient:
         cmd = TwistCommand(operator=self.operator_id, linear=twist[:3], angular=twist[3:], deadman=deadman)
         cmd.stamp(self._seq.next())
         payload = cmd.encode()
+        self._record_send(cmd.seq, cmd.t, time.monotonic())
+        self._pub_twist.put(payload)
+
+    def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
         with self._lock:
-            self._sent[cmd.seq] = cmd.t
+            self._sent[seq] = t_ns
             while len(self._sent) > 4096:
                 self._sent.popitem(last=False)
             self.sent_count += 1
-            self.last_sent_ns = cmd.t
-            self.send_times.append(time.monotonic())
+            self.last_sent_ns = t_ns
+            self.send_times.append(mono)
             if len(self.send_times) > 400_000:  # ~2 h at 60 Hz: keep memory bounded on long sessions
                 del self.send_times[:100_000]
-        self.link.sent(cmd.seq, cmd.t)
-        self._pub_twist.put(payload)
+        self.link.sent(seq, t_ns)
 
     def _renew_lease(self) -> None:
         while not self._stop.wait(max(0.2, self.lease / 3.0) if self.lease else 0.5):
@@ -364,6 +407,8 @@ class OperatorClient:
 
     def close(self) -> None:
         self._stop.set()
+        if self._proc_sender is not None:
+            self._proc_sender.stop()  # the child first: no orphan, and no twist after close
         for t in self._threads:
             t.join(timeout=1.0)
         try:
@@ -436,6 +481,8 @@ class OperatorClient:
         msg = self._decode(AppliedCommand, sample)
         if msg is None or msg.operator != self.operator_id:
             return
+        if self._proc_sender is not None:
+            self._proc_sender.drain()  # the send record left the child before the command: take it now
         with self._lock:
             sent = self._sent.get(msg.cmd_seq)
             if sent is not None:

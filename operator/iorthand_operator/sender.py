@@ -1,0 +1,330 @@
+"""The operator's command sender in its own process, so a busy UI in the client's interpreter cannot starve it.
+
+A Python thread that must wake every 16.7 ms shares the GIL with the console: measured with a busy console
+(benchmarks/bench_sender.py) the thread sender's jitter p99 was 74 ms with gaps up to 134 ms. This module runs
+the fixed-rate loop in a child process (``spawn``: a fresh interpreter, never a fork of a process holding Zenoh
+threads) that opens its own Zenoh session, publishes ``TwistCommand`` on the client's twist key with the same
+QoS, and does nothing else.
+
+Parent → child: a small shared array written under a seqlock (even generation = stable) by the parent's
+``set_twist``, ``muted`` and a heartbeat thread. The child never blocks on the parent: a snapshot it cannot
+read consistently in a few tries is replaced by its previous one.
+
+Safety: if the parent's heartbeat is older than ``ui_timeout`` the child treats the deadman as released (zero
+twists with ``deadman=False`` for ``release_tail``, then quiet): a frozen UI must not keep the robot moving.
+The child exits when the parent dies (PR_SET_PDEATHSIG, a parent-pid check every tick, a broken pipe).
+
+Child → parent: one record per send (seq, send time, monotonic send instant) through a pipe, written before
+the put, so the parent can match the edge's echo to its send time exactly as with the thread sender.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import multiprocessing as mp
+import os
+import signal
+import struct
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+log = logging.getLogger("iorthand.operator.sender")
+
+# Shared array layout (doubles).
+_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP = 0, 1, 7, 8, 9, 10, 11
+_SIZE = 12
+_RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
+_PR_SET_PDEATHSIG = 1
+
+
+def raise_priority(realtime: bool, native_id: int | None = None) -> str:
+    """Best effort SCHED_FIFO for one thread (root or CAP_SYS_NICE); returns what it got."""
+    if not realtime or not hasattr(os, "sched_setscheduler"):
+        return "normal"
+    try:
+        os.sched_setscheduler(threading.get_native_id() if native_id is None else native_id, os.SCHED_FIFO,
+                              os.sched_param(10))
+        return "SCHED_FIFO"
+    except (PermissionError, OSError) as exc:
+        log.debug("sender stays at normal priority: %s", exc)
+        return f"normal ({exc.strerror or exc})"
+
+
+@contextlib.contextmanager
+def _real_std_streams():
+    """multiprocessing hands sys.stderr's fd to its helpers; a UI that captures the streams (textual) has none:
+    use the process's real streams while the child starts."""
+    saved = sys.stdout, sys.stderr
+    try:
+        for name in ("stdout", "stderr"):
+            try:
+                ok = getattr(sys, name).fileno() >= 0
+            except (AttributeError, OSError, ValueError):
+                ok = False
+            if not ok and getattr(sys, f"__{name}__", None) is not None:
+                setattr(sys, name, getattr(sys, f"__{name}__"))
+        yield
+    finally:
+        sys.stdout, sys.stderr = saved
+
+
+class SharedCommand:
+    """The parent's side of the shared array: a single writer at a time (the caller's lock), seqlocked."""
+
+    def __init__(self, array: Any) -> None:
+        self.array = array
+
+    def write(self, **fields: Any) -> None:
+        a = self.array
+        g = a[_GEN]
+        a[_GEN] = g + 1  # odd: being written
+        for name, value in fields.items():
+            if name == "twist":
+                a[_TWIST:_TWIST + 6] = [float(v) for v in value]
+            else:
+                a[{"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT,
+                   "stop": _STOP}[name]] = float(value)
+        a[_GEN] = g + 2
+
+
+def _read(array: Any, last: list[float] | None) -> list[float] | None:
+    """A consistent copy of the shared array, or ``last`` if the writer is mid-write (never wait for it)."""
+    for _ in range(50):
+        g1 = array[_GEN]
+        if int(g1) % 2 == 0:
+            vals = array[:]
+            if array[_GEN] == g1:
+                return vals
+    return last
+
+
+class ProcessSender:
+    """Parent-side handle: starts the child, drains its send records, writes the heartbeat."""
+
+    def __init__(
+        self,
+        zenoh_config: Any,
+        twist_key: str,
+        operator_id: str,
+        rate_hz: float,
+        release_tail: float,
+        ui_timeout: float,
+        realtime: bool,
+        lock: threading.Lock,
+        on_record: Callable[[int, int, float], None],
+        heartbeat_s: float = 0.05,
+    ) -> None:
+        self._ctx = mp.get_context("spawn")
+        self.array = self._ctx.RawArray("d", _SIZE)
+        self.shared = SharedCommand(self.array)
+        self._lock = lock  # the client's lock: serialises the parent's writers
+        self._on_record = on_record
+        self._drain_lock = threading.Lock()
+        self.heartbeat_s = heartbeat_s
+        self.heartbeat_suspended = False  # test hook: models a frozen UI (no heartbeat, no set_twist)
+        self.priority = "normal"
+        self._args = (zenoh_config, twist_key, operator_id, rate_hz, release_tail, ui_timeout, realtime)
+        self.proc: Any = None
+        self._conn: Any = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.beat()
+
+    def write(self, **fields: Any) -> None:
+        """Write fields (and the heartbeat, unless suspended) under the client's lock (caller holds it)."""
+        if not self.heartbeat_suspended:
+            fields.setdefault("heartbeat", time.monotonic())
+        self.shared.write(**fields)
+
+    def beat(self) -> None:
+        if self.heartbeat_suspended:
+            return
+        with self._lock:
+            self.shared.write(heartbeat=time.monotonic())
+
+    def start(self, timeout: float = 30.0) -> None:
+        recv, send = self._ctx.Pipe(duplex=False)
+        pdeathsig = threading.current_thread() is threading.main_thread()  # PDEATHSIG follows the *thread*
+        self.proc = self._ctx.Process(
+            target=child_main, name="iorthand-sender", daemon=True,
+            args=(send, self.array, *self._args, os.getpid(), pdeathsig),
+        )
+        with _real_std_streams():
+            self.proc.start()
+        send.close()  # the child holds the only write end: EOF here when it exits
+        self._conn = recv
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0 or not recv.poll(min(left, 0.2)):
+                if left <= 0 or not self.proc.is_alive():
+                    self.stop()
+                    raise RuntimeError(f"sender process did not start (exit code {self.proc.exitcode})")
+                continue
+            try:
+                msg = recv.recv_bytes()
+            except EOFError:
+                self.stop()
+                raise RuntimeError("sender process exited during start-up") from None
+            if msg[:1] == b"R":
+                self.priority = msg[1:].decode()
+                break
+            if msg[:1] == b"E":
+                self.stop()
+                raise RuntimeError(f"sender process failed: {msg[1:].decode()}")
+        self._thread = threading.Thread(target=self._link, name="operator-sender-link", daemon=True)
+        self._thread.start()
+
+    def drain(self) -> None:
+        """Hand every record waiting in the pipe to ``on_record`` (from the link thread or an echo callback)."""
+        conn = self._conn
+        if conn is None:
+            return
+        with self._drain_lock:
+            try:
+                while conn.poll(0):
+                    msg = conn.recv_bytes()
+                    if msg[:1] == b"S":
+                        self._on_record(*_RECORD.unpack(msg[1:]))
+            except (EOFError, OSError):
+                self._conn = None
+
+    def _link(self) -> None:
+        last_beat = 0.0
+        while not self._stop.is_set():
+            conn = self._conn
+            if conn is None:
+                self._stop.wait(self.heartbeat_s)
+            else:
+                with contextlib.suppress(EOFError, OSError):
+                    conn.poll(self.heartbeat_s)
+                self.drain()
+            now = time.monotonic()
+            if now - last_beat >= self.heartbeat_s:
+                self.beat()
+                last_beat = now
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.is_alive()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the child (flag, then SIGTERM, then SIGKILL) and the link thread; no orphan survives."""
+        with self._lock:
+            self.shared.write(stop=1.0)
+        proc = self.proc
+        if proc is not None:
+            proc.join(timeout)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(1.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(1.0)
+        self.drain()
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(1.0)
+        if self._conn is not None:
+            with contextlib.suppress(OSError):
+                self._conn.close()
+            self._conn = None
+
+
+# ---------------------------------------------------------------------- the child
+
+
+def child_main(conn, array, zenoh_config, twist_key: str, operator_id: str, rate_hz: float, release_tail: float,
+               ui_timeout: float, realtime: bool, parent_pid: int, pdeathsig: bool) -> None:
+    if pdeathsig:
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent_pid:
+        return  # the parent died before the prctl
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the UI; the parent stops us
+    # SIGTERM (PDEATHSIG, or the parent's stop after its grace time): leave at once. Never run the interpreter's
+    # shutdown here: it joins Zenoh's non-daemon threads and can hang, leaving an orphan.
+    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
+    try:
+        _child_loop(conn, array, zenoh_config, twist_key, operator_id, rate_hz, release_tail, ui_timeout, realtime,
+                    parent_pid)
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(0)
+
+
+def _child_loop(conn, array, zenoh_config, twist_key: str, operator_id: str, rate_hz: float, release_tail: float,
+                ui_timeout: float, realtime: bool, parent_pid: int) -> None:
+    try:
+        import numpy as np
+
+        from iorthand import keys
+        from iorthand.protocol import TwistCommand
+        from iorthand.transport import QOS_BY_KEY, open_session, publisher
+
+        session = open_session(zenoh_config)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            conn.send_bytes(b"E" + f"{type(exc).__name__}: {exc}".encode())
+        return
+    pub = None
+    try:
+        pub = publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
+        priority = raise_priority(realtime)
+        conn.send_bytes(b"R" + priority.encode())
+        period = 1.0 / rate_hz
+        zero = np.zeros(6)
+        seq = 0
+        snap = _read(array, None) or [0.0] * _SIZE
+        stale_since: float | None = None
+        next_tick = time.monotonic()
+        while True:
+            snap = _read(array, snap) or snap
+            if os.getppid() != parent_pid:
+                os._exit(0)  # the parent died: no graceful close (its router link may be gone too)
+            if snap[_STOP]:
+                break
+            now = time.monotonic()
+            if now - snap[_HEARTBEAT] > ui_timeout:  # the UI is frozen (or gone): release the deadman
+                if stale_since is None:
+                    stale_since = now
+                    log.warning("operator UI silent for %.2f s: releasing the deadman", now - snap[_HEARTBEAT])
+                deadman = False
+                released_at = stale_since if snap[_DEADMAN] else snap[_RELEASED]
+            else:
+                stale_since = None
+                deadman = bool(snap[_DEADMAN])
+                released_at = snap[_RELEASED]
+            quiet = not deadman and now - released_at > release_tail
+            if not quiet and not snap[_MUTED]:
+                twist = np.asarray(snap[_TWIST:_TWIST + 6]) if deadman else zero
+                seq += 1
+                cmd = TwistCommand(operator=operator_id, linear=twist[:3], angular=twist[3:], deadman=deadman)
+                cmd.stamp(seq)
+                payload = cmd.encode()
+                conn.send_bytes(b"S" + _RECORD.pack(seq, cmd.t, time.monotonic()))
+                pub.put(payload)
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                # Sleep most of the way, then spin briefly: sleep alone overshoots by ~0.1–1 ms.
+                if delay > 0.002:
+                    time.sleep(delay - 0.0015)
+                while time.monotonic() < next_tick:
+                    pass
+            else:
+                next_tick = time.monotonic()  # overran: resume the schedule from now, never burst
+    except (BrokenPipeError, EOFError, OSError):
+        pass  # the parent went away
+    finally:
+        if pub is not None:
+            with contextlib.suppress(Exception):
+                pub.undeclare()
+        with contextlib.suppress(Exception):
+            session.close()

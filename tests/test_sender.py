@@ -1,0 +1,135 @@
+"""The process sender (iorthand_operator.sender): the fixed-rate twist stream from a child process with its own
+Zenoh session, through a real router on loopback to a simulated robot. Bounds are generous (a loaded 2-core
+machine delays what the test *sees*, not what it checks)."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+import numpy as np
+import psutil
+import pytest
+import zenoh
+
+from iorthand.transport import client_config
+from iorthand_operator.client import OperatorClient
+from tests.conftest import wait_until
+
+
+@pytest.fixture
+def proc_operator(router_endpoint, session_factory):
+    """Operator clients with the process sender (as the console and CLI build them), closed after the test."""
+    clients: list[OperatorClient] = []
+
+    def make(robot_id: str = "sim1", operator_id: str = "op1", **kwargs: object) -> OperatorClient:
+        client = OperatorClient(session_factory(), robot_id, operator_id,
+                                sender_config=client_config(router_endpoint), **kwargs)
+        clients.append(client)
+        return client
+
+    yield make
+    for c in clients:
+        with contextlib.suppress(zenoh.ZError):
+            c.close()
+
+
+def commanded(edge) -> np.ndarray:
+    return np.asarray(edge._commanded)
+
+
+def test_process_sender_moves_the_robot_and_records_echoes(edge_factory, proc_operator) -> None:
+    edge = edge_factory()
+    op = proc_operator()
+    op.wait_for_state()
+    op.acquire()
+    op.start()
+    assert op.sender_process is not None and op.sender_process.is_alive()
+    assert op.sender_process.pid != psutil.Process().pid
+    applied0 = edge.supervisor.counters.applied
+    op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
+    wait_until(lambda: edge.supervisor.counters.applied > applied0 + 30, timeout=10, message="commands applied")
+    wait_until(lambda: np.any(commanded(edge)), timeout=5, message="robot moving")
+    wait_until(lambda: len(op.echoes) > 20, timeout=5, message="echoes")
+    assert op.sent_count >= len(op.echoes) > 20
+    assert all(e.accepted for e in op.echoes[-10:])
+    assert all(0 < e.rtt_ms < 1000 for e in op.echoes)
+    assert op.last_sent_ns > 0 and len(op.send_times) == op.sent_count
+    assert op.link_quality().echoes > 0
+    # Release: the tail of deadman=False zero twists, then quiet.
+    op.set_twist([0, 0, 0], [0, 0, 0], deadman=False)
+    wait_until(lambda: not np.any(commanded(edge)), timeout=5, message="robot stopped")
+    time.sleep(op.release_tail + 0.3)
+    n = op.sent_count
+    time.sleep(0.3)
+    assert op.sent_count == n  # quiet after the release tail
+
+
+def test_frozen_ui_releases_the_deadman(edge_factory, proc_operator) -> None:
+    edge = edge_factory()
+    op = proc_operator(ui_timeout=0.5)
+    op.wait_for_state()
+    op.acquire()
+    op.start()
+    op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
+    wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
+    op._proc_sender.heartbeat_suspended = True  # the UI freezes with the deadman held
+    frozen = time.monotonic()
+    wait_until(lambda: not np.any(commanded(edge)), timeout=5, message="robot stopped after the UI froze")
+    stopped_after = time.monotonic() - frozen
+    bound = op.ui_timeout + edge.config.safety.command_timeout
+    print(f"\nfrozen UI → commanded zero after {1000 * stopped_after:.0f} ms (bound {1000 * bound:.0f} ms)")
+    assert stopped_after < bound + 1.0  # generous: a loaded machine delays what we see
+    assert stopped_after > 0.3  # it was the heartbeat timeout, not something else
+    # The child went quiet after the release tail (no more sends while the UI stays frozen).
+    time.sleep(op.release_tail + 0.3)
+    n = op.sent_count
+    time.sleep(0.4)
+    assert op.sent_count == n
+    assert op.echoes[-1].status != "" and op.sender_process.is_alive()
+
+
+def test_muted_silences_the_process_sender(edge_factory, proc_operator) -> None:
+    edge = edge_factory()
+    op = proc_operator()
+    op.wait_for_state()
+    op.acquire()
+    op.start()
+    op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
+    wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
+    op.muted = True
+    wait_until(lambda: op.safety is not None and op.safety.status == "command_timeout", timeout=5,
+               message="command timeout at the edge")
+    n = op.sent_count
+    time.sleep(0.3)
+    assert op.sent_count == n
+    assert not np.any(commanded(edge))
+    op.muted = False
+    wait_until(lambda: op.sent_count > n + 5, timeout=5, message="sending again")
+
+
+def test_close_leaves_no_child_process(edge_factory, proc_operator) -> None:
+    edge_factory()
+    op = proc_operator()
+    op.start()
+    proc = op.sender_process
+    pid = proc.pid
+    assert psutil.pid_exists(pid)
+    t0 = time.monotonic()
+    op.close()
+    assert time.monotonic() - t0 < 10
+    assert not proc.is_alive()
+    assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    assert pid not in [c.pid for c in psutil.Process().children(recursive=True)]
+
+
+def test_thread_sender_unchanged_without_config(edge_factory, operator_factory) -> None:
+    edge = edge_factory()
+    op = operator_factory()
+    op.wait_for_state()
+    op.acquire()
+    op.start()
+    assert op.sender_process is None
+    op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
+    wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
+    wait_until(lambda: len(op.echoes) > 5, timeout=5, message="echoes")
