@@ -18,14 +18,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from iorthand.config import from_dict
+from iorthand.geometry import compose, invert
 from iorthand_edge.perception.camera import Frame
 from iorthand_edge.perception.chain import CameraChain
 from iorthand_edge.perception.config import PerceptionConfig
 from iorthand_edge.perception.pipeline import PerceptionPipeline
 from iorthand_edge.perception.synthetic import SyntheticCamera, look_at
-
-from iorthand.config import from_dict
-from iorthand.geometry import compose, invert
 
 RESULTS = Path(__file__).resolve().parent / "results" / "perception.json"
 SERVO = (0.2, -0.1)
