@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -302,16 +303,35 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox) -> zenoh.Subscribe
     return session.declare_subscriber(key, on_sample)
 
 
-class Worker(threading.Thread):
-    """A named daemon thread that runs ``target(stop_event)``; logs and records a crash instead of hiding it."""
+def raise_priority(realtime: bool, native_id: int | None = None) -> str:
+    """Best effort SCHED_FIFO for one thread (root or CAP_SYS_NICE); returns what it got. Only for threads that
+    block between short bursts of work (a fixed-rate sender, a control loop): a spinning one would starve others."""
+    if not realtime or not hasattr(os, "sched_setscheduler"):
+        return "normal"
+    try:
+        os.sched_setscheduler(threading.get_native_id() if native_id is None else native_id, os.SCHED_FIFO,
+                              os.sched_param(10))
+        return "SCHED_FIFO"
+    except (PermissionError, OSError) as exc:
+        log.debug("thread stays at normal priority: %s", exc)
+        return f"normal ({exc.strerror or exc})"
 
-    def __init__(self, name: str, target: Callable[[threading.Event], None], stop: threading.Event) -> None:
+
+class Worker(threading.Thread):
+    """A named daemon thread that runs ``target(stop_event)``; logs and records a crash instead of hiding it.
+    ``realtime``: ask for SCHED_FIFO (see :func:`raise_priority`)."""
+
+    def __init__(self, name: str, target: Callable[[threading.Event], None], stop: threading.Event,
+                 realtime: bool = False) -> None:
         super().__init__(name=name, daemon=True)
         self._target_fn = target
         self._stop_event = stop
+        self._realtime = realtime
+        self.priority = "normal"
         self.error: BaseException | None = None
 
     def run(self) -> None:
+        self.priority = raise_priority(self._realtime)
         try:
             self._target_fn(self._stop_event)
         except BaseException as exc:  # a dead worker must be visible, never silent

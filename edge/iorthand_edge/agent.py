@@ -187,8 +187,11 @@ class EdgeAgent:
             s.liveliness().declare_subscriber(k.alive_operators, self._on_operator_liveliness, history=True),
         ]
         self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
-        for name, fn in (("control", self._control_loop), ("commands", self._command_loop), ("control-plane", self._control_plane_loop)):
-            w = Worker(f"edge-{name}", fn, self.stop_event)
+        # The control loop and the command path run at real-time priority where allowed (root on the Pi):
+        # both block between short bursts, so they cannot starve the rest.
+        for name, fn, rt in (("control", self._control_loop, True), ("commands", self._command_loop, True),
+                             ("control-plane", self._control_plane_loop, False)):
+            w = Worker(f"edge-{name}", fn, self.stop_event, realtime=rt and self.config.realtime)
             w.start()
             self._workers.append(w)
         self._start_components()

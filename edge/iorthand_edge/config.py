@@ -37,6 +37,7 @@ class EdgeConfig:
     require_operator_alive: bool = setting(
         True, help="acquire only for an operator whose liveliness token is present (ACL-bound to its certificate)"
     )
+    realtime: bool = setting(True, help="SCHED_FIFO for the control and command threads when allowed")
     bind_operator_keys: bool = setting(
         False, help="commands and control queries only on keys that carry the operator id (with the generated ACL)"
     )

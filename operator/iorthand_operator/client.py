@@ -51,9 +51,9 @@ from iorthand.protocol import (
     TorchState,
     TwistCommand,
 )
-from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query
+from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
 from iorthand_operator.link import LinkQuality, LinkWindow
-from iorthand_operator.sender import ProcessSender, raise_priority
+from iorthand_operator.sender import ProcessSender
 
 log = logging.getLogger("iorthand.operator")
 

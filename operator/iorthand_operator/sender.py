@@ -33,6 +33,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from iorthand.transport import raise_priority
+
 log = logging.getLogger("iorthand.operator.sender")
 
 # Shared array layout (doubles).
@@ -40,19 +42,6 @@ _GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP = 0, 1, 7, 8, 9, 10
 _SIZE = 12
 _RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
 _PR_SET_PDEATHSIG = 1
-
-
-def raise_priority(realtime: bool, native_id: int | None = None) -> str:
-    """Best effort SCHED_FIFO for one thread (root or CAP_SYS_NICE); returns what it got."""
-    if not realtime or not hasattr(os, "sched_setscheduler"):
-        return "normal"
-    try:
-        os.sched_setscheduler(threading.get_native_id() if native_id is None else native_id, os.SCHED_FIFO,
-                              os.sched_param(10))
-        return "SCHED_FIFO"
-    except (PermissionError, OSError) as exc:
-        log.debug("sender stays at normal priority: %s", exc)
-        return f"normal ({exc.strerror or exc})"
 
 
 @contextlib.contextmanager
