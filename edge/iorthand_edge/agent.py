@@ -353,12 +353,15 @@ class EdgeAgent:
                 hook(reading)
             self._pub_robot.put(state.encode())
             self._publish_safety()
-            next_tick += self.period
-            delay = next_tick - time.monotonic()
-            if delay > 0:
-                stop.wait(delay)
-            else:
-                next_tick = time.monotonic()  # overran: do not try to catch up with a burst
+            now = time.monotonic()
+            if now >= next_tick:  # this cycle was a tick (not an early wake for the deadman)
+                next_tick += self.period
+                if next_tick <= now:
+                    next_tick = now + self.period  # overran: do not try to catch up with a burst
+            # Wake at the next tick, or earlier when the deadman times out before it.
+            wake = min(next_tick, self.supervisor.timeout_at() + 1e-4)
+            if wake > now:
+                stop.wait(wake - now)
 
     def _drive(self, decision: Decision) -> None:
         """Send the decided twist to the robot (caller holds the lock). A zero twist after motion is a stop

@@ -161,6 +161,11 @@ class Supervisor:
         """The owner holds the deadman (its last fresh command had the flag set)."""
         return self._deadman
 
+    def timeout_at(self) -> float:
+        """Monotonic time at which the held deadman times out (inf when it is not held): the control loop wakes
+        then, not only at its next tick, so a dead link stops the robot at the timeout itself."""
+        return self._last_accepted + self.config.command_timeout if self._deadman else math.inf
+
     def command_age(self, now: float) -> float:
         """Seconds since the last accepted command (monotonic ``now``); -1 before the first."""
         return -1.0 if math.isinf(self._last_accepted) else max(0.0, now - self._last_accepted)
