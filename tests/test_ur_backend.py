@@ -88,8 +88,9 @@ def test_state_speedl_and_stop(emu: UREmulator, make_robot: Callable[..., URRobo
     robot = make_robot()
     robot.connect()
     emu.set_force([1.0, -2.0, 10.0, 0.1, 0.0, 0.0])
-    reading, _ = until(robot, lambda r: r.tcp_force[2] == pytest.approx(10.0), 2.0, "the force")
-    assert healthy(reading) and reading.mode == "running"
+    # Right after connecting the state stream may show the script as not yet running for a period: wait for both.
+    reading, _ = until(robot, lambda r: healthy(r) and r.tcp_force[2] == pytest.approx(10.0), 2.0, "the force")
+    assert reading.mode == "running"
     assert list(reading.tcp_pose) == pytest.approx(list(HOME_POSE), abs=1e-9)
     assert list(reading.q) == pytest.approx(list(HOME_Q))
     assert list(reading.tcp_force) == pytest.approx([1.0, -2.0, 10.0, 0.1, 0.0, 0.0])

@@ -114,11 +114,15 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     def reader() -> None:
         next_tick = time.monotonic()
         while not done.is_set():
-            state = (
-                list(recv.getActualTCPPose()), list(recv.getActualTCPSpeed()), list(recv.getActualQ()),
-                recv.getTimestamp(), recv.getRobotMode(), recv.getSafetyMode(), recv.isConnected(),
-                ctrl.isProgramRunning(), list(recv.getActualTCPForce()), ctrl.isConnected(),
-            )
+            try:
+                state = (
+                    list(recv.getActualTCPPose()), list(recv.getActualTCPSpeed()), list(recv.getActualQ()),
+                    recv.getTimestamp(), recv.getRobotMode(), recv.getSafetyMode(), recv.isConnected(),
+                    ctrl.isProgramRunning(), list(recv.getActualTCPForce()), ctrl.isConnected(),
+                )
+            except RuntimeError as exc:  # ur_rtde's own reconnect failed inside a call
+                send(("lost", f"RTDE link to the controller lost ({exc})"))
+                shutdown()
             if not send(("state", state)):
                 return
             next_tick += period
@@ -163,6 +167,9 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                         shutdown()
         except (EOFError, OSError):  # the agent is gone: stop the robot and leave
             shutdown()
+        except RuntimeError as exc:  # ur_rtde raises when its own reconnect to a lost controller fails
+            send(("lost", f"RTDE link to the controller lost ({exc})"))
+            shutdown()
         now = time.monotonic()
         if now < next_kick and not commanded:
             continue
@@ -175,7 +182,11 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                 ctrl.speedStop(cfg["stop_deceleration"])
             moving = False
         elif agent_alive and not commanded:
-            ctrl.kickWatchdog()  # a command written this cycle already counts as a kick
+            try:
+                ctrl.kickWatchdog()  # a command written this cycle already counts as a kick
+            except RuntimeError as exc:
+                send(("lost", f"RTDE link to the controller lost ({exc})"))
+                shutdown()
     shutdown()
 
 
@@ -295,6 +306,9 @@ class URRobot(Robot):
                     if self._state is None or payload[3] != self._state[3]:
                         self._stamp_changed_at = time.monotonic()
                     self._state, self._state_at = payload, time.monotonic()
+                elif kind == "lost":
+                    self._fail(payload)
+                    return
                 elif kind == "refused":
                     # Not a fault by itself: the state (program running, safety mode) tells why, next cycle.
                     now = time.monotonic()
