@@ -85,14 +85,15 @@ def test_speed_never_exceeds_the_remote_profile(edge_factory, operator_factory, 
     assert any(e.status == "speed_limited" for e in op.echoes)
 
 
-def _stop_time_ms(log: StateLog, last_cmd_ns: int, period: float, timeout: float) -> float:
+def _stop_time_ms(log: StateLog, last_cmd_ns: int) -> float:
     wait_until(lambda: log.first_stop_after(last_cmd_ns) is not None, timeout=5.0, message="commanded speed zero")
     stop = log.first_stop_after(last_cmd_ns)
     assert stop is not None
     return (stop.t - last_cmd_ns) / 1e6
 
 
-def test_deadman_released_stops_at_once(edge_factory, operator_factory, session_factory) -> None:
+def moving_robot(edge_factory, operator_factory, session_factory):
+    """An edge, a log of its states and an operator moving the tool at 5 mm/s with the deadman held."""
     edge = edge_factory()
     log = StateLog(session_factory())
     op = operator_factory()
@@ -101,27 +102,25 @@ def test_deadman_released_stops_at_once(edge_factory, operator_factory, session_
     op.start()
     op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
     wait_until(lambda: moving(log), message="robot moving")
+    return edge, log, op
+
+
+def test_deadman_released_stops_at_once(edge_factory, operator_factory, session_factory) -> None:
+    edge, log, op = moving_robot(edge_factory, operator_factory, session_factory)
     op.set_twist([0, 0, 0], [0, 0, 0], deadman=False)
     released = time.time_ns()
-    ms = _stop_time_ms(log, released, edge.period, edge.config.safety.command_timeout)
+    ms = _stop_time_ms(log, released)
     bound = 1000 * (edge.config.safety.command_timeout + edge.period)
     print(f"\ndeadman released → commanded zero in {ms:.1f} ms (bound {bound:.0f} ms)")
     assert ms <= bound
 
 
 def test_silent_sender_stops_within_timeout_plus_one_period(edge_factory, operator_factory, session_factory) -> None:
-    edge = edge_factory()
-    log = StateLog(session_factory())
-    op = operator_factory()
-    op.wait_for_state()
-    op.acquire()
-    op.start()
-    op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
-    wait_until(lambda: moving(log), message="robot moving")
+    edge, log, op = moving_robot(edge_factory, operator_factory, session_factory)
     op.muted = True  # the link dies with the deadman still held
     time.sleep(0.05)
     last_sent = op.last_sent_ns
-    ms = _stop_time_ms(log, last_sent, edge.period, edge.config.safety.command_timeout)
+    ms = _stop_time_ms(log, last_sent)
     bound = 1000 * (edge.config.safety.command_timeout + edge.period)
     print(f"\nsilent sender → commanded zero {ms:.1f} ms after the last command (bound {bound:.0f} ms)")
     assert ms <= bound + 2.0  # +2 ms: the last command's flight time through the router counts in `ms`
@@ -146,7 +145,7 @@ def test_killed_operator_stops_the_robot_and_releases_control(router_endpoint, e
         proc.send_signal(signal.SIGKILL)
         killed = time.time_ns()
         proc.wait(5)
-        ms = _stop_time_ms(log, killed, edge.period, edge.config.safety.command_timeout)
+        ms = _stop_time_ms(log, killed)
         bound = 1000 * (edge.config.safety.command_timeout + edge.period)
         print(f"\noperator killed → commanded zero in {ms:.1f} ms (bound {bound:.0f} ms)")
         assert ms <= bound

@@ -104,6 +104,7 @@ class OperatorClient:
         query_timeout: float = 2.0,
         link_window: float = 5.0,
         realtime: bool = True,
+        spin: bool = True,
         gil_switch_interval: float | None = 0.0005,
         bind_keys: bool = False,
         sender_config: ZenohConfig | None = None,
@@ -138,6 +139,9 @@ class OperatorClient:
         self._muted = False
         self.link = LinkWindow(link_window)
         self.realtime = realtime
+        # The thread sender sleeps most of each period and spins the last ~1.5 ms for sub-ms regularity; many
+        # clients on one small machine (scale benchmarks) sleep only.
+        self.spin = spin
         self.gil_switch_interval = gil_switch_interval
         self.sender_priority = "normal"  # what the sender thread got: "SCHED_FIFO", "normal (…)"
         self.events: deque[Event] = deque(maxlen=200)
@@ -369,9 +373,11 @@ class OperatorClient:
             delay = next_tick - time.monotonic()
             if delay > 0:
                 # Sleep most of the way, then spin briefly: sleep alone overshoots by ~0.1–1 ms.
-                if delay > 0.002:
+                if not self.spin:
+                    self._stop.wait(delay)
+                elif delay > 0.002:
                     self._stop.wait(delay - 0.0015)
-                while time.monotonic() < next_tick:
+                while self.spin and time.monotonic() < next_tick:
                     pass
             else:
                 next_tick = time.monotonic()  # overran: resume the schedule from now, never burst

@@ -313,31 +313,12 @@ class BenchClient(OperatorClient):
         self.bench_echo: list[tuple[bytes, int]] = []
         self.shared_cpu = shared_cpu
         if shared_cpu:
+            # Many operators on one 2-core machine (scale runs): a spinning real-time sender times twenty would
+            # take the cores from the routers being measured. Same schedule, sleeping only.
             kwargs["realtime"] = False
+            kwargs["spin"] = False
         super().__init__(*args, **kwargs)
         self._bench_sub = self.session.declare_subscriber(self.keys.key(keys.STATE_APPLIED), self._bench_on_applied)
-
-    def _sender(self) -> None:
-        if not self.shared_cpu:
-            super()._sender()
-            return
-        # Many operators on one 2-core machine (scale runs): the shipped sender spins ~1.5 ms per tick (at
-        # SCHED_FIFO as root) for sub-ms regularity, which costs nothing on an operator's own laptop but, times
-        # twenty, takes the cores from the routers being measured. Same schedule, sleeping only.
-        period = 1.0 / self.rate_hz
-        next_tick = time.monotonic()
-        while not self._stop.is_set():
-            with self._lock:
-                twist, deadman = self._twist.copy(), self._deadman
-                quiet = not deadman and time.monotonic() - self._released_at > self.release_tail
-            if not quiet and not self.muted:
-                self._send(twist, deadman)
-            next_tick += period
-            delay = next_tick - time.monotonic()
-            if delay > 0:
-                self._stop.wait(delay)
-            else:
-                next_tick = time.monotonic()
 
     def _send(self, twist: np.ndarray, deadman: bool) -> None:
         super()._send(twist, deadman)
