@@ -90,8 +90,10 @@ class ViewerServer:
         self.proc: subprocess.Popen[bytes] | None = None
         self.url = ""
         self.grpc_url = ""
+        self._rec: rr.RecordingStream | None = None
 
     def start(self, rec: rr.RecordingStream, default_blueprint: object | None = None) -> None:
+        self._rec = rec
         c = self.config
         sinks: list[object] = []
         if c.serve:
@@ -121,6 +123,13 @@ class ViewerServer:
             rec.set_sinks(*sinks, default_blueprint=default_blueprint)  # type: ignore[arg-type]
 
     def stop(self) -> None:
+        if self._rec is not None:
+            # Flush and drop the sinks before the relay goes: a stream left pointing at a dead relay reports
+            # "connection severed" errors when the process exits.
+            with contextlib.suppress(Exception):
+                self._rec.flush(timeout_sec=2.0)
+                self._rec.disconnect()
+            self._rec = None
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
             try:
