@@ -117,7 +117,7 @@ def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, 
         f"{gaps.get('malformed', 0)} malformed",
         f"  refusals                  {'; '.join(r[:70] for r in result['refusals'][:3]) or 'none'}",
         f"  report                    {report_path}",
-        f"  twin (rerun)              {workdir / 'twin.rrd'}  (rerun {workdir / 'twin.rrd'})" + (f"; live: {twin_url}" if twin_url else ""),
+        f"  twin (rerun)              {workdir / 'twin.rrd'}  (view it: .venv/bin/rerun {workdir / 'twin.rrd'})" + (f"; live: {twin_url}" if twin_url else ""),
         f"  logs, configs, recording  {workdir}",
     ]
     print("\n".join(lines), flush=True)
