@@ -17,7 +17,6 @@ import threading
 import time
 import types
 import typing
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, ClassVar, Self
@@ -263,7 +262,6 @@ class ForceLevel(IntEnum):
 
 
 FORCE_LEVEL_COLOURS = {ForceLevel.SAFE: "green", ForceLevel.CAUTION: "yellow", ForceLevel.DANGER: "red"}
-STALE_COLOUR = "grey"
 
 
 class Status:
@@ -616,7 +614,3 @@ def message_type_for(key: str) -> type[Message] | None:
     except keys.KeyExprError:
         return None
     return MESSAGES_BY_KEY.get(suffix)
-
-
-def as_floats(values: Sequence[float]) -> list[float]:
-    return [float(v) for v in values]

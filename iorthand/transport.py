@@ -17,7 +17,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -393,7 +393,6 @@ __all__ = [
     "Worker",
     "ZenohConfig",
     "client_config",
-    "field",
     "open_session",
     "publisher",
     "query",
