@@ -204,13 +204,6 @@ class OperatorClient:
 
     def acquire(self, profile: str = "") -> ControlReply:
         reply = self._control(keys.CONTROL_ACQUIRE, profile)
-        # Our liveliness token, declared with this client, may not have reached the edge yet: the edge hands
-        # control only to an operator whose token it sees. Give it a moment before taking no for an answer.
-        for _ in range(10):
-            if reply.ok or "liveliness token" not in reply.reason:
-                break
-            time.sleep(0.1)
-            reply = self._control(keys.CONTROL_ACQUIRE, profile)
         if not reply.ok:
             self.log_event("control", Status.NOT_OWNER, f"control refused: {reply.reason}")
             raise ControlRefused(reply.reason)
