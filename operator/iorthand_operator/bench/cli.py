@@ -130,10 +130,11 @@ def run_wan_part(args: argparse.Namespace) -> dict[str, Any]:
 def run_scale_part(args: argparse.Namespace) -> dict[str, Any]:
     from iorthand_operator.bench.scale import run_scale
 
-    res = run_scale(_workdir(args), args.counts, args.duration, args.topologies, args.per_process, args.edges)
+    res = run_scale(_workdir(args), args.counts, args.duration, args.topologies, args.per_process, args.edges,
+                    args.operators)
     rows = [[f"{p['topology']} N={p['n']}", p["sent"], p["lost"], p["refused"], p["rtt_ms"]["p50"], p["rtt_ms"]["p99"],
              p["worst_robot_p99_ms"], p["router_cpu_percent_total"]] for p in res["points"]]
-    print(f"\nScale: N robots ({args.edges} edges) + N operators, full streams without video")
+    print(f"\nScale: N robots ({args.edges} edges) + N operators ({args.operators}), full streams without video")
     print(report.table(["case", "sent", "lost", "refused", "p50 ms", "p99 ms", "worst robot p99", "router CPU %"], rows))
     res["pngs"] = [str(plots.scale_plot(res["points"], args.out / "scale.png"))]
     for p in res["points"]:
@@ -177,7 +178,7 @@ def _run_all(args: argparse.Namespace) -> int:
                  "trials": 5 if q else 20, "blackout_s": 1.5, "links": "edge", "loopback": False,
                  "long_blackout_s": [] if q else [5.0]}),
         ("scale", {"duration": 8.0 if q else 15.0, "counts": [1, 5, 10, 20], "topologies": ["router"] if q else ["router", "mesh"],
-                   "per_process": 5, "edges": "light"}),
+                   "per_process": 10, "edges": "light", "operators": "light"}),
     ]
     for part, overrides in plan:
         print(f"\n=== {part} ===", flush=True)
@@ -250,9 +251,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     common(s, 15.0)
     s.add_argument("--counts", type=int, nargs="+", default=[1, 5, 10, 20])
     s.add_argument("--topologies", nargs="+", default=["router", "mesh"], choices=["router", "mesh"])
-    s.add_argument("--per-process", type=int, default=5, help="operators (and light robots) per process")
+    s.add_argument("--per-process", type=int, default=10, help="operators (and light robots) per process")
     s.add_argument("--edges", default="light", choices=["light", "full"],
                    help="light: LightRobot stand-ins, several per process; full: one iorthand edge process each")
+    s.add_argument("--operators", default="light", choices=["light", "client"],
+                   help="light: LightOperator stand-ins; client: the real OperatorClient (measures this machine)")
 
     le = bsub.add_parser("linkemu", help="run the link emulator (TCP relay with delay/jitter) in the foreground")
     le.add_argument("linkemu_args", nargs=argparse.REMAINDER, help="--listen H:P --connect H:P --delay-ms ...")

@@ -137,7 +137,7 @@ def targets(results: dict[str, Any]) -> list[dict[str, Any]]:
         for p in sc["points"]:
             if p["n"] == 20:
                 out.append({"target": f"scale ({p['topology']}): 20 robots, no command lost, p99 ≤ 10 ms",
-                            "lost": p["lost"], "p99_ms": p["rtt_ms"]["p99"], "ok": p["lost"] == 0 and p["rtt_ms"]["p99"] <= 10})
+                            "operators": p["operators"], "lost": p["lost"], "p99_ms": p["rtt_ms"]["p99"], "ok": p["lost"] == 0 and p["rtt_ms"]["p99"] <= 10})
     return out
 
 

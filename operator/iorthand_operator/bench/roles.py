@@ -334,13 +334,15 @@ class BenchClient(OperatorClient):
         super().close()
 
 
-def _echo_records(client: BenchClient) -> list[list[Any]]:
+def _echo_records(echoes: list[tuple[bytes, int]], operator_id: str) -> list[list[Any]]:
+    """Raw ``state/applied`` echoes (payload, arrival ns) → this operator's rows
+    ``[cmd_seq, t1, t2, t3, t4, accepted, status]``, decoded after the run to keep callbacks short."""
     from iorthand.protocol import AppliedCommand
 
     out = []
-    for data, t4 in list(client.bench_echo):
+    for data, t4 in list(echoes):
         msg = AppliedCommand.decode(data)
-        if msg.operator == client.operator_id:
+        if msg.operator == operator_id:
             out.append([msg.cmd_seq, msg.cmd_t, msg.recv_t, msg.t, t4, msg.accepted, msg.status])
     return out
 
@@ -420,7 +422,7 @@ def operator_probe(args: argparse.Namespace) -> int:
             "robots": {
                 c.keys.robot: {
                     "operator": c.operator_id, "rate": args.rate,
-                    "sent": list(c.bench_sent), "records": _echo_records(c),
+                    "sent": list(c.bench_sent), "records": _echo_records(c.bench_echo, c.operator_id),
                     "edge": {"received": c.safety.received, "applied": c.safety.applied, "rejected": c.safety.rejected}
                     if c.safety else {},
                 }
@@ -549,8 +551,107 @@ def robot_farm(args: argparse.Namespace) -> int:
     return 0
 
 
+class LightOperator:
+    """A light stand-in for one operator console (scale runs): its own session, a liveliness token, control
+    acquired by query, a ``TwistCommand`` stream with the command QoS, and subscriptions to what a console
+    watches (state/robot, state/safety, state/applied), so the router forwards every stream as in a real
+    deployment. Received state is counted, not decoded; echoes are stored raw and decoded after the run. A
+    full ``OperatorClient`` costs ~5 % of a core; twenty of them (plus twenty robots) measure this 2-core
+    machine's scheduler rather than the router (``--operators client`` measures that case)."""
+
+    def __init__(self, session: zenoh.Session, robot: str, operator_id: str) -> None:
+        from iorthand.protocol import Sequencer
+        from iorthand.transport import QOS_BY_KEY, publisher
+
+        self.session = session
+        self.keys = k = keys.RobotKeys(robot)
+        self.operator_id = operator_id
+        self.seq = Sequencer()
+        self.sent: list[tuple[int, int]] = []
+        self.echoes: list[tuple[bytes, int]] = []
+        self.states = 0
+        self.pub_twist = publisher(session, k.key(keys.CMD_TWIST), QOS_BY_KEY[keys.CMD_TWIST])
+        self._token = session.liveliness().declare_token(k.alive_operator(operator_id))
+        self._decl = [
+            session.declare_subscriber(k.key(keys.STATE_ROBOT), self._on_state),
+            session.declare_subscriber(k.key(keys.STATE_SAFETY), self._on_state),
+            session.declare_subscriber(k.key(keys.STATE_APPLIED), self._on_applied),
+        ]
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        self.states += 1
+
+    def _on_applied(self, sample: zenoh.Sample) -> None:
+        self.echoes.append((sample.payload.to_bytes(), time.time_ns()))
+
+    def acquire(self) -> None:
+        from iorthand.protocol import ControlReply, ControlRequest
+        from iorthand.transport import query
+
+        req = ControlRequest(operator=self.operator_id).stamp(1).encode()
+        replies = query(self.session, self.keys.key(keys.CONTROL_ACQUIRE), req, timeout=2.0)
+        if not replies or not ControlReply.decode(replies[0]).ok:
+            raise RuntimeError(f"{self.keys.robot}: control not granted")
+
+    def send(self, linear: list[float], deadman: bool) -> None:
+        from iorthand.protocol import TwistCommand
+
+        cmd = TwistCommand(operator=self.operator_id, linear=linear, angular=[0.0, 0.0, 0.0], deadman=deadman)
+        payload = cmd.stamp(self.seq.next()).encode()
+        self.sent.append((cmd.seq, cmd.t))
+        self.pub_twist.put(payload)
+
+
+
+def operator_farm(args: argparse.Namespace) -> int:
+    """Light operators (see :class:`LightOperator`), one per robot in ``--robots``, one session each; one loop
+    sends every operator's twist at ``--rate``, the operators spread evenly over the period (as independent
+    consoles' clocks would be), reversing direction every ``--flip-s``."""
+    stop = _stop_event(args.max_seconds)
+    robots = args.robots.split(",")
+    ops = [LightOperator(_zenoh(args), r, f"{args.operator_id}-{i}") for i, r in enumerate(robots)]
+    for op in ops:
+        deadline = time.monotonic() + 60.0
+        while True:
+            try:
+                op.acquire()
+                break
+            except Exception as exc:  # the robot's session may not be routed yet
+                if time.monotonic() > deadline or stop.is_set():
+                    raise RuntimeError(f"could not acquire {op.keys.robot}: {exc}") from None
+                stop.wait(0.3)
+    print("probe ready", flush=True)
+    period = 1.0 / args.rate
+    slot = period / len(ops)
+    t0, n = time.monotonic(), 0
+    while not stop.is_set() and time.monotonic() - t0 < args.duration:
+        y = args.speed if int((time.monotonic() - t0) / args.flip_s) % 2 == 0 else -args.speed
+        for i, op in enumerate(ops):
+            _sleep_until(t0 + n * period + i * slot, stop)
+            op.send([0.0, y, 0.0], True)
+        n += 1
+        _sleep_until(t0 + n * period, stop)
+    for op in ops:
+        op.send([0.0, 0.0, 0.0], False)
+    stop.wait(1.0)  # the last echoes
+    out = {
+        "robots": {
+            op.keys.robot: {"operator": op.operator_id, "rate": args.rate, "sent": op.sent,
+                            "records": _echo_records(op.echoes, op.operator_id),
+                            "states_received": op.states}
+            for op in ops
+        },
+        "events": [],
+    }
+    _write(args.out, out)
+    for op in ops:
+        op.session.close()
+    return 0
+
+
 ROLES = {
     "robot-farm": robot_farm,
+    "operator-farm": operator_farm,
     "zenoh-echo": zenoh_echo,
     "zenoh-ping": zenoh_ping,
     "mqtt-echo": mqtt_echo,
