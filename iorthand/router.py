@@ -11,7 +11,7 @@ from pathlib import Path
 
 import zenoh
 
-from iorthand.transport import load_router_config
+from iorthand.transport import load_router_config, router_settings
 
 log = logging.getLogger("iorthand.router")
 
@@ -33,13 +33,11 @@ def _cmd(args: argparse.Namespace) -> int:
         config = load_router_config(Path(args.config))
         if args.listen:
             config.insert_json5("listen/endpoints", json.dumps(args.listen))
+        if args.connect:
+            config.insert_json5("connect/endpoints", json.dumps(args.connect))
     else:
-        config = zenoh.Config()
-        config.insert_json5("mode", '"router"')
-        config.insert_json5("listen/endpoints", json.dumps(args.listen or ["tcp/127.0.0.1:7447"]))
-        config.insert_json5("scouting/multicast/enabled", "false")
-    if args.connect:
-        config.insert_json5("connect/endpoints", json.dumps(args.connect))
+        settings = router_settings(args.listen or ["tcp/127.0.0.1:7447"], args.connect)
+        config = zenoh.Config.from_json5(json.dumps(settings))
     endpoints = json.loads(config.get_json("listen/endpoints"))
     if isinstance(endpoints, dict):  # per-role form {router: [...], peer: [...]}
         endpoints = endpoints.get("router", [])

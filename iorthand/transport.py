@@ -368,16 +368,30 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+# A router forwards many robots' commands over one link (edge site → cloud in a mesh). Zenoh's queue per
+# priority holds 2 batches by default and each express command takes a whole batch, so a CPU stall of a
+# millisecond or two fills it and the next commands are dropped (CongestionControl.DROP waits 1 ms). Measured
+# with 20 robots through a mesh of three routers on 2 cores (`iorthand bench scale`): 20–29 of 18,020
+# commands lost with the default, none with these. Batches are allocated lazily, only when a stall needs them.
+ROUTER_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
+
+
+def router_settings(listen: list[str], connect: list[str] | None = None, lease_ms: int = 2000) -> dict[str, Any]:
+    """A plain router's configuration as a dict (written as JSON, it is a JSON5 file a stock zenohd reads)."""
+    cfg: dict[str, Any] = {
+        "mode": "router",
+        "listen": {"endpoints": list(listen)},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"link": {"tx": {"lease": lease_ms, "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}}},
+    }
+    if connect:
+        cfg["connect"] = {"endpoints": list(connect)}
+    return cfg
+
+
 def router_json5(endpoint: str) -> str:
     """A minimal loopback router configuration (tests, demo)."""
-    return json.dumps(
-        {
-            "mode": "router",
-            "listen": {"endpoints": [endpoint]},
-            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-            "transport": {"link": {"tx": {"lease": 2000}}},
-        }
-    )
+    return json.dumps(router_settings([endpoint]))
 
 
 def client_config(endpoint: str, **overrides: Any) -> ZenohConfig:

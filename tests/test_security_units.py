@@ -12,7 +12,16 @@ import pytest
 import zenoh
 
 from iorthand.security import acl, certs, diagnose, identity
-from iorthand.transport import TlsConfig, ZenohConfig, zenoh_config, zenoh_entries
+from iorthand.transport import (
+    ROUTER_QUEUE_SIZE,
+    TlsConfig,
+    ZenohConfig,
+    load_router_config,
+    router_settings,
+    zenoh_config,
+    zenoh_entries,
+)
+from tests.conftest import ROOT
 
 
 @pytest.fixture(scope="module")
@@ -129,6 +138,20 @@ def test_generated_config_is_accepted_by_zenoh(tmp_path: Path) -> None:
     p.write_text(acl.to_json5(acl.router_config(_dep(bind_operator_keys=True))))
     zc = zenoh.Config.from_file(str(p))
     assert json.loads(zc.get_json("access_control/enabled")) is True
+
+
+def test_every_router_configuration_has_the_command_queue_sizes() -> None:
+    """The generated (TLS) configuration, the shipped plain one and ``iorthand router``'s built-in one all
+    ride out CPU stalls without dropping commands (see ROUTER_QUEUE_SIZE)."""
+    configs = {
+        "generated": zenoh.Config.from_json5(acl.to_json5(acl.router_config(_dep()))),
+        "configs/router.json5": load_router_config(ROOT / "configs" / "router.json5"),
+        "built-in": zenoh.Config.from_json5(json.dumps(router_settings(["tcp/127.0.0.1:7447"]))),
+    }
+    for name, zc in configs.items():
+        sizes = json.loads(zc.get_json("transport/link/tx/queue/size"))
+        assert {k: sizes[k] for k in ROUTER_QUEUE_SIZE} == ROUTER_QUEUE_SIZE, name
+        assert json.loads(zc.get_json("transport/link/tx/lease")) == 2000, name
 
 
 def test_deployment_validation() -> None:

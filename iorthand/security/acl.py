@@ -32,6 +32,7 @@ from typing import Any
 
 from iorthand import keys
 from iorthand.config import setting
+from iorthand.transport import ROUTER_QUEUE_SIZE
 
 ALL_MESSAGES = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -155,7 +156,7 @@ def router_config(dep: Deployment) -> dict[str, Any]:
         # A certificate that expires while connected ends the link instead of living on until the next restart.
         "close_link_on_expiration": True,
     }
-    transport: dict[str, Any] = {"link": {"tls": tls, "tx": {"lease": dep.lease_ms}}}
+    transport: dict[str, Any] = {"link": {"tls": tls, "tx": {"lease": dep.lease_ms, "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}}}
     if dep.users_file is not None:
         transport["auth"] = {"usrpwd": {"dictionary_file": str(dep.users_file)}}
     cfg: dict[str, Any] = {
