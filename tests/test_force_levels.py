@@ -75,6 +75,18 @@ def test_quantities() -> None:
     assert next_level(ForceLevel.SAFE, quantity_value([6, 0, 0, 0, 0, 0], "norm"), norm_cfg) == ForceLevel.CAUTION
 
 
+def test_a_peak_inside_a_batch_sets_the_level() -> None:
+    """A fast sensor delivers many samples per tick: a spike among them counts even if the newest is calm."""
+    calm, spike = [0, 0, -3.0, 0, 0, 0], [0, 0, -9.0, 0, 0, 0]
+    batch = [calm, calm, spike, calm, calm]
+    assert quantity_value(batch, "fz") == 9.0
+    tracker = LevelTracker(CFG)
+    assert tracker.add(batch, 1.0) == ForceLevel.DANGER and tracker.value == 9.0
+    assert tracker.add([calm, calm], 1.01) == ForceLevel.SAFE  # the next calm batch: the level falls again
+    assert math.isnan(quantity_value([calm, [0, 0, math.nan, 0, 0, 0]], "norm"))  # one bad sample is not hidden
+    assert tracker.add([calm, [0, 0, math.nan, 0, 0, 0]], 1.02) == ForceLevel.DANGER
+
+
 def test_stale_before_the_first_sample_and_after_silence() -> None:
     tracker = LevelTracker(CFG)
     assert tracker.state(0.0).stale

@@ -11,7 +11,9 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
+from iorthand.protocol import ForceLevel
 from iorthand_edge.force.config import NetFTSensorConfig
+from iorthand_edge.force.levels import LevelConfig, LevelTracker
 from iorthand_edge.force.sensors import (
     RDT_SET_BIAS,
     RDT_START_REALTIME,
@@ -38,6 +40,7 @@ class NetFTResponder:
         self.client: tuple[str, int] | None = None
         self.commands: list[int] = []
         self.extra: list[bytes] = []  # packets to send before the next record (garbage injection)
+        self.spike: tuple[int, ...] | None = None  # counts of one record to send before the next normal one
         self.status = 0
         self.seq = 0
         self._stop = threading.Event()
@@ -62,6 +65,10 @@ class NetFTResponder:
                 for packet in self.extra:
                     self.sock.sendto(packet, self.client)
                 self.extra = []
+                if self.spike is not None:
+                    self.seq += 1
+                    self.sock.sendto(encode_rdt_record(self.seq, self.seq, 0, self.spike), self.client)
+                    self.spike = None
                 self.seq += 1
                 record = encode_rdt_record(self.seq, self.seq, self.status, tuple(int(c) for c in self.counts - self.bias))
                 self.sock.sendto(record, self.client)
@@ -115,6 +122,26 @@ def test_streams_and_scales_counts(responder: NetFTResponder) -> None:
         sensor.close()
     time.sleep(0.05)
     assert responder.commands[-1] == RDT_STOP
+
+
+def test_a_spike_between_two_ticks_reaches_the_level_logic(responder: NetFTResponder) -> None:
+    """One record of 20 N among records of 7 N, all arriving between two reads: the read returns the newest
+    (7 N) and the whole batch, and the level logic sees the peak."""
+    sensor = NetFTSensor(NetFTSensorConfig(host="127.0.0.1", port=responder.port, counts_per_force=1e6, counts_per_torque=1e6))
+    sensor.start()
+    try:
+        read_until(sensor, lambda s: True)
+        responder.spike = (0, 0, -20_000_000, 0, 0, 0)
+        time.sleep(0.05)  # several records (the spike among them) wait in the socket, as between two ticks
+        sample = sensor.read(0.02)
+        assert sample is not None and sample.batch is not None and len(sample.batch) >= 3
+        assert sample.wrench[2] == pytest.approx(-7.0)  # the newest
+        assert np.array_equal(sample.batch[-1], sample.wrench)
+        assert min(sample.batch[:, 2]) == pytest.approx(-20.0)
+        assert LevelTracker(LevelConfig()).add(sample.batch, 0.0) == ForceLevel.DANGER
+        assert LevelTracker(LevelConfig()).add(sample.wrench, 0.0) == ForceLevel.CAUTION  # the newest alone hides it
+    finally:
+        sensor.close()
 
 
 def test_bias_on_request(responder: NetFTResponder) -> None:

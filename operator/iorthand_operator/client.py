@@ -171,7 +171,8 @@ class OperatorClient:
                 sender_config, twist_key, self.operator_id, rate_hz, release_tail, ui_timeout, realtime,
                 self._lock, self._on_send_record,
             )
-        self._pub_twist = publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
+        # Twists leave from exactly one place: the child's own publisher, or this one for the thread sender.
+        self._pub_twist = None if self._proc_sender is not None else publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
         self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP))
         self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO))
         self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH))
@@ -380,6 +381,7 @@ class OperatorClient:
         cmd.stamp(self._seq.next())
         payload = cmd.encode()
         self._record_send(cmd.seq, cmd.t, time.monotonic())
+        assert self._pub_twist is not None, "the thread sender's publisher"
         self._pub_twist.put(payload)
 
     def _record_send(self, seq: int, t_ns: int, mono: float) -> None:

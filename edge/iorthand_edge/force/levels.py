@@ -44,12 +44,13 @@ class LevelConfig:
 
 
 def quantity_value(wrench: ArrayLike, quantity: str) -> float:
-    """The number compared with the thresholds: |Fz| or the norm of the force, N."""
-    w = np.asarray(wrench, dtype=float)
+    """The number compared with the thresholds: |Fz| or the norm of the force, N. Given several wrenches
+    (one per row), the largest of them: a peak between two ticks counts. NaN anywhere gives NaN."""
+    w = np.atleast_2d(np.asarray(wrench, dtype=float))
     if quantity == "fz":
-        return abs(float(w[2]))
+        return float(np.max(np.abs(w[:, 2])))
     if quantity == "norm":
-        return float(np.linalg.norm(w[:3]))
+        return float(np.max(np.linalg.norm(w[:, :3], axis=1)))
     raise ValueError(f"unknown force quantity {quantity!r} (expected one of {QUANTITIES})")
 
 
@@ -87,6 +88,7 @@ class LevelTracker:
         self.last_sample = -math.inf
 
     def add(self, wrench: ArrayLike, now: float) -> ForceLevel:
+        """One tick's sample: a wrench, or every wrench since the last tick (n×6; the peak decides)."""
         self.value = quantity_value(wrench, self.config.quantity)
         self.level = next_level(self.level, self.value, self.config)
         self.last_sample = now

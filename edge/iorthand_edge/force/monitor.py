@@ -110,9 +110,10 @@ class ForceMonitor:
             self._reported_errors = errors
 
     def tick(self, sample: WrenchSample | None, now: float) -> LevelState:
-        """One cycle with the newest sample (or None). Public for tests that drive it by hand."""
+        """One cycle with the newest sample (or None); the level sees the peak of its batch, the force stream
+        the newest. Public for tests that drive it by hand."""
         if sample is not None:
-            self.tracker.add(sample.wrench, now)
+            self.tracker.add(sample.wrench if sample.batch is None else sample.batch, now)
             self.samples += 1
             self.last_wrench = [float(v) for v in sample.wrench]
             if self._pub_force is not None:

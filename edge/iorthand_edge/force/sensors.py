@@ -36,6 +36,10 @@ class SensorError(RuntimeError):
 class WrenchSample:
     wrench: Wrench  # [Fx, Fy, Fz, Tx, Ty, Tz], N and N·m, sensor frame, bias removed
     t_ns: int  # capture time on the agent's wall clock (ns since the epoch)
+    # Every sample since the previous read, oldest first, the newest (``wrench``) last: n×6. A fast sensor
+    # (Net F/T: up to 7 kHz) delivers tens per 10 ms tick, and a spike among them must reach the level logic
+    # even when the newest one is calm. None: ``wrench`` is the only sample.
+    batch: Wrench | None = None
 
 
 class ForceSensor(ABC):
@@ -50,7 +54,8 @@ class ForceSensor(ABC):
 
     @abstractmethod
     def read(self, timeout: float) -> WrenchSample | None:
-        """The newest sample since the last call, waiting at most ``timeout`` s; None if there is none."""
+        """The newest sample since the last call (with the others in ``batch``), waiting at most ``timeout``
+        s; None if there is none."""
 
     @abstractmethod
     def zero(self) -> None:
@@ -224,7 +229,8 @@ class NetFTSensor(ForceSensor):
                 sock.send(encode_rdt_request(RDT_START_REALTIME))
             except OSError as exc:
                 self._error(f"cannot re-send the streaming request: {exc}")
-        newest: WrenchSample | None = None
+        wrenches: list[Wrench] = []
+        t_ns = 0
         sock.settimeout(max(timeout, 1e-4))
         while True:
             try:
@@ -234,8 +240,7 @@ class NetFTSensor(ForceSensor):
             except OSError as exc:  # e.g. ICMP port unreachable: nobody listens at that address
                 self._error(f"receive failed: {exc}")
                 break
-            sock.settimeout(0.0)  # got one: drain the rest without waiting, keep the newest
-            t_ns = time.time_ns()
+            sock.settimeout(0.0)  # got one: drain the rest without waiting
             try:
                 record = decode_rdt_record(data)
             except ValueError as exc:
@@ -250,9 +255,11 @@ class NetFTSensor(ForceSensor):
             self._last_rdt = record.rdt_sequence
             self._last_packet = time.monotonic()
             self.received += 1
-            wrench = rdt_wrench(record, self.config.counts_per_force, self.config.counts_per_torque)
-            newest = WrenchSample(wrench, t_ns)
-        return newest
+            wrenches.append(rdt_wrench(record, self.config.counts_per_force, self.config.counts_per_torque))
+            t_ns = time.time_ns()
+        if not wrenches:
+            return None
+        return WrenchSample(wrenches[-1], t_ns, np.array(wrenches) if len(wrenches) > 1 else None)
 
     def zero(self) -> None:
         self._send(RDT_SET_BIAS)
