@@ -248,41 +248,57 @@ def publisher(session: zenoh.Session, key: str, qos: QosProfile | None = None) -
 class Inbox:
     """A bounded hand-over from a Zenoh callback to a worker thread.
 
-    ``keep="newest"`` drops the oldest item when full (streams: only the latest matters); ``keep="oldest"``
-    refuses new items when full (nothing already queued is lost). Dropped items are counted.
+    ``keep="newest"`` drops the oldest items when full (streams: only the latest matters); ``keep="oldest"``
+    refuses new items when full (nothing already queued is lost). Full means ``maxlen`` items, or, with
+    ``max_bytes``, that many payload bytes (as given to :meth:`put`): a count alone lets a queue of video
+    frames grow to gigabytes while a writer stalls. Dropped items are counted.
     """
 
-    def __init__(self, maxlen: int = 256, keep: str = "newest") -> None:
+    def __init__(self, maxlen: int = 256, keep: str = "newest", max_bytes: int | None = None) -> None:
         if keep not in ("newest", "oldest"):
             raise ValueError("keep must be 'newest' or 'oldest'")
-        self._items: deque[Any] = deque()
+        self._items: deque[tuple[Any, int]] = deque()
         self._maxlen = maxlen
+        self._max_bytes = max_bytes
         self._keep = keep
         self._cond = threading.Condition()
+        self.nbytes = 0
         self.dropped = 0
         self.closed = False
 
-    def put(self, item: Any) -> None:
+    def _full(self, nbytes: int) -> bool:
+        over_bytes = self._max_bytes is not None and self._items and self.nbytes + nbytes > self._max_bytes
+        return len(self._items) >= self._maxlen or bool(over_bytes)
+
+    def put(self, item: Any, nbytes: int = 0) -> None:
         with self._cond:
-            if len(self._items) >= self._maxlen:
+            if self._full(nbytes) and self._keep == "oldest":
                 self.dropped += 1
-                if self._keep == "oldest":
-                    return
-                self._items.popleft()
-            self._items.append(item)
+                return
+            while self._items and self._full(nbytes):
+                self._pop()
+                self.dropped += 1
+            self._items.append((item, nbytes))
+            self.nbytes += nbytes
             self._cond.notify()
+
+    def _pop(self) -> Any:
+        item, nbytes = self._items.popleft()
+        self.nbytes -= nbytes
+        return item
 
     def get(self, timeout: float | None = None) -> Any | None:
         """The next item, or None after ``timeout`` or once closed and empty."""
         with self._cond:
             if not self._items and not self.closed:
                 self._cond.wait(timeout)
-            return self._items.popleft() if self._items else None
+            return self._pop() if self._items else None
 
     def drain(self) -> list[Any]:
         with self._cond:
-            items = list(self._items)
+            items = [item for item, _ in self._items]
             self._items.clear()
+            self.nbytes = 0
             return items
 
     def close(self) -> None:

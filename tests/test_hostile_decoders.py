@@ -226,6 +226,25 @@ def test_inbox_is_bounded_under_a_flood() -> None:
     assert box.drain()[-1] == 99_999
 
 
+def test_inbox_is_bounded_in_bytes_too() -> None:
+    """A queue of large items (video frames) is bounded by their bytes, not only by their count."""
+    oldest = Inbox(10_000, keep="oldest", max_bytes=1_000_000)
+    for i in range(100):
+        oldest.put(i, 300_000)
+    assert len(oldest) == 3 and oldest.nbytes == 900_000 and oldest.dropped == 97
+    assert oldest.get() == 0 and oldest.nbytes == 600_000
+    oldest.put("small", 10)  # room again: accepted
+    assert oldest.drain() == [1, 2, "small"] and oldest.nbytes == 0
+    newest = Inbox(10_000, keep="newest", max_bytes=1_000_000)
+    for i in range(10):
+        newest.put(i, 300_000)
+    newest.put("big", 700_000)  # makes room by dropping as many of the oldest as needed
+    assert newest.drain() == [9, "big"] and newest.dropped == 9
+    single = Inbox(10, keep="oldest", max_bytes=100)
+    single.put("larger than the bound", 500)  # an empty queue takes any one item: nothing is stuck forever
+    assert len(single) == 1
+
+
 def test_reject_log_is_rate_limited(caplog: pytest.LogCaptureFixture) -> None:
     from iorthand_edge.agent import RateLimitedLog
 

@@ -46,6 +46,7 @@ class RecorderConfig:
     fsync: bool = setting(True, help="also fsync at each flush (power loss, not only a killed process)")
     chunk_kb: int = setting(1024, lo=4, help="MCAP chunk size; a flush also ends a chunk")
     inbox_max: int = setting(50_000, lo=100, help="samples queued between Zenoh and the writer thread")
+    inbox_max_mb: float = setting(512.0, lo=1.0, help="and at most this many MB of them (video frames are large)")
     status_interval: float = setting(1.0, lo=0.05, help="s between status publications while recording")
     manifest_interval: float = setting(2.0, lo=0.1, help="s between manifest rewrites while recording")
     calibration_files: list[Path] = setting(default_factory=list, help="stored as MCAP attachments")

@@ -94,7 +94,7 @@ class RecorderService:
         self._own_session = session is None
         self.session = session
         self._opener = opener
-        self._inbox = Inbox(config.inbox_max, keep="oldest")
+        self._inbox = Inbox(config.inbox_max, keep="oldest", max_bytes=int(config.inbox_max_mb * 1e6))
         self._accepting = False
         self._rec: _Recording | None = None
         self._route: dict[str, str] = {}
@@ -180,7 +180,8 @@ class RecorderService:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if self._accepting:
-            self._inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+            data = sample.payload.to_bytes()
+            self._inbox.put((str(sample.key_expr), data, time.time_ns()), len(data))
 
     def _query_handler(self, action: str) -> Callable[[zenoh.Query], None]:
         def handler(query: zenoh.Query) -> None:
