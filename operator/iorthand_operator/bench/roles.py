@@ -347,7 +347,7 @@ def _echo_records(echoes: list[tuple[bytes, int]], operator_id: str) -> list[lis
     return out
 
 
-def _acquire(client: BenchClient, stop: threading.Event, timeout: float) -> bool:
+def _acquire(client: BenchClient | LightOperator, stop: threading.Event, timeout: float) -> bool:
     deadline = time.monotonic() + timeout
     while not stop.is_set() and time.monotonic() < deadline:
         try:
@@ -611,15 +611,8 @@ def operator_farm(args: argparse.Namespace) -> int:
     robots = args.robots.split(",")
     ops = [LightOperator(_zenoh(args), r, f"{args.operator_id}-{i}") for i, r in enumerate(robots)]
     for op in ops:
-        deadline = time.monotonic() + 60.0
-        while True:
-            try:
-                op.acquire()
-                break
-            except Exception as exc:  # the robot's session may not be routed yet
-                if time.monotonic() > deadline or stop.is_set():
-                    raise RuntimeError(f"could not acquire {op.keys.robot}: {exc}") from None
-                stop.wait(0.3)
+        if not _acquire(op, stop, 60.0):
+            raise RuntimeError(f"could not acquire {op.keys.robot}")
     print("probe ready", flush=True)
     period = 1.0 / args.rate
     slot = period / len(ops)
