@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from iorthand_operator.bench import report
-from iorthand_operator.bench.transports import analyse_ping
+from iorthand_operator.bench.transports import analyse_ping, merge_ping_rounds
 from iorthand_operator.bench.wan import blackout_trials, summarize_trials
 
 MS = 1_000_000
@@ -58,6 +58,19 @@ def test_analyse_ping_records() -> None:
     r = analyse_ping(data)
     assert r["sequence"]["lost"] == 1 and r["sequence"]["reordered"] == 1
     assert r["rtt_ms"]["max"] == 3.0 and r["rtt_ms"]["min"] == 2.0
+
+
+def test_interleaved_rounds_merge_without_false_duplicates() -> None:
+    """Every round numbers its pings from the same start: merged, they stay distinct, and a ping lost in one
+    round is one lost ping, not hidden by the other round's ping of the same number."""
+    round1 = {"status": "ok", "sent": [7, 8], "records": [[7, 0, 1 * MS, 1 * MS, 2 * MS], [8, 5 * MS, 6 * MS, 6 * MS, 7 * MS]]}
+    round2 = {"status": "ok", "sent": [7, 8], "records": [[8, 100 * MS, 101 * MS, 101 * MS, 104 * MS]]}
+    merged = merge_ping_rounds([round1, round2])
+    r = analyse_ping(merged)
+    assert r["sequence"]["sent"] == 4 and r["sequence"]["lost"] == 1
+    assert r["sequence"]["duplicates"] == 0 and r["sequence"]["reordered"] == 0
+    assert sorted(r["samples_ms"]) == [2.0, 2.0, 4.0]
+    assert merge_ping_rounds([round1, {"status": "no echo during warm-up", "sent": [], "records": []}])["status"] != "ok"
 
 
 def test_targets_and_ratios() -> None:

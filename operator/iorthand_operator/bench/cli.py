@@ -49,16 +49,15 @@ def _config(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_transports(args: argparse.Namespace) -> dict[str, Any]:
-    from iorthand_operator.bench.transports import run_ping
+    from iorthand_operator.bench.transports import run_pings_interleaved
 
     work = _workdir(args)
     cases: dict[str, Any] = {}
     for size_name in args.sizes:
-        for t in args.transports:
-            name = f"{t}/{size_name}"
-            print(f"  {name} ...", flush=True)
-            cases[name] = run_ping(work, t, SIZES[size_name], RATES[size_name], args.duration,
-                                   qos="command" if size_name == "small" else "frame")
+        print(f"  {size_name}: {', '.join(args.transports)} in {args.rounds} alternating rounds ...", flush=True)
+        by_transport = run_pings_interleaved(work, args.transports, SIZES[size_name], RATES[size_name], args.duration,
+                                             "command" if size_name == "small" else "frame", args.rounds)
+        cases.update({f"{t}/{size_name}": r for t, r in by_transport.items()})
     ratios = report.transport_ratios(cases)
     print("\nTransports: ping/echo round trip (same Python code on each), Zenoh shared memory off")
     print(report.table(report.LATENCY_HEADERS, report.latency_rows(cases)))
@@ -172,7 +171,8 @@ def _run_all(args: argparse.Namespace) -> int:
     base = dict(vars(args))
     q = args.quick
     plan = [
-        ("transports", {"duration": 5.0 if q else 15.0, "transports": list(TRANSPORTS_ALL), "sizes": ["small", "frame"]}),
+        ("transports", {"duration": 6.0 if q else 30.0, "transports": list(TRANSPORTS_ALL), "sizes": ["small", "frame"],
+                        "rounds": 2 if q else 3}),
         ("load", {"duration": 8.0 if q else 20.0, "fps": 30.0}),
         ("wan", {"duration": 8.0 if q else 15.0, "profiles": ["lan", "5g", "4g", "poor", "blackout"],
                  "trials": 5 if q else 20, "blackout_s": 1.5, "links": "edge", "loopback": False,
@@ -223,9 +223,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--quick", action="store_true", help="short runs (about 6 minutes): a smoke test, not figures")
 
     t = bsub.add_parser("transports", help="Zenoh peer / router / chains vs MQTT (mosquitto), small and 300 KB")
-    common(t, 15.0)
+    common(t, 30.0)
     t.add_argument("--transports", nargs="+", default=list(TRANSPORTS_ALL), choices=TRANSPORTS_ALL)
     t.add_argument("--sizes", nargs="+", default=["small", "frame"], choices=sorted(SIZES))
+    t.add_argument("--rounds", type=int, default=3,
+                   help="the measured time is split into this many slices, transports alternating (fair under load)")
 
     lo = bsub.add_parser("load", help="commands with and without video + state load through one router")
     common(lo, 20.0)

@@ -117,10 +117,10 @@ def wait_port(port: int, timeout: float, host: str = "127.0.0.1") -> None:
 # ------------------------------------------------------------------------------------------------ ping
 
 
-def run_ping(workdir: Path, transport: str, size: int, rate: float, duration: float, qos: str = "command",
-             load: Any = None) -> dict[str, Any]:
-    """One ping/echo case. ``load(group, sites)`` may start background streams through the same routers."""
-    name = f"{transport}-{size}B-{qos}" + ("-load" if load else "")
+def _ping_raw(workdir: Path, transport: str, size: int, rate: float, duration: float, qos: str = "command",
+              load: Any = None, tag: str = "") -> tuple[dict[str, Any], str]:
+    """One ping/echo run: the pinger's raw output and the topology it crossed."""
+    name = f"{transport}-{size}B-{qos}" + ("-load" if load else "") + tag
     out = workdir / f"{name}.json"
     with Group(workdir / name) as g:
         if transport == "mqtt":
@@ -140,10 +140,48 @@ def run_ping(workdir: Path, transport: str, size: int, rate: float, duration: fl
         ping.wait(duration + 60.0)
         if not out.exists():
             raise RuntimeError(f"{name}: the pinger wrote nothing; log {ping.log_path}: {ping.output()[-1000:]}")
-        data = json.loads(out.read_text())
+        return json.loads(out.read_text()), sites.describe
+
+
+def run_ping(workdir: Path, transport: str, size: int, rate: float, duration: float, qos: str = "command",
+             load: Any = None) -> dict[str, Any]:
+    """One ping/echo case. ``load(group, sites)`` may start background streams through the same routers."""
+    data, topology = _ping_raw(workdir, transport, size, rate, duration, qos, load)
     result = analyse_ping(data)
-    result.update(transport=transport, size=size, rate=rate, qos=qos, topology=sites.describe, duration_s=duration)
+    result.update(transport=transport, size=size, rate=rate, qos=qos, topology=topology, duration_s=duration)
     return result
+
+
+def run_pings_interleaved(workdir: Path, transports: list[str], size: int, rate: float, duration: float,
+                          qos: str, rounds: int) -> dict[str, dict[str, Any]]:
+    """Ping every transport for ``duration`` s in all, in ``rounds`` alternating slices (A B C A B C …) rather
+    than one after the other: on a shared machine, a burst of someone else's load then falls on every
+    transport alike instead of deciding a comparison."""
+    raws: dict[str, list[dict[str, Any]]] = {t: [] for t in transports}
+    topology: dict[str, str] = {}
+    for r in range(rounds):
+        for t in transports:
+            data, topology[t] = _ping_raw(workdir, t, size, rate, duration / rounds, qos, tag=f"-round{r}")
+            raws[t].append(data)
+    out = {}
+    for t in transports:
+        result = analyse_ping(merge_ping_rounds(raws[t]))
+        result.update(transport=t, size=size, rate=rate, qos=qos, topology=topology[t], duration_s=duration,
+                      rounds=rounds)
+        out[t] = result
+    return out
+
+
+def merge_ping_rounds(rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    """Several pinger outputs as one: each round's sequence numbers are moved into a range of their own (every
+    round starts from the same first number), so loss and reordering stay per round."""
+    stride = 1 + max((max(d["sent"], default=0) for d in rounds), default=0)
+    failed = [d.get("status") for d in rounds if d.get("status") != "ok"]
+    merged: dict[str, Any] = {"status": failed[0] if failed else "ok", "sent": [], "records": []}
+    for i, d in enumerate(rounds):
+        merged["sent"] += [seq + i * stride for seq in d["sent"]]
+        merged["records"] += [[rec[0] + i * stride, *rec[1:]] for rec in d["records"]]
+    return merged
 
 
 def analyse_ping(data: dict[str, Any]) -> dict[str, Any]:
