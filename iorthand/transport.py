@@ -267,8 +267,10 @@ class Inbox:
         self.closed = False
 
     def _full(self, nbytes: int) -> bool:
-        over_bytes = self._max_bytes is not None and self._items and self.nbytes + nbytes > self._max_bytes
-        return len(self._items) >= self._maxlen or bool(over_bytes)
+        if len(self._items) >= self._maxlen:
+            return True
+        # An empty inbox takes any one item, however large: nothing can be stuck outside forever.
+        return self._max_bytes is not None and bool(self._items) and self.nbytes + nbytes > self._max_bytes
 
     def put(self, item: Any, nbytes: int = 0) -> None:
         with self._cond:
