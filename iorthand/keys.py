@@ -101,6 +101,18 @@ def all_robots(suffix: str) -> str:
     return f"{ROOT}/*/{suffix}"
 
 
+# Every operator → robot command is a put under iorthand/<robot>/cmd/ (bound keys add /<operator>).
+ALL_COMMANDS = f"{ROOT}/*/cmd/**"
+
+
+def is_command_key(key: str) -> bool:
+    """True for an operator → robot command key (``iorthand/<robot>/cmd/...``)."""
+    try:
+        return split_key(key)[1].startswith("cmd/")
+    except KeyExprError:
+        return False
+
+
 def service_key(service: str, *parts: str) -> str:
     """A cloud service key, e.g. ``service_key(TWIN, robot, "snapshot")``."""
     return "/".join((ROOT, service, *parts))

@@ -130,6 +130,8 @@ def test_keys_are_built_in_one_place() -> None:
     assert keys.split_key(k.key(keys.STATE_ROBOT)) == ("ur3e-lab_1", "state/robot")
     assert protocol.message_type_for(k.key(keys.STATE_ROBOT)) is protocol.RobotState
     assert protocol.message_type_for("iorthand/_twin/x/snapshot") is None
+    assert all(keys.is_command_key(k.key(s)) for s in (keys.CMD_TWIST, keys.CMD_STOP, f"{keys.CMD_TWIST}/alice"))
+    assert not any(keys.is_command_key(x) for x in (k.key(keys.STATE_APPLIED), "iorthand/_recorder/cmd/x", "other/r/cmd/x"))
     for bad in ("UR3", "a/b", "", "x" * 65, "*"):
         with pytest.raises(keys.KeyExprError):
             keys.RobotKeys(bad)

@@ -102,6 +102,30 @@ def test_replay_republishes_with_original_timing(recorded) -> None:
                                                       abs=0.15)
 
 
+def test_replay_never_sends_operator_commands(recorded) -> None:
+    """The recording holds the operator's twists; republished into a live deployment they could drive a robot
+    whose owner is the same operator again. Replay withholds them, and refuses a filter that asks only for them."""
+    endpoint, folder = recorded
+    recorded_commands = sum(1 for r in iter_records(folder) if keys.is_command_key(r.key))
+    assert recorded_commands > 100
+    s = open_session(client_config(endpoint))
+    commands: list[str] = []
+    states: list[str] = []
+    try:
+        s.declare_subscriber(keys.ALL_COMMANDS, lambda smp: commands.append(str(smp.key_expr)))
+        s.declare_subscriber(keys.all_robots(keys.STATE_ROBOT), lambda smp: states.append(str(smp.key_expr)))
+        time.sleep(0.3)
+        stats = Replayer(s, folder, speed=20.0).run()  # no filter: everything that may be replayed
+        wait_until(lambda: len(states) >= stats.per_key["iorthand/sim1/state/robot"], timeout=5.0, message="states")
+        time.sleep(0.2)
+        assert commands == [] and stats.commands_withheld == recorded_commands
+        assert not any(keys.is_command_key(k) for k in stats.per_key)
+        with pytest.raises(ValueError, match="never publishes operator commands"):
+            Replayer(s, folder, key_filter=["iorthand/sim1/cmd/**"])
+    finally:
+        s.close()
+
+
 def test_export_rrd(recorded) -> None:
     from iorthand_cloud.recorder.export import export_rrd
 

@@ -83,8 +83,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     session = _session(args)
     try:
-        rp = Replayer(session, args.session, speed=args.speed, loop=args.loop, key_filter=args.keys,
-                      include_malformed=args.include_malformed, start=args.start, end=args.end)
+        try:
+            rp = Replayer(session, args.session, speed=args.speed, loop=args.loop, key_filter=args.keys,
+                          include_malformed=args.include_malformed, start=args.start, end=args.end)
+        except ValueError as exc:
+            print(f"replay: {exc}", file=sys.stderr)
+            return 2
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: rp.stop_event.set())
         t = threading.Thread(target=rp.run, name="replay", daemon=True)
@@ -92,7 +96,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         while t.is_alive():
             t.join(0.2)
         print(f"replayed {rp.stats.published} messages ({rp.stats.loops} pass(es)), "
-              f"at most {rp.stats.max_late_ms:.1f} ms late")
+              f"at most {rp.stats.max_late_ms:.1f} ms late; {rp.stats.commands_withheld} operator commands "
+              "withheld (a replay never drives a robot)")
     finally:
         session.close()
     return 0

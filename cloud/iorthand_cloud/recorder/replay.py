@@ -4,6 +4,9 @@ Messages go out on their original keys, with their original bytes (sequence numb
 included), spaced by their original receive times divided by ``speed``: the twin and any client see the
 session as if it were live. The recorder's own keys are not replayed; malformed payloads only on request.
 Each key is published with its QoS from :data:`iorthand.transport.QOS_BY_KEY` (video on the video profile).
+
+Operator commands (``iorthand/*/cmd/**``) are recorded but never replayed: replayed into a live deployment,
+the recorded twists of an operator who owns a robot again would drive it. They are counted instead.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ log = logging.getLogger("iorthand.replay")
 class ReplayStats:
     published: int = 0
     skipped: int = 0
+    commands_withheld: int = 0  # operator commands in the recording, never republished
     loops: int = 0
     max_late_ms: float = 0.0
     per_key: dict[str, int] = field(default_factory=dict)
@@ -60,6 +64,11 @@ class Replayer:
         self.speed = speed
         self.loop = loop
         self.filters = [zenoh.KeyExpr(k) for k in key_filter or []]
+        commands = zenoh.KeyExpr(keys.ALL_COMMANDS)
+        for f in self.filters:
+            if commands.includes(f):
+                raise ValueError(f"--keys {f}: a replay never publishes operator commands ({keys.ALL_COMMANDS}), "
+                                 "so that it cannot drive a robot; replay state/**, markers or video/** instead")
         self.include_malformed = include_malformed
         self.start_s, self.end_s = start, end
         self.on_publish = on_publish
@@ -70,6 +79,9 @@ class Replayer:
         self._recorder_prefix = keys.service_key(keys.RECORDER) + "/"
 
     def _wants(self, rec: Record) -> bool:
+        if keys.is_command_key(rec.key):
+            self.stats.commands_withheld += 1
+            return False
         if rec.malformed and not self.include_malformed:
             return False
         ok = self._wanted.get(rec.key)
