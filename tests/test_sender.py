@@ -4,13 +4,11 @@ machine delays what the test *sees*, not what it checks)."""
 
 from __future__ import annotations
 
-import contextlib
 import time
 
 import numpy as np
 import psutil
 import pytest
-import zenoh
 
 from iorthand.transport import client_config
 from iorthand_operator.client import OperatorClient
@@ -18,20 +16,21 @@ from tests.conftest import wait_until
 
 
 @pytest.fixture
-def proc_operator(router_endpoint, session_factory):
+def proc_operator(router_endpoint, operator_factory):
     """Operator clients with the process sender (as the console and CLI build them), closed after the test."""
-    clients: list[OperatorClient] = []
 
-    def make(robot_id: str = "sim1", operator_id: str = "op1", **kwargs: object) -> OperatorClient:
-        client = OperatorClient(session_factory(), robot_id, operator_id,
-                                sender_config=client_config(router_endpoint), **kwargs)
-        clients.append(client)
-        return client
+    def make(**kwargs: object) -> OperatorClient:
+        return operator_factory(sender_config=client_config(router_endpoint), **kwargs)
 
-    yield make
-    for c in clients:
-        with contextlib.suppress(zenoh.ZError):
-            c.close()
+    return make
+
+
+def driving(op: OperatorClient) -> OperatorClient:
+    """Wait for the robot, take control and start the sender."""
+    op.wait_for_state()
+    op.acquire()
+    op.start()
+    return op
 
 
 def commanded(edge) -> np.ndarray:
@@ -40,10 +39,7 @@ def commanded(edge) -> np.ndarray:
 
 def test_process_sender_moves_the_robot_and_records_echoes(edge_factory, proc_operator) -> None:
     edge = edge_factory()
-    op = proc_operator()
-    op.wait_for_state()
-    op.acquire()
-    op.start()
+    op = driving(proc_operator())
     assert op.sender_process is not None and op.sender_process.is_alive()
     assert op.sender_process.pid != psutil.Process().pid
     applied0 = edge.supervisor.counters.applied
@@ -67,10 +63,7 @@ def test_process_sender_moves_the_robot_and_records_echoes(edge_factory, proc_op
 
 def test_frozen_ui_releases_the_deadman(edge_factory, proc_operator) -> None:
     edge = edge_factory()
-    op = proc_operator(ui_timeout=0.5)
-    op.wait_for_state()
-    op.acquire()
-    op.start()
+    op = driving(proc_operator(ui_timeout=0.5))
     op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
     wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
     op._proc_sender.heartbeat_suspended = True  # the UI freezes with the deadman held
@@ -91,10 +84,7 @@ def test_frozen_ui_releases_the_deadman(edge_factory, proc_operator) -> None:
 
 def test_muted_silences_the_process_sender(edge_factory, proc_operator) -> None:
     edge = edge_factory()
-    op = proc_operator()
-    op.wait_for_state()
-    op.acquire()
-    op.start()
+    op = driving(proc_operator())
     op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
     wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
     op.muted = True
@@ -125,10 +115,7 @@ def test_close_leaves_no_child_process(edge_factory, proc_operator) -> None:
 
 def test_thread_sender_unchanged_without_config(edge_factory, operator_factory) -> None:
     edge = edge_factory()
-    op = operator_factory()
-    op.wait_for_state()
-    op.acquire()
-    op.start()
+    op = driving(operator_factory())
     assert op.sender_process is None
     op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
     wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
