@@ -68,15 +68,18 @@ class _Lines:
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise TimeoutError(f"no line starting with {prefix!r} within {timeout} s; got {self.seen[-10:]}")
+                raise TimeoutError(f"no line with {prefix!r} within {timeout} s; got {self.seen[-10:]}")
             try:
                 line = self.q.get(timeout=remaining)
             except queue.Empty:
                 continue
             if line is None:
                 raise EOFError(f"process ended before {prefix!r}; output {self.seen[-10:]}")
-            if line.startswith(prefix):
-                return line
+            # ur_rtde writes to the same stdout, sometimes without a newline ("Reconnecting..."): the marker
+            # may follow its text on one line.
+            at = line.find(prefix)
+            if at >= 0:
+                return line[at:]
             self.seen.append(line)
 
 
