@@ -13,6 +13,8 @@ import zenoh
 
 from iorthand.security import acl, certs, diagnose, identity
 from iorthand.transport import (
+    DIALING_ROUTER_LEASE_MS,
+    ROUTER_LEASE_MS,
     ROUTER_QUEUE_SIZE,
     TlsConfig,
     ZenohConfig,
@@ -151,7 +153,22 @@ def test_every_router_configuration_has_the_command_queue_sizes() -> None:
     for name, zc in configs.items():
         sizes = json.loads(zc.get_json("transport/link/tx/queue/size"))
         assert {k: sizes[k] for k in ROUTER_QUEUE_SIZE} == ROUTER_QUEUE_SIZE, name
-        assert json.loads(zc.get_json("transport/link/tx/lease")) == 2000, name
+        assert json.loads(zc.get_json("transport/link/tx/lease")) == ROUTER_LEASE_MS, name
+
+
+def test_a_router_that_dials_another_announces_the_longer_lease() -> None:
+    """Equal leases on a router-to-router link race after an outage (see DIALING_ROUTER_LEASE_MS)."""
+    assert DIALING_ROUTER_LEASE_MS > ROUTER_LEASE_MS
+    site = zenoh.Config.from_json5(json.dumps(router_settings(["tcp/127.0.0.1:7448"], ["tcp/127.0.0.1:7447"])))
+    assert json.loads(site.get_json("transport/link/tx/lease")) == DIALING_ROUTER_LEASE_MS
+    assert router_settings(["tcp/127.0.0.1:7448"], ["tcp/127.0.0.1:7447"], lease_ms=5000)["transport"]["link"]["tx"]["lease"] == 5000
+
+
+def test_a_router_modelling_its_own_host_shares_no_memory() -> None:
+    on = zenoh.Config.from_json5(json.dumps(router_settings(["tcp/127.0.0.1:7447"])))
+    off = zenoh.Config.from_json5(json.dumps(router_settings(["tcp/127.0.0.1:7447"], shared_memory=False)))
+    assert json.loads(on.get_json("transport/shared_memory/enabled")) is True
+    assert json.loads(off.get_json("transport/shared_memory/enabled")) is False
 
 
 def test_deployment_validation() -> None:

@@ -32,7 +32,7 @@ from typing import Any
 
 from iorthand import keys
 from iorthand.config import setting
-from iorthand.transport import ROUTER_QUEUE_SIZE
+from iorthand.transport import ROUTER_LEASE_MS, ROUTER_QUEUE_SIZE
 
 ALL_MESSAGES = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -53,7 +53,7 @@ class Deployment:
     operators: dict[str, list[str]] = setting(default_factory=dict, help="operator name → robots it may command")
     viewers: list[str] = setting(default_factory=list, help="observer names (certificates viewer-<name>)")
     services: list[str] = setting(default_factory=lambda: list(SERVICES))
-    lease_ms: int = setting(2000, lo=500, hi=60_000)
+    lease_ms: int = setting(ROUTER_LEASE_MS, lo=500, hi=60_000)
     connect: list[str] = setting(default_factory=list, help="other routers (a chain of sites)")
     bind_operator_keys: bool = setting(
         False, help="operators may publish commands only on .../cmd/<kind>/<their name> (identity-scoped keys)"

@@ -32,6 +32,8 @@ def _strip(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def _workdir(args: argparse.Namespace) -> Path:
+    if args.workdir:
+        Path(args.workdir).mkdir(parents=True, exist_ok=True)
     return Path(tempfile.mkdtemp(prefix="iorthand-bench-", dir=args.workdir))
 
 
