@@ -83,3 +83,9 @@ def test_targets_and_ratios() -> None:
     checks = report.targets({"transports": {"cases": cases, "ratios": ratios}})
     assert checks[0]["ok"]
     assert "p50 ms" in report.table(report.LATENCY_HEADERS[:3], [["x", 1, 0.5]])
+
+
+def test_idle_penalty_reports_both_costs_and_their_ratio() -> None:
+    p = report.idle_penalty(samples=5, gap_s=0.002)
+    assert p["decode_hot_us"] > 0 and p["decode_after_idle_us"] > 0 and p["idle_gap_ms"] == 2.0
+    assert abs(p["factor"] - p["decode_after_idle_us"] / p["decode_hot_us"]) <= 0.05 * p["factor"] + 0.1

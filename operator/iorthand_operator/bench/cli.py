@@ -192,9 +192,15 @@ def _run_all(args: argparse.Namespace) -> int:
             log.exception("%s failed", part)
             results[part] = {"error": str(exc)}
     checks = report.targets({k: v for k, v in results.items() if "error" not in v})
-    report.write_json(args.out / "summary.json", {"machine": report.machine(), "targets": checks,
+    host = report.machine()
+    report.write_json(args.out / "summary.json", {"machine": host, "targets": checks,
                                                   "errors": {k: v["error"] for k, v in results.items() if "error" in v}})
     report.print_targets(checks)
+    idle = host["idle_penalty"]
+    print(f"\nThis host: Python runs {idle['factor']}× slower right after {idle['idle_gap_ms']:.0f} ms idle (decoding a "
+          f"command: {idle['decode_after_idle_us']} µs against {idle['decode_hot_us']} µs back to back); every thread "
+          "wake-up on the command path pays it (cpuidle "
+          f"{idle['cpuidle_driver'] or '?'}, guest_halt_poll_ns {idle['guest_halt_poll_ns'] or '-'}).")
     print(f"\nwrote {args.out / 'summary.json'}")
     return 0 if all("error" not in v for v in results.values()) else 1
 
