@@ -429,7 +429,7 @@ ROUTER_LEASE_MS = 2000
 # dialer's close. With equal leases both sides expire at the same instant, and Zenoh 1.10 can then merge the
 # dialer's reconnection into its own dying transport while the dialled router opens a new one: declarations
 # stop flowing one way, and the edge saw neither the operator's token nor its subscriptions for 45 s and 84 s
-# (2 of about 100 blackout trials of `iorthand bench wan`; none in 80 with these leases).
+# (2 of about 100 blackout trials of `iorthand bench wan`; none in 143 with these leases).
 DIALING_ROUTER_LEASE_MS = 3000
 
 
