@@ -11,7 +11,7 @@ from pathlib import Path
 
 import zenoh
 
-from iorthand.transport import DIALING_ROUTER_LEASE_MS, load_router_config, router_settings
+from iorthand.transport import announced_lease, load_router_config, router_settings
 
 log = logging.getLogger("iorthand.router")
 
@@ -37,7 +37,8 @@ def _cmd(args: argparse.Namespace) -> int:
             config.insert_json5("listen/endpoints", json.dumps(args.listen))
         if args.connect:
             config.insert_json5("connect/endpoints", json.dumps(args.connect))
-        lease_ms = args.lease_ms or (DIALING_ROUTER_LEASE_MS if args.connect else None)
+        file_lease = json.loads(config.get_json("transport/link/tx/lease"))
+        lease_ms = args.lease_ms or (announced_lease(file_lease, dials=True) if args.connect else None)
         if lease_ms:
             config.insert_json5("transport/link/tx/lease", str(lease_ms))
         if args.no_shared_memory:
@@ -58,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="router JSON5 configuration (e.g. configs/router.json5)")
     p.add_argument("--listen", action="append", help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--connect", action="append", help="another router to connect to (a chain of sites)")
-    p.add_argument("--lease-ms", type=int, help="the lease this router announces (default 2000 ms, 3000 ms with --connect: see DIALING_ROUTER_LEASE_MS)")
+    p.add_argument("--lease-ms", type=int, help="the lease this router announces (default 2000 ms, 1000 ms more with --connect: see announced_lease)")
     p.add_argument("--no-shared-memory", action="store_true",
                    help="never hand payloads over through shared memory (a router modelling its own host)")
     p.set_defaults(func=_cmd)

@@ -425,21 +425,26 @@ ROUTER_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
 
 ROUTER_LEASE_MS = 2000
 # A router that dials another (an edge site's router → the cloud) announces a longer lease than the router it
-# dials, so that after a silent outage the dialer always gives up first and the other side learns it from the
+# dials (DIALING_LEASE_EXTRA_MS more), so that after a silent outage the dialer always gives up first and the other side learns it from the
 # dialer's close. With equal leases both sides expire at the same instant, and Zenoh 1.10 can then merge the
 # dialer's reconnection into its own dying transport while the dialled router opens a new one: declarations
 # stop flowing one way, and the edge saw neither the operator's token nor its subscriptions for 45 s and 84 s
 # (2 of about 100 blackout trials of `iorthand bench wan`; none in 143 with these leases).
-DIALING_ROUTER_LEASE_MS = 3000
+DIALING_LEASE_EXTRA_MS = 1000
+
+
+def announced_lease(lease_ms: int, dials: bool) -> int:
+    """The lease a router announces: the site-wide ``lease_ms``, and DIALING_LEASE_EXTRA_MS more if it dials."""
+    return lease_ms + DIALING_LEASE_EXTRA_MS if dials else lease_ms
 
 
 def router_settings(listen: list[str], connect: list[str] | None = None, lease_ms: int | None = None,
                     shared_memory: bool = True) -> dict[str, Any]:
     """A plain router's configuration as a dict (written as JSON, it is a JSON5 file a stock zenohd reads).
-    The lease defaults to ROUTER_LEASE_MS, or DIALING_ROUTER_LEASE_MS for a router that connects to others.
+    The lease defaults to ROUTER_LEASE_MS, longer for a router that connects to others (:func:`announced_lease`).
     ``shared_memory=False`` models a router on its own host: two routers on one machine otherwise negotiate
     shared memory and hand large payloads over through it, which no link between sites can do."""
-    lease_ms = lease_ms or (DIALING_ROUTER_LEASE_MS if connect else ROUTER_LEASE_MS)
+    lease_ms = lease_ms or announced_lease(ROUTER_LEASE_MS, bool(connect))
     cfg: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
@@ -471,6 +476,7 @@ __all__ = [
     "SampleRing",
     "Worker",
     "ZenohConfig",
+    "announced_lease",
     "client_config",
     "open_session",
     "publisher",

@@ -13,7 +13,7 @@ import zenoh
 
 from iorthand.security import acl, certs, diagnose, identity
 from iorthand.transport import (
-    DIALING_ROUTER_LEASE_MS,
+    DIALING_LEASE_EXTRA_MS,
     ROUTER_LEASE_MS,
     ROUTER_QUEUE_SIZE,
     TlsConfig,
@@ -157,10 +157,13 @@ def test_every_router_configuration_has_the_command_queue_sizes() -> None:
 
 
 def test_a_router_that_dials_another_announces_the_longer_lease() -> None:
-    """Equal leases on a router-to-router link race after an outage (see DIALING_ROUTER_LEASE_MS)."""
-    assert DIALING_ROUTER_LEASE_MS > ROUTER_LEASE_MS
+    """Equal leases on a router-to-router link race after an outage (see DIALING_LEASE_EXTRA_MS)."""
+    assert DIALING_LEASE_EXTRA_MS > 0
     site = zenoh.Config.from_json5(json.dumps(router_settings(["tcp/127.0.0.1:7448"], ["tcp/127.0.0.1:7447"])))
-    assert json.loads(site.get_json("transport/link/tx/lease")) == DIALING_ROUTER_LEASE_MS
+    assert json.loads(site.get_json("transport/link/tx/lease")) == ROUTER_LEASE_MS + DIALING_LEASE_EXTRA_MS
+    generated = acl.router_config(_dep(connect=["tls/cloud.example.org:7447"], lease_ms=2500))
+    assert generated["transport"]["link"]["tx"]["lease"] == 2500 + DIALING_LEASE_EXTRA_MS
+    assert acl.router_config(_dep(lease_ms=2500))["transport"]["link"]["tx"]["lease"] == 2500
     assert router_settings(["tcp/127.0.0.1:7448"], ["tcp/127.0.0.1:7447"], lease_ms=5000)["transport"]["link"]["tx"]["lease"] == 5000
 
 

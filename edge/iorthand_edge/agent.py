@@ -456,9 +456,10 @@ class EdgeAgent:
     # ------------------------------------------------------------------ commands
 
     def _command_loop(self, stop: threading.Event) -> None:
+        twists = self._twists
+        assert twists is not None, "start() declares the twist subscriber before the command thread"
         while not stop.is_set():
-            assert self._twists is not None
-            item = self._twists.get()
+            item = twists.get()
             if item is None:
                 return  # closed: shutting down
             key, payload, recv_ns = item

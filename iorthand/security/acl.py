@@ -32,7 +32,7 @@ from typing import Any
 
 from iorthand import keys
 from iorthand.config import setting
-from iorthand.transport import ROUTER_LEASE_MS, ROUTER_QUEUE_SIZE
+from iorthand.transport import ROUTER_LEASE_MS, ROUTER_QUEUE_SIZE, announced_lease
 
 ALL_MESSAGES = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -156,7 +156,7 @@ def router_config(dep: Deployment) -> dict[str, Any]:
         # A certificate that expires while connected ends the link instead of living on until the next restart.
         "close_link_on_expiration": True,
     }
-    transport: dict[str, Any] = {"link": {"tls": tls, "tx": {"lease": dep.lease_ms, "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}}}
+    transport: dict[str, Any] = {"link": {"tls": tls, "tx": {"lease": announced_lease(dep.lease_ms, bool(dep.connect)), "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}}}
     if dep.users_file is not None:
         transport["auth"] = {"usrpwd": {"dictionary_file": str(dep.users_file)}}
     cfg: dict[str, Any] = {
