@@ -37,8 +37,9 @@ def _cmd(args: argparse.Namespace) -> int:
             config.insert_json5("listen/endpoints", json.dumps(args.listen))
         if args.connect:
             config.insert_json5("connect/endpoints", json.dumps(args.connect))
-        file_lease = json.loads(config.get_json("transport/link/tx/lease"))
-        lease_ms = args.lease_ms or (announced_lease(file_lease, dials=True) if args.connect else None)
+        lease_ms = args.lease_ms
+        if not lease_ms and args.connect:
+            lease_ms = announced_lease(json.loads(config.get_json("transport/link/tx/lease")), dials=True)
         if lease_ms:
             config.insert_json5("transport/link/tx/lease", str(lease_ms))
         if args.no_shared_memory:

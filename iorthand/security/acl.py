@@ -156,7 +156,8 @@ def router_config(dep: Deployment) -> dict[str, Any]:
         # A certificate that expires while connected ends the link instead of living on until the next restart.
         "close_link_on_expiration": True,
     }
-    transport: dict[str, Any] = {"link": {"tls": tls, "tx": {"lease": announced_lease(dep.lease_ms, bool(dep.connect)), "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}}}
+    tx = {"lease": announced_lease(dep.lease_ms, bool(dep.connect)), "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}
+    transport: dict[str, Any] = {"link": {"tls": tls, "tx": tx}}
     if dep.users_file is not None:
         transport["auth"] = {"usrpwd": {"dictionary_file": str(dep.users_file)}}
     cfg: dict[str, Any] = {

@@ -32,8 +32,29 @@ import numpy as np
 import zenoh
 
 from iorthand import keys
-from iorthand.protocol import ForceSample, Markers, RobotState, VideoFrame
-from iorthand.transport import COMMAND, STATE, VIDEO, QosProfile, ZenohConfig, open_session
+from iorthand.protocol import (
+    AppliedCommand,
+    ControlReply,
+    ControlRequest,
+    ForceSample,
+    Markers,
+    RobotState,
+    SafetyStatus,
+    Sequencer,
+    TwistCommand,
+    VideoFrame,
+)
+from iorthand.transport import (
+    COMMAND,
+    QOS_BY_KEY,
+    STATE,
+    VIDEO,
+    QosProfile,
+    ZenohConfig,
+    open_session,
+    publisher,
+    query,
+)
 from iorthand_operator.client import OperatorClient
 
 log = logging.getLogger("iorthand.bench.roles")
@@ -337,8 +358,6 @@ class BenchClient(OperatorClient):
 def _echo_records(echoes: list[tuple[bytes, int]], operator_id: str) -> list[list[Any]]:
     """Raw ``state/applied`` echoes (payload, arrival ns) → this operator's rows
     ``[cmd_seq, t1, t2, t3, t4, accepted, status]``, decoded after the run to keep callbacks short."""
-    from iorthand.protocol import AppliedCommand
-
     out = []
     for data, t4 in list(echoes):
         msg = AppliedCommand.decode(data)
@@ -468,8 +487,6 @@ class LightRobot:
     the router), as separate end-effector computers would."""
 
     def __init__(self, session: zenoh.Session, robot: str) -> None:
-        from iorthand.transport import publisher
-
         self.session = session
         self.keys = k = keys.RobotKeys(robot)
         self.owner = ""
@@ -492,8 +509,6 @@ class LightRobot:
         return self._seq[name]
 
     def _on_twist(self, sample: zenoh.Sample) -> None:
-        from iorthand.protocol import AppliedCommand, TwistCommand
-
         t2 = time.time_ns()
         cmd = TwistCommand.decode(sample.payload.to_bytes())
         with self._lock:
@@ -507,8 +522,6 @@ class LightRobot:
         self.pub_applied.put(echo.encode())
 
     def _on_control(self, query: zenoh.Query, acquire: bool) -> None:
-        from iorthand.protocol import ControlReply, ControlRequest
-
         try:
             req = ControlRequest.decode(query.payload.to_bytes() if query.payload is not None else b"")
             with self._lock:
@@ -524,8 +537,6 @@ class LightRobot:
             query.drop()
 
     def tick(self, n: int) -> None:
-        from iorthand.protocol import SafetyStatus
-
         with self._lock:
             state = RobotState(commanded=self.commanded, mode="running", cmd_seq=self.last_seq,
                                cmd_recv_t=self.last_recv).stamp(self._next("robot"))
@@ -560,9 +571,6 @@ class LightOperator:
     machine's scheduler rather than the router (``--operators client`` measures that case)."""
 
     def __init__(self, session: zenoh.Session, robot: str, operator_id: str) -> None:
-        from iorthand.protocol import Sequencer
-        from iorthand.transport import QOS_BY_KEY, publisher
-
         self.session = session
         self.keys = k = keys.RobotKeys(robot)
         self.operator_id = operator_id
@@ -585,22 +593,16 @@ class LightOperator:
         self.echoes.append((sample.payload.to_bytes(), time.time_ns()))
 
     def acquire(self) -> None:
-        from iorthand.protocol import ControlReply, ControlRequest
-        from iorthand.transport import query
-
         req = ControlRequest(operator=self.operator_id).stamp(1).encode()
         replies = query(self.session, self.keys.key(keys.CONTROL_ACQUIRE), req, timeout=2.0)
         if not replies or not ControlReply.decode(replies[0]).ok:
             raise RuntimeError(f"{self.keys.robot}: control not granted")
 
     def send(self, linear: list[float], deadman: bool) -> None:
-        from iorthand.protocol import TwistCommand
-
         cmd = TwistCommand(operator=self.operator_id, linear=linear, angular=[0.0, 0.0, 0.0], deadman=deadman)
         payload = cmd.stamp(self.seq.next()).encode()
         self.sent.append((cmd.seq, cmd.t))
         self.pub_twist.put(payload)
-
 
 
 def operator_farm(args: argparse.Namespace) -> int:
