@@ -321,35 +321,6 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox) -> zenoh.Subscribe
     return session.declare_subscriber(key, on_sample)
 
 
-class SampleRing:
-    """The newest ``size`` samples of one key expression, read by one thread straight from Zenoh's ring channel.
-
-    With :func:`subscribe` + :class:`Inbox`, a sample crosses two threads before its reader sees it: zenoh-python
-    runs Python callbacks on a thread of its own, which then wakes the reader. Here Zenoh's network thread
-    fills the ring without the GIL and the reader wakes once: the edge's command path uses it. A flood keeps the
-    newest samples, like ``Inbox(keep="newest")``, but the ring does not count what it drops.
-    """
-
-    def __init__(self, session: zenoh.Session, key: str, size: int) -> None:
-        self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(size))
-        self._handler = self._sub.handler  # read through the handler: the subscriber stays free to undeclare
-        self.closed = False
-
-    def get(self) -> tuple[str, bytes, int] | None:
-        """The next ``(key, payload bytes, receive time ns)``, waiting for it; None once closed."""
-        try:
-            sample = self._handler.recv()
-        except zenoh.ZError:  # undeclared: the channel is closed
-            return None
-        return str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
-
-    def close(self) -> None:
-        """Undeclare; a reader waiting in :meth:`get` returns None."""
-        if not self.closed:
-            self.closed = True
-            self._sub.undeclare()
-
-
 def raise_priority(realtime: bool, native_id: int | None = None) -> str:
     """Best effort SCHED_FIFO for one thread (root or CAP_SYS_NICE); returns what it got. Only for threads that
     block between short bursts of work (a fixed-rate sender, a control loop): a spinning one would starve others."""
@@ -473,7 +444,6 @@ __all__ = [
     "ConnectError",
     "Inbox",
     "QosProfile",
-    "SampleRing",
     "Worker",
     "ZenohConfig",
     "announced_lease",

@@ -52,7 +52,7 @@ from iorthand.protocol import (
 )
 from iorthand.security import sdnotify
 from iorthand.security.identity import CommandGate
-from iorthand.transport import Inbox, SampleRing, Worker, open_session, publisher, subscribe
+from iorthand.transport import Inbox, Worker, open_session, publisher, subscribe
 from iorthand_edge.actuators import ServoUnit, TorchUnit
 from iorthand_edge.config import EdgeConfig
 from iorthand_edge.force import LevelState, SensorError, contact_wrench, make_force_sensor
@@ -65,9 +65,6 @@ from iorthand_edge.supervisor import Decision, Supervisor
 from iorthand_edge.video import VideoStream, make_source
 
 log = logging.getLogger("iorthand.edge")
-
-# Twists waiting for the command thread: a flood keeps only the newest (each is a whole velocity command).
-TWIST_RING = 64
 
 # Supervisor states that end a previewed move (it never resumes by itself; the operator previews again).
 _HALTS = frozenset({
@@ -113,7 +110,7 @@ class EdgeAgent:
         self._last_cmd_recv = 0
         self._last_safety: tuple[Any, ...] | None = None
         self._last_safety_pub = 0.0
-        self._twists: SampleRing | None = None  # declared in start()
+        self._twists = Inbox(64, keep="newest")
         self._control = Inbox(256, keep="oldest")
         self._workers: list[Worker] = []
         self._rlog = RateLimitedLog(log)
@@ -175,9 +172,8 @@ class EdgeAgent:
         # With bound keys, operators command on .../cmd/twist/<id> and query .../control/<verb>/<id>, keys the
         # router's ACL grants only to that operator's certificate (iorthand.security.identity).
         bound = "/*" if self.config.bind_operator_keys else ""
-        # Twists go straight from Zenoh's ring to the command thread (one thread wake-up less than a callback).
-        self._twists = SampleRing(s, k.key(keys.CMD_TWIST) + bound, TWIST_RING)
         self._declared = [
+            subscribe(s, k.key(keys.CMD_TWIST) + bound, self._twists),
             subscribe(s, k.key(keys.CMD_STOP), self._control),
             subscribe(s, k.key(keys.CMD_SERVO), self._control),
             subscribe(s, k.key(keys.CMD_TORCH), self._control),
@@ -245,8 +241,7 @@ class EdgeAgent:
 
     def shutdown(self) -> None:
         self.stop_event.set()
-        if self._twists is not None:
-            self._twists.close()
+        self._twists.close()
         self._control.close()
         for w in self._workers:
             w.join(timeout=2.0)
@@ -456,12 +451,10 @@ class EdgeAgent:
     # ------------------------------------------------------------------ commands
 
     def _command_loop(self, stop: threading.Event) -> None:
-        twists = self._twists
-        assert twists is not None, "start() declares the twist subscriber before the command thread"
         while not stop.is_set():
-            item = twists.get()
+            item = self._twists.get(timeout=0.1)
             if item is None:
-                return  # closed: shutting down
+                continue
             key, payload, recv_ns = item
             try:
                 cmd = TwistCommand.decode(payload)
