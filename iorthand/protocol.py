@@ -17,6 +17,7 @@ import threading
 import time
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, ClassVar, Self
@@ -71,66 +72,112 @@ def now_ns() -> int:
 # Validation machinery
 
 
-def _check_number(mtype: str, name: str, value: Any, meta: dict[str, Any], kind: type) -> Any:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise DecodeError(mtype, name, f"expected {kind.__name__}, got {type(value).__name__}")
-    if kind is int:
-        if not isinstance(value, int):
-            raise DecodeError(mtype, name, f"expected int, got {type(value).__name__}")
-        if not -_MAX_INT <= value <= _MAX_INT:
-            raise DecodeError(mtype, name, "integer out of the 64-bit range")
-    else:
-        value = float(value)
-        if not math.isfinite(value):
-            raise DecodeError(mtype, name, f"must be finite, got {value}")
-    lo, hi = meta.get("lo"), meta.get("hi")
-    if lo is not None and value < lo:
-        raise DecodeError(mtype, name, f"{value} is below the minimum {lo}")
-    if hi is not None and value > hi:
-        raise DecodeError(mtype, name, f"{value} is above the maximum {hi}")
-    return value
+Checker = Callable[[str, Any], Any]  # (message type, raw value) -> checked value, or raise DecodeError
 
 
-def _check(mtype: str, name: str, value: Any, hint: Any, meta: dict[str, Any]) -> Any:
+def _compile(name: str, hint: Any, meta: dict[str, Any]) -> Checker:
+    """The checker of one field, built once per class: decoding runs on every command, so the type dispatch
+    happens here rather than for each value (a cold CPU after an idle gap makes every bytecode count)."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
-        if value is None:
-            return None
-        return _check(mtype, name, value, args[0], meta)
+        inner = _compile(name, args[0], meta)
+        return lambda mtype, value: None if value is None else inner(mtype, value)
     if hint is bool:
-        if not isinstance(value, bool):
-            raise DecodeError(mtype, name, f"expected bool, got {type(value).__name__}")
-        return value
+
+        def check_bool(mtype: str, value: Any) -> Any:
+            if value.__class__ is not bool:
+                raise DecodeError(mtype, name, f"expected bool, got {type(value).__name__}")
+            return value
+
+        return check_bool
     if hint in (int, float):
-        return _check_number(mtype, name, value, meta, hint)
+        return _number_checker(name, hint, meta)
     if hint in (str, bytes):
-        if not isinstance(value, hint):
-            raise DecodeError(mtype, name, f"expected {hint.__name__}, got {type(value).__name__}")
         max_len = meta.get("max_len")
-        if max_len is not None and len(value) > max_len:
-            raise DecodeError(mtype, name, f"length {len(value)} exceeds {max_len}")
-        return value
+
+        def check_text(mtype: str, value: Any) -> Any:
+            if not isinstance(value, hint):
+                raise DecodeError(mtype, name, f"expected {hint.__name__}, got {type(value).__name__}")
+            if max_len is not None and len(value) > max_len:
+                raise DecodeError(mtype, name, f"length {len(value)} exceeds {max_len}")
+            return value
+
+        return check_text
     if origin is list:
         (item,) = typing.get_args(hint)
-        if not isinstance(value, (list, tuple)):
-            raise DecodeError(mtype, name, f"expected a list, got {type(value).__name__}")
         length, max_len = meta.get("length"), meta.get("max_len")
-        if length is not None and len(value) != length:
-            raise DecodeError(mtype, name, f"expected {length} elements, got {len(value)}")
-        if max_len is not None and len(value) > max_len:
-            raise DecodeError(mtype, name, f"{len(value)} elements exceed {max_len}")
         if dataclasses.is_dataclass(item):
-            return [item._from_map(v, f"{mtype}.{name}[{i}]") for i, v in enumerate(value)]
-        return [_check(mtype, f"{name}[{i}]", v, item, meta) for i, v in enumerate(value)]
-    raise TypeError(f"{mtype}.{name}: unsupported field type {hint!r}")  # a programming error
+            each = lambda mtype, i, v: item._from_map(v, f"{mtype}.{name}[{i}]")  # noqa: E731
+        else:
+            items = {}  # element checkers by index, built on first use (their names carry the index)
+
+            def each(mtype: str, i: int, v: Any) -> Any:
+                check = items.get(i)
+                if check is None:
+                    check = items[i] = _compile(f"{name}[{i}]", item, meta)
+                return check(mtype, v)
+
+        fast_floats = item is float
+
+        def check_list(mtype: str, value: Any) -> Any:
+            if not isinstance(value, (list, tuple)):
+                raise DecodeError(mtype, name, f"expected a list, got {type(value).__name__}")
+            if length is not None and len(value) != length:
+                raise DecodeError(mtype, name, f"expected {length} elements, got {len(value)}")
+            if max_len is not None and len(value) > max_len:
+                raise DecodeError(mtype, name, f"{len(value)} elements exceed {max_len}")
+            if fast_floats and _plain_floats(value, meta):
+                return list(value)
+            return [each(mtype, i, v) for i, v in enumerate(value)]
+
+        return check_list
+    raise TypeError(f"{name}: unsupported field type {hint!r}")  # a programming error, found at import
+
+
+def _plain_floats(values: Any, meta: dict[str, Any]) -> bool:
+    """True if every value is a finite float within the field's bounds (the common case, checked in one
+    pass); anything else goes through the per-element checker, which names what is wrong."""
+    lo, hi = meta.get("lo"), meta.get("hi")
+    lo = -math.inf if lo is None else lo
+    hi = math.inf if hi is None else hi
+    return all(v.__class__ is float and lo <= v <= hi for v in values)  # NaN fails both comparisons
+
+
+def _number_checker(name: str, kind: type, meta: dict[str, Any]) -> Checker:
+    lo, hi = meta.get("lo"), meta.get("hi")
+
+    def check_number(mtype: str, value: Any) -> Any:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise DecodeError(mtype, name, f"expected {kind.__name__}, got {type(value).__name__}")
+        if kind is int:
+            if not isinstance(value, int):
+                raise DecodeError(mtype, name, f"expected int, got {type(value).__name__}")
+            if not -_MAX_INT <= value <= _MAX_INT:
+                raise DecodeError(mtype, name, "integer out of the 64-bit range")
+        else:
+            value = float(value)
+            if not math.isfinite(value):
+                raise DecodeError(mtype, name, f"must be finite, got {value}")
+        if lo is not None and value < lo:
+            raise DecodeError(mtype, name, f"{value} is below the minimum {lo}")
+        if hi is not None and value > hi:
+            raise DecodeError(mtype, name, f"{value} is above the maximum {hi}")
+        return value
+
+    return check_number
+
+
+_PLAIN = frozenset({str, int, float, bool, bytes, type(None)})
 
 
 def _to_wire(value: Any) -> Any:
+    if value.__class__ in _PLAIN:
+        return value
     if isinstance(value, Struct):
         return value._to_map()
     if hasattr(value, "tolist"):  # numpy arrays and scalars → plain Python values (lists, floats, ints, bools)
-        value = value.tolist()
+        return value.tolist()
     if isinstance(value, (list, tuple)):
         return [_to_wire(v) for v in value]
     return value
@@ -149,6 +196,15 @@ class Struct:
             cls._field_cache = cache  # type: ignore[attr-defined]
         return cache
 
+    @classmethod
+    def _checkers(cls) -> tuple[frozenset[str], list[tuple[str, Checker]]]:
+        cache = cls.__dict__.get("_checker_cache")
+        if cache is None:
+            known = frozenset(name for name, _, _ in cls._fields()) | {"v", "seq", "t"}
+            cache = known, [(name, _compile(name, hint, meta)) for name, hint, meta in cls._fields()]
+            cls._checker_cache = cache  # type: ignore[attr-defined]
+        return cache
+
     def _to_map(self) -> dict[str, Any]:
         return {name: _to_wire(getattr(self, name)) for name, _, _ in self._fields()}
 
@@ -157,15 +213,15 @@ class Struct:
         mtype = mtype or cls.__name__
         if not isinstance(data, dict):
             raise DecodeError(mtype, "payload", f"expected a map, got {type(data).__name__}")
-        known = {name for name, _, _ in cls._fields()} | {"v", "seq", "t"}
-        for k in data:
-            if k not in known:
-                raise DecodeError(mtype, str(k)[:40], "unknown field")
+        known, checkers = cls._checkers()
+        if not known.issuperset(data):
+            unknown = next(k for k in data if k not in known)
+            raise DecodeError(mtype, str(unknown)[:40], "unknown field")
         values: dict[str, Any] = {}
-        for name, hint, meta in cls._fields():
+        for name, check in checkers:
             if name not in data:
                 raise DecodeError(mtype, name, "missing field")
-            values[name] = _check(mtype, name, data[name], hint, meta)
+            values[name] = check(mtype, data[name])
         return cls(**values)
 
     def validate(self) -> Self:

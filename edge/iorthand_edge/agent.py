@@ -271,7 +271,7 @@ class EdgeAgent:
     def disarm(self, reason: str) -> None:
         with self.lock:
             self.supervisor.disarm(reason)
-            self._drive(Decision(np.zeros(6), False, Status.DISARMED))
+            self._drive(Decision([0.0] * 6, False, Status.DISARMED))
         log.warning("disarmed: %s", reason)
         self._publish_safety(force=True)
 
@@ -368,9 +368,9 @@ class EdgeAgent:
         with the configured deceleration; the UR driver keeps its watchdog kicked on its own."""
         twist = decision.twist
         try:
-            if np.any(twist):
+            if any(twist):
                 self._commanded = self.robot.send_twist(twist, self.config.safety.max_linear_acceleration)
-            elif np.any(self._commanded):
+            elif self._commanded.any():
                 self.robot.stop(self.config.safety.stop_deceleration)
                 self._commanded = np.zeros(6)
         except RobotFault as exc:
@@ -664,7 +664,7 @@ class EdgeAgent:
                 self._cancel_goto(f"{operator!r} disappeared")
             lost = self.supervisor.owner_lost(operator, f"owner {operator!r} disappeared (liveliness lost)")
             if lost:
-                self._drive(Decision(np.zeros(6), False, Status.OWNER_LOST))
+                self._drive(Decision([0.0] * 6, False, Status.OWNER_LOST))
         if lost:
             log.warning("owner %r lost: robot stopped, control released", operator)
             self._publish_safety(force=True)
@@ -737,7 +737,7 @@ class EdgeAgent:
         with self.lock:
             self._cancel_goto(f"stop from {cmd.operator!r}")
             self.supervisor.stop(f"stop from {cmd.operator!r}: {cmd.reason}")
-            self._drive(Decision(np.zeros(6), False, Status.STOPPED))
+            self._drive(Decision([0.0] * 6, False, Status.STOPPED))
         log.warning("stop from %r: %s", cmd.operator, cmd.reason)
         self._publish_safety(force=True)
 

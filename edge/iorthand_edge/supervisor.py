@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from iorthand.config import setting
-from iorthand.geometry import rotvec_to_matrix
+from iorthand.geometry import rotate
 from iorthand.protocol import ForceLevel, Status, TwistCommand
 from iorthand_edge.robots.base import Vector
 
@@ -107,7 +107,7 @@ class SafetyConfig:
 class Decision:
     """What the supervisor decided for one command or one control cycle."""
 
-    twist: Vector  # what to send to the robot (m/s, rad/s)
+    twist: list[float]  # what to send to the robot, [vx, vy, vz, wx, wy, wz] (m/s, rad/s)
     accepted: bool
     status: str
     reason: str = ""
@@ -120,9 +120,6 @@ class Counters:
     applied: int = 0
     rejected: int = 0
     stops: int = 0
-
-
-_ZERO = np.zeros(6)
 
 
 class Supervisor:
@@ -142,7 +139,7 @@ class Supervisor:
         self._last_seq = 0
         self._last_accepted = -math.inf  # monotonic time of the last accepted command
         self._deadman = False
-        self._target = np.zeros(6)  # the last accepted command, already limited
+        self._target = [0.0] * 6  # the last accepted command, already limited
         self._latched = ""  # status that keeps the robot stopped until cleared (see module doc)
         self._latch_reason = ""
         self._now = 0.0  # the latest monotonic time given to on_command/step
@@ -286,15 +283,15 @@ class Supervisor:
             self._deadman = False
             if self._latched == Status.STOPPED:
                 self._latched = ""  # deadman released after a stop: the next press may move again
-            self._target = np.zeros(6)
+            self._target = [0.0] * 6
             self.counters.applied += 1
             self._set(Status.NO_DEADMAN, "deadman released")
-            return Decision(np.zeros(6), True, Status.NO_DEADMAN, "deadman released")
+            return Decision([0.0] * 6, True, Status.NO_DEADMAN, "deadman released")
         self._deadman = True
         if self._latched:
             self.counters.rejected += 1
-            return Decision(np.zeros(6), False, self._latched, self._latch_reason)
-        self._target = np.concatenate([cmd.linear, cmd.angular]).astype(float)
+            return Decision([0.0] * 6, False, self._latched, self._latch_reason)
+        self._target = [float(v) for v in (*cmd.linear, *cmd.angular)]
         decision = self._limit(self._target, tcp_pose, now)
         self.counters.applied += 1
         decision.accepted = True
@@ -306,10 +303,10 @@ class Supervisor:
         if self.owner and now >= self._lease_until and now - self._last_accepted > self.config.lease:
             self.owner_lost(self.owner, f"lease of {self.owner!r} expired")
         if self._latched or not self.armed:
-            return Decision(np.zeros(6), False, self.status, self.reason)
+            return Decision([0.0] * 6, False, self.status, self.reason)
         if self._deadman and now - self._last_accepted > self.config.command_timeout:
             self._deadman = False
-            self._target = np.zeros(6)
+            self._target = [0.0] * 6
             self._halt(
                 Status.COMMAND_TIMEOUT,
                 f"no command for {1000 * (now - self._last_accepted):.0f} ms "
@@ -339,16 +336,16 @@ class Supervisor:
             return Status.STALE_COMMAND, f"command time is {-1000 * age:.0f} ms in the future: check clock sync"
         return None
 
-    def _current(self) -> Vector:
-        return self._target if self._deadman and not self._latched else np.zeros(6)
+    def _current(self) -> list[float]:
+        return list(self._target) if self._deadman and not self._latched else [0.0] * 6
 
     def _set(self, status: str, reason: str) -> None:
         self.status, self.reason = status, reason
 
     def _halt(self, status: str, reason: str, latch: bool = False) -> None:
-        was_moving = self.moving or bool(np.any(self._target))
+        was_moving = self.moving or any(self._target)
         self._deadman = False
-        self._target = np.zeros(6)
+        self._target = [0.0] * 6
         self.moving = False
         if was_moving or latch:
             self.counters.stops += 1
@@ -356,21 +353,23 @@ class Supervisor:
             self._latched, self._latch_reason = status, reason
         self._set(status, reason)
 
-    def _contact_direction(self, tcp_pose: Vector) -> Vector:
-        axis = rotvec_to_matrix(tcp_pose[3:]) @ np.asarray(self.config.force.contact_axis, dtype=float)
-        return axis / max(float(np.linalg.norm(axis)), 1e-9)
+    def _contact_direction(self, pose: list[float]) -> tuple[float, float, float]:
+        x, y, z = rotate(pose[3:], self.config.force.contact_axis)
+        norm = max(math.sqrt(x * x + y * y + z * z), 1e-9)
+        return x / norm, y / norm, z / norm
 
     def _retreat_only(self, tcp_pose: Vector, now: float) -> Decision:
         """No operator motion: only the retreat from danger, if one is under way."""
         if now < self._retreat_until:
-            twist = np.zeros(6)
-            self._clip_force(twist, tcp_pose, now)
-            self._clip_workspace(twist, tcp_pose)
-            self.moving = bool(np.any(twist))
+            twist = [0.0] * 6
+            pose = _floats(tcp_pose)
+            self._clip_force(twist, pose, now)
+            self._clip_workspace(twist, pose)
+            self.moving = any(twist)
             self._set(Status.FORCE_DANGER, "retracting from danger-level force")
             return Decision(twist, True, Status.FORCE_DANGER, "retracting from danger-level force", ["force"])
         self.moving = False
-        return Decision(np.zeros(6), False, self.status, self.reason)
+        return Decision([0.0] * 6, False, self.status, self.reason)
 
     def _intervene(self, status: str, reason: str) -> None:
         if status != self._force_active:
@@ -378,38 +377,44 @@ class Supervisor:
             self.interventions.append((status, reason))
             del self.interventions[:-64]  # bounded if nobody drains it
 
-    def _limit(self, target: Vector, tcp_pose: Vector, now: float) -> Decision:
+    def _limit(self, target: list[float], tcp_pose: Vector, now: float) -> Decision:
+        """Speed, force and workspace limits on ``target`` (6 floats). Plain float arithmetic, not numpy: this
+        runs for every command and every control cycle, where numpy's per-call overhead on 3-vectors is most
+        of the cost."""
         limits = self.limits
-        twist = target.copy()
+        twist = list(target)
         hit: list[str] = []
         status, reason = Status.OK, ""
-        lin_speed = float(np.linalg.norm(twist[:3]))
+        lin_speed = math.hypot(*twist[:3])
         if lin_speed > limits.linear:
-            twist[:3] *= limits.linear / lin_speed
+            scale = limits.linear / lin_speed
+            twist[:3] = [v * scale for v in twist[:3]]
             hit.append("linear_speed")
             status, reason = Status.SPEED_LIMITED, f"linear speed {1000 * lin_speed:.1f} mm/s clipped to {1000 * limits.linear:.1f} mm/s ({self.profile})"
-        ang_speed = float(np.linalg.norm(twist[3:]))
+        ang_speed = math.hypot(*twist[3:])
         if ang_speed > limits.angular:
-            twist[3:] *= limits.angular / ang_speed
+            scale = limits.angular / ang_speed
+            twist[3:] = [v * scale for v in twist[3:]]
             hit.append("angular_speed")
             status, reason = Status.SPEED_LIMITED, f"angular speed {ang_speed:.2f} rad/s clipped to {limits.angular:.2f} rad/s ({self.profile})"
+        pose = _floats(tcp_pose)
         # Force before workspace: a retreat adds velocity, and the box must still bound it.
-        force_status = self._clip_force(twist, tcp_pose, now)
+        force_status = self._clip_force(twist, pose, now)
         if force_status is not None:
             hit.append("force")
             status, reason = force_status
             self._intervene(status, reason)
         else:
             self._force_active = ""
-        if self._clip_workspace(twist, tcp_pose):
+        if self._clip_workspace(twist, pose):
             hit.append("workspace")
             status, reason = Status.WORKSPACE, "velocity leaving the workspace box removed"
         self.limits_hit = hit
-        self.moving = bool(np.any(np.abs(twist) > 1e-9))
+        self.moving = any(abs(v) > 1e-9 for v in twist)
         self._set(status, reason)
         return Decision(twist, True, status, reason, hit)
 
-    def _clip_workspace(self, twist: Vector, tcp_pose: Vector) -> bool:
+    def _clip_workspace(self, twist: list[float], pose: list[float]) -> bool:
         """Remove velocity components that would carry the tool out of the box: the allowed speed toward a
         face is what still stops in time at the stop deceleration, ``v ≤ √(2·a·d)`` and ``v·T ≤ d``."""
         box = self.config.workspace
@@ -419,7 +424,7 @@ class Supervisor:
         horizon = 2.0 * self.period  # two control periods of reaction
         clipped = False
         for i in range(3):
-            p, v = float(tcp_pose[i]), float(twist[i])
+            p, v = pose[i], twist[i]
             if v > 0:
                 d = box.max[i] - p
             elif v < 0:
@@ -432,33 +437,44 @@ class Supervisor:
                 clipped = True
         return clipped
 
-    def _clip_force(self, twist: Vector, tcp_pose: Vector, now: float) -> tuple[str, str] | None:
+    def _clip_force(self, twist: list[float], pose: list[float], now: float) -> tuple[str, str] | None:
         """Shape ``twist`` (in place) by the force state; return (status, reason) if it intervened."""
         reaction = self.config.force
         if not reaction.enabled or not self.force_required:
             return None
-        n = self._contact_direction(tcp_pose)  # pressing direction in the base frame
-        toward = float(np.dot(twist[:3], n))
+        n = self._contact_direction(pose)  # pressing direction in the base frame
+        toward = twist[0] * n[0] + twist[1] * n[1] + twist[2] * n[2]
         if self.force_stale:
             if toward <= 0:
                 return None
-            twist[:3] -= toward * n
+            _add_along(twist, -toward, n)
             return Status.FORCE_STALE, "force sensor stale: motion toward contact refused"
         result: tuple[str, str] | None = None
         if self.force_level == ForceLevel.DANGER and toward > 0:
-            twist[:3] -= toward * n
+            _add_along(twist, -toward, n)
             toward = 0.0
             result = Status.FORCE_DANGER, "danger-level force: motion pressing harder removed"
         elif self.force_level == ForceLevel.CAUTION:
             decel = min(self.config.max_linear_acceleration, self.config.stop_deceleration)
             cap = reaction.approach_speed_cap(decel)
             if toward > cap:
-                twist[:3] -= (toward - cap) * n
+                _add_along(twist, cap - toward, n)
                 toward = cap
                 result = Status.FORCE_CAUTION, f"caution-level force: approach slowed to {1000 * cap:.1f} mm/s"
         # The retreat runs its full distance even once the level has dropped (it drops within a fraction of
         # a millimetre, by the hysteresis): a retreat cut short would leave the probe at the red threshold.
         if now < self._retreat_until and toward > -reaction.retract_speed:
-            twist[:3] += (-reaction.retract_speed - toward) * n
+            _add_along(twist, -reaction.retract_speed - toward, n)
             result = Status.FORCE_DANGER, "danger-level force: retracting along the contact normal"
         return result
+
+
+def _floats(v: Vector | list[float]) -> list[float]:
+    return v.tolist() if isinstance(v, np.ndarray) else [float(x) for x in v]
+
+
+def _add_along(twist: list[float], amount: float, n: tuple[float, float, float]) -> None:
+    """Add ``amount`` times the unit vector ``n`` to the linear part of ``twist`` (in place)."""
+    twist[0] += amount * n[0]
+    twist[1] += amount * n[1]
+    twist[2] += amount * n[2]

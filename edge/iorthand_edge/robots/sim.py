@@ -8,6 +8,7 @@ UR3e home posture (documented in robots/config.py); the tool pose is what every 
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -19,13 +20,15 @@ from iorthand_edge.robots.config import UR3E_HOME_Q, SimRobotConfig
 
 
 class SimRobot(Robot):
+    # State in plain floats, numpy only for the orientation while it turns: send_twist runs on every command,
+    # and a handful of numpy calls on 6-vectors cost more than the arithmetic they do.
     def __init__(self, config: SimRobotConfig, clock=time.monotonic) -> None:
         self.config = config
         self._clock = clock
         self._lock = threading.Lock()
-        self._pose = geometry.pose_to_matrix(config.initial_pose)
-        self._velocity = np.zeros(6)
-        self._target = np.zeros(6)
+        self._set_pose(config.initial_pose)
+        self._velocity = [0.0] * 6
+        self._target = [0.0] * 6
         self._acceleration = 1.0
         self._last = clock()
         self._t0 = self._last
@@ -40,6 +43,12 @@ class SimRobot(Robot):
             self.connected = True
             self._last = self._clock()
 
+    def _set_pose(self, pose: Vector | list[float]) -> None:
+        matrix = geometry.pose_to_matrix(pose)
+        self._position = matrix[:3, 3].tolist()
+        self._rotation = matrix[:3, :3]
+        self._rotvec = geometry.matrix_to_rotvec(self._rotation).tolist()
+
     def _advance(self) -> None:
         now = self._clock()
         dt = max(0.0, now - self._last)
@@ -48,21 +57,24 @@ class SimRobot(Robot):
             return
         # Ramp the velocity toward the target at the commanded acceleration (vector-wise, so the direction of
         # an accelerating move is preserved), integrating with the mean velocity over the step.
-        delta = self._target - self._velocity
+        velocity, target = self._velocity, self._target
+        delta = [t - v for t, v in zip(target, velocity, strict=True)]
         step = self._acceleration * dt
-        norm = float(np.linalg.norm(delta))
-        new_velocity = self._target.copy() if norm <= step else self._velocity + delta * (step / norm)
-        mean = (self._velocity + new_velocity) / 2.0
+        norm = math.sqrt(sum(d * d for d in delta))
+        new_velocity = list(target) if norm <= step else [v + d * (step / norm) for v, d in zip(velocity, delta, strict=True)]
+        mean = [(v + w) / 2.0 for v, w in zip(velocity, new_velocity, strict=True)]
         self._velocity = new_velocity
-        self._pose[:3, 3] += mean[:3] * dt
-        self._pose[:3, :3] = geometry.rotvec_to_matrix(mean[3:] * dt) @ self._pose[:3, :3]
+        self._position = [p + m * dt for p, m in zip(self._position, mean[:3], strict=True)]
+        if any(mean[3:]):
+            self._rotation = geometry.rotvec_to_matrix([m * dt for m in mean[3:]]) @ self._rotation
+            self._rotvec = geometry.matrix_to_rotvec(self._rotation).tolist()
 
     def read_state(self) -> RobotReading:
         with self._lock:
             self._advance()
             return RobotReading(
-                tcp_pose=geometry.matrix_to_pose(self._pose),
-                tcp_speed=self._velocity.copy(),
+                tcp_pose=np.array(self._position + self._rotvec),
+                tcp_speed=np.array(self._velocity),
                 q=np.array(UR3E_HOME_Q),
                 timestamp_ns=time.time_ns(),
                 robot_time=self._last - self._t0,
@@ -71,33 +83,33 @@ class SimRobot(Robot):
             )
 
     def send_twist(self, twist: Vector, acceleration: float) -> Vector:
-        twist = np.asarray(twist, dtype=float)
-        if twist.shape != (6,) or not np.all(np.isfinite(twist)):
+        values = [float(v) for v in twist]
+        if len(values) != 6 or not all(map(math.isfinite, values)):
             raise ValueError(f"a twist has 6 finite numbers, got {twist!r}")
         with self._lock:
             if not self.connected:
                 raise RobotFault("simulated robot is not connected")
             self._advance()
-            self._target = twist.copy()
+            self._target = values
             self._acceleration = max(float(acceleration), 1e-6)
-            return self._target.copy()
+            return np.array(values)
 
     def stop(self, deceleration: float) -> None:
         with self._lock:
             self._advance()
-            self._target = np.zeros(6)
+            self._target = [0.0] * 6
             self._acceleration = max(float(deceleration), 1e-6)
 
     def disconnect(self) -> None:
         with self._lock:
             self._advance()
-            self._target = np.zeros(6)
-            self._velocity = np.zeros(6)
+            self._target = [0.0] * 6
+            self._velocity = [0.0] * 6
             self.connected = False
 
     def teleport(self, pose: Vector) -> None:
         """Place the tool (tests and demos only)."""
         with self._lock:
-            self._pose = geometry.pose_to_matrix(pose)
-            self._velocity = np.zeros(6)
-            self._target = np.zeros(6)
+            self._set_pose(pose)
+            self._velocity = [0.0] * 6
+            self._target = [0.0] * 6
