@@ -312,21 +312,13 @@ class Inbox:
         return len(self._items)
 
 
-def direct(callback: Callable[[zenoh.Sample], None]) -> zenoh.handlers.Callback:
-    """Run ``callback`` on Zenoh's network thread instead of zenoh-python's callback thread: one thread
-    wake-up less per sample (about 0.1 ms on an idle core). Only for callbacks that take microseconds and
-    never block — a slow one stalls every subscription of the session (FACTS: a slow callback)."""
-    return zenoh.handlers.Callback(callback, indirect=False)
-
-
 def subscribe(session: zenoh.Session, key: str, inbox: Inbox) -> zenoh.Subscriber:
-    """Subscribe ``key``; the callback only queues ``(key, payload bytes, receive time ns)``, stamped on
-    arrival."""
+    """Subscribe ``key``; the callback only queues ``(key, payload bytes, receive time ns)``."""
 
     def on_sample(sample: zenoh.Sample) -> None:
         inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
 
-    return session.declare_subscriber(key, direct(on_sample))
+    return session.declare_subscriber(key, on_sample)
 
 
 def raise_priority(realtime: bool, native_id: int | None = None) -> str:

@@ -51,7 +51,7 @@ from iorthand.protocol import (
     TorchState,
     TwistCommand,
 )
-from iorthand.transport import QOS_BY_KEY, ZenohConfig, direct, publisher, query, raise_priority
+from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
 from iorthand_operator.link import LinkQuality, LinkWindow
 from iorthand_operator.sender import ProcessSender
 
@@ -178,14 +178,14 @@ class OperatorClient:
         self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH))
         self._token = session.liveliness().declare_token(self.keys.alive_operator(operator_id))
         self._subs = [
-            session.declare_subscriber(self.keys.key(keys.STATE_ROBOT), direct(self._on_robot)),
-            session.declare_subscriber(self.keys.key(keys.STATE_SAFETY), direct(self._on_safety)),
-            session.declare_subscriber(self.keys.key(keys.STATE_APPLIED), direct(self._on_applied)),
-            session.declare_subscriber(self.keys.key(keys.STATE_FORCE_LEVEL), direct(self._on_force_level)),
-            session.declare_subscriber(self.keys.key(keys.STATE_FORCE), direct(self._on_force)),
-            session.declare_subscriber(self.keys.key(keys.STATE_SERVO), direct(self._on_servo)),
-            session.declare_subscriber(self.keys.key(keys.STATE_TORCH), direct(self._on_torch)),
-            session.declare_subscriber(self.keys.key(keys.MARKERS), direct(self._on_markers)),
+            session.declare_subscriber(self.keys.key(keys.STATE_ROBOT), self._on_robot),
+            session.declare_subscriber(self.keys.key(keys.STATE_SAFETY), self._on_safety),
+            session.declare_subscriber(self.keys.key(keys.STATE_APPLIED), self._on_applied),
+            session.declare_subscriber(self.keys.key(keys.STATE_FORCE_LEVEL), self._on_force_level),
+            session.declare_subscriber(self.keys.key(keys.STATE_FORCE), self._on_force),
+            session.declare_subscriber(self.keys.key(keys.STATE_SERVO), self._on_servo),
+            session.declare_subscriber(self.keys.key(keys.STATE_TORCH), self._on_torch),
+            session.declare_subscriber(self.keys.key(keys.MARKERS), self._on_markers),
             session.liveliness().declare_subscriber(self.keys.key(keys.ALIVE_EDGE), self._on_edge_alive, history=True),
         ]
 
