@@ -26,6 +26,14 @@ def test_rotvec_round_trip(rv: list[float]) -> None:
     assert g.is_rigid(g.make_transform(r))
 
 
+@pytest.mark.parametrize("rv", [[0.0, 0.0, 0.0], [0, 0, 1e-13], [0, 0, 1e-7], [math.pi, 0, 0], [0.1, -0.2, 0.3],
+                                [-1.2, 0.4, 0.9], [0, 2.0, 2.0]])
+def test_rotate_matches_the_matrix(rv: list[float]) -> None:
+    """The float-only rotation the supervisor uses agrees with Rodrigues' matrix."""
+    for v in ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.3, -0.7, 0.2]):
+        assert np.allclose(g.rotate(rv, v), g.rotvec_to_matrix(rv) @ v, atol=1e-12)
+
+
 def test_pose_matrix_round_trip_and_composition() -> None:
     pose = np.array([0.3, -0.1, 0.25, 3.0, 0.1, -0.2])
     t = g.pose_to_matrix(pose)

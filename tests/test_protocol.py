@@ -52,6 +52,8 @@ def twist_map(**changes: object) -> dict:
     ("changes", "field", "problem"),
     [
         ({"linear": [0.0, "x", 0.0]}, "linear[1]", "expected float"),
+        ({"linear": [0.0, 0.0, True]}, "linear[2]", "expected float"),
+        ({"angular": [0.0, -50.0, 0.0]}, "angular[1]", "below the minimum"),
         ({"deadman": 1}, "deadman", "expected bool"),
         ({"operator": 5}, "operator", "expected str"),
         ({"linear": [math.nan, 0.0, 0.0]}, "linear[0]", "finite"),
@@ -71,6 +73,13 @@ def test_bad_fields_are_rejected_by_name(changes: dict, field: str, problem: str
     assert err.value.field == field
     assert problem in str(err.value)
     assert str(err.value).startswith(f"TwistCommand.{field}")
+
+
+def test_integer_vector_elements_arrive_as_floats() -> None:
+    """msgpack sends 1.0 as 1 from some encoders: a vector of ints is accepted and becomes floats."""
+    cmd = TwistCommand.decode(msgpack.packb(twist_map(linear=[0, 1, 0], angular=[0.5, 0, -1])))
+    assert cmd.linear == [0.0, 1.0, 0.0] and cmd.angular == [0.5, 0.0, -1.0]
+    assert all(type(v) is float for v in (*cmd.linear, *cmd.angular))
 
 
 @pytest.mark.parametrize("missing", ["v", "seq", "t", "operator", "linear", "angular", "deadman"])
