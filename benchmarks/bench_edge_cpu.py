@@ -1,0 +1,115 @@
+"""CPU time the edge spends on one twist command, step by step, hot (back to back) and cold (after the CPU idled).
+
+No Zenoh and no threads: one edge agent with the simulated robot (the benchmark's edge configuration), armed
+and owned, handles commands the way its command thread does — decode, gate, supervisor, robot call, echo
+encode — and the control loop's state message (robot read + encode) is timed alongside. Each step is measured
+in thread CPU time (``time.thread_time_ns``), so waiting does not count. "Cold" sleeps ``--gap-ms`` before each
+command, as the 60 Hz command stream does between commands: on a VM the first Python after an idle gap runs
+many times slower (``machine.idle_penalty`` in every ``iorthand bench`` result).
+
+    .venv/bin/python benchmarks/bench_edge_cpu.py [--commands 400] [--gap-ms 16] [--out benchmarks/results/edge_cpu.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+from iorthand import config, keys
+from iorthand.protocol import AppliedCommand, RobotState, TwistCommand
+from iorthand_edge.agent import EdgeAgent
+from iorthand_edge.config import EdgeConfig
+from iorthand_operator.bench.transports import edge_config
+
+STEPS = ("decode", "gate", "supervisor", "robot_call", "echo_encode", "state_read_encode")
+
+
+def make_agent() -> EdgeAgent:
+    agent = EdgeAgent(config.from_dict(edge_config("bench", ["tcp/127.0.0.1:7447"]), EdgeConfig))
+    agent.robot.connect()
+    agent.reading = agent.robot.read_state()
+    agent.supervisor.arm()
+    ok, why = agent.supervisor.acquire("op", time.monotonic())
+    if not ok:
+        raise RuntimeError(why)
+    return agent
+
+
+def one_command(agent: EdgeAgent, seq: int, speed: float) -> dict[str, float]:
+    """Handle one command as EdgeAgent._command_loop does; return each step's thread CPU time (µs)."""
+    payload = TwistCommand(operator="op", linear=[speed, 0.0, 0.0], deadman=True).stamp(seq).encode()
+    key = agent.keys.key(keys.CMD_TWIST)
+    clock = time.thread_time_ns
+    marks = [clock()]
+    recv_ns = time.time_ns()
+    cmd = TwistCommand.decode(payload)
+    marks.append(clock())
+    ok, why = agent.gate.check_command(key, keys.CMD_TWIST, cmd.operator)
+    marks.append(clock())
+    if not ok:
+        raise RuntimeError(f"gate refused: {why}")
+    with agent.lock:
+        decision = agent.supervisor.on_command(cmd, recv_ns / 1e9, time.monotonic(), agent.reading.tcp_pose)
+        marks.append(clock())
+        agent._drive(decision)
+        marks.append(clock())
+        AppliedCommand(operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns, applied=agent._commanded,
+                       accepted=decision.accepted, status=decision.status, reason=decision.reason).stamp(seq).encode()
+        marks.append(clock())
+        reading = agent.robot.read_state()
+        RobotState(tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=reading.q, commanded=agent._commanded,
+                   mode=reading.mode, cmd_seq=seq, cmd_recv_t=recv_ns).stamp(seq).encode()
+        marks.append(clock())
+    if not decision.accepted:
+        raise RuntimeError(f"command refused: {decision.status} {decision.reason}")
+    return {step: (b - a) / 1e3 for step, a, b in zip(STEPS, marks[:-1], marks[1:], strict=True)}
+
+
+def run(agent: EdgeAgent, first_seq: int, n: int, gap_s: float) -> dict[str, dict[str, float]]:
+    samples: dict[str, list[float]] = {step: [] for step in (*STEPS, "command_total")}
+    for i in range(n):
+        if gap_s:
+            time.sleep(gap_s)
+        # Alternate a speed under and over the profile's limit: both the plain and the clipping path run.
+        steps = one_command(agent, first_seq + i, 0.004 if i % 2 else 0.012)
+        for step, us in steps.items():
+            samples[step].append(us)
+        samples["command_total"].append(sum(us for step, us in steps.items() if step != "state_read_encode"))
+    return {
+        step: {"p50_us": round(statistics.median(v), 1), "p90_us": round(statistics.quantiles(v, n=10)[-1], 1)}
+        for step, v in samples.items()
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--commands", type=int, default=400, help="commands per mode (hot, cold)")
+    ap.add_argument("--gap-ms", type=float, default=16.0, help="idle gap before each cold command (60 Hz ≈ 16 ms)")
+    ap.add_argument("--out", default="benchmarks/results/edge_cpu.json")
+    args = ap.parse_args()
+    agent = make_agent()
+    run(agent, 1, 200, 0.0)  # warm-up: imports, caches, first allocations
+    hot = run(agent, 1_000, args.commands, 0.0)
+    cold = run(agent, 10_000, args.commands, args.gap_ms / 1000.0)
+    result = {
+        "benchmark": "edge_cpu",
+        "machine": {"hostname": platform.node(), "python": platform.python_version(), "kernel": platform.release()},
+        "config": {"commands": args.commands, "gap_ms": args.gap_ms, "robot": "sim"},
+        "hot": hot,
+        "cold": cold,
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=1))
+    print(f"{'step':20s} {'hot p50 µs':>11s} {'cold p50 µs':>12s} {'cold p90 µs':>12s}")
+    for step in (*STEPS, "command_total"):
+        print(f"{step:20s} {hot[step]['p50_us']:11.1f} {cold[step]['p50_us']:12.1f} {cold[step]['p90_us']:12.1f}")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
