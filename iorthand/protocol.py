@@ -72,31 +72,31 @@ def now_ns() -> int:
 # Validation machinery
 
 
-Checker = Callable[[str, Any], Any]  # (message type, raw value) -> checked value, or raise DecodeError
+Checker = Callable[[str, str, Any], Any]  # (message type, field name, raw value) -> checked value, or DecodeError
 
 
-def _compile(name: str, hint: Any, meta: dict[str, Any]) -> Checker:
-    """The checker of one field, built once per class: decoding runs on every command, so the type dispatch
-    happens here rather than for each value (a cold CPU after an idle gap makes every bytecode count)."""
+def _compile(hint: Any, meta: dict[str, Any]) -> Checker:
+    """The checker of one field type, built once per class: decoding runs on every command, so the type
+    dispatch happens here rather than for each value (a cold CPU after an idle gap makes every bytecode count)."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
-        inner = _compile(name, args[0], meta)
-        return lambda mtype, value: None if value is None else inner(mtype, value)
+        inner = _compile(args[0], meta)
+        return lambda mtype, name, value: None if value is None else inner(mtype, name, value)
     if hint is bool:
 
-        def check_bool(mtype: str, value: Any) -> Any:
+        def check_bool(mtype: str, name: str, value: Any) -> Any:
             if value.__class__ is not bool:
                 raise DecodeError(mtype, name, f"expected bool, got {type(value).__name__}")
             return value
 
         return check_bool
     if hint in (int, float):
-        return _number_checker(name, hint, meta)
+        return _number_checker(hint, meta)
     if hint in (str, bytes):
         max_len = meta.get("max_len")
 
-        def check_text(mtype: str, value: Any) -> Any:
+        def check_text(mtype: str, name: str, value: Any) -> Any:
             if not isinstance(value, hint):
                 raise DecodeError(mtype, name, f"expected {hint.__name__}, got {type(value).__name__}")
             if max_len is not None and len(value) > max_len:
@@ -108,19 +108,12 @@ def _compile(name: str, hint: Any, meta: dict[str, Any]) -> Checker:
         (item,) = typing.get_args(hint)
         length, max_len = meta.get("length"), meta.get("max_len")
         if dataclasses.is_dataclass(item):
-            each = lambda mtype, i, v: item._from_map(v, f"{mtype}.{name}[{i}]")  # noqa: E731
+            each: Checker = lambda mtype, name, v: item._from_map(v, f"{mtype}.{name}")  # noqa: E731
         else:
-            items = {}  # element checkers by index, built on first use (their names carry the index)
-
-            def each(mtype: str, i: int, v: Any) -> Any:
-                check = items.get(i)
-                if check is None:
-                    check = items[i] = _compile(f"{name}[{i}]", item, meta)
-                return check(mtype, v)
-
+            each = _compile(item, meta)  # elements share the field's bounds
         fast_floats = item is float
 
-        def check_list(mtype: str, value: Any) -> Any:
+        def check_list(mtype: str, name: str, value: Any) -> Any:
             if not isinstance(value, (list, tuple)):
                 raise DecodeError(mtype, name, f"expected a list, got {type(value).__name__}")
             if length is not None and len(value) != length:
@@ -129,10 +122,10 @@ def _compile(name: str, hint: Any, meta: dict[str, Any]) -> Checker:
                 raise DecodeError(mtype, name, f"{len(value)} elements exceed {max_len}")
             if fast_floats and _plain_floats(value, meta):
                 return list(value)
-            return [each(mtype, i, v) for i, v in enumerate(value)]
+            return [each(mtype, f"{name}[{i}]", v) for i, v in enumerate(value)]
 
         return check_list
-    raise TypeError(f"{name}: unsupported field type {hint!r}")  # a programming error, found at import
+    raise TypeError(f"unsupported field type {hint!r}")  # a programming error, found at the first decode
 
 
 def _plain_floats(values: Any, meta: dict[str, Any]) -> bool:
@@ -144,10 +137,10 @@ def _plain_floats(values: Any, meta: dict[str, Any]) -> bool:
     return all(v.__class__ is float and lo <= v <= hi for v in values)  # NaN fails both comparisons
 
 
-def _number_checker(name: str, kind: type, meta: dict[str, Any]) -> Checker:
+def _number_checker(kind: type, meta: dict[str, Any]) -> Checker:
     lo, hi = meta.get("lo"), meta.get("hi")
 
-    def check_number(mtype: str, value: Any) -> Any:
+    def check_number(mtype: str, name: str, value: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise DecodeError(mtype, name, f"expected {kind.__name__}, got {type(value).__name__}")
         if kind is int:
@@ -201,7 +194,7 @@ class Struct:
         cache = cls.__dict__.get("_checker_cache")
         if cache is None:
             known = frozenset(name for name, _, _ in cls._fields()) | {"v", "seq", "t"}
-            cache = known, [(name, _compile(name, hint, meta)) for name, hint, meta in cls._fields()]
+            cache = known, [(name, _compile(hint, meta)) for name, hint, meta in cls._fields()]
             cls._checker_cache = cache  # type: ignore[attr-defined]
         return cache
 
@@ -221,7 +214,7 @@ class Struct:
         for name, check in checkers:
             if name not in data:
                 raise DecodeError(mtype, name, "missing field")
-            values[name] = check(mtype, data[name])
+            values[name] = check(mtype, name, data[name])
         return cls(**values)
 
     def validate(self) -> Self:

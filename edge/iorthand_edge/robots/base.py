@@ -8,6 +8,7 @@ can publish the command that really reached the robot.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,7 +48,7 @@ class Robot(ABC):
         """The newest state. Never blocks for long: a dead link shows as ``connected=False`` / ``fault``."""
 
     @abstractmethod
-    def send_twist(self, twist: Vector, acceleration: float) -> Vector:
+    def send_twist(self, twist: Sequence[float], acceleration: float) -> Vector:
         """Command tool velocity ``[vx, vy, vz, wx, wy, wz]`` (m/s, rad/s, base frame) with the given
         acceleration (m/s²). Returns the twist actually sent. Raises RobotFault if it cannot be sent."""
 

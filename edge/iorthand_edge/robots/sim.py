@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -82,7 +83,7 @@ class SimRobot(Robot):
                 connected=self.connected,
             )
 
-    def send_twist(self, twist: Vector, acceleration: float) -> Vector:
+    def send_twist(self, twist: Sequence[float], acceleration: float) -> Vector:
         values = [float(v) for v in twist]
         if len(values) != 6 or not all(map(math.isfinite, values)):
             raise ValueError(f"a twist has 6 finite numbers, got {twist!r}")

@@ -28,6 +28,7 @@ import contextlib
 import logging
 import multiprocessing as mp
 import time
+from collections.abc import Sequence
 from dataclasses import asdict
 from multiprocessing.connection import Connection
 from typing import Any
@@ -386,7 +387,7 @@ class URRobot(Robot):
             connected=bool(connected) and self._phase == "up", fault=fault[:FAULT_MAX], tcp_force=np.array(force),
         )
 
-    def send_twist(self, twist: Vector, acceleration: float) -> Vector:
+    def send_twist(self, twist: Sequence[float], acceleration: float) -> Vector:
         fault = self._health()
         if fault or self._conn is None:
             raise RobotFault(fault or "UR driver not connected")
