@@ -397,8 +397,9 @@ ROUTER_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
 ROUTER_LEASE_MS = 2000
 # A router that dials another (an edge site's router → the cloud) announces a longer lease than the router it
 # dials (DIALING_LEASE_EXTRA_MS more), so that after a silent outage the dialer always gives up first and the
-# other side learns it from the dialer's close. With equal leases both sides expire at the same instant, and Zenoh 1.10 can then merge the
-# dialer's reconnection into its own dying transport while the dialled router opens a new one: declarations
+# other side learns it from the dialer's close. With equal leases both sides expire at the same instant, and
+# Zenoh 1.10 can then merge the dialer's reconnection into its own dying transport while the dialled router
+# opens a new one: declarations
 # stop flowing one way, and the edge saw neither the operator's token nor its subscriptions for 45 s and 84 s
 # (2 of about 100 blackout trials of `iorthand bench wan`; none in 143 with these leases).
 DIALING_LEASE_EXTRA_MS = 1000

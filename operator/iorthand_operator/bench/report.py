@@ -43,7 +43,7 @@ def _read(path: str) -> str:
 def idle_penalty(samples: int = 40, gap_s: float = 0.016) -> dict[str, Any]:
     """How much slower Python runs right after the CPU idled, as each thread of a 60 Hz command path does:
     CPU time to decode one twist command back to back, and after ``gap_s`` asleep. On a VM whose idle vCPUs
-    halt (cpuidle ``haltpoll`` with polling off), the second was ~10× the first here: 20 µs against 200 µs."""
+    halt (cpuidle ``haltpoll`` with polling off), the second was 10–20× the first here."""
     import statistics
 
     from iorthand.protocol import TwistCommand
