@@ -399,9 +399,9 @@ ROUTER_LEASE_MS = 2000
 # dials (DIALING_LEASE_EXTRA_MS more), so that after a silent outage the dialer always gives up first and the
 # other side learns it from the dialer's close. With equal leases both sides expire at the same instant, and
 # Zenoh 1.10 can then merge the dialer's reconnection into its own dying transport while the dialled router
-# opens a new one: declarations
-# stop flowing one way, and the edge saw neither the operator's token nor its subscriptions for 45 s and 84 s
-# (2 of about 100 blackout trials of `iorthand bench wan`; none in 143 with these leases).
+# opens a new one: declarations stop flowing one way, and the edge saw neither the operator's token nor its
+# subscriptions for 45 s and 84 s (2 of about 100 blackout trials of `iorthand bench wan`; none in 143 with
+# these leases).
 DIALING_LEASE_EXTRA_MS = 1000
 
 
