@@ -434,6 +434,7 @@ class SafetyStatus(Message):
     applied: int = spec(0, lo=0)
     rejected: int = spec(0, lo=0)
     malformed: int = spec(0, lo=0)
+    superseded: int = spec(0, lo=0)  # twists dropped unread: newer ones queued behind them while the edge was busy
     stops: int = spec(0, lo=0)
 
 

@@ -73,6 +73,7 @@ def test_hold_deadman_and_move_key_moves_release_stops(edge_factory, operator_fa
             await pilot.pause(0.2)
             link = _text(app, "link")
             assert "RTT p50/p95" in link and " ms" in link
+            assert "judged, 0 superseded" in link  # the edge's own count of the commands it saw
             # Deadman off: the sender sends its zero tail, then goes quiet.
             await _key(app, "space")
             await _wait(lambda: not client.safety.deadman, 2.0, "edge deadman off")

@@ -16,6 +16,7 @@ import pytest
 
 from iorthand import keys
 from iorthand.protocol import RobotState, TwistCommand
+from iorthand.transport import QOS_BY_KEY, publisher
 from iorthand_operator.client import ControlRefused
 from tests.conftest import iorthand_cmd, wait_until
 
@@ -200,3 +201,27 @@ def test_demo_exits_zero(tmp_path) -> None:
     result = subprocess.run(iorthand_cmd("demo", "--workdir", str(tmp_path)), capture_output=True, text=True, timeout=180)
     assert result.returncode == 0, result.stderr + result.stdout
     assert "summary" in result.stdout and "deadman stop" in result.stdout
+
+
+def test_commands_the_edge_drops_unread_are_counted_and_shown(edge_factory, operator_factory, session_factory) -> None:
+    """The edge keeps only the newest 64 twists while its command thread is busy (here: the test holds the
+    agent's lock, as a slow robot call would). The ones it drops are not lost silently: the safety status counts
+    them and the operator's event list says so."""
+    edge = edge_factory()
+    op = operator_factory()
+    op.wait_for_state()
+    op.acquire()
+    wait_until(lambda: op.safety is not None, message="a safety status")
+    pub = publisher(session_factory(), keys.RobotKeys("sim1").key(keys.CMD_TWIST), QOS_BY_KEY[keys.CMD_TWIST])
+    time.sleep(0.3)  # the publisher's route to the edge
+    n = 200
+    with edge.lock:
+        for seq in range(1, n + 1):
+            cmd = TwistCommand(operator=op.operator_id, linear=[0.0, 0.0, 0.0], deadman=True)
+            pub.put(cmd.stamp(seq).encode())
+        wait_until(lambda: edge._twists.dropped >= n - 65, message="the edge's twist queue to overflow")
+    wait_until(lambda: op.safety.superseded >= n - 65, message="the count in the operator's safety status")
+    judged = op.safety.received
+    assert judged + op.safety.superseded <= n + 1  # what the supervisor judged plus what it never saw
+    events = [e for e in op.events if e.status == "superseded"]
+    assert events and "commands unread" in events[-1].reason, list(op.events)

@@ -443,7 +443,7 @@ class EdgeAgent:
                 limits_hit=list(sv.limits_hit), command_age=age, status=sv.status, reason=sv.reason,
                 force_level=int(sv.force_level), force_stale=sv.force_stale,
                 received=c.received, applied=c.applied, rejected=c.rejected,
-                malformed=self.rejects.total, stops=c.stops,
+                malformed=self.rejects.total, superseded=self._twists.dropped, stops=c.stops,
             ).stamp(self._seq["safety"].next())
             # Put under the lock: two threads publishing at once must not reorder the sequence numbers.
             self._pub_safety.put(msg.encode())

@@ -160,6 +160,7 @@ class OperatorClient:
         self._servo_target = [0.0, 0.0]
         self._last_refusal_key: tuple[str, str] | None = None
         self._last_safety_status = ""
+        self._last_superseded: int | None = None  # None until the first status: a count from before we joined is not news
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         twist_key = self.keys.key(keys.CMD_TWIST) + (f"/{self.operator_id}" if bind_keys else "")
@@ -443,6 +444,10 @@ class OperatorClient:
                 self._last_safety_status = msg.status
                 if msg.status in STOP_STATUSES:
                     self.log_event("stop", msg.status, msg.reason or msg.status)
+            if self._last_superseded is not None and msg.superseded > self._last_superseded:
+                self.log_event("warning", "superseded", f"the edge dropped {msg.superseded - self._last_superseded} "
+                               "commands unread: newer ones arrived while it was busy")
+            self._last_superseded = msg.superseded
 
     def _on_force_level(self, sample: zenoh.Sample) -> None:
         msg = self._decode(ForceLevelState, sample)

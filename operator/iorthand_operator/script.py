@@ -183,6 +183,6 @@ def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
         "final_status": {"status": safety.status, "reason": safety.reason, "owner": safety.owner} if safety else {},
         "edge_counters": {
             "received": safety.received, "applied": safety.applied, "rejected": safety.rejected,
-            "malformed": safety.malformed, "stops": safety.stops,
+            "malformed": safety.malformed, "superseded": safety.superseded, "stops": safety.stops,
         } if safety else {},
     }
