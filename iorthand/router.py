@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import threading
 from pathlib import Path
@@ -17,6 +18,13 @@ log = logging.getLogger("iorthand.router")
 
 
 def run_router(config: zenoh.Config, describe: str) -> None:
+    # A router keeps Zenoh's default threads: separate receive and transmit runtimes. All of it on one runtime
+    # saved a thread wake-up per forwarded message (small commands p50 1.03-1.09 -> 0.81-0.87 ms), but then the
+    # router closed any session a 300 KB frame went to ("Unable to push non droppable network message"): Zenoh
+    # waits for a free batch synchronously, on the thread the transmit task needs to free it.
+    if os.environ.get("ZENOH_RUNTIME"):
+        log.warning("ZENOH_RUNTIME=%s: a router whose receive and transmit share a runtime closes the sessions "
+                    "large payloads go to (see benchmarks/README.md)", os.environ["ZENOH_RUNTIME"])
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
