@@ -273,7 +273,7 @@ class OperatorConsole(App[int]):
         for row in v.link:
             t.add_row(row.label, Text(row.text, style=f"bold {row.colour}"))
         t.add_row("sent", str(v.sent))
-        t.add_row("at edge", Text(f"{v.edge_received} judged, {v.edge_superseded} superseded",
+        t.add_row("at edge", Text(f"{v.edge_judged} judged, {v.edge_superseded} superseded",
                                   style="yellow" if v.edge_superseded else ""))
         return t
 

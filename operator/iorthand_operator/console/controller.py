@@ -65,7 +65,7 @@ class ConsoleView:
     torch: str = ""
     events: list[str] = field(default_factory=list)
     sent: int = 0
-    edge_received: int = 0  # commands the edge's supervisor judged
+    edge_judged: int = 0  # commands the edge's supervisor judged
     edge_superseded: int = 0  # commands the edge dropped unread, newer ones having arrived while it was busy
 
 
@@ -208,7 +208,7 @@ class ConsoleController:
             v.linear_limit_mm_s = 1000 * safety.linear_limit
             v.angular_limit_deg_s = math.degrees(safety.angular_limit)
             v.limits_hit = list(safety.limits_hit)
-            v.edge_received, v.edge_superseded = safety.received, safety.superseded
+            v.edge_judged, v.edge_superseded = safety.received, safety.superseded
         v.deadman = self.sample.deadman
         v.force = force_view(c.force_level, c.force_level_at, now, s.force_stale_after)
         if c.force is not None and now - c.force_at <= s.force_stale_after:
