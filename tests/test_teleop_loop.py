@@ -17,6 +17,7 @@ import pytest
 from iorthand import keys
 from iorthand.protocol import RobotState, TwistCommand
 from iorthand.transport import QOS_BY_KEY, publisher
+from iorthand_edge.agent import TWIST_QUEUE
 from iorthand_operator.client import ControlRefused
 from tests.conftest import iorthand_cmd, wait_until
 
@@ -204,7 +205,7 @@ def test_demo_exits_zero(tmp_path) -> None:
 
 
 def test_commands_the_edge_drops_unread_are_counted_and_shown(edge_factory, operator_factory, session_factory) -> None:
-    """The edge keeps only the newest 64 twists while its command thread is busy (here: the test holds the
+    """The edge keeps only the newest TWIST_QUEUE twists while its command thread is busy (here: the test holds the
     agent's lock, as a slow robot call would). The ones it drops are not lost silently: the safety status counts
     them and the operator's event list says so."""
     edge = edge_factory()
@@ -219,8 +220,8 @@ def test_commands_the_edge_drops_unread_are_counted_and_shown(edge_factory, oper
         for seq in range(1, n + 1):
             cmd = TwistCommand(operator=op.operator_id, linear=[0.0, 0.0, 0.0], deadman=True)
             pub.put(cmd.stamp(seq).encode())
-        wait_until(lambda: edge._twists.dropped >= n - 65, message="the edge's twist queue to overflow")
-    wait_until(lambda: op.safety.superseded >= n - 65, message="the count in the operator's safety status")
+        wait_until(lambda: edge._twists.dropped >= n - TWIST_QUEUE - 1, message="the edge's twist queue to overflow")
+    wait_until(lambda: op.safety.superseded >= n - TWIST_QUEUE - 1, message="the count in the operator's safety status")
     judged = op.safety.received
     assert judged + op.safety.superseded <= n + 1  # what the supervisor judged plus what it never saw
     events = [e for e in op.events if e.status == "superseded"]

@@ -66,6 +66,10 @@ from iorthand_edge.video import VideoStream, make_source
 
 log = logging.getLogger("iorthand.edge")
 
+# Twists waiting for the command thread: a flood keeps only the newest (each is a whole velocity command); the
+# ones dropped unread are reported as SafetyStatus.superseded.
+TWIST_QUEUE = 64
+
 # Supervisor states that end a previewed move (it never resumes by itself; the operator previews again).
 _HALTS = frozenset({
     Status.STOPPED, Status.FAULT, Status.OWNER_LOST, Status.FORCE_DANGER, Status.FORCE_STALE,
@@ -110,7 +114,7 @@ class EdgeAgent:
         self._last_cmd_recv = 0
         self._last_safety: tuple[Any, ...] | None = None
         self._last_safety_pub = 0.0
-        self._twists = Inbox(64, keep="newest")
+        self._twists = Inbox(TWIST_QUEUE, keep="newest")
         self._control = Inbox(256, keep="oldest")
         self._workers: list[Worker] = []
         self._rlog = RateLimitedLog(log)
