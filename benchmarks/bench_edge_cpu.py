@@ -1,8 +1,9 @@
-"""CPU time the edge spends on one twist command, step by step, hot (back to back) and cold (after the CPU idled).
+"""CPU time the edge spends on one twist command, hot (back to back) and cold (after the CPU idled).
 
 No Zenoh and no threads: one edge agent with the simulated robot (the benchmark's edge configuration), armed
-and owned, handles commands the way its command thread does — decode, gate, supervisor, robot call, echo
-encode — and the control loop's state message (robot read + encode) is timed alongside. Each step is measured
+and owned, handles commands with its command thread's own code (``EdgeAgent.handle_twist``: decode, gate,
+supervisor, robot call, echo; then the echo is encoded), and the control loop's state message (robot read +
+encode) is timed alongside. Each step is measured
 in thread CPU time (``time.thread_time_ns``), so waiting does not count. "Cold" sleeps ``--gap-ms`` before each
 command, as the 60 Hz command stream does between commands: on a VM the first Python after an idle gap runs
 many times slower (``machine.idle_penalty`` in every ``iorthand bench`` result).
@@ -20,12 +21,12 @@ import time
 from pathlib import Path
 
 from iorthand import config, keys
-from iorthand.protocol import AppliedCommand, RobotState, TwistCommand
+from iorthand.protocol import RobotState, TwistCommand
 from iorthand_edge.agent import EdgeAgent
 from iorthand_edge.config import EdgeConfig
 from iorthand_operator.bench.transports import edge_config
 
-STEPS = ("decode", "gate", "supervisor", "robot_call", "echo_encode", "state_read_encode")
+STEPS = ("handle_twist", "echo_encode", "state_read_encode")
 
 
 def make_agent() -> EdgeAgent:
@@ -40,32 +41,24 @@ def make_agent() -> EdgeAgent:
 
 
 def one_command(agent: EdgeAgent, seq: int, speed: float) -> dict[str, float]:
-    """Handle one command as EdgeAgent._command_loop does; return each step's thread CPU time (µs)."""
+    """One command through the command thread's own code (EdgeAgent.handle_twist: decode, gate, supervisor,
+    robot call, echo), its echo encoded, and the control loop's state message; each step's thread CPU time (µs)."""
     payload = TwistCommand(operator="op", linear=[speed, 0.0, 0.0], deadman=True).stamp(seq).encode()
     key = agent.keys.key(keys.CMD_TWIST)
     clock = time.thread_time_ns
     marks = [clock()]
     recv_ns = time.time_ns()
-    cmd = TwistCommand.decode(payload)
+    echo = agent.handle_twist(key, payload, recv_ns)
     marks.append(clock())
-    ok, why = agent.gate.check_command(key, keys.CMD_TWIST, cmd.operator)
+    if echo is None or not echo.accepted:
+        raise RuntimeError(f"command refused: {echo}")
+    echo.encode()
     marks.append(clock())
-    if not ok:
-        raise RuntimeError(f"gate refused: {why}")
     with agent.lock:
-        decision = agent.supervisor.on_command(cmd, recv_ns / 1e9, time.monotonic(), agent.reading.tcp_pose)
-        marks.append(clock())
-        agent._drive(decision)
-        marks.append(clock())
-        AppliedCommand(operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns, applied=agent._commanded,
-                       accepted=decision.accepted, status=decision.status, reason=decision.reason).stamp(seq).encode()
-        marks.append(clock())
         reading = agent.robot.read_state()
         RobotState(tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=reading.q, commanded=agent._commanded,
                    mode=reading.mode, cmd_seq=seq, cmd_recv_t=recv_ns).stamp(seq).encode()
-        marks.append(clock())
-    if not decision.accepted:
-        raise RuntimeError(f"command refused: {decision.status} {decision.reason}")
+    marks.append(clock())
     return {step: (b - a) / 1e3 for step, a, b in zip(STEPS, marks[:-1], marks[1:], strict=True)}
 
 
@@ -78,7 +71,7 @@ def run(agent: EdgeAgent, first_seq: int, n: int, gap_s: float) -> dict[str, dic
         steps = one_command(agent, first_seq + i, 0.004 if i % 2 else 0.012)
         for step, us in steps.items():
             samples[step].append(us)
-        samples["command_total"].append(sum(us for step, us in steps.items() if step != "state_read_encode"))
+        samples["command_total"].append(steps["handle_twist"] + steps["echo_encode"])
     return {
         step: {"p50_us": round(statistics.median(v), 1), "p90_us": round(statistics.quantiles(v, n=10)[-1], 1)}
         for step, v in samples.items()

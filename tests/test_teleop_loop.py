@@ -220,7 +220,7 @@ def test_commands_the_edge_drops_unread_are_counted_and_shown(edge_factory, oper
         for seq in range(1, n + 1):
             cmd = TwistCommand(operator=op.operator_id, linear=[0.0, 0.0, 0.0], deadman=True)
             pub.put(cmd.stamp(seq).encode())
-        wait_until(lambda: edge._twists.dropped >= n - TWIST_QUEUE - 1, message="the edge's twist queue to overflow")
+        wait_until(lambda: edge.twists_superseded >= n - TWIST_QUEUE - 1, message="the edge's twist queue to overflow")
     wait_until(lambda: op.safety.superseded >= n - TWIST_QUEUE - 1, message="the count in the operator's safety status")
     judged = op.safety.received
     assert judged + op.safety.superseded <= n + 1  # what the supervisor judged plus what it never saw

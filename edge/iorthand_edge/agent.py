@@ -447,7 +447,7 @@ class EdgeAgent:
                 limits_hit=list(sv.limits_hit), command_age=age, status=sv.status, reason=sv.reason,
                 force_level=int(sv.force_level), force_stale=sv.force_stale,
                 received=c.received, applied=c.applied, rejected=c.rejected,
-                malformed=self.rejects.total, superseded=self._twists.dropped, stops=c.stops,
+                malformed=self.rejects.total, superseded=self.twists_superseded, stops=c.stops,
             ).stamp(self._seq["safety"].next())
             # Put under the lock: two threads publishing at once must not reorder the sequence numbers.
             self._pub_safety.put(msg.encode())
@@ -459,46 +459,55 @@ class EdgeAgent:
             item = self._twists.get(timeout=0.1)
             if item is None:
                 continue
-            key, payload, recv_ns = item
-            try:
-                cmd = TwistCommand.decode(payload)
-            except DecodeError as exc:
-                self.rejects.add(key, str(exc))
-                self._rlog.warning(f"malformed:{key}", f"rejected malformed command on {key}: {exc}")
-                continue
-            ok, why = self.gate.check_command(key, keys.CMD_TWIST, cmd.operator)
-            if not ok:
-                # Refused at the door, before the supervisor: still answered, so the operator sees why.
-                self.rejects.add(key, why)
-                self._rlog.warning(f"gate:{key}", f"refused command from {cmd.operator!r}: {why}")
-                echo = AppliedCommand(
-                    operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns, accepted=False,
-                    status=Status.NOT_ALLOWED, reason=why[:200],
-                ).stamp(self._seq["applied"].next())
+            echo = self.handle_twist(*item)
+            if echo is not None:
                 self._pub_applied.put(echo.encode())
-                continue
-            with self.lock:
-                pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
-                now = time.monotonic()
-                # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
-                received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
-                if self.goto.active:
-                    cmd = self._goto_command(cmd, pose, now)
-                decision = self.supervisor.on_command(cmd, recv_ns / 1e9, received, pose)
-                if self.goto.active and not decision.accepted:
-                    self._cancel_goto(decision.reason)
-                self._log_interventions()
-                if decision.accepted:
-                    self._drive(decision)
-                    self._last_cmd_seq, self._last_cmd_recv = cmd.seq, recv_ns
-                else:
-                    self._rlog.warning(f"refused:{decision.status}", f"refused command {cmd.seq} from {cmd.operator!r}: {decision.reason}")
-                echo = AppliedCommand(
-                    operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns,
-                    applied=self._commanded if decision.accepted else np.zeros(6),
-                    accepted=decision.accepted, status=decision.status, reason=decision.reason,
-                ).stamp(self._seq["applied"].next())
-            self._pub_applied.put(echo.encode())
+
+    @property
+    def twists_superseded(self) -> int:
+        """Twist commands dropped unread: newer ones queued behind them while the command thread was busy."""
+        return self._twists.dropped
+
+    def handle_twist(self, key: str, payload: bytes, recv_ns: int) -> AppliedCommand | None:
+        """Judge one twist command that arrived on ``key`` at ``recv_ns`` (wall clock, ns) and drive the robot
+        with what the supervisor allows. Returns the echo for state/applied, refusals included; None for a
+        malformed command, which is counted and logged (it names no operator to answer)."""
+        try:
+            cmd = TwistCommand.decode(payload)
+        except DecodeError as exc:
+            self.rejects.add(key, str(exc))
+            self._rlog.warning(f"malformed:{key}", f"rejected malformed command on {key}: {exc}")
+            return None
+        ok, why = self.gate.check_command(key, keys.CMD_TWIST, cmd.operator)
+        if not ok:
+            # Refused at the door, before the supervisor: still answered, so the operator sees why.
+            self.rejects.add(key, why)
+            self._rlog.warning(f"gate:{key}", f"refused command from {cmd.operator!r}: {why}")
+            return AppliedCommand(
+                operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns, accepted=False,
+                status=Status.NOT_ALLOWED, reason=why[:200],
+            ).stamp(self._seq["applied"].next())
+        with self.lock:
+            pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
+            now = time.monotonic()
+            # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
+            received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
+            if self.goto.active:
+                cmd = self._goto_command(cmd, pose, now)
+            decision = self.supervisor.on_command(cmd, recv_ns / 1e9, received, pose)
+            if self.goto.active and not decision.accepted:
+                self._cancel_goto(decision.reason)
+            self._log_interventions()
+            if decision.accepted:
+                self._drive(decision)
+                self._last_cmd_seq, self._last_cmd_recv = cmd.seq, recv_ns
+            else:
+                self._rlog.warning(f"refused:{decision.status}", f"refused command {cmd.seq} from {cmd.operator!r}: {decision.reason}")
+            return AppliedCommand(
+                operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns,
+                applied=self._commanded if decision.accepted else np.zeros(6),
+                accepted=decision.accepted, status=decision.status, reason=decision.reason,
+            ).stamp(self._seq["applied"].next())
 
     # ------------------------------------------------------------------ preview and goto (hold-to-run)
 
