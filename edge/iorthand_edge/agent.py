@@ -33,6 +33,7 @@ import numpy as np
 import zenoh
 
 from iorthand import geometry, keys, motion
+from iorthand.cpu_latency import CpuLatencyHold
 from iorthand.protocol import (
     AppliedCommand,
     ControlReply,
@@ -161,10 +162,13 @@ class EdgeAgent:
         # Servos, torch and video stop with the agent but a crash of theirs must not stop the robot's control:
         # they get their own stop event. The force worker shares the agent's: losing it is a safety fault.
         self._aux_stop = threading.Event()
+        self._cpu_latency: CpuLatencyHold | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
+        if self.config.cpu_latency_us is not None:
+            self._cpu_latency = CpuLatencyHold(self.config.cpu_latency_us)
         self.robot.connect()
         self.reading = self.robot.read_state()
         self.session = open_session(self.config.zenoh, stop=self.stop_event)
@@ -201,9 +205,10 @@ class EdgeAgent:
         self._start_components()
         self._start_local_socket()
         log.info(
-            "edge agent %r up: robot %s, %s, armed=%s, profile %s (%.0f mm/s)",
+            "edge agent %r up: robot %s, %s, armed=%s, profile %s (%.0f mm/s), CPU wake-up latency %s",
             self.config.robot_id, type(self.robot).__name__, ", ".join(self.config.zenoh.connect) or self.config.zenoh.mode,
             self.supervisor.armed, self.supervisor.profile, 1000 * self.supervisor.limits.linear,
+            self._cpu_latency.state if self._cpu_latency else "as the host sets it",
         )
 
     def _start_components(self) -> None:
@@ -261,6 +266,8 @@ class EdgeAgent:
                 self._publish_safety(force=True)
             self.session.close()
             self.session = None
+        if self._cpu_latency is not None:
+            self._cpu_latency.close()
         log.info("edge agent %r stopped", self.config.robot_id)
 
     # ------------------------------------------------------------------ local commands

@@ -17,6 +17,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from iorthand.cpu_latency import CpuLatencyHold
 from iorthand_operator.bench import plots, report
 from iorthand_operator.bench.procs import run_cleanups, set_nice
 
@@ -156,6 +157,9 @@ def _run(args: argparse.Namespace) -> int:
     args.out = Path(args.out)
     args.out.mkdir(parents=True, exist_ok=True)
     set_nice(args.nice)
+    # A machine-wide PM QoS request for the run (the JSON's config says what it got); default: the host as it is.
+    hold = CpuLatencyHold(args.cpu_latency_us) if args.cpu_latency_us is not None else None
+    args.cpu_latency = hold.state if hold else "the host's own idle states"
     try:
         if args.bench == "all":
             return _run_all(args)
@@ -166,6 +170,8 @@ def _run(args: argparse.Namespace) -> int:
         return 0
     finally:
         run_cleanups()
+        if hold:
+            hold.close()
 
 
 def _run_all(args: argparse.Namespace) -> int:
@@ -200,7 +206,8 @@ def _run_all(args: argparse.Namespace) -> int:
     print(f"\nThis host: Python runs {idle['factor']}× slower right after {idle['idle_gap_ms']:.0f} ms idle (decoding a "
           f"command: {idle['decode_after_idle_us']} µs against {idle['decode_hot_us']} µs back to back); every thread "
           "wake-up on the command path pays it (cpuidle "
-          f"{idle['cpuidle_driver'] or '?'}, guest_halt_poll_ns {idle['guest_halt_poll_ns'] or '-'}).")
+          f"{idle['cpuidle_driver'] or '?'}, guest_halt_poll_ns {idle['guest_halt_poll_ns'] or '-'}; "
+          f"CPU wake-up latency: {args.cpu_latency}).")
     print(f"\nwrote {args.out / 'summary.json'}")
     return 0 if all("error" not in v for v in results.values()) else 1
 
@@ -224,6 +231,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         b.add_argument("--duration", type=float, default=duration, help="s measured per case")
         b.add_argument("--nice", type=int, default=0,
                        help="nice increment of every process started (e.g. -5 as root: shield from other load)")
+        b.add_argument("--cpu-latency-us", type=int, default=None, metavar="US",
+                       help="hold a PM QoS request for the whole run (root): no CPU enters an idle state slower than "
+                            "US µs to leave; 0 keeps idle CPUs polling, as a host tuned for latency would. "
+                            "Default: the host as it is")
         b.set_defaults(func=_run)
 
     a = bsub.add_parser("all", help="every benchmark; prints the targets of issue 9")

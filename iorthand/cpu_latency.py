@@ -1,0 +1,72 @@
+"""Keep the machine's CPUs out of slow idle states while a latency-critical process runs (Linux PM QoS).
+
+Every hop of the command path wakes a thread. When its CPU was idle, the wake-up waits for the CPU to leave its
+idle state: on the project's 2-core VM (cpuidle ``haltpoll``, ``guest_halt_poll_ns`` 0) a halted vCPU costs a VM
+exit, and Python runs 10–20× slower right after one. A PM QoS request of 0 µs keeps idle CPUs polling instead,
+which halved the round trip of small commands through a router there (figures in benchmarks/README.md). The
+price is power: idle cores spin. Whether to pay it is the host owner's choice, so nothing holds a request
+unless configured to.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+CPU_DMA_LATENCY = Path("/dev/cpu_dma_latency")
+
+
+class CpuLatencyHold:
+    """One PM QoS request: while it is open, no CPU of this machine enters an idle state that takes longer than
+    ``max_us`` µs to leave. The request is machine-wide and ends on :meth:`close` or when the process exits.
+    Best effort, like :func:`iorthand.transport.raise_priority`: it needs root, and ``state`` says what it got."""
+
+    def __init__(self, max_us: int, path: Path = CPU_DMA_LATENCY) -> None:
+        if isinstance(max_us, bool) or not isinstance(max_us, int) or max_us < 0:
+            raise ValueError(f"cpu latency: a whole number of microseconds ≥ 0, got {max_us!r}")
+        self.max_us = max_us
+        self._fd: int | None = None
+        try:
+            fd = os.open(path, os.O_WRONLY)
+        except OSError as exc:
+            self.state = f"not held: {path}: {exc.strerror or exc}"
+            log.warning("cpu latency %d µs %s", max_us, self.state)
+            return
+        try:
+            os.write(fd, struct.pack("=i", max_us))  # the device takes a native 32-bit integer
+        except OSError as exc:
+            os.close(fd)
+            self.state = f"not held: {path}: {exc.strerror or exc}"
+            log.warning("cpu latency %d µs %s", max_us, self.state)
+            return
+        self._fd = fd
+        self.state = f"held at {max_us} µs"
+        log.info("cpu latency %s (%s)", self.state, path)
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+            self.state = "released"
+
+    def __enter__(self) -> CpuLatencyHold:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def current_limit_us(path: Path = CPU_DMA_LATENCY) -> int | None:
+    """The limit in force: the strictest request of every process (2,000,000,000 when there is none)."""
+    try:
+        return int(struct.unpack("=i", path.read_bytes()[:4])[0])
+    except (OSError, struct.error):
+        return None

@@ -1,0 +1,58 @@
+"""The PM QoS request that keeps CPUs out of slow idle states: on the real /dev/cpu_dma_latency (root), whose
+value read back is the strictest request in force."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from iorthand.cpu_latency import CPU_DMA_LATENCY, CpuLatencyHold, current_limit_us
+
+needs_device = pytest.mark.skipif(
+    os.geteuid() != 0 or not CPU_DMA_LATENCY.exists(), reason="PM QoS needs root and /dev/cpu_dma_latency"
+)
+
+
+@needs_device
+def test_the_request_is_in_force_while_held_and_gone_after() -> None:
+    before = current_limit_us()
+    assert before is not None
+    request = min(before - 1, 123)  # stricter than anything in force, so the read-back is ours
+    with CpuLatencyHold(request) as hold:
+        assert hold.held and hold.state == f"held at {request} µs"
+        assert current_limit_us() == request
+    assert hold.state == "released" and not hold.held
+    assert current_limit_us() == before
+
+
+def test_a_device_that_cannot_be_opened_is_reported_not_raised(tmp_path: Path) -> None:
+    hold = CpuLatencyHold(0, path=tmp_path / "missing")
+    assert not hold.held
+    assert hold.state.startswith("not held:") and "missing" in hold.state
+    hold.close()  # nothing to release, no error
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "0"])
+def test_a_latency_that_is_not_whole_microseconds_is_refused(bad: object) -> None:
+    with pytest.raises(ValueError, match="whole number of microseconds"):
+        CpuLatencyHold(bad)  # type: ignore[arg-type]
+
+
+@needs_device
+def test_an_edge_configured_for_it_holds_the_request_while_it_runs(edge_factory) -> None:
+    before = current_limit_us()
+    assert before is not None
+    request = min(before - 1, 77)
+    edge = edge_factory(cpu_latency_us=request)
+    assert current_limit_us() == request
+    edge.shutdown()
+    assert current_limit_us() == before
+
+
+def test_an_edge_refuses_a_negative_cpu_latency() -> None:
+    from tests.conftest import edge_config
+
+    with pytest.raises(ValueError, match="cpu_latency_us"):
+        edge_config("tcp/127.0.0.1:1", "sim1", cpu_latency_us=-5)
