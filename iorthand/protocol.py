@@ -438,6 +438,13 @@ class SafetyStatus(Message):
     stops: int = spec(0, lo=0)
 
 
+def superseded_news(before: int, now: int) -> str | None:
+    """What the operator and the twin say when SafetyStatus.superseded grows from ``before`` to ``now``."""
+    if now <= before:
+        return None
+    return f"the edge dropped {now - before} commands unread: newer ones arrived while it was busy"
+
+
 @dataclass(kw_only=True)
 class ForceSample(Message):
     """Edge → all at 100 Hz: the wrench at the tool, N and N·m, in the sensor frame."""

@@ -134,3 +134,15 @@ def test_blueprint_lists_each_robots_images():
     bp = blueprint(["a", "b"])
     assert bp is not None
     assert blueprint([]) is not None
+
+
+def test_store_says_when_the_edge_drops_commands_unread():
+    """The edge's count of twists dropped unread is news only when it grows, and the line says by how much."""
+    from iorthand.protocol import SafetyStatus
+
+    store = TwinStore()
+    key = keys.RobotKeys("r1").key(keys.STATE_SAFETY)
+    for i, count in enumerate([5, 5, 12, 12]):  # 5 before the twin joined: not news
+        store.ingest(key, SafetyStatus(armed=True, superseded=count).stamp(i + 1).encode(), 0)
+    news = [e for e in store.robots["r1"].events if "unread" in e.text]
+    assert [(e.level, e.text.split(" commands")[0]) for e in news] == [("WARN", "the edge dropped 7")]

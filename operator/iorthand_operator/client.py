@@ -50,6 +50,7 @@ from iorthand.protocol import (
     TorchCommand,
     TorchState,
     TwistCommand,
+    superseded_news,
 )
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
 from iorthand_operator.link import LinkQuality, LinkWindow
@@ -444,9 +445,9 @@ class OperatorClient:
                 self._last_safety_status = msg.status
                 if msg.status in STOP_STATUSES:
                     self.log_event("stop", msg.status, msg.reason or msg.status)
-            if self._last_superseded is not None and msg.superseded > self._last_superseded:
-                self.log_event("warning", "superseded", f"the edge dropped {msg.superseded - self._last_superseded} "
-                               "commands unread: newer ones arrived while it was busy")
+            news = superseded_news(self._last_superseded, msg.superseded) if self._last_superseded is not None else None
+            if news:
+                self.log_event("warning", "superseded", news)
             self._last_superseded = msg.superseded
 
     def _on_force_level(self, sample: zenoh.Sample) -> None:

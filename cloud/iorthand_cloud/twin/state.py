@@ -30,6 +30,7 @@ from iorthand.protocol import (
     TwinSnapshot,
     VideoFrame,
     message_type_for,
+    superseded_news,
 )
 
 LEVEL_NAMES = {0: "safe", 1: "caution", 2: "danger"}
@@ -219,6 +220,9 @@ class TwinStore:
                 out.append(Event(r, t, level, f"{msg.status}: {msg.reason}"))
             if p is not None and msg.stops > p.stops and msg.status not in ("stopped", "fault", "owner_lost"):
                 out.append(Event(r, t, "WARN", f"stop #{msg.stops}: {msg.status} {msg.reason}".strip()))
+            news = superseded_news(p.superseded, msg.superseded) if p is not None else None
+            if news:
+                out.append(Event(r, t, "WARN", news))
         elif isinstance(msg, ForceLevelState):
             p = prev if isinstance(prev, ForceLevelState) else None
             if p is None or (p.level, p.stale) != (msg.level, msg.stale):
