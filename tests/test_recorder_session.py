@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -124,6 +125,73 @@ def test_replay_never_sends_operator_commands(recorded) -> None:
             Replayer(s, folder, key_filter=["iorthand/sim1/cmd/**"])
     finally:
         s.close()
+
+
+def test_replay_refuses_to_publish_as_a_live_robot(recorded) -> None:
+    """While sim1's edge is online (its liveliness token; the token is what a replay sees of an edge), replaying
+    sim1 would put recorded state beside the live state on every console. Nothing goes out, and the reason says
+    how to replay it anyway: under another id."""
+    endpoint, folder = recorded
+    edge, s = open_session(client_config(endpoint)), open_session(client_config(endpoint))
+    got: list[str] = []
+    try:
+        token = edge.liveliness().declare_token(keys.RobotKeys("sim1").key(keys.ALIVE_EDGE))
+        s.declare_subscriber("iorthand/sim1/**", lambda smp: got.append(str(smp.key_expr)))
+        time.sleep(0.3)
+        stats = Replayer(s, folder, speed=20.0).run()
+        time.sleep(0.2)
+        assert stats.published == 0 and got == []
+        assert "sim1 is live" in stats.stopped and "--as sim1=sim1-replay" in stats.stopped
+        token.undeclare()
+    finally:
+        s.close()
+        edge.close()
+
+
+def test_replay_under_another_id_beside_the_live_robot(recorded) -> None:
+    endpoint, folder = recorded
+    edge, s = open_session(client_config(endpoint)), open_session(client_config(endpoint))
+    live: list[str] = []
+    renamed: list[tuple[str, bytes]] = []
+    try:
+        token = edge.liveliness().declare_token(keys.RobotKeys("sim1").key(keys.ALIVE_EDGE))
+        s.declare_subscriber("iorthand/sim1/**", lambda smp: live.append(str(smp.key_expr)))
+        s.declare_subscriber("iorthand/sim1-replay/**", lambda smp: renamed.append((str(smp.key_expr), smp.payload.to_bytes())))
+        time.sleep(0.3)
+        stats = Replayer(s, folder, speed=20.0, key_filter=["iorthand/sim1/state/**"], rename={"sim1": "sim1-replay"}).run()
+        wait_until(lambda: len(renamed) >= stats.published, timeout=5.0, message="every replayed message")
+        token.undeclare()
+    finally:
+        s.close()
+        edge.close()
+    original = [r for r in iter_records(folder) if r.key.startswith("iorthand/sim1/state/")]
+    assert stats.stopped == "" and live == []
+    assert renamed == [(r.key.replace("iorthand/sim1/", "iorthand/sim1-replay/"), r.data) for r in original]
+    with pytest.raises(ValueError, match="rename sim1=Bad!: robot id 'Bad!' is invalid"):
+        Replayer(s, folder, rename={"sim1": "Bad!"})
+
+
+def test_replay_stops_when_the_robot_comes_online(recorded) -> None:
+    endpoint, folder = recorded
+    edge, s = open_session(client_config(endpoint)), open_session(client_config(endpoint))
+    rp = Replayer(s, folder, speed=1.0, key_filter=["iorthand/sim1/state/**"])  # 10 s at the original pace
+    try:
+        t = threading.Thread(target=rp.run)
+        t.start()
+        wait_until(lambda: rp.stats.published > 50, timeout=10.0, message="the replay under way")
+        token = edge.liveliness().declare_token(keys.RobotKeys("sim1").key(keys.ALIVE_EDGE))
+        came_online = time.monotonic()
+        t.join(timeout=5.0)
+        assert not t.is_alive(), "the replay went on with sim1 online"
+        assert time.monotonic() - came_online < 2.0
+        assert "sim1 is live" in rp.stats.stopped
+        total = sum(1 for r in iter_records(folder) if r.key.startswith("iorthand/sim1/state/"))
+        assert rp.stats.published < total
+        token.undeclare()
+    finally:
+        rp.stop_event.set()
+        s.close()
+        edge.close()
 
 
 def test_export_rrd(recorded) -> None:

@@ -85,7 +85,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     try:
         try:
             rp = Replayer(session, args.session, speed=args.speed, loop=args.loop, key_filter=args.keys,
-                          include_malformed=args.include_malformed, start=args.start, end=args.end)
+                          include_malformed=args.include_malformed, start=args.start, end=args.end,
+                          rename=_renames(args.rename or []))
         except ValueError as exc:
             print(f"replay: {exc}", file=sys.stderr)
             return 2
@@ -98,9 +99,23 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print(f"replayed {rp.stats.published} messages ({rp.stats.loops} pass(es)), "
               f"at most {rp.stats.max_late_ms:.1f} ms late; {rp.stats.commands_withheld} operator commands "
               "withheld (a replay never drives a robot)")
+        if rp.stats.stopped:
+            print(f"replay stopped: {rp.stats.stopped}", file=sys.stderr)
+            return 1
     finally:
         session.close()
     return 0
+
+
+def _renames(pairs: list[str]) -> dict[str, str]:
+    """``--as OLD=NEW`` options → {OLD: NEW}."""
+    out: dict[str, str] = {}
+    for pair in pairs:
+        old, sep, new = pair.partition("=")
+        if not sep or not old or not new:
+            raise ValueError(f"--as {pair!r}: expected RECORDED=NEW robot ids, e.g. --as sim1=sim1-replay")
+        out[old] = new
+    return out
 
 
 def _report_config(args: argparse.Namespace) -> ReportConfig:
@@ -163,6 +178,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--include-malformed", action="store_true")
     p.add_argument("--start", type=float, help="s from the session's first message")
     p.add_argument("--end", type=float)
+    p.add_argument("--as", dest="rename", action="append", metavar="RECORDED=NEW",
+                   help="replay a recorded robot under another id (repeatable); needed while that robot is live")
     p.set_defaults(func=_cmd_replay)
 
     p = sub.add_parser("report", help="session report: performance index, latencies, plots (Markdown + JSON)")
