@@ -390,7 +390,8 @@ def free_port() -> int:
 # priority holds 2 batches by default and each express command takes a whole batch, so a CPU stall of a
 # millisecond or two fills it and the next commands are dropped (CongestionControl.DROP waits 1 ms). Measured
 # with 20 robots through a mesh of three routers on 2 cores (`iorthand bench scale`): 20–29 of 18,020
-# commands lost with the default, none with these. Batches are allocated lazily, only when a stall needs them.
+# commands lost with the default; with these, none in most runs and 1 in a run on a noisier host (p99 12.7 ms).
+# Batches are allocated lazily, only when a stall needs them.
 ROUTER_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
 
 
