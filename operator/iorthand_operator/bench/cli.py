@@ -221,6 +221,16 @@ def _linkemu(args: argparse.Namespace) -> int:
     return linkemu.main(args.linkemu_args)
 
 
+def _microseconds(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of microseconds ≥ 0")
+    return value
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="latency benchmarks: transports, load, WAN profiles, scale (JSON + PNG)")
     bsub = p.add_subparsers(dest="bench", metavar="BENCHMARK", required=True)
@@ -231,7 +241,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         b.add_argument("--duration", type=float, default=duration, help="s measured per case")
         b.add_argument("--nice", type=int, default=0,
                        help="nice increment of every process started (e.g. -5 as root: shield from other load)")
-        b.add_argument("--cpu-latency-us", type=int, default=None, metavar="US",
+        b.add_argument("--cpu-latency-us", type=_microseconds, default=None, metavar="US",
                        help="hold a PM QoS request for the whole run (root): no CPU enters an idle state slower than "
                             "US µs to leave; 0 keeps idle CPUs polling, as a host tuned for latency would. "
                             "Default: the host as it is")
