@@ -102,6 +102,8 @@ def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, 
     stops = result.get("deadman_stops_ms") or [float("nan")]
     index = report.get("robots", {}).get(result["robot"], {}).get("index", {})
     gaps = report.get("recording", {})
+    # Which streams lost messages: a video frame dropped by its latest-frame QoS is not a lost command.
+    lost_on = ", ".join(f"{key.split('/', 2)[-1]} {n}" for key, n in gaps.get("missing_by_key", {}).items())
     levels = {0: "green", 1: "yellow", 2: "red"}
     lines = [
         "",
@@ -113,8 +115,8 @@ def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, 
         f"  force                     peak level {result['peak_force_level']} ({levels.get(result['peak_force_level'], '?')})",
         f"  session index φ           {index.get('phi', float('nan')):.1f} % (contact {index.get('tau', 0):.1f} s of "
         f"{index.get('t_t', 0):.1f} s, warnings red {index.get('omega_R', 0)}, yellow {index.get('omega_Y', 0)})",
-        f"  recording                 {gaps.get('messages', 0)} messages, {gaps.get('missing', 0)} missing by sequence, "
-        f"{gaps.get('malformed', 0)} malformed",
+        f"  recording                 {gaps.get('messages', 0)} messages, {gaps.get('missing', 0)} missing by sequence"
+        f"{f' ({lost_on})' if lost_on else ''}, {gaps.get('malformed', 0)} malformed",
         f"  refusals                  {'; '.join(r[:70] for r in result['refusals'][:3]) or 'none'}",
         f"  report                    {report_path}",
         f"  twin (rerun)              {workdir / 'twin.rrd'}  (view it: .venv/bin/rerun {workdir / 'twin.rrd'})" + (f"; live: {twin_url}" if twin_url else ""),

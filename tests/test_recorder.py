@@ -15,8 +15,9 @@ from iorthand.config import from_dict
 from iorthand.protocol import Annotation, ForceSample, RecorderStatus, VideoFrame
 from iorthand_cloud.recorder import client
 from iorthand_cloud.recorder import manifest as mf
-from iorthand_cloud.recorder.config import RecorderConfig
+from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
 from iorthand_cloud.recorder.reader import iter_records, segment_files
+from iorthand_cloud.recorder.report import build_report, missing_where
 from iorthand_cloud.recorder.service import RecorderService
 from tests.conftest import wait_until
 
@@ -92,6 +93,16 @@ def test_records_messages_with_times_sequence_and_gaps(recorder_factory, session
     anns = [r for r in records if r.key == keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)]
     decoded = Annotation.decode(anns[0].data)
     assert decoded.text == "probe slipped" and decoded.tags == ["slip"] and decoded.score == 3.0
+    # The report says where the messages went missing, not only how many.
+    data = build_report(folder, ReportConfig(plots=False), tmp_path / "report")
+    assert data["recording"]["missing_by_key"] == {"iorthand/sim1/state/force": 2}
+    assert "2 missing by sequence (1 gaps; on state/force 2)" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_where_messages_went_missing_most_first() -> None:
+    lost = {"iorthand/a/state/force": 2, "iorthand/a/video/camera": 5, "iorthand/a/markers": 1, "iorthand/a/state/robot": 3}
+    assert missing_where(lost) == "video/camera 5, state/robot 3, state/force 2 and 1 more keys"
+    assert missing_where({"iorthand/a/markers": 1}) == "markers 1"
 
 
 def test_status_and_refusals(recorder_factory, session_factory) -> None:

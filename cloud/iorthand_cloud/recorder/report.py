@@ -186,7 +186,8 @@ def build_report(session: str | Path, cfg: ReportConfig | None = None, out_dir: 
         "session": manifest.session_id, "status": manifest.status, "operator": manifest.operator,
         "start": manifest.start_iso, "stop": manifest.stop_iso, "duration_s": round(stop - start, 3),
         "recording": {**totals(manifest.keys), "dropped": manifest.dropped, "repaired": manifest.repaired,
-                      "error": manifest.error},
+                      "error": manifest.error,
+                      "missing_by_key": {k: st.missing for k, st in sorted(manifest.keys.items()) if st.missing}},
         "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
         "robots": {}, "annotations": annotations, "plots": [],
     }
@@ -219,6 +220,13 @@ def _fmt(v: Any, digits: int = 2) -> str:
     return str(v)
 
 
+def missing_where(missing_by_key: dict[str, int], most: int = 3) -> str:
+    """``"video/ultrasound 1, state/force 2"``: the keys (robot suffix) that lost messages, most first."""
+    by_key = sorted(missing_by_key.items(), key=lambda kv: -kv[1])
+    shown = ", ".join(f"{k.split('/', 2)[-1]} {n}" for k, n in by_key[:most])
+    return shown + (f" and {len(by_key) - most} more keys" if len(by_key) > most else "")
+
+
 def render_markdown(data: dict[str, Any]) -> str:
     rec = data["recording"]
     lines = [
@@ -228,7 +236,9 @@ def render_markdown(data: dict[str, Any]) -> str:
         f"{' — ' + rec['error'] if rec['error'] else ''}",
         f"- operator: {data['operator'] or 'n/a'}; {data['start']} → {data['stop']} ({data['duration_s']:.1f} s)",
         f"- recorded: {rec['messages']} messages, {rec['bytes'] / 1e6:.1f} MB, {rec['malformed']} malformed, "
-        f"{rec['missing']} missing by sequence ({rec['gaps']} gaps), {rec['dropped']} dropped by the recorder",
+        f"{rec['missing']} missing by sequence ({rec['gaps']} gaps"
+        f"{'; on ' + missing_where(rec['missing_by_key']) if rec.get('missing_by_key') else ''}), "
+        f"{rec['dropped']} dropped by the recorder",
         "",
     ]
     for robot, r in data["robots"].items():
