@@ -30,16 +30,13 @@ class CpuLatencyHold:
             raise ValueError(f"cpu latency: a whole number of microseconds ≥ 0, got {max_us!r}")
         self.max_us = max_us
         self._fd: int | None = None
+        fd = None
         try:
             fd = os.open(path, os.O_WRONLY)
-        except OSError as exc:
-            self.state = f"not held: {path}: {exc.strerror or exc}"
-            log.warning("cpu latency %d µs %s", max_us, self.state)
-            return
-        try:
             os.write(fd, struct.pack("=i", max_us))  # the device takes a native 32-bit integer
         except OSError as exc:
-            os.close(fd)
+            if fd is not None:
+                os.close(fd)
             self.state = f"not held: {path}: {exc.strerror or exc}"
             log.warning("cpu latency %d µs %s", max_us, self.state)
             return
@@ -63,10 +60,3 @@ class CpuLatencyHold:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-
-def current_limit_us(path: Path = CPU_DMA_LATENCY) -> int | None:
-    """The limit in force: the strictest request of every process (2,000,000,000 when there is none)."""
-    try:
-        return int(struct.unpack("=i", path.read_bytes()[:4])[0])
-    except (OSError, struct.error):
-        return None

@@ -102,8 +102,8 @@ def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, 
     stops = result.get("deadman_stops_ms") or [float("nan")]
     index = report.get("robots", {}).get(result["robot"], {}).get("index", {})
     gaps = report.get("recording", {})
-    # Which streams lost messages: a video frame dropped by its latest-frame QoS is not a lost command.
-    lost_on = ", ".join(f"{key.split('/', 2)[-1]} {n}" for key, n in gaps.get("missing_by_key", {}).items())
+    # Which streams lost messages (the report says): a video frame dropped by its latest-frame QoS is not a lost command.
+    lost_on = gaps.get("missing_where", "")
     levels = {0: "green", 1: "yellow", 2: "red"}
     lines = [
         "",

@@ -191,6 +191,7 @@ def build_report(session: str | Path, cfg: ReportConfig | None = None, out_dir: 
         "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
         "robots": {}, "annotations": annotations, "plots": [],
     }
+    data["recording"]["missing_where"] = missing_where(data["recording"]["missing_by_key"])
     for robot, s in sorted(robots.items()):
         data["robots"][robot] = robot_figures(s, cfg, stop - start)
         if cfg.plots:
@@ -237,7 +238,7 @@ def render_markdown(data: dict[str, Any]) -> str:
         f"- operator: {data['operator'] or 'n/a'}; {data['start']} → {data['stop']} ({data['duration_s']:.1f} s)",
         f"- recorded: {rec['messages']} messages, {rec['bytes'] / 1e6:.1f} MB, {rec['malformed']} malformed, "
         f"{rec['missing']} missing by sequence ({rec['gaps']} gaps"
-        f"{'; on ' + missing_where(rec['missing_by_key']) if rec.get('missing_by_key') else ''}), "
+        f"{'; on ' + rec['missing_where'] if rec['missing_where'] else ''}), "
         f"{rec['dropped']} dropped by the recorder",
         "",
     ]
