@@ -61,6 +61,43 @@ def test_example_config_runs_in_its_own_thread_and_publishes() -> None:
     Markers.decode(last.encode())  # valid on the wire
 
 
+def test_synthetic_camera_waits_for_the_first_robot_pose_then_fails_only_after_its_timeout() -> None:
+    # At start-up the perception worker can run before the control loop has stored a robot state: the
+    # synthetic camera then has nothing to render from and must wait, not end perception.
+    config = load(PHANTOM, PerceptionConfig)
+    config.intrinsics_file, config.handeye_file = INTRINSICS, HANDEYE
+    tcp = robot_over_phantom(config)
+    pose_known = threading.Event()
+    received: list[Markers] = []
+    pipeline = PerceptionPipeline(
+        config, lambda _t: tcp if pose_known.is_set() else None, lambda _t: SERVO, received.append
+    )
+    pipeline.start()
+    try:
+        time.sleep(0.3)  # ~9 frame periods without a pose
+        assert pipeline.running and pipeline.failure is None and received == []
+        pose_known.set()
+        deadline = time.monotonic() + 10.0
+        while not received and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert received, f"no markers after the pose arrived: {pipeline.failure}"
+        assert sorted(m.id for m in received[-1].markers) == [3, 7, 11]
+    finally:
+        pipeline.stop()
+
+    config.camera.pose_timeout = 0.2  # type: ignore[union-attr]
+    never = PerceptionPipeline(config, lambda _t: None, lambda _t: SERVO, received.append)
+    never.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while never.running and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not never.running
+        assert never.failure is not None and "no robot pose to render from for 0.2 s" in never.failure
+    finally:
+        never.stop()
+
+
 def test_publish_failure_does_not_stop_perception() -> None:
     config = load(PHANTOM, PerceptionConfig)
     tcp = robot_over_phantom(config)

@@ -84,6 +84,9 @@ class SyntheticCameraConfig(CameraConfig):
     background: int = setting(150, lo=0, hi=255)
     supersample: int = setting(3, lo=1, hi=8, help="render at this many times the size, then area-downsample")
     seed: int = setting(0, lo=0)
+    pose_timeout: float = setting(
+        5.0, lo=0.1, hi=60.0, help="s without a robot pose to render from before the camera fails"
+    )
 
     def image_size(self) -> tuple[int, int] | None:
         return (self.width, self.height)

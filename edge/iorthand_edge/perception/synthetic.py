@@ -188,17 +188,38 @@ class SyntheticCamera(CameraSource):
         self._open = False
 
     def read(self) -> Frame:
-        """The next frame, paced at the configured frame rate."""
+        """The next frame, paced at the configured frame rate.
+
+        The scene is rendered from the robot pose at the capture time. Until that pose is known (the edge
+        has just started, or the robot state stalled for longer than the pose history extrapolates) the
+        camera delivers nothing, like a real camera that is not streaming yet; it fails only after
+        ``pose_timeout`` s without a pose.
+        """
         if not self._open:
             raise CameraError(f"{self.description} is not open")
-        self._next_due = _sleep_until(self._next_due, 1.0 / self.config.fps)
-        return self.capture(self.clock())
+        deadline = time.monotonic() + self.config.pose_timeout
+        while True:
+            self._next_due = _sleep_until(self._next_due, 1.0 / self.config.fps)
+            frame = self._try_capture(self.clock())
+            if frame is not None:
+                return frame
+            if time.monotonic() > deadline:
+                raise CameraError(
+                    f"{self.description}: no robot pose to render from for {self.config.pose_timeout:g} s "
+                    "(is the robot state flowing?)"
+                )
 
     def capture(self, t_ns: int) -> Frame:
         """Render the frame captured at ``t_ns`` (no pacing)."""
+        frame = self._try_capture(t_ns)
+        if frame is None:
+            raise CameraError(f"{self.description}: no robot pose at the capture time to render from")
+        return frame
+
+    def _try_capture(self, t_ns: int) -> Frame | None:
         t_base_tcp = self.robot_pose_at(t_ns)
         if t_base_tcp is None:
-            raise CameraError(f"{self.description}: no robot pose at the capture time to render from")
+            return None
         pan, tilt = self.servo_angles_at(t_ns)
         t_camera_base = invert(self.chain.base_camera(t_base_tcp, pan, tilt))
         image = self.render(t_camera_base)
