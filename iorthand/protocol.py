@@ -504,6 +504,18 @@ class Markers(Message):
     frames: int = spec(0, lo=0)
     fps: float = spec(0.0, lo=0.0)
     processing_ms: float = spec(0.0, lo=0.0)
+    # Empty while the camera delivers. Otherwise why perception has no frames: the edge then publishes this
+    # (with no markers) at every attempt to reopen the camera, so silence never reads as "nothing in view".
+    failure: str = spec("", max_len=256)
+
+
+def perception_news(before: str, now: str) -> str | None:
+    """What the operator and the twin say when Markers.failure changes from ``before`` to ``now``."""
+    if now == before:
+        return None
+    if not now:
+        return "perception back: the camera delivers frames again"
+    return f"perception has no camera frames: {now} (the edge retries)"
 
 
 @dataclass(kw_only=True)

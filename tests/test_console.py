@@ -17,7 +17,7 @@ from iorthand_operator.console.app import OperatorConsole
 from iorthand_operator.console.controller import ConsoleController
 from iorthand_operator.console.settings import ConsoleSettings
 from iorthand_operator.inputs import KeyboardInput, KeymapConfig
-from tests.conftest import wait_until
+from tests.conftest import ROOT, wait_until
 
 
 async def _wait(pred, timeout: float = 5.0, message: str = "condition") -> None:
@@ -147,6 +147,34 @@ def test_force_block_colours_and_stale(session_factory, operator_factory) -> Non
         ("NO DATA", "grey50"), ("SAFE", "green"), ("CAUTION", "yellow"), ("DANGER", "red"),
         ("STALE", "grey50"), ("STALE", "grey50"),
     ]
+
+
+def test_a_camera_that_cannot_open_is_shown_with_its_reason(edge_factory, operator_factory) -> None:
+    """No device at the configured path (this machine has no camera): the edge keeps retrying, and the
+    console says why there are no markers instead of "none in view"."""
+    intrinsics = ROOT / "configs" / "calibration" / "intrinsics-640x480.yaml"
+    edge_factory(perception={"camera": {"kind": "device", "path": "/nonexistent/video9"},
+                             "intrinsics_file": str(intrinsics), "retry_interval": 0.3})
+    client, ctrl, app = _console(operator_factory)
+    client.wait_for_state()
+    ctrl.start()
+
+    async def run() -> str:
+        async with app.run_test(size=(160, 50)) as pilot:
+            await _wait(lambda: app.view_model.markers_note.startswith("camera failed"), 5.0, "the camera's failure")
+            await pilot.pause(0.2)
+            shown = " ".join(_text(app, "pose").replace("│", " ").split())  # the panel wraps long lines
+            await pilot.press("q")
+            return shown
+
+    try:
+        shown = asyncio.run(run())
+    finally:
+        ctrl.stop()
+    assert "camera failed: cannot open camera /nonexistent/video9" in shown
+    news = [e for e in client.events if e.status == "perception"]
+    assert len(news) == 1 and news[0].kind == "warning", news  # repeated attempts are not repeated news
+    assert "/nonexistent/video9" in news[0].reason and "the edge retries" in news[0].reason
 
 
 def test_refused_control_shows_the_reason(edge_factory, operator_factory) -> None:

@@ -52,13 +52,16 @@ def pose_errors(msg: Markers, scene: dict) -> dict[int, tuple[float, float]]:
     return out
 
 
-def test_markers_are_published_in_the_base_frame_and_servos_do_not_move_them(edge_factory, operator_factory, session_factory) -> None:
+def test_markers_are_published_in_the_base_frame_and_servos_do_not_move_them(
+    edge_factory, operator_factory, session_factory, twin_factory
+) -> None:
     section = perception_section()
     edge = edge_factory(
         robot={"kind": "sim", "initial_pose": [0.40, 0.11, 0.36, math.pi, 0.0, 0.0]},  # camera above the phantom
         servos={}, perception=section,
     )
     log = MarkerLog(session_factory())
+    twin_factory()  # previews go through the twin
     wait_until(lambda: len(log.messages) >= 15 and len(log.messages[-1].markers) == 3, timeout=15.0, message="3 markers")
     errors = pose_errors(log.messages[-1], section["scene"])
     print(f"\nmarkers at the servos' home: {errors}")
@@ -77,6 +80,15 @@ def test_markers_are_published_in_the_base_frame_and_servos_do_not_move_them(edg
     print(f"markers with the servos turned: {errors}")
     assert errors and all(mm <= 3.0 and deg <= 1.0 for mm, deg in errors.values()), errors
     assert edge.markers.keys() == {m.id for m in msg.markers}
+
+    # Markers in view can be moved above; once the camera stalls, their poses age out and no move may aim
+    # at where the patient was (goto.marker_max_age, 0.5 s by default).
+    assert {"above_marker:3", "above_marker:7", "above_marker:11"} <= {p["name"] for p in op.list_poses()}
+    edge.perception.stop()  # the camera stalls: no frames, no news
+    time.sleep(edge.config.goto.marker_max_age + 0.1)
+    assert not [p["name"] for p in op.list_poses() if p["name"].startswith("above_marker:")]
+    stale = op.preview_pose("above_marker:3")
+    assert not stale.ok and "marker 3 is not in view" in stale.reason, stale.reason
 
 
 def test_previewed_goto_through_the_twin(edge_factory, twin_factory, operator_factory) -> None:

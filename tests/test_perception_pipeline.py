@@ -6,6 +6,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -61,7 +62,7 @@ def test_example_config_runs_in_its_own_thread_and_publishes() -> None:
     Markers.decode(last.encode())  # valid on the wire
 
 
-def test_synthetic_camera_waits_for_the_first_robot_pose_then_fails_only_after_its_timeout() -> None:
+def test_synthetic_camera_waits_for_the_first_robot_pose() -> None:
     # At start-up the perception worker can run before the control loop has stored a robot state: the
     # synthetic camera then has nothing to render from and must wait, not end perception.
     config = load(PHANTOM, PerceptionConfig)
@@ -85,17 +86,69 @@ def test_synthetic_camera_waits_for_the_first_robot_pose_then_fails_only_after_i
     finally:
         pipeline.stop()
 
+
+
+def test_a_failed_camera_is_published_with_its_reason_and_perception_resumes_when_it_delivers_again() -> None:
+    # The synthetic camera fails when it has had no robot pose to render from for pose_timeout: the same
+    # CameraError a real camera gives when it stops delivering, and it recovers the same way.
+    config = load(PHANTOM, PerceptionConfig)
+    config.intrinsics_file, config.handeye_file = INTRINSICS, HANDEYE
     config.camera.pose_timeout = 0.2  # type: ignore[union-attr]
-    never = PerceptionPipeline(config, lambda _t: None, lambda _t: SERVO, received.append)
-    never.start()
-    try:
-        deadline = time.monotonic() + 5.0
-        while never.running and time.monotonic() < deadline:
+    config.retry_interval = 0.2
+    tcp = robot_over_phantom(config)
+    pose_known = threading.Event()
+    pose_known.set()
+    received: list[Markers] = []
+    pipeline = PerceptionPipeline(
+        config, lambda _t: tcp if pose_known.is_set() else None, lambda _t: SERVO, received.append
+    )
+
+    def wait_for(predicate, what: str) -> None:
+        deadline = time.monotonic() + 10.0
+        while not predicate() and time.monotonic() < deadline:
             time.sleep(0.01)
-        assert not never.running
-        assert never.failure is not None and "no robot pose to render from for 0.2 s" in never.failure
+        assert predicate(), f"timed out waiting for {what}; failure: {pipeline.failure}"
+
+    pipeline.start()
+    try:
+        wait_for(lambda: any(m.markers for m in received), "markers")
+        pose_known.clear()  # the camera stops delivering
+        wait_for(lambda: sum(bool(m.failure) for m in received) >= 2, "two failure messages")
+        assert pipeline.running, "a camera failure must not end the perception worker"
+        failed = [m for m in received if m.failure]
+        assert all(m.markers == [] for m in failed)
+        assert "no robot pose to render from for 0.2 s" in failed[0].failure and pipeline.failure == failed[0].failure
+        assert pipeline.stats.camera_failures >= 2
+        assert [m.seq for m in received] == list(range(1, len(received) + 1))  # one sequence for both kinds
+        pose_known.set()  # delivering again: reopened at the next retry
+        count = len(received)
+        wait_for(lambda: any(m.markers for m in received[count:]), "markers again")
+        assert pipeline.failure is None and not received[-1].failure
     finally:
-        never.stop()
+        pipeline.stop()
+
+
+def test_the_end_of_a_video_file_ends_perception_once(tmp_path: Path) -> None:
+    video = tmp_path / "three-frames.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (640, 480))
+    for i in range(3):
+        writer.write(np.full((480, 640, 3), 60 * i, np.uint8))
+    writer.release()
+    config = from_dict(
+        {"camera": {"kind": "video", "path": str(video), "loop": False, "realtime": False},
+         "intrinsics_file": str(INTRINSICS), "retry_interval": 0.1},
+        PerceptionConfig,
+    )
+    received: list[Markers] = []
+    pipeline = PerceptionPipeline(config, lambda _t: np.eye(4), lambda _t: (0.0, 0.0), received.append)
+    pipeline.start()
+    deadline = time.monotonic() + 5.0
+    while pipeline.running and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.3)  # three retry intervals: none may come
+    assert not pipeline.running
+    assert [bool(m.failure) for m in received] == [False, False, False, True]
+    assert "no more frames" in received[-1].failure and pipeline.failure == received[-1].failure
 
 
 def test_publish_failure_does_not_stop_perception() -> None:
@@ -117,18 +170,25 @@ def test_publish_failure_does_not_stop_perception() -> None:
     assert pipeline.stats.publish_errors >= 3
 
 
-def test_unreadable_camera_fails_the_worker_with_the_reason() -> None:
+def test_unreadable_camera_is_retried_and_every_attempt_says_why() -> None:
     config = from_dict(
-        {"camera": {"kind": "device", "path": "/nonexistent/video9"}, "intrinsics_file": str(INTRINSICS)},
+        {"camera": {"kind": "device", "path": "/nonexistent/video9"}, "intrinsics_file": str(INTRINSICS),
+         "retry_interval": 0.1},
         PerceptionConfig,
     )
-    pipeline = PerceptionPipeline(config, lambda _t: np.eye(4), lambda _t: (0.0, 0.0), lambda _m: None)
+    received: list[Markers] = []
+    pipeline = PerceptionPipeline(config, lambda _t: np.eye(4), lambda _t: (0.0, 0.0), received.append)
     pipeline.start()
-    deadline = time.monotonic() + 5.0
-    while pipeline.running and time.monotonic() < deadline:
-        time.sleep(0.01)
+    try:
+        deadline = time.monotonic() + 5.0
+        while len(received) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pipeline.running
+        assert len(received) >= 3 and all("cannot open camera /nonexistent/video9" in m.failure for m in received)
+        assert pipeline.failure == received[0].failure and pipeline.stats.camera_failures >= 3
+    finally:
+        pipeline.stop()
     assert not pipeline.running
-    assert pipeline.failure is not None and "cannot open camera /nonexistent/video9" in pipeline.failure
 
 
 def test_calibration_for_another_image_size_is_refused() -> None:

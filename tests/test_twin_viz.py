@@ -146,3 +146,17 @@ def test_store_says_when_the_edge_drops_commands_unread():
         store.ingest(key, SafetyStatus(armed=True, superseded=count).stamp(i + 1).encode(), 0)
     news = [e for e in store.robots["r1"].events if "unread" in e.text]
     assert [(e.level, e.text.split(" commands")[0]) for e in news] == [("WARN", "the edge dropped 7")]
+
+
+def test_store_says_when_perception_loses_and_regains_its_camera():
+    """A Markers message with ``failure`` set is news when the failure starts or changes, and so is its end."""
+    store = TwinStore()
+    key = keys.RobotKeys("r1").key(keys.MARKERS)
+    failures = ["", "camera 0 stopped delivering frames", "camera 0 stopped delivering frames", ""]
+    for i, failure in enumerate(failures):
+        store.ingest(key, Markers(failure=failure).stamp(i + 1).encode(), 0)
+    news = [(e.level, e.text) for e in store.robots["r1"].events if "perception" in e.text]
+    assert news == [
+        ("WARN", "perception has no camera frames: camera 0 stopped delivering frames (the edge retries)"),
+        ("INFO", "perception back: the camera delivers frames again"),
+    ]

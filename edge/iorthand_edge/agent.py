@@ -146,6 +146,7 @@ class EdgeAgent:
         )
         self.goto = GotoController(config.goto, config.safety.workspace.min, config.safety.workspace.max)
         self.markers: dict[int, np.ndarray] = {}  # latest filtered T_base_marker per id (for above_marker:<id>)
+        self.markers_at = -math.inf  # time.monotonic() when self.markers was set
         self.perception: PerceptionPipeline | None = None
         self.pose_history: PoseHistory | None = None
         if config.perception is not None:
@@ -423,8 +424,15 @@ class EdgeAgent:
 
     def _publish_markers(self, msg: Markers) -> None:
         """From the perception thread: publish, and keep the filtered poses for ``above_marker:<id>``."""
-        self.markers = {m.id: geometry.unflatten(m.pose) for m in msg.markers}
+        self.markers, self.markers_at = {m.id: geometry.unflatten(m.pose) for m in msg.markers}, time.monotonic()
         self._pub_markers.put(msg.encode())
+
+    def _fresh_markers(self) -> dict[int, np.ndarray]:
+        """The marker poses a move may aim at: none once they are older than ``goto.marker_max_age`` (the
+        camera failed or stalled, and the patient may have moved since)."""
+        if time.monotonic() - self.markers_at > self.config.goto.marker_max_age:
+            return {}
+        return dict(self.markers)
 
     def _contact_force(self) -> float:
         """The contact force (N) the simulated ultrasound image responds to."""
@@ -542,7 +550,7 @@ class EdgeAgent:
     def _on_poses(self, query: zenoh.Query) -> None:
         if self._request(query) is None:
             return
-        names = [*self.config.goto.poses, "retract", *(f"above_marker:{i}" for i in sorted(self.markers))]
+        names = [*self.config.goto.poses, "retract", *(f"above_marker:{i}" for i in sorted(self._fresh_markers()))]
         detail = json.dumps([{"name": n} for n in names])
         self._reply(query, True, f"{len(names)} poses", detail=detail)
 
@@ -558,7 +566,7 @@ class EdgeAgent:
             return
         # Planning (IK along the path) takes up to ~0.2 s: outside the lock, on this control-plane thread.
         pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
-                               dict(self.markers), reading.q)
+                               self._fresh_markers(), reading.q)
         (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")
         self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", detail=json.dumps(pv.detail()))
 

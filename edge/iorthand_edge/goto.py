@@ -51,6 +51,9 @@ class GotoConfig:
     token_ttl: float = setting(10.0, lo=0.5, hi=300.0, help="s a preview token stays valid")
     retract_distance: float = setting(0.05, lo=0.0, hi=0.3, help="m straight up for 'retract' if not in poses")
     marker_standoff: float = setting(0.10, lo=0.01, hi=0.5, help="m above a marker for above_marker:<id>")
+    marker_max_age: float = setting(
+        0.5, lo=0.05, hi=5.0, help="s a marker pose stays usable for above_marker:<id> after its camera frame"
+    )
     model: str = setting("ur3e", choices=("ur3e", "ur5e"))
     tcp_offset: list[float] = setting(default_factory=lambda: [0.0] * 6, length=6, help="TCP in the flange frame")
     start_tolerance: float = setting(0.005, lo=0.0, hi=0.1, help="m the robot may have moved since the preview")

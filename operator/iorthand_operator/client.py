@@ -50,6 +50,7 @@ from iorthand.protocol import (
     TorchCommand,
     TorchState,
     TwistCommand,
+    perception_news,
     superseded_news,
 )
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
@@ -83,7 +84,7 @@ class Event:
     """A refusal, a stop or an input problem, with its reason: what the console's log shows."""
 
     t: float  # wall time, s
-    kind: str  # "refused", "stop", "control", "input", "action"
+    kind: str  # "refused", "stop", "control", "input", "action", "warning", "info"
     status: str
     reason: str
 
@@ -476,6 +477,9 @@ class OperatorClient:
     def _on_markers(self, sample: zenoh.Sample) -> None:
         msg = self._decode(Markers, sample)
         if msg is not None:
+            news = perception_news(self.markers.failure if self.markers is not None else "", msg.failure)
+            if news:
+                self.log_event("warning" if msg.failure else "info", "perception", news)
             self.markers, self.markers_at = msg, time.monotonic()
 
     def _on_edge_alive(self, sample: zenoh.Sample) -> None:

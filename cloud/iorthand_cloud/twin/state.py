@@ -30,6 +30,7 @@ from iorthand.protocol import (
     TwinSnapshot,
     VideoFrame,
     message_type_for,
+    perception_news,
     superseded_news,
 )
 
@@ -239,6 +240,10 @@ class TwinStore:
             p = prev if isinstance(prev, RobotState) else None
             if msg.fault and (p is None or p.fault != msg.fault):
                 out.append(Event(r, t, "ERROR", f"robot fault: {msg.fault}"))
+        elif isinstance(msg, Markers):
+            news = perception_news(prev.failure if isinstance(prev, Markers) else "", msg.failure)
+            if news:
+                out.append(Event(r, t, "WARN" if msg.failure else "INFO", news))
         return out
 
     def snapshot(self, robot: str, include_images: bool = False, state_timeout: float = 1.0) -> TwinSnapshot:

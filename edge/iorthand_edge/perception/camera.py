@@ -28,6 +28,10 @@ class CameraError(RuntimeError):
     """A camera that cannot be opened or read; the message says which camera and why."""
 
 
+class CameraFinished(CameraError):
+    """A source that has nothing more to give (the end of a video file): reopening it would not help."""
+
+
 @dataclass
 class Frame:
     image: np.ndarray  # BGR (H×W×3) or grey (H×W), uint8
@@ -153,7 +157,7 @@ class VideoFileCamera(_CaptureSource):
             self._capture.set(cv2.CAP_PROP_POS_FRAMES, 0)
             frame = self._grab()
         if frame is None:
-            raise CameraError(f"{self.description}: no more frames (end of file or unreadable)")
+            raise CameraFinished(f"{self.description}: no more frames (end of file or unreadable)")
         return frame
 
 

@@ -225,3 +225,6 @@ class PerceptionConfig:
     max_extrapolation: float = setting(
         0.05, lo=0.0, hi=1.0, help="s a frame may be newer than the newest robot state and still use it"
     )
+    retry_interval: float = setting(
+        2.0, lo=0.1, hi=60.0, help="s between attempts to reopen a camera that failed (each one publishes why)"
+    )

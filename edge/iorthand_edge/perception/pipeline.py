@@ -3,8 +3,11 @@
 :meth:`PerceptionPipeline.start` runs capture and processing in a named worker thread that never blocks the
 caller; :meth:`PerceptionPipeline.process` does one frame synchronously (tests, benchmarks). Configuration
 problems (missing or wrong-size calibration, a bad file) raise :class:`PerceptionError` from the constructor
-with the reason; a camera that cannot be opened or stops delivering ends the worker, logged, with the reason
-in :attr:`PerceptionPipeline.failure` — the rest of the agent keeps running.
+with the reason. A camera that cannot be opened or stops delivering does not end the worker: the reason goes
+to :attr:`PerceptionPipeline.failure`, to the log, and out as a ``Markers`` message with ``failure`` set, and
+the camera is reopened every ``retry_interval`` s until it delivers again (an unplugged USB camera that is
+plugged back in). Only a source that is finished (the end of a video file) ends the worker. The rest of the
+agent keeps running throughout.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from iorthand.geometry import compose, flatten, pose_to_matrix
 from iorthand.protocol import MarkerPose, Markers, Sequencer
 
 from .calibration import CalibrationError, load_handeye, load_intrinsics
-from .camera import CameraError, CameraSource, Frame, make_camera
+from .camera import CameraError, CameraFinished, CameraSource, Frame, make_camera
 from .chain import CameraChain
 from .config import PerceptionConfig, SyntheticCameraConfig
 from .detector import detect_markers, estimate_marker_pose, make_aruco_detector
@@ -57,6 +60,7 @@ class PipelineStats:
     frames: int = 0
     frames_without_robot_pose: int = 0
     publish_errors: int = 0
+    camera_failures: int = 0  # failed attempts to open or read the camera
     stages: StageTimes = field(default_factory=StageTimes)
 
 
@@ -234,23 +238,43 @@ class PerceptionPipeline:
 
     def _run(self) -> None:
         camera = self._camera or make_camera(self.config, self.robot_pose_at, self.servo_angles_at)
+        while not self._stop.is_set():
+            try:
+                self._stream(camera)
+            except CameraFinished as exc:
+                self._failed(str(exc), final=True)
+                return
+            except (CameraError, PerceptionError) as exc:
+                self._failed(str(exc))
+            except Exception as exc:  # a bug: as visible as a camera failure, and retried the same way
+                log.exception("perception: internal error")
+                self._failed(f"internal error: {exc!r}")
+            finally:
+                camera.close()
+            self._stop.wait(self.config.retry_interval)
+
+    def _stream(self, camera: CameraSource) -> None:
+        """Open the camera and process its frames until stopped; camera and pipeline errors propagate."""
+        camera.open()
+        log.info("perception: %s open", camera.description)
+        while not self._stop.is_set():
+            frame = camera.read()
+            self.latest_image = frame.image
+            self._publish(self.process(frame))
+            if self.failure is not None:  # cleared only once frames flow again, so a flapping camera stays failed
+                log.info("perception: %s delivers frames again", camera.description)
+                self.failure = None
+
+    def _failed(self, reason: str, final: bool = False) -> None:
+        self.stats.camera_failures += 1
+        if reason != self.failure:
+            log.error("perception stopped: %s%s", reason, "" if final else f" (retrying every {self.config.retry_interval:g} s)")
+        self.failure = reason
+        self._publish(Markers(seq=self._sequencer.next(), t=time.time_ns(), frames=self.stats.frames, failure=reason))
+
+    def _publish(self, message: Markers) -> None:
         try:
-            camera.open()
-            log.info("perception: %s open", camera.description)
-            while not self._stop.is_set():
-                frame = camera.read()
-                self.latest_image = frame.image
-                message = self.process(frame)
-                try:
-                    self.publish(message)
-                except Exception:  # a failing publisher must not end perception; count and log it
-                    self.stats.publish_errors += 1
-                    log.exception("perception: publishing markers failed")
-        except (CameraError, PerceptionError) as exc:
-            self.failure = str(exc)
-            log.error("perception stopped: %s", exc)
-        except Exception as exc:  # anything else is a bug: stop this worker, not the agent
-            self.failure = f"internal error: {exc!r}"
-            log.exception("perception stopped by an internal error")
-        finally:
-            camera.close()
+            self.publish(message)
+        except Exception:  # a failing publisher must not end perception; count and log it
+            self.stats.publish_errors += 1
+            log.exception("perception: publishing markers failed")

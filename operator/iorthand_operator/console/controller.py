@@ -61,6 +61,7 @@ class ConsoleView:
     input_status: str = ""
     command: list[float] = field(default_factory=list)  # what we send, mm/s and deg/s
     markers: list[int] = field(default_factory=list)
+    markers_note: str = ""  # why there are no markers, when it is not that none are in view
     camera: str = ""
     torch: str = ""
     events: list[str] = field(default_factory=list)
@@ -225,7 +226,13 @@ class ConsoleController:
         v.input_status = self.sample.status
         tw = self.sample.twist
         v.command = [*(1000 * tw[:3]), *(math.degrees(a) for a in tw[3:])]
-        if c.markers is not None and now - c.markers_at < 2.0:
+        if c.markers is None:
+            v.markers_note = "no marker data"
+        elif c.markers.failure:
+            v.markers_note = f"camera failed: {c.markers.failure}"
+        elif now - c.markers_at >= 2.0:
+            v.markers_note = f"no marker data for {now - c.markers_at:.0f} s"
+        else:
             v.markers = sorted(m.id for m in c.markers.markers)
         if c.servo is not None:
             v.camera = f"pan {math.degrees(c.servo.pan):+.0f}° tilt {math.degrees(c.servo.tilt):+.0f}°"
