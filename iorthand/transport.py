@@ -321,14 +321,20 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox) -> zenoh.Subscribe
     return session.declare_subscriber(key, on_sample)
 
 
+# The SCHED_FIFO priority of the few threads that get one. A service user needs no root for it: an
+# RLIMIT_RTPRIO of at least this much is enough (deploy/systemd/iorthand-edge.service: LimitRTPRIO).
+REALTIME_PRIORITY = 10
+
+
 def raise_priority(realtime: bool, native_id: int | None = None) -> str:
-    """Best effort SCHED_FIFO for one thread (root or CAP_SYS_NICE); returns what it got. Only for threads that
-    block between short bursts of work (a fixed-rate sender, a control loop): a spinning one would starve others."""
+    """Best effort SCHED_FIFO for one thread (root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ REALTIME_PRIORITY); returns
+    what it got. Only for threads that block between short bursts of work (a fixed-rate sender, a control loop):
+    a spinning one would starve others, so a process must never run real-time as a whole."""
     if not realtime or not hasattr(os, "sched_setscheduler"):
         return "normal"
     try:
         os.sched_setscheduler(threading.get_native_id() if native_id is None else native_id, os.SCHED_FIFO,
-                              os.sched_param(10))
+                              os.sched_param(REALTIME_PRIORITY))
         return "SCHED_FIFO"
     except (PermissionError, OSError) as exc:
         log.debug("thread stays at normal priority: %s", exc)
@@ -350,6 +356,9 @@ class Worker(threading.Thread):
 
     def run(self) -> None:
         self.priority = raise_priority(self._realtime)
+        if self._realtime and self.priority != "SCHED_FIFO":
+            log.info("%s runs at %s priority (LimitRTPRIO=%d or root gives it SCHED_FIFO)",
+                     self.name, self.priority, REALTIME_PRIORITY)
         try:
             self._target_fn(self._stop_event)
         except BaseException as exc:  # a dead worker must be visible, never silent
