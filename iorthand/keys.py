@@ -62,6 +62,25 @@ def check_robot_id(robot: str) -> str:
     return robot
 
 
+# A replay publishes a recorded robot as "<robot>-replay", and no edge may take such an id: a replayed stream
+# can never be taken for a robot, on a console, in the twin, or by the router's access control.
+REPLAY_SUFFIX = "-replay"
+
+
+def replay_id(robot: str) -> str:
+    """The id a replay publishes recorded robot ``robot`` as (a replay of a replay keeps its id)."""
+    check_robot_id(robot)
+    return robot if robot.endswith(REPLAY_SUFFIX) else check_robot_id(robot + REPLAY_SUFFIX)
+
+
+def check_edge_robot_id(robot: str) -> str:
+    """A robot id an edge (a real or simulated robot) may have: valid, and not one reserved for replays."""
+    check_robot_id(robot)
+    if robot.endswith(REPLAY_SUFFIX):
+        raise KeyExprError(f"robot id {robot!r} ends in {REPLAY_SUFFIX!r}, which is reserved for replayed recordings")
+    return robot
+
+
 def check_operator_id(operator: str) -> str:
     if not isinstance(operator, str) or not OPERATOR_ID_PATTERN.match(operator):
         raise KeyExprError(f"operator id {operator!r} is invalid: expected 1-64 characters of [A-Za-z0-9_.@-]")
@@ -99,6 +118,11 @@ class RobotKeys:
 def all_robots(suffix: str) -> str:
     """A key expression matching ``suffix`` on every robot, e.g. ``iorthand/*/state/robot``."""
     return f"{ROOT}/*/{suffix}"
+
+
+def all_replays(suffix: str) -> str:
+    """A key expression matching ``suffix`` on every id reserved for replays, e.g. ``iorthand/$*-replay/markers``."""
+    return f"{ROOT}/$*{REPLAY_SUFFIX}/{suffix}"
 
 
 # Every operator → robot command is a put under iorthand/<robot>/cmd/ (bound keys add /<operator>).

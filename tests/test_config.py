@@ -37,6 +37,7 @@ def test_good_config_loads_with_defaults(tmp_path: Path) -> None:
     ("text", "key", "expected"),
     [
         (GOOD.replace("lab1", "Lab 1"), "", "robot id"),
+        (GOOD.replace("lab1", "lab1-replay"), "", "reserved for replayed recordings"),
         (GOOD.replace("auto_arm: true", "auto_arm: yes please"), "safety.auto_arm", "true or false"),
         (GOOD + "safety_rate_hz: -3\n", "safety_rate_hz", "at least"),
         (GOOD.replace("kind: sim", "kind: kuka"), "robot.kind", "one of"),

@@ -9,7 +9,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -83,7 +82,7 @@ def test_replay_republishes_with_original_timing(recorded) -> None:
     s = open_session(client_config(endpoint))
     got: list[tuple[str, bytes, float]] = []
     try:
-        s.declare_subscriber("iorthand/sim1/**", lambda smp: got.append(
+        s.declare_subscriber("iorthand/sim1-replay/**", lambda smp: got.append(
             (str(smp.key_expr), smp.payload.to_bytes(), time.monotonic())))
         time.sleep(0.3)
         speed = 4.0
@@ -93,7 +92,8 @@ def test_replay_republishes_with_original_timing(recorded) -> None:
     finally:
         s.close()
     original = [r for r in iter_records(folder) if r.key.startswith("iorthand/sim1/state/")]
-    assert [(k, d) for k, d, _ in got] == [(r.key, r.data) for r in original]  # same keys, bytes and order
+    # Same bytes, same order, on the same keys of the robot's replay id.
+    assert [(k, d) for k, d, _ in got] == [(r.key.replace("/sim1/", "/sim1-replay/"), r.data) for r in original]
     span_orig = (original[-1].log_time - original[0].log_time) / 1e9
     span_replay = got[-1][2] - got[0][2]
     assert span_replay == pytest.approx(span_orig / speed, rel=0.15)
@@ -117,7 +117,7 @@ def test_replay_never_sends_operator_commands(recorded) -> None:
         s.declare_subscriber(keys.all_robots(keys.STATE_ROBOT), lambda smp: states.append(str(smp.key_expr)))
         time.sleep(0.3)
         stats = Replayer(s, folder, speed=20.0).run()  # no filter: everything that may be replayed
-        wait_until(lambda: len(states) >= stats.per_key["iorthand/sim1/state/robot"], timeout=5.0, message="states")
+        wait_until(lambda: len(states) >= stats.per_key["iorthand/sim1-replay/state/robot"], timeout=5.0, message="states")
         time.sleep(0.2)
         assert commands == [] and stats.commands_withheld == recorded_commands
         assert not any(keys.is_command_key(k) for k in stats.per_key)
@@ -127,71 +127,38 @@ def test_replay_never_sends_operator_commands(recorded) -> None:
         s.close()
 
 
-def test_replay_refuses_to_publish_as_a_live_robot(recorded) -> None:
-    """While sim1's edge is online (its liveliness token; the token is what a replay sees of an edge), replaying
-    sim1 would put recorded state beside the live state on every console. Nothing goes out, and the reason says
-    how to replay it anyway: under another id."""
-    endpoint, folder = recorded
-    edge, s = open_session(client_config(endpoint)), open_session(client_config(endpoint))
-    got: list[str] = []
-    try:
-        token = edge.liveliness().declare_token(keys.RobotKeys("sim1").key(keys.ALIVE_EDGE))
-        s.declare_subscriber("iorthand/sim1/**", lambda smp: got.append(str(smp.key_expr)))
-        time.sleep(0.3)
-        stats = Replayer(s, folder, speed=20.0).run()
-        time.sleep(0.2)
-        assert stats.published == 0 and got == []
-        assert "sim1 is live" in stats.stopped and "--as sim1=sim1-replay" in stats.stopped
-        token.undeclare()
-    finally:
-        s.close()
-        edge.close()
-
-
-def test_replay_under_another_id_beside_the_live_robot(recorded) -> None:
+def test_a_replay_never_publishes_as_a_robot(recorded) -> None:
+    """Robot sim1 goes out as sim1-replay, an id no edge may take: with sim1's edge online or not, no console
+    and no twin can take the recording for the robot. ``--as`` picks another replay id, never a robot's."""
     endpoint, folder = recorded
     edge, s = open_session(client_config(endpoint)), open_session(client_config(endpoint))
     live: list[str] = []
-    renamed: list[tuple[str, bytes]] = []
+    replayed: dict[str, list[tuple[str, bytes]]] = {"sim1-replay": [], "lyon-replay": []}
     try:
         token = edge.liveliness().declare_token(keys.RobotKeys("sim1").key(keys.ALIVE_EDGE))
         s.declare_subscriber("iorthand/sim1/**", lambda smp: live.append(str(smp.key_expr)))
-        s.declare_subscriber("iorthand/sim1-replay/**", lambda smp: renamed.append((str(smp.key_expr), smp.payload.to_bytes())))
+        for robot, got in replayed.items():
+            s.declare_subscriber(f"iorthand/{robot}/**",
+                                 lambda smp, got=got: got.append((str(smp.key_expr), smp.payload.to_bytes())))
         time.sleep(0.3)
-        stats = Replayer(s, folder, speed=20.0, key_filter=["iorthand/sim1/state/**"], rename={"sim1": "sim1-replay"}).run()
-        wait_until(lambda: len(renamed) >= stats.published, timeout=5.0, message="every replayed message")
+        default = Replayer(s, folder, speed=20.0, key_filter=["iorthand/sim1/state/**"]).run()
+        wait_until(lambda: len(replayed["sim1-replay"]) >= default.published, timeout=5.0, message="the replay")
+        renamed = Replayer(s, folder, speed=20.0, key_filter=["iorthand/sim1/state/**"],
+                           rename={"sim1": "lyon-replay"}).run()
+        wait_until(lambda: len(replayed["lyon-replay"]) >= renamed.published, timeout=5.0, message="the renamed replay")
+        time.sleep(0.2)
         token.undeclare()
     finally:
         s.close()
         edge.close()
     original = [r for r in iter_records(folder) if r.key.startswith("iorthand/sim1/state/")]
-    assert stats.stopped == "" and live == []
-    assert renamed == [(r.key.replace("iorthand/sim1/", "iorthand/sim1-replay/"), r.data) for r in original]
+    assert live == []
+    for robot, got in replayed.items():
+        assert got == [(r.key.replace("iorthand/sim1/", f"iorthand/{robot}/"), r.data) for r in original]
+    with pytest.raises(ValueError, match=r"rename sim1=sim2: 'sim2' does not end in '-replay'.*'sim2-replay'"):
+        Replayer(s, folder, rename={"sim1": "sim2"})
     with pytest.raises(ValueError, match="rename sim1=Bad!: robot id 'Bad!' is invalid"):
         Replayer(s, folder, rename={"sim1": "Bad!"})
-
-
-def test_replay_stops_when_the_robot_comes_online(recorded) -> None:
-    endpoint, folder = recorded
-    edge, s = open_session(client_config(endpoint)), open_session(client_config(endpoint))
-    rp = Replayer(s, folder, speed=1.0, key_filter=["iorthand/sim1/state/**"])  # 10 s at the original pace
-    try:
-        t = threading.Thread(target=rp.run)
-        t.start()
-        wait_until(lambda: rp.stats.published > 50, timeout=10.0, message="the replay under way")
-        token = edge.liveliness().declare_token(keys.RobotKeys("sim1").key(keys.ALIVE_EDGE))
-        came_online = time.monotonic()
-        t.join(timeout=5.0)
-        assert not t.is_alive(), "the replay went on with sim1 online"
-        assert time.monotonic() - came_online < 2.0
-        assert "sim1 is live" in rp.stats.stopped
-        total = sum(1 for r in iter_records(folder) if r.key.startswith("iorthand/sim1/state/"))
-        assert rp.stats.published < total
-        token.undeclare()
-    finally:
-        rp.stop_event.set()
-        s.close()
-        edge.close()
 
 
 def test_export_rrd(recorded) -> None:
@@ -254,7 +221,7 @@ def test_cli_report_and_annotate(recorded, tmp_path: Path) -> None:
 
 
 def test_replay_drives_the_twin(recorded, tmp_path: Path) -> None:
-    """A replayed session looks live to the twin: its snapshot ends on the last recorded robot state."""
+    """A replayed session looks live to the twin, as its replay id: the snapshot ends on the last recorded state."""
     import numpy as np
 
     from iorthand.protocol import ForceLevelState, RobotState
@@ -272,8 +239,8 @@ def test_replay_drives_the_twin(recorded, tmp_path: Path) -> None:
         records = list(iter_records(folder))
         last_state = RobotState.decode([r for r in records if r.key == "iorthand/sim1/state/robot"][-1].data)
         last_level = ForceLevelState.decode([r for r in records if r.key == "iorthand/sim1/state/force_level"][-1].data)
-        wait_until(lambda: snapshot(s, "sim1").robot_seq == last_state.seq, timeout=5.0, message="the twin caught up")
-        snap = snapshot(s, "sim1")
+        wait_until(lambda: snapshot(s, "sim1-replay").robot_seq == last_state.seq, timeout=5.0, message="the twin caught up")
+        snap = snapshot(s, "sim1-replay")
         assert snap.known
         assert np.allclose(snap.tcp_pose, last_state.tcp_pose)
         assert snap.force_level == last_level.level and snap.force_stale == last_level.stale

@@ -131,6 +131,11 @@ def test_acl_policy_by_role() -> None:
     for viewer in ("viewer-eve", "twin", "recorder"):
         assert not [k for k in _allowed(cfg, viewer, "put", "ingress") if not k.startswith("iorthand/_")]
         assert not [k for k in _allowed(cfg, viewer, "query", "ingress") if "/control" in k]
+    # The replay identity publishes only under the ids reserved for replays, which no edge may take.
+    replay_puts = _allowed(cfg, "replay", "put", "ingress")
+    assert replay_puts and all(k.startswith("iorthand/$*-replay/") for k in replay_puts), replay_puts
+    assert not [k for k in _allowed(cfg, "replay", "declare_queryable", "ingress") + _allowed(cfg, "replay", "query", "ingress")]
+    assert "replay" not in {s["id"] for s in acl.router_config(_dep(replay=False))["access_control"]["subjects"]}
     subj = {s["id"]: s for s in cfg["access_control"]["subjects"]}
     assert subj["operator-alice"] == {"id": "operator-alice", "cert_common_names": ["operator-alice"], "usernames": ["operator-alice"]}
 
@@ -179,6 +184,8 @@ def test_deployment_validation() -> None:
         _dep(operators={"alice": ["r9"]})
     with pytest.raises(ValueError, match="not encrypted"):
         _dep(listen=["tcp/0.0.0.0:7447"])
+    with pytest.raises(ValueError, match="reserved for replayed recordings"):
+        _dep(robots=["r1", "r1-replay"])
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from iorthand import keys
-from iorthand.protocol import TwistCommand
+from iorthand.protocol import RobotState, TwistCommand
 from iorthand.security import certs
 from iorthand.security.lab import Lab, make_lab
 from iorthand.transport import ConnectError, ZenohConfig, free_port, open_session
@@ -97,10 +97,12 @@ def _hostile(lab: Lab, who: str) -> ZenohConfig:
         return lab.client("viewer-eve")
     if who == "twin service":
         return lab.client("twin")
+    if who == "replay":
+        return lab.client("replay")
     raise AssertionError(who)
 
 
-@pytest.mark.parametrize("who", ["operator granted another robot", "viewer", "twin service"])
+@pytest.mark.parametrize("who", ["operator granted another robot", "viewer", "twin service", "replay"])
 def test_authenticated_but_not_granted_cannot_move_it(lab: Lab, secure_edge, who: str) -> None:
     """They connect (their certificates are valid) but the router drops their commands and control queries."""
     agent = secure_edge()
@@ -108,7 +110,7 @@ def test_authenticated_but_not_granted_cannot_move_it(lab: Lab, secure_edge, who
     try:
         robot_state = []
         session.declare_subscriber(keys.RobotKeys("sim1").key(keys.STATE_ROBOT), lambda s: robot_state.append(1))
-        if who != "operator granted another robot":  # viewers see the robot; bob sees only sim2
+        if who in ("viewer", "twin service"):  # observers see the robot; bob sees only sim2, the replay only replays
             wait_until(lambda: robot_state, 5.0, message="the viewer seeing sim1's state")
         # Try everything: acquire as alice (a query), stream twists in alice's name, as fast as possible.
         replies = list(session.get(keys.RobotKeys("sim1").key(keys.CONTROL_ACQUIRE), payload=b"", timeout=1.0))
@@ -197,6 +199,27 @@ def test_identity_bound_liveliness_token(lab: Lab, tls_router: str) -> None:
     finally:
         for s in (watcher, bob, alice):
             s.close()
+
+
+def test_the_replay_identity_publishes_only_as_a_replay(lab: Lab, tls_router: str) -> None:
+    """What `iorthand replay` publishes with the replay certificate reaches the observers as sim1-replay; the
+    same state as sim1 (what an unrenamed replay would send) is dropped by the router."""
+    state = RobotState(tcp_pose=[0.3, 0.0, 0.2, 3.14, 0.0, 0.0]).stamp(1).encode()
+    seen: list[str] = []
+    viewer = open_session(lab.client("viewer-eve"))
+    replay = open_session(lab.client("replay"))
+    try:
+        viewer.declare_subscriber("iorthand/**", lambda s: seen.append(str(s.key_expr)))
+        time.sleep(0.3)
+        for robot in ("sim1", "sim1-replay"):
+            for suffix in (keys.STATE_ROBOT, keys.MARKERS):
+                replay.put(keys.RobotKeys(robot).key(suffix), state)
+        wait_until(lambda: len(seen) >= 2, 3.0, message="the replayed messages")
+        time.sleep(0.3)
+        assert sorted(seen) == ["iorthand/sim1-replay/markers", "iorthand/sim1-replay/state/robot"]
+    finally:
+        viewer.close()
+        replay.close()
 
 
 def test_bind_operator_keys_acl(tmp_path: Path) -> None:

@@ -48,7 +48,7 @@ class EdgeConfig:
     )
 
     def check(self) -> None:
-        keys.check_robot_id(self.robot_id)
+        keys.check_edge_robot_id(self.robot_id)
         if self.safety.auto_arm and not isinstance(self.robot, SimRobotConfig):
             raise ValueError("safety.auto_arm is allowed only for the simulated robot: a real arm needs local confirmation")
         simulated = isinstance(self.robot, SimRobotConfig)

@@ -17,6 +17,9 @@ enough. Roles (common names as issued by :mod:`iorthand.security.certs`):
 - ``twin``, ``recorder`` (services) and ``viewer-<name>`` (observers): subscribe and query; the services also
   serve their own ``iorthand/_twin/**`` / ``iorthand/_recorder/**`` space. Viewers cannot query a robot's
   ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership).
+- ``replay`` (``iorthand replay``): publishes ``state/**``, ``markers`` and ``video/**`` only under the ids
+  reserved for replays (``<robot>-replay``, :data:`iorthand.keys.REPLAY_SUFFIX`), so a replayed recording can
+  never pass for a robot; it receives traffic of those ids only.
 
 Default permission is deny. A session whose identity matches no subject can connect but nothing it sends is
 routed (Zenoh drops denied messages silently): that is why the edge also checks on its own (see
@@ -40,6 +43,7 @@ ALL_MESSAGES = [
 ]
 SUBSCRIBE = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
 SERVICES = ("twin", "recorder")
+REPLAY = "replay"  # the identity of `iorthand replay`
 
 
 @dataclass
@@ -58,10 +62,11 @@ class Deployment:
     bind_operator_keys: bool = setting(
         False, help="operators may publish commands only on .../cmd/<kind>/<their name> (identity-scoped keys)"
     )
+    replay: bool = setting(True, help="let the replay identity publish recordings under <robot>-replay ids")
 
     def check(self) -> None:
         for r in self.robots:
-            keys.check_robot_id(r)
+            keys.check_edge_robot_id(r)
         for op, robots in self.operators.items():
             keys.check_operator_id(op)
             for r in robots:
@@ -141,6 +146,13 @@ def acl_rules(dep: Deployment) -> dict[str, Any]:
             own = _service_space(name)
             rl.append(_rule(f"{name}-serve", ["put", "delete", "declare_queryable", "reply", "liveliness_token"], ["ingress"], [own]))
         add(name, rl)
+
+    if dep.replay:
+        add(REPLAY, [
+            _rule(f"{REPLAY}-publish", ["put"], ["ingress"],
+                  [keys.all_replays(s) for s in ("state/**", keys.MARKERS, f"{keys.MARKERS}/**", "video/**")]),
+            _rule(f"{REPLAY}-receive", ALL_MESSAGES, ["egress"], [keys.all_replays("**")]),
+        ])
 
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 

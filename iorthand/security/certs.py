@@ -2,7 +2,7 @@
 
 Roles and their certificate common names (the router's ACL matches on them, see :mod:`iorthand.security.acl`):
 
-``router`` · ``edge-<robot>`` · ``operator-<name>`` · ``twin`` · ``recorder`` · ``viewer-<name>``
+``router`` · ``edge-<robot>`` · ``operator-<name>`` · ``twin`` · ``recorder`` · ``replay`` · ``viewer-<name>``
 
 Keys are ECDSA P-256 (small, fast handshakes on a Pi, supported by rustls), written PKCS#8 with mode 0600 in
 a 0700 directory; certificates are 0644. The CA lives 10 years, role certificates 1 year by default (short
@@ -27,7 +27,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 CA_DAYS = 3650
 LEAF_DAYS = 365
-ROLE_PATTERN = re.compile(r"^(router|twin|recorder|(edge|operator|viewer)-[A-Za-z0-9_.@-]{1,64})$")
+ROLE_PATTERN = re.compile(r"^(router|twin|recorder|replay|(edge|operator|viewer)-[A-Za-z0-9_.@-]{1,64})$")
 ORGANIZATION = "iorthand"
 
 
@@ -126,7 +126,7 @@ def issue(
     its own name as a DNS SAN, which rustls needs even when names are not verified."""
     if not ROLE_PATTERN.match(name):
         raise CertError(
-            f"certificate name {name!r} is not a role: expected router, twin, recorder, edge-<robot>, "
+            f"certificate name {name!r} is not a role: expected router, twin, recorder, replay, edge-<robot>, "
             "operator-<name> or viewer-<name>"
         )
     ca_cert, ca_key = load_ca(Path(directory))
@@ -215,9 +215,3 @@ def describe(path: Path) -> dict[str, object]:
         "serial": f"{cert.serial_number:x}",
         "sha256": cert.fingerprint(hashes.SHA256()).hex(":"),
     }
-
-
-def standard_set(directory: Path, robots: list[str], operators: list[str], router_hosts: list[str]) -> list[Issued]:
-    """The certificates of a typical deployment: router, twin, recorder, one per edge and operator."""
-    names = ["router", "twin", "recorder", *(f"edge-{r}" for r in robots), *(f"operator-{o}" for o in operators)]
-    return [issue(directory, n, hosts=router_hosts if n == "router" else None) for n in names]

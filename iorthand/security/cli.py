@@ -73,7 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--days", type=int, default=certs.CA_DAYS)
     i.add_argument("--force", action="store_true", help="replace an existing CA")
     i.set_defaults(func=_init)
-    s = cs.add_parser("issue", help="issue role certificates: router, twin, recorder, edge-<robot>, operator-<name>, viewer-<name>")
+    s = cs.add_parser("issue", help="issue role certificates: router, twin, recorder, replay, edge-<robot>, operator-<name>, viewer-<name>")
     s.add_argument("name", nargs="+")
     s.add_argument("--dir", default="certs", help="where the CA is")
     s.add_argument("--out", help="where to write (default: --dir)")

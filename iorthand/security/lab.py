@@ -50,7 +50,7 @@ def make_lab(
         robots=robots, operators=operators, viewers=viewers or [], bind_operator_keys=bind_operator_keys,
     )
     dep.check()
-    names = ["router", "twin", "recorder", *(f"edge-{r}" for r in robots), *(f"operator-{o}" for o in operators),
+    names = ["router", "twin", "recorder", "replay", *(f"edge-{r}" for r in robots), *(f"operator-{o}" for o in operators),
              *(f"viewer-{v}" for v in dep.viewers)]
     lab = Lab(directory, f"tls/127.0.0.1:{port}", dep, directory / "router.json5")
     lines = []

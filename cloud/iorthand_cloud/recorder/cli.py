@@ -11,6 +11,7 @@ import sys
 import threading
 from pathlib import Path
 
+from iorthand import keys
 from iorthand.config import from_dict, load
 from iorthand.transport import ZenohConfig, client_config, open_session
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
@@ -96,12 +97,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         t.start()
         while t.is_alive():
             t.join(0.2)
-        print(f"replayed {rp.stats.published} messages ({rp.stats.loops} pass(es)), "
-              f"at most {rp.stats.max_late_ms:.1f} ms late; {rp.stats.commands_withheld} operator commands "
-              "withheld (a replay never drives a robot)")
-        if rp.stats.stopped:
-            print(f"replay stopped: {rp.stats.stopped}", file=sys.stderr)
-            return 1
+        robots = sorted({keys.split_key(k)[0] for k in rp.stats.per_key})
+        print(f"replayed {rp.stats.published} messages as {', '.join(robots) or 'no robot'} ({rp.stats.loops} "
+              f"pass(es)), at most {rp.stats.max_late_ms:.1f} ms late; {rp.stats.commands_withheld} operator "
+              "commands withheld (a replay never drives a robot)")
     finally:
         session.close()
     return 0
@@ -113,7 +112,7 @@ def _renames(pairs: list[str]) -> dict[str, str]:
     for pair in pairs:
         old, sep, new = pair.partition("=")
         if not sep or not old or not new:
-            raise ValueError(f"--as {pair!r}: expected RECORDED=NEW robot ids, e.g. --as sim1=sim1-replay")
+            raise ValueError(f"--as {pair!r}: expected RECORDED=NEW robot ids, e.g. --as sim1=lyon-replay")
         out[old] = new
     return out
 
@@ -179,7 +178,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--start", type=float, help="s from the session's first message")
     p.add_argument("--end", type=float)
     p.add_argument("--as", dest="rename", action="append", metavar="RECORDED=NEW",
-                   help="replay a recorded robot under another id (repeatable); needed while that robot is live")
+                   help="the id to replay a recorded robot as (repeatable; it must end in -replay; "
+                        "default: the recorded id + -replay)")
     p.set_defaults(func=_cmd_replay)
 
     p = sub.add_parser("report", help="session report: performance index, latencies, plots (Markdown + JSON)")

@@ -1,22 +1,22 @@
 """``iorthand replay SESSION``: republish a recording into Zenoh with its original timing (or faster).
 
-Messages go out on their original keys, with their original bytes (sequence numbers and source times
-included), spaced by their original receive times divided by ``speed``: the twin and any client see the
-session as if it were live. The recorder's own keys are not replayed; malformed payloads only on request.
+Messages go out with their original bytes (sequence numbers and source times included), spaced by their
+original receive times divided by ``speed``, on their keys with the robot's replay id (below): the twin and any
+client see the session as if it were live. Malformed payloads are replayed only on request.
 Each key is published with its QoS from :data:`iorthand.transport.QOS_BY_KEY` (video on the video profile).
 
 Operator commands (``iorthand/*/cmd/**``) are recorded but never replayed: replayed into a live deployment,
 the recorded twists of an operator who owns a robot again would drive it. They are counted instead.
 
-A replay never publishes as a robot that is live (its edge's liveliness token is present): every console and
-the twin would mix the recording's state with the real robot's, e.g. show a recorded force level 0 while the
-probe presses at level 2. It refuses before the first message, and stops if such an edge comes online while
-it runs. ``rename`` (``--as sim1=sim1-replay``) replays a robot under another id, beside the live one.
+A replay never publishes as a robot: every recorded robot goes out as ``<robot>-replay``
+(:func:`iorthand.keys.replay_id`), an id no edge may take, so consoles and the twin show a replay as one and the
+router's access control can confine the replay identity to those ids. ``rename`` (``--as sim1=lyon-replay``)
+picks another replay id. Keys outside a robot (the cloud services' own) are not replayed: a replay must not
+speak for the twin or the recorder either.
 """
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections.abc import Callable
@@ -27,12 +27,7 @@ import zenoh
 
 from iorthand import keys
 from iorthand.transport import QOS_BY_KEY
-from iorthand_cloud.recorder.manifest import Manifest
 from iorthand_cloud.recorder.reader import Record, iter_records
-
-log = logging.getLogger("iorthand.replay")
-
-LIVE_QUERY_S = 1.0  # how long the replay asks the network which edges are online before it publishes anything
 
 
 @dataclass
@@ -42,8 +37,7 @@ class ReplayStats:
     commands_withheld: int = 0  # operator commands in the recording, never republished
     loops: int = 0
     max_late_ms: float = 0.0
-    per_key: dict[str, int] = field(default_factory=dict)
-    stopped: str = ""  # why the replay refused or stopped early ("" = it ran to the end or was asked to stop)
+    per_key: dict[str, int] = field(default_factory=dict)  # messages per key they went out on
 
 
 def _publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
@@ -70,11 +64,13 @@ class Replayer:
             raise ValueError("speed must be > 0")
         self.rename = dict(rename or {})
         for old, new in self.rename.items():
-            for robot in (old, new):
-                try:
-                    keys.check_robot_id(robot)
-                except keys.KeyExprError as exc:
-                    raise ValueError(f"rename {old}={new}: {exc}") from None
+            try:
+                keys.check_robot_id(old)
+                if keys.replay_id(new) != new:
+                    raise keys.KeyExprError(f"{new!r} does not end in {keys.REPLAY_SUFFIX!r}: a replay never "
+                                            f"publishes as a robot (e.g. {keys.replay_id(new)!r})")
+            except keys.KeyExprError as exc:
+                raise ValueError(f"rename {old}={new}: {exc}") from None
         self.session = session
         self.folder = Path(folder)
         self.speed = speed
@@ -92,10 +88,7 @@ class Replayer:
         self.stop_event = threading.Event()
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._wanted: dict[str, bool] = {}
-        self._recorder_prefix = keys.service_key(keys.RECORDER) + "/"
-        self._target: dict[str, tuple[str, str]] = {}  # recorded key → (robot, key) it is published as
-        self._live: set[str] = set()  # robots whose edge is online
-        self._live_lock = threading.Lock()
+        self._target: dict[str, str | None] = {}  # recorded key → the key it goes out on (None: not replayed)
 
     def _wants(self, rec: Record) -> bool:
         if keys.is_command_key(rec.key):
@@ -106,11 +99,11 @@ class Replayer:
         return self._wants_key(rec.key)
 
     def _wants_key(self, key: str) -> bool:
-        """Whether messages on ``key`` are replayed at all: not operator commands, not the recorder's own, and
-        inside ``key_filter``."""
+        """Whether messages on ``key`` are replayed at all: a robot's key, not an operator command, and inside
+        ``key_filter``."""
         ok = self._wanted.get(key)
         if ok is None:
-            ok = not keys.is_command_key(key) and not key.startswith(self._recorder_prefix)
+            ok = self._published_as(key) is not None and not keys.is_command_key(key)
             if ok and self.filters:
                 ke = zenoh.KeyExpr(key)
                 ok = any(f.intersects(ke) for f in self.filters)
@@ -126,66 +119,27 @@ class Replayer:
         end = t0 + int(self.end_s * 1e9) if self.end_s is not None else None
         return start, end
 
-    def _published_as(self, key: str) -> tuple[str, str]:
-        """The robot and the key a recorded message goes out as (``rename`` applied); a key outside any robot
-        goes out unchanged, as robot ""."""
-        target = self._target.get(key)
-        if target is None:
+    def _published_as(self, key: str) -> str | None:
+        """The key a recorded message goes out on: its robot's replay id in place of the robot's; None for a
+        key outside any robot."""
+        if key not in self._target:
             try:
                 robot, suffix = keys.split_key(key)
             except keys.KeyExprError:
-                target = ("", key)
+                self._target[key] = None
             else:
-                robot = self.rename.get(robot, robot)
-                target = (robot, keys.RobotKeys(robot).key(suffix))
-            self._target[key] = target
-        return target
-
-    def _recorded_robots(self) -> set[str]:
-        """Robots the replay will publish as, from the manifest (empty if it cannot be read: then the check
-        happens message by message)."""
-        try:
-            recorded = Manifest.read(self.folder).keys
-        except (OSError, ValueError, KeyError, TypeError):
-            return set()
-        return {self._published_as(key)[0] for key in recorded if self._wants_key(key)}
-
-    def _on_edge_alive(self, sample: zenoh.Sample) -> None:
-        robot = keys.split_key(str(sample.key_expr))[0]
-        with self._live_lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._live.add(robot)
-            else:
-                self._live.discard(robot)
-
-    def _stop_for_live(self, robots: set[str]) -> bool:
-        with self._live_lock:
-            live = sorted(robots & self._live)
-        if live:
-            self.stats.stopped = (
-                f"robot {', '.join(live)} is live (its edge's liveliness token is present): its recorded state would "
-                f"mix with the live state on every console and in the twin; replay it under another id, "
-                f"e.g. --as {live[0]}={live[0]}-replay"
-            )
-            log.error("replay stopped: %s", self.stats.stopped)
-            self.stop_event.set()
-        return bool(live)
+                self._target[key] = keys.RobotKeys(self.rename.get(robot) or keys.replay_id(robot)).key(suffix)
+        return self._target[key]
 
     def run(self) -> ReplayStats:
-        watch = self.session.liveliness().declare_subscriber(keys.all_robots(keys.ALIVE_EDGE), self._on_edge_alive)
         try:
-            for reply in self.session.liveliness().get(keys.all_robots(keys.ALIVE_EDGE), timeout=LIVE_QUERY_S):
-                if reply.ok is not None:
-                    self._on_edge_alive(reply.ok)
-            if not self._stop_for_live(self._recorded_robots()):
-                start, end = self._window()
-                while not self.stop_event.is_set():
-                    self._once(start, end)
-                    self.stats.loops += 1
-                    if not self.loop:
-                        break
+            start, end = self._window()
+            while not self.stop_event.is_set():
+                self._once(start, end)
+                self.stats.loops += 1
+                if not self.loop:
+                    break
         finally:
-            watch.undeclare()
             for p in self._pubs.values():
                 p.undeclare()
         return self.stats
@@ -207,9 +161,8 @@ class Replayer:
                 self.stop_event.wait(delay)
             else:
                 self.stats.max_late_ms = max(self.stats.max_late_ms, -delay * 1000)
-            robot, key = self._published_as(rec.key)
-            if self._stop_for_live({robot}):
-                return
+            key = self._published_as(rec.key)
+            assert key is not None  # _wants() passed only robot keys
             pub = self._pubs.get(key)
             if pub is None:
                 pub = self._pubs[key] = _publisher(self.session, key)
