@@ -247,8 +247,10 @@ class PerceptionPipeline:
             except (CameraError, PerceptionError) as exc:
                 self._failed(str(exc))
             except Exception as exc:  # a bug: as visible as a camera failure, and retried the same way
-                log.exception("perception: internal error")
-                self._failed(f"internal error: {exc!r}")
+                reason = f"internal error: {exc!r}"
+                if reason != self.failure:  # the traceback once, not at every retry
+                    log.exception("perception: internal error")
+                self._failed(reason)
             finally:
                 camera.close()
             self._stop.wait(self.config.retry_interval)
