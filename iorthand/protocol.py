@@ -180,6 +180,10 @@ def _to_wire(value: Any) -> Any:
 class Struct:
     """A nested map inside a message (no version or sequence of its own)."""
 
+    # Fields added after a schema version was released: a payload without one (an older edge, a recording made
+    # before) decodes with the field's default. Every other field must be present.
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset()
+
     @classmethod
     def _fields(cls) -> list[tuple[str, Any, dict[str, Any]]]:
         cache = cls.__dict__.get("_field_cache")
@@ -212,9 +216,10 @@ class Struct:
             raise DecodeError(mtype, str(unknown)[:40], "unknown field")
         values: dict[str, Any] = {}
         for name, check in checkers:
-            if name not in data:
+            if name in data:
+                values[name] = check(mtype, name, data[name])
+            elif name not in cls.ADDED_FIELDS:
                 raise DecodeError(mtype, name, "missing field")
-            values[name] = check(mtype, name, data[name])
         return cls(**values)
 
     def validate(self) -> Self:
@@ -507,6 +512,8 @@ class Markers(Message):
     # Empty while the camera delivers. Otherwise why perception has no frames: the edge then publishes this
     # (with no markers) at every attempt to reopen the camera, so silence never reads as "nothing in view".
     failure: str = spec("", max_len=256)
+
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"failure"})
 
 
 def perception_news(before: str, now: str) -> str | None:

@@ -9,7 +9,7 @@ import msgpack
 import pytest
 
 from iorthand import keys, protocol
-from iorthand.protocol import DecodeError, ForceLevel, Message, TwistCommand
+from iorthand.protocol import DecodeError, ForceLevel, Markers, Message, TwistCommand
 
 ALL_MESSAGES = sorted(
     {cls for cls in vars(protocol).values() if isinstance(cls, type) and issubclass(cls, Message) and cls is not Message},
@@ -90,6 +90,17 @@ def test_missing_fields_are_named(missing: str) -> None:
         TwistCommand.decode(msgpack.packb(data))
     assert err.value.field == missing
     assert "missing" in str(err.value)
+
+
+def test_a_field_added_later_defaults_in_older_payloads_and_no_other_does() -> None:
+    """Markers.failure came after the first release: markers from an older edge or in an older recording still
+    decode (no failure), while a missing field of the first schema is still refused by name."""
+    older = msgpack.unpackb(Markers(frames=3).stamp(1).encode())
+    del older["failure"]
+    assert Markers.decode(msgpack.packb(older)).failure == ""
+    del older["frames"]
+    with pytest.raises(DecodeError, match=r"Markers\.frames"):
+        Markers.decode(msgpack.packb(older))
 
 
 @pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb([1, 2]), msgpack.packb("text"), b"\xdd\xff\xff\xff\xff"])
