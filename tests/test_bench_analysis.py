@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from iorthand_operator.bench import report
 from iorthand_operator.bench.transports import analyse_ping, merge_ping_rounds
 from iorthand_operator.bench.wan import blackout_trials, summarize_trials
@@ -89,3 +91,17 @@ def test_idle_penalty_reports_both_costs_and_their_ratio() -> None:
     p = report.idle_penalty(samples=5, gap_s=0.002)
     assert p["decode_hot_us"] > 0 and p["decode_after_idle_us"] > 0 and p["idle_gap_ms"] == 2.0
     assert abs(p["factor"] - p["decode_after_idle_us"] / p["decode_hot_us"]) <= 0.05 * p["factor"] + 0.1
+
+
+def test_cpu_share_from_known_cpu_times() -> None:
+    """10 s of two CPUs: 4 s busy (user, system, softirq), 15 s idle or waiting, 1 s stolen by the hypervisor."""
+    before = {"user": 100.0, "system": 50.0, "idle": 500.0, "iowait": 5.0, "softirq": 1.0, "steal": 2.0}
+    after = {"user": 102.5, "system": 51.0, "idle": 514.0, "iowait": 6.0, "softirq": 1.5, "steal": 3.0}
+    assert report.cpu_share(before, after) == {"cpu_seconds": 20.0, "busy_percent": 20.0, "steal_percent": 5.0}
+    nothing = report.cpu_share(after, after)
+    assert nothing["cpu_seconds"] == 0.0 and math.isnan(nothing["steal_percent"])
+    now = report.cpu_times()
+    assert "steal" in now and "guest" not in now  # guest time is already in user: not counted twice
+    rows = report.latency_rows({"c": {"rtt_ms": dict.fromkeys(("count", "p50", "p90", "p99", "p99.9", "max", "jitter"), 1.0),
+                                      "host_cpu": {"steal_percent": 5.0}}})
+    assert rows[0][report.LATENCY_HEADERS.index("stolen %")] == 5.0

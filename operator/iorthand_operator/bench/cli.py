@@ -38,10 +38,14 @@ def _workdir(args: argparse.Namespace) -> Path:
     return Path(tempfile.mkdtemp(prefix="iorthand-bench-", dir=args.workdir))
 
 
-def _finish(args: argparse.Namespace, name: str, data: dict[str, Any], pngs: list[Path]) -> None:
-    data = {"benchmark": name, "machine": report.machine(), "config": _config(args), **data}
+def _finish(args: argparse.Namespace, name: str, data: dict[str, Any], cpu_before: dict[str, float]) -> dict[str, float]:
+    """Write the part's JSON with the machine, the configuration and where the CPU time went while it ran."""
+    host_cpu = report.cpu_share(cpu_before, report.cpu_times())
+    data = {"benchmark": name, "machine": report.machine(), "config": _config(args), "host_cpu": host_cpu, **data}
     path = report.write_json(args.out / f"{name}.json", data)
-    print(f"\nwrote {path}" + "".join(f"\nwrote {p}" for p in pngs))
+    print(f"\nhost CPU while it ran: {host_cpu['busy_percent']} % busy, {host_cpu['steal_percent']} % stolen by "
+          f"the hypervisor\nwrote {path}")
+    return host_cpu
 
 
 def _config(args: argparse.Namespace) -> dict[str, Any]:
@@ -163,9 +167,10 @@ def _run(args: argparse.Namespace) -> int:
     try:
         if args.bench == "all":
             return _run_all(args)
+        cpu_before = report.cpu_times()
         result = PARTS[args.bench](args)
         name = args.bench.replace("-", "_")
-        _finish(args, name, result, [])
+        _finish(args, name, result, cpu_before)
         report.print_targets(report.targets({args.bench.replace("-", "_"): result}))
         return 0
     finally:
@@ -188,20 +193,24 @@ def _run_all(args: argparse.Namespace) -> int:
         ("scale", {"duration": 8.0 if q else 15.0, "counts": [1, 5, 10, 20], "topologies": ["router"] if q else ["router", "mesh"],
                    "per_process": 10, "edges": "light", "operators": "light"}),
     ]
+    host_cpu: dict[str, dict[str, float]] = {}
     for part, overrides in plan:
         print(f"\n=== {part} ===", flush=True)
         sub = argparse.Namespace(**{**base, **overrides, "bench": part})
+        cpu_before = report.cpu_times()
         try:
             results[part] = PARTS[part](sub)
-            _finish(sub, part, results[part], [])
+            host_cpu[part] = _finish(sub, part, results[part], cpu_before)
         except Exception as exc:  # one part failing must not hide the others' figures
             log.exception("%s failed", part)
             results[part] = {"error": str(exc)}
     checks = report.targets({k: v for k, v in results.items() if "error" not in v})
     host = report.machine()
-    report.write_json(args.out / "summary.json", {"machine": host, "targets": checks,
+    report.write_json(args.out / "summary.json", {"machine": host, "targets": checks, "host_cpu": host_cpu,
                                                   "errors": {k: v["error"] for k, v in results.items() if "error" in v}})
     report.print_targets(checks)
+    print("\nStolen by the hypervisor while each part ran: "
+          + ", ".join(f"{part} {c['steal_percent']} %" for part, c in host_cpu.items()))
     idle = host["idle_penalty"]
     print(f"\nThis host: Python runs {idle['factor']}× slower right after {idle['idle_gap_ms']:.0f} ms idle (decoding a "
           f"command: {idle['decode_after_idle_us']} µs against {idle['decode_hot_us']} µs back to back); every thread "

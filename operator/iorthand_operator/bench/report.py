@@ -69,6 +69,25 @@ def idle_penalty(samples: int = 40, gap_s: float = 0.016) -> dict[str, Any]:
     }
 
 
+def cpu_times() -> dict[str, float]:
+    """The machine's cumulative CPU seconds by kind (user, system, idle, iowait, steal, ...), all CPUs together.
+    Guest times are left out: the kernel already counts them in user and nice."""
+    return {k: v for k, v in psutil.cpu_times()._asdict().items() if k not in ("guest", "guest_nice")}
+
+
+def cpu_share(before: dict[str, float], after: dict[str, float]) -> dict[str, float]:
+    """Where the CPU time went between two :func:`cpu_times`: busy, and stolen (time the hypervisor gave this
+    VM's CPUs to other guests; round trips measured while it is high are the host's figures, not the software's)."""
+    delta = {k: max(0.0, after[k] - before.get(k, 0.0)) for k in after}
+    total = sum(delta.values())
+    if total <= 0:
+        return {"cpu_seconds": 0.0, "busy_percent": math.nan, "steal_percent": math.nan}
+    idle = delta.get("idle", 0.0) + delta.get("iowait", 0.0)
+    steal = delta.get("steal", 0.0)
+    return {"cpu_seconds": round(total, 2), "busy_percent": round(100 * (total - idle - steal) / total, 1),
+            "steal_percent": round(100 * steal / total, 2)}
+
+
 def machine() -> dict[str, Any]:
     """What a reader needs to judge the figures: hardware, load at the start, versions."""
     return {
@@ -130,11 +149,12 @@ def latency_rows(cases: dict[str, dict[str, Any]]) -> list[list[Any]]:
     for name, c in cases.items():
         r, s = c["rtt_ms"], c.get("sequence", {})
         rows.append([name, r["count"], r["p50"], r["p90"], r["p99"], r["p99.9"], r["max"], r["jitter"],
-                     s.get("lost", "—"), s.get("reordered", "—")])
+                     s.get("lost", "—"), s.get("reordered", "—"), c.get("host_cpu", {}).get("steal_percent", "—")])
     return rows
 
 
-LATENCY_HEADERS = ["case", "n", "p50 ms", "p90 ms", "p99 ms", "p99.9 ms", "max ms", "jitter ms", "lost", "reord"]
+LATENCY_HEADERS = ["case", "n", "p50 ms", "p90 ms", "p99 ms", "p99.9 ms", "max ms", "jitter ms", "lost", "reord",
+                   "stolen %"]
 
 
 def transport_ratios(cases: dict[str, dict[str, Any]]) -> dict[str, dict[str, float]]:

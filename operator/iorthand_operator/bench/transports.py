@@ -26,7 +26,7 @@ from typing import Any
 import yaml
 
 from iorthand.transport import free_port
-from iorthand_operator.bench import stats
+from iorthand_operator.bench import report, stats
 from iorthand_operator.bench.procs import Group, iorthand_argv, python_argv
 
 ROLES = "iorthand_operator.bench.roles"
@@ -147,9 +147,11 @@ def _ping_raw(workdir: Path, transport: str, size: int, rate: float, duration: f
 def run_ping(workdir: Path, transport: str, size: int, rate: float, duration: float, qos: str = "command",
              load: Any = None) -> dict[str, Any]:
     """One ping/echo case. ``load(group, sites)`` may start background streams through the same routers."""
+    cpu_before = report.cpu_times()
     data, topology = _ping_raw(workdir, transport, size, rate, duration, qos, load)
     result = analyse_ping(data)
-    result.update(transport=transport, size=size, rate=rate, qos=qos, topology=topology, duration_s=duration)
+    result.update(transport=transport, size=size, rate=rate, qos=qos, topology=topology, duration_s=duration,
+                  host_cpu=report.cpu_share(cpu_before, report.cpu_times()))
     return result
 
 
@@ -245,6 +247,7 @@ def run_command_path(workdir: Path, transport: str, duration: float, rate: float
     """The real command path: operator (OperatorClient) → routers → edge agent (simulated robot) → echo."""
     name = name or f"command-{transport}" + ("-load" if load else "")
     out = workdir / f"{name}.json"
+    cpu_before = report.cpu_times()
     with Group(workdir / name) as g:
         sites = zenoh_sites(g, transport)
         start_edge(g, robot, sites.edge_connect or _peer_listen(sites))
@@ -257,7 +260,8 @@ def run_command_path(workdir: Path, transport: str, duration: float, rate: float
             raise RuntimeError(f"{name}: the operator probe wrote nothing; log {probe.log_path}: {probe.output()[-1500:]}")
         data = json.loads(out.read_text())
     result = analyse_probe(data["robots"][robot])
-    result.update(transport=transport, topology=sites.describe, duration_s=duration, rate=rate)
+    result.update(transport=transport, topology=sites.describe, duration_s=duration, rate=rate,
+                  host_cpu=report.cpu_share(cpu_before, report.cpu_times()))
     return result
 
 
