@@ -162,15 +162,19 @@ def run_pings_interleaved(workdir: Path, transports: list[str], size: int, rate:
     transport alike instead of deciding a comparison."""
     raws: dict[str, list[dict[str, Any]]] = {t: [] for t in transports}
     topology: dict[str, str] = {}
+    cpu: dict[str, dict[str, float]] = {t: {} for t in transports}  # CPU seconds by kind over each one's slices
     for r in range(rounds):
         for t in transports:
+            before = report.cpu_times()
             data, topology[t] = _ping_raw(workdir, t, size, rate, duration / rounds, qos, tag=f"-round{r}")
+            for kind, seconds in report.cpu_times().items():
+                cpu[t][kind] = cpu[t].get(kind, 0.0) + seconds - before.get(kind, 0.0)
             raws[t].append(data)
     out = {}
     for t in transports:
         result = analyse_ping(merge_ping_rounds(raws[t]))
         result.update(transport=t, size=size, rate=rate, qos=qos, topology=topology[t], duration_s=duration,
-                      rounds=rounds)
+                      rounds=rounds, host_cpu=report.cpu_share({}, cpu[t]))
         out[t] = result
     return out
 
