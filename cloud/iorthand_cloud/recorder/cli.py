@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import signal
@@ -36,7 +37,7 @@ def _session(args: argparse.Namespace):
 
 
 def _print_status(st) -> None:
-    print(json.dumps({k: getattr(st, k) for k in st.__dataclass_fields__}, indent=1))
+    print(json.dumps({f.name: getattr(st, f.name) for f in dataclasses.fields(st)}, indent=1))
 
 
 def _cmd_recorder(args: argparse.Namespace) -> int:
