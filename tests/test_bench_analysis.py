@@ -97,8 +97,8 @@ def test_cpu_share_from_known_cpu_times() -> None:
     """10 s of two CPUs: 4 s busy (user, system, softirq), 15 s idle or waiting, 1 s stolen by the hypervisor."""
     before = {"user": 100.0, "system": 50.0, "idle": 500.0, "iowait": 5.0, "softirq": 1.0, "steal": 2.0}
     after = {"user": 102.5, "system": 51.0, "idle": 514.0, "iowait": 6.0, "softirq": 1.5, "steal": 3.0}
-    assert report.cpu_share(before, after) == {"cpu_seconds": 20.0, "busy_percent": 20.0, "steal_percent": 5.0}
-    nothing = report.cpu_share(after, after)
+    assert report.cpu_share(report.cpu_spent(before, after)) == {"cpu_seconds": 20.0, "busy_percent": 20.0, "steal_percent": 5.0}
+    nothing = report.cpu_share(report.cpu_spent(after, after))
     assert nothing["cpu_seconds"] == 0.0 and math.isnan(nothing["steal_percent"])
     now = report.cpu_times()
     assert "steal" in now and "guest" not in now  # guest time is already in user: not counted twice

@@ -40,7 +40,7 @@ def _workdir(args: argparse.Namespace) -> Path:
 
 def _finish(args: argparse.Namespace, name: str, data: dict[str, Any], cpu_before: dict[str, float]) -> dict[str, float]:
     """Write the part's JSON with the machine, the configuration and where the CPU time went while it ran."""
-    host_cpu = report.cpu_share(cpu_before, report.cpu_times())
+    host_cpu = report.cpu_share_since(cpu_before)
     data = {"benchmark": name, "machine": report.machine(), "config": _config(args), "host_cpu": host_cpu, **data}
     path = report.write_json(args.out / f"{name}.json", data)
     print(f"\nhost CPU while it ran: {host_cpu['busy_percent']} % busy, {host_cpu['steal_percent']} % stolen by "

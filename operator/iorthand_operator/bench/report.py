@@ -75,10 +75,14 @@ def cpu_times() -> dict[str, float]:
     return {k: v for k, v in psutil.cpu_times()._asdict().items() if k not in ("guest", "guest_nice")}
 
 
-def cpu_share(before: dict[str, float], after: dict[str, float]) -> dict[str, float]:
-    """Where the CPU time went between two :func:`cpu_times`: busy, and stolen (time the hypervisor gave this
-    VM's CPUs to other guests; round trips measured while it is high are the host's figures, not the software's)."""
-    delta = {k: max(0.0, after[k] - before.get(k, 0.0)) for k in after}
+def cpu_spent(before: dict[str, float], after: dict[str, float]) -> dict[str, float]:
+    """CPU seconds by kind between two :func:`cpu_times` (spans add up: several slices of one case)."""
+    return {k: max(0.0, after[k] - before.get(k, 0.0)) for k in after}
+
+
+def cpu_share(delta: dict[str, float]) -> dict[str, float]:
+    """Where the CPU time of a :func:`cpu_spent` went: busy, and stolen (time the hypervisor gave this VM's CPUs
+    to other guests; round trips measured while it is high are the host's figures, not the software's)."""
     total = sum(delta.values())
     if total <= 0:
         return {"cpu_seconds": 0.0, "busy_percent": math.nan, "steal_percent": math.nan}
@@ -86,6 +90,11 @@ def cpu_share(before: dict[str, float], after: dict[str, float]) -> dict[str, fl
     steal = delta.get("steal", 0.0)
     return {"cpu_seconds": round(total, 2), "busy_percent": round(100 * (total - idle - steal) / total, 1),
             "steal_percent": round(100 * steal / total, 2)}
+
+
+def cpu_share_since(before: dict[str, float]) -> dict[str, float]:
+    """:func:`cpu_share` from ``before`` (a :func:`cpu_times`) until now."""
+    return cpu_share(cpu_spent(before, cpu_times()))
 
 
 def machine() -> dict[str, Any]:

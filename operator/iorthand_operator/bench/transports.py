@@ -19,6 +19,7 @@ import json
 import shutil
 import socket
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -151,7 +152,7 @@ def run_ping(workdir: Path, transport: str, size: int, rate: float, duration: fl
     data, topology = _ping_raw(workdir, transport, size, rate, duration, qos, load)
     result = analyse_ping(data)
     result.update(transport=transport, size=size, rate=rate, qos=qos, topology=topology, duration_s=duration,
-                  host_cpu=report.cpu_share(cpu_before, report.cpu_times()))
+                  host_cpu=report.cpu_share_since(cpu_before))
     return result
 
 
@@ -162,19 +163,18 @@ def run_pings_interleaved(workdir: Path, transports: list[str], size: int, rate:
     transport alike instead of deciding a comparison."""
     raws: dict[str, list[dict[str, Any]]] = {t: [] for t in transports}
     topology: dict[str, str] = {}
-    cpu: dict[str, dict[str, float]] = {t: {} for t in transports}  # CPU seconds by kind over each one's slices
+    cpu: dict[str, Counter[str]] = {t: Counter() for t in transports}  # CPU seconds by kind over each one's slices
     for r in range(rounds):
         for t in transports:
             before = report.cpu_times()
             data, topology[t] = _ping_raw(workdir, t, size, rate, duration / rounds, qos, tag=f"-round{r}")
-            for kind, seconds in report.cpu_times().items():
-                cpu[t][kind] = cpu[t].get(kind, 0.0) + seconds - before.get(kind, 0.0)
+            cpu[t].update(report.cpu_spent(before, report.cpu_times()))
             raws[t].append(data)
     out = {}
     for t in transports:
         result = analyse_ping(merge_ping_rounds(raws[t]))
         result.update(transport=t, size=size, rate=rate, qos=qos, topology=topology[t], duration_s=duration,
-                      rounds=rounds, host_cpu=report.cpu_share({}, cpu[t]))
+                      rounds=rounds, host_cpu=report.cpu_share(cpu[t]))
         out[t] = result
     return out
 
@@ -265,7 +265,7 @@ def run_command_path(workdir: Path, transport: str, duration: float, rate: float
         data = json.loads(out.read_text())
     result = analyse_probe(data["robots"][robot])
     result.update(transport=transport, topology=sites.describe, duration_s=duration, rate=rate,
-                  host_cpu=report.cpu_share(cpu_before, report.cpu_times()))
+                  host_cpu=report.cpu_share_since(cpu_before))
     return result
 
 

@@ -285,7 +285,7 @@ class OperatorConsole(App[int]):
         t.add_row("speed", "—" if math.isnan(v.tcp_speed_mm_s) else f"{v.tcp_speed_mm_s:.1f} mm/s")
         t.add_row("command", _fmt(v.command[:3], "mm/s") if v.command else "—")
         if v.markers_note:
-            t.add_row("markers", Text(v.markers_note, style="bold red" if v.markers_note.startswith("camera") else "yellow"))
+            t.add_row("markers", Text(v.markers_note, style="bold red" if v.markers_failed else "yellow"))
         else:
             t.add_row("markers", ", ".join(map(str, v.markers)) or "none in view")
         return t

@@ -62,6 +62,7 @@ class ConsoleView:
     command: list[float] = field(default_factory=list)  # what we send, mm/s and deg/s
     markers: list[int] = field(default_factory=list)
     markers_note: str = ""  # why there are no markers, when it is not that none are in view
+    markers_failed: bool = False  # the edge reports a camera failure (the note says which)
     camera: str = ""
     torch: str = ""
     events: list[str] = field(default_factory=list)
@@ -229,7 +230,7 @@ class ConsoleController:
         if c.markers is None:
             v.markers_note = "no marker data"
         elif c.markers.failure:
-            v.markers_note = f"camera failed: {c.markers.failure}"
+            v.markers_note, v.markers_failed = f"camera failed: {c.markers.failure}", True
         elif now - c.markers_at >= 2.0:
             v.markers_note = f"no marker data for {now - c.markers_at:.0f} s"
         else:
