@@ -516,15 +516,6 @@ class Markers(Message):
     ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"failure"})
 
 
-def perception_news(before: str, now: str) -> str | None:
-    """What the operator and the twin say when Markers.failure changes from ``before`` to ``now``."""
-    if now == before:
-        return None
-    if not now:
-        return "perception back: the camera delivers frames again"
-    return f"perception has no camera frames: {now} (the edge retries)"
-
-
 @dataclass(kw_only=True)
 class VideoFrame(Message):
     """A JPEG image. ``t`` is the capture time; ``seq`` counts captured frames (gaps = dropped)."""
@@ -536,6 +527,21 @@ class VideoFrame(Message):
     height: int = spec(0, lo=1, hi=8192)
     encoding: str = spec("jpeg", max_len=16)
     data: bytes = spec(b"", max_len=MAX_VIDEO_PAYLOAD)
+    # Empty in an image. Otherwise why the source gives no frames: the edge then sends this (with no data, the
+    # configured size) at every attempt to reopen it, so a frozen picture never reads as a live one.
+    failure: str = spec("", max_len=256)
+
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"failure"})
+
+
+def source_news(what: str, before: str, now: str) -> str | None:
+    """What the operator and the twin say when the ``failure`` of a source (perception, a video stream)
+    changes from ``before`` to ``now``."""
+    if now == before:
+        return None
+    if not now:
+        return f"{what} back: frames flow again"
+    return f"{what} has no frames: {now} (the edge retries)"
 
 
 @dataclass(kw_only=True)
@@ -616,7 +622,10 @@ class ImageInfo(Struct):
     width: int = spec(0, lo=0, hi=8192)
     height: int = spec(0, lo=0, hi=8192)
     encoding: str = spec("", max_len=16)
-    data: bytes = spec(b"", max_len=MAX_VIDEO_PAYLOAD)  # empty unless images were asked for
+    data: bytes = spec(b"", max_len=MAX_VIDEO_PAYLOAD)  # empty unless images were asked for, or on failure
+    failure: str = spec("", max_len=256)  # the source's VideoFrame.failure: why there is no picture
+
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"failure"})
 
 
 @dataclass(kw_only=True)

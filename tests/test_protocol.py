@@ -9,7 +9,7 @@ import msgpack
 import pytest
 
 from iorthand import keys, protocol
-from iorthand.protocol import DecodeError, ForceLevel, Markers, Message, TwistCommand
+from iorthand.protocol import DecodeError, ForceLevel, Markers, Message, TwistCommand, VideoFrame
 
 ALL_MESSAGES = sorted(
     {cls for cls in vars(protocol).values() if isinstance(cls, type) and issubclass(cls, Message) and cls is not Message},
@@ -101,6 +101,9 @@ def test_a_field_added_later_defaults_in_older_payloads_and_no_other_does() -> N
     del older["frames"]
     with pytest.raises(DecodeError, match=r"Markers\.frames"):
         Markers.decode(msgpack.packb(older))
+    frame = msgpack.unpackb(VideoFrame(width=2, height=2, data=b"jpeg").stamp(1).encode())
+    del frame["failure"]  # VideoFrame.failure came later too
+    assert VideoFrame.decode(msgpack.packb(frame)).failure == ""
 
 
 @pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb([1, 2]), msgpack.packb("text"), b"\xdd\xff\xff\xff\xff"])

@@ -12,6 +12,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -247,3 +248,44 @@ def test_replay_drives_the_twin(recorded, tmp_path: Path) -> None:
     finally:
         s.close()
         twin.shutdown()
+
+
+def test_export_shows_why_a_video_stopped_instead_of_its_last_picture(monkeypatch, tmp_path: Path) -> None:
+    """Recorded failure notices of a video stream become one WARN line and a cleared picture in the .rrd, and
+    the return of pictures an INFO line; an image is never logged from a notice (it has no data)."""
+    from types import SimpleNamespace
+
+    import rerun as rr
+
+    from iorthand.protocol import VideoFrame
+    from iorthand_cloud.recorder import export
+    from iorthand_cloud.recorder.reader import Record
+
+    key = keys.RobotKeys("sim1").key(keys.VIDEO_CAMERA)
+    jpeg = b"\xff\xd8\xff\xd9"
+    frames = [(jpeg, ""), (b"", "no frame from video device '0' for 2 s"), (b"", "no frame from video device '0' for 2 s"),
+              (jpeg, "")]
+    records = [Record(key, (i + 1) * 10**9, (i + 1) * 10**9, i + 1,
+                      VideoFrame(width=2, height=2, data=data, failure=failure).stamp(i + 1, (i + 1) * 10**9).encode(),
+                      False, "video") for i, (data, failure) in enumerate(frames)]
+    logged: list[tuple[str, Any]] = []
+
+    class Spy:
+        def __init__(self, *_: Any, **__: Any) -> None: ...
+        def save(self, _: str) -> None: ...
+        def set_time(self, *_: Any, **__: Any) -> None: ...
+        def flush(self) -> None: ...
+        def disconnect(self) -> None: ...
+        def log(self, path: str, item: Any) -> None:
+            logged.append((path, item))
+
+    monkeypatch.setattr(export, "iter_records", lambda *_: iter(records))
+    monkeypatch.setattr(export, "read_manifest", lambda _: SimpleNamespace(session_id="s"))
+    monkeypatch.setattr(export.rr, "RecordingStream", Spy)
+    export.export_rrd(tmp_path, tmp_path / "s.rrd", video_fps=0.0)
+    kinds = [type(item).__name__ for _, item in logged]
+    assert kinds == ["EncodedImage", "TextLog", "Clear", "Clear", "TextLog", "EncodedImage"], kinds
+    texts = [(str(item.level.as_arrow_array()[0]), str(item.text.as_arrow_array()[0])) for _, item in logged
+             if isinstance(item, rr.TextLog)]
+    assert texts == [("WARN", "camera video has no frames: no frame from video device '0' for 2 s (the edge retries)"),
+                     ("INFO", "camera video back: frames flow again")]

@@ -115,17 +115,18 @@ def test_every_handler_logs_without_error_to_a_memory_recording():
         f.offer("a", keys.MARKERS, Markers(markers=[]).stamp(2), now + 1)  # marker 3 lost: cleared
         f.offer("a", keys.VIDEO_CAMERA, VideoFrame(width=2, height=2, data=b"\xff\xd8\xff\xd9").stamp(1), now)
         f.offer("b", keys.VIDEO_ULTRASOUND, VideoFrame(width=2, height=2, data=b"\xff\xd8\xff\xd9").stamp(1), now)
+        f.offer("b", keys.VIDEO_ULTRASOUND, VideoFrame(width=2, height=2, failure="no frame").stamp(2), now + 1)
         f.event(Event("a", time.time_ns(), "WARN", "stopped: test"))
         f.online("a", False)
         f.preview("a", {"name": "home", "ok": True, "duration": 2.0, "path": [[0.3, 0, 0.2], [0.32, 0.05, 0.25]],
                         "goal": [0.32, 0.05, 0.25, math.pi, 0, 0]})
         f.preview("a", {"name": "far", "ok": False, "path": [], "goal": []})
         deadline = time.monotonic() + 5
-        while (viz.handled < 13 or len(viz.queue)) and time.monotonic() < deadline:
+        while (viz.handled < 14 or len(viz.queue)) and time.monotonic() < deadline:
             time.sleep(0.02)
     finally:
         viz.stop()
-    assert viz.errors == 0 and viz.handled >= 13
+    assert viz.errors == 0 and viz.handled >= 14
     assert drawn and drawn[0][0] == "a"
     assert len(mem.drain_as_bytes()) > 1000
 
@@ -157,6 +158,28 @@ def test_store_says_when_perception_loses_and_regains_its_camera():
         store.ingest(key, Markers(failure=failure).stamp(i + 1).encode(), 0)
     news = [(e.level, e.text) for e in store.robots["r1"].events if "perception" in e.text]
     assert news == [
-        ("WARN", "perception has no camera frames: camera 0 stopped delivering frames (the edge retries)"),
-        ("INFO", "perception back: the camera delivers frames again"),
+        ("WARN", "perception has no frames: camera 0 stopped delivering frames (the edge retries)"),
+        ("INFO", "perception back: frames flow again"),
     ]
+
+
+def test_store_says_when_a_video_source_fails_and_shows_no_picture_meanwhile():
+    """A VideoFrame with ``failure`` is news when the failure starts or changes and when pictures return; the
+    snapshot carries the reason and no image, so a client never shows the last picture as if it were live."""
+    store = TwinStore()
+    key = keys.RobotKeys("r1").key(keys.VIDEO_CAMERA)
+    jpeg = b"\xff\xd8\xff\xd9"
+    frames = [jpeg, b"", b"", jpeg]
+    reasons = ["", "cannot open video device '/dev/video0'", "cannot open video device '/dev/video0'", ""]
+    for i, (data, failure) in enumerate(zip(frames, reasons, strict=True)):
+        store.ingest(key, VideoFrame(source="camera", width=640, height=480, data=data, failure=failure).stamp(i + 1).encode(), 0)
+        if i == 1:
+            (image,) = store.snapshot("r1", include_images=True).images
+            assert (image.failure, image.data) == (reasons[1], b"")
+    news = [(e.level, e.text) for e in store.robots["r1"].events if "video" in e.text]
+    assert news == [
+        ("WARN", "camera video has no frames: cannot open video device '/dev/video0' (the edge retries)"),
+        ("INFO", "camera video back: frames flow again"),
+    ]
+    (image,) = store.snapshot("r1", include_images=True).images
+    assert (image.failure, image.data) == ("", jpeg)

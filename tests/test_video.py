@@ -3,6 +3,7 @@ sender drops frames instead of queueing, and both streams flow through a router 
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -12,7 +13,16 @@ import pytest
 from iorthand import keys
 from iorthand.protocol import VideoFrame
 from iorthand.transport import VIDEO
-from iorthand_edge.video import LatestSlot, StreamConfig, VideoStream, decode_frame, make_source, render_ultrasound
+from iorthand_edge.video import (
+    FrameSource,
+    LatestSlot,
+    StreamConfig,
+    VideoError,
+    VideoStream,
+    decode_frame,
+    make_source,
+    render_ultrasound,
+)
 from iorthand_edge.video.stream import Captured, encode_frame
 from tests.conftest import wait_until
 
@@ -32,11 +42,14 @@ def test_ultrasound_image_changes_with_contact() -> None:
 
 
 def test_frames_round_trip_with_capture_time_and_sequence() -> None:
-    image = make_source(StreamConfig(width=160, height=120), lambda: 0.0).grab()
-    frame = encode_frame("camera", Captured(7, 1_700_000_000_123_456_789, image), quality=70)
+    config = StreamConfig(width=160, height=120, quality=70)
+    image = make_source(config, lambda: 0.0).grab()
+    frame = encode_frame("camera", Captured(7, 1_700_000_000_123_456_789, image), config)
     back = VideoFrame.decode(frame.encode())
     assert (back.seq, back.t, back.width, back.height, back.source) == (7, 1_700_000_000_123_456_789, 160, 120, "camera")
-    assert decode_frame(back).shape == (120, 160, 3)
+    assert decode_frame(back).shape == (120, 160, 3) and back.failure == ""
+    notice = VideoFrame.decode(encode_frame("camera", Captured(8, 1_700_000_000_2, None, failure="unplugged"), config).encode())
+    assert (notice.seq, notice.width, notice.height, notice.data, notice.failure) == (8, 160, 120, b"", "unplugged")
 
 
 def test_slot_keeps_only_the_newest_frame() -> None:
@@ -79,6 +92,85 @@ def test_slow_network_drops_frames_instead_of_queueing() -> None:
     assert max(ages) < 0.1 + 0.1 + 1 / 30 + 0.3  # 0.3 s of slack for a loaded machine; a queue would grow without bound
 
 
+class Recorder:
+    """A publisher that keeps what it was given (decoded)."""
+
+    def __init__(self) -> None:
+        self.frames: list[VideoFrame] = []
+
+    def put(self, payload: bytes) -> None:
+        self.frames.append(VideoFrame.decode(payload))
+
+
+class FlakySource(FrameSource):
+    """A camera that cannot be opened ``fail_opens`` times, then gives ``frames_per_open`` frames per opening
+    and nothing after them (a stalled capture device). Stands in for a USB camera, which this machine has not."""
+
+    description = "the flaky camera"
+
+    def __init__(self, fail_opens: int, frames_per_open: int) -> None:
+        self.fail_opens, self.frames_per_open = fail_opens, frames_per_open
+        self.opens = self.closes = 0
+        self._left = 0
+
+    def open(self) -> None:
+        self.opens += 1
+        if self.opens <= self.fail_opens:
+            raise VideoError(f"cannot open the flaky camera (attempt {self.opens})")
+        self._left = self.frames_per_open
+
+    def grab(self) -> np.ndarray | None:
+        if self._left == 0:
+            return None
+        self._left -= 1
+        return np.full((24, 32, 3), 100, np.uint8)
+
+    def close(self) -> None:
+        self.closes += 1
+
+
+def _run_stream(source: FrameSource, config: StreamConfig, until) -> tuple[VideoStream, Recorder]:
+    stream = VideoStream("camera", keys.VIDEO_CAMERA, config, source)
+    pub = Recorder()
+    stop = threading.Event()
+    stream.start_with(pub, stop)
+    try:
+        wait_until(lambda: until(pub.frames), timeout=10.0, message="video messages")
+    finally:
+        stop.set()
+        stream.join()
+    return stream, pub
+
+
+def test_a_camera_that_cannot_be_opened_is_retried_and_every_attempt_says_why() -> None:
+    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.05)
+    source = FlakySource(fail_opens=2, frames_per_open=1_000_000)
+    stream, pub = _run_stream(source, config, lambda frames: sum(f.failure == "" for f in frames) >= 3)
+    failures = [f for f in pub.frames if f.failure]
+    assert [f.failure for f in failures] == [f"cannot open the flaky camera (attempt {n})" for n in (1, 2)]
+    assert all((f.data, f.width, f.height, f.source) == (b"", 32, 24, "camera") for f in failures)
+    assert pub.frames[:2] == failures  # the notices came first, then pictures
+    assert all(decode_frame(f).shape == (24, 32, 3) for f in pub.frames[2:])
+    seqs = [f.seq for f in pub.frames]
+    assert seqs == sorted(set(seqs))  # one sequence for notices and pictures: the recorder's loss count holds
+    assert (stream.failures, stream.error) == (2, "")
+
+
+def test_a_camera_that_stops_giving_frames_is_reopened() -> None:
+    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.05, stall_timeout=0.2)
+    source = FlakySource(fail_opens=0, frames_per_open=5)
+    _, pub = _run_stream(source, config, lambda frames: sum(bool(f.failure) for f in frames) >= 2
+                         and frames[-1].failure == "")
+    kinds = "".join("x" if f.failure else "." for f in pub.frames)
+    # 5 frames, a stall, reopened: 5 frames again (fewer only if the sender had to drop one on a loaded machine)
+    assert re.match(r"\.{1,5}x\.{1,5}x", kinds), kinds
+    first = kinds.index("x")
+    assert pub.frames[first].failure == "no frame from the flaky camera for 0.2 s"
+    assert source.opens >= 3 and source.closes >= 2
+    # The stall is noticed after stall_timeout, not sooner: the notice is stamped ≥ 0.2 s after the last frame.
+    assert pub.frames[first].t - pub.frames[first - 1].t >= 0.2e9
+
+
 def test_video_qos_is_low_priority_and_dropping() -> None:
     import zenoh
 
@@ -108,16 +200,26 @@ def test_streams_through_the_router_on_their_own_session(edge_factory, session_f
             assert decode_frame(f).shape[:2] == (h, w)
 
 
-def test_missing_camera_does_not_take_the_agent_down(edge_factory, operator_factory, caplog) -> None:
-    agent = edge_factory(video={"camera": {"source": "opencv", "device": "/dev/does-not-exist"}})
+def test_missing_camera_does_not_take_the_agent_down_and_its_failure_reaches_the_subscribers(
+    edge_factory, operator_factory, session_factory
+) -> None:
+    """Real OpenCV on a device path that does not exist, through a real router: every attempt to reopen it
+    reaches a video subscriber with the reason, and the robot's control plane is unaffected."""
+    notices: list[VideoFrame] = []
+    s = session_factory()
+    s.declare_subscriber(keys.RobotKeys("sim1").key(keys.VIDEO_CAMERA),
+                         lambda x: notices.append(VideoFrame.decode(x.payload.to_bytes())))
+    agent = edge_factory(video={"camera": {"source": "opencv", "device": "/dev/does-not-exist", "retry_interval": 0.2}})
     stream = agent.video[0]
-    wait_until(lambda: stream.error != "", message="camera error")
+    wait_until(lambda: len(notices) >= 2, timeout=10.0, message="two failure notices")
     assert "cannot open video device '/dev/does-not-exist'" in stream.error
+    assert all(n.failure == stream.error and n.data == b"" for n in notices)
     op = operator_factory()
     assert op.wait_for_state() is not None  # the control plane is alive
 
 
-@pytest.mark.parametrize("bad", [{"camera": {"fps": 0}}, {"ultrasound": {"source": "pattern"}}, {"camera": {"quality": 101}}])
+@pytest.mark.parametrize("bad", [{"camera": {"fps": 0}}, {"ultrasound": {"source": "pattern"}}, {"camera": {"quality": 101}},
+                                 {"camera": {"fps": 5, "stall_timeout": 0.3}}])
 def test_bad_video_config_fails_with_the_key(bad: dict) -> None:
     from iorthand.config import ConfigError
     from tests.conftest import edge_config

@@ -50,7 +50,7 @@ from iorthand.protocol import (
     TorchCommand,
     TorchState,
     TwistCommand,
-    perception_news,
+    source_news,
     superseded_news,
 )
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
@@ -477,7 +477,7 @@ class OperatorClient:
     def _on_markers(self, sample: zenoh.Sample) -> None:
         msg = self._decode(Markers, sample)
         if msg is not None:
-            news = perception_news(self.markers.failure if self.markers is not None else "", msg.failure)
+            news = source_news("perception", self.markers.failure if self.markers is not None else "", msg.failure)
             if news:
                 self.log_event("warning" if msg.failure else "info", "perception", news)
             self.markers, self.markers_at = msg, time.monotonic()

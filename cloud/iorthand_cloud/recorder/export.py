@@ -24,6 +24,7 @@ from iorthand.protocol import (
     SafetyStatus,
     VideoFrame,
     message_type_for,
+    source_news,
 )
 from iorthand_cloud.recorder.reader import iter_records, read_manifest, session_dir
 
@@ -46,6 +47,7 @@ def export_rrd(session: str | Path, out: str | Path | None = None, start: float 
     paths: dict[str, list[list[float]]] = {}
     last_frame: dict[str, int] = {}
     last_status: dict[str, str] = {}
+    video_failure: dict[str, str] = {}  # per key: the failure of its latest frame ("" = pictures)
     logged = 0
     for r in iter_records(folder, lo, hi):
         if r.malformed:
@@ -99,7 +101,13 @@ def export_rrd(session: str | Path, out: str | Path | None = None, start: float 
                                                      if msg.status not in ("ok", "idle") else "INFO"))
         elif isinstance(msg, VideoFrame):
             period = int(1e9 / video_fps) if video_fps > 0 else 0
-            if msg.t - last_frame.get(r.key, -period) >= period and msg.encoding == "jpeg":
+            news = source_news(f"{msg.source} video", video_failure.get(r.key, ""), msg.failure)
+            video_failure[r.key] = msg.failure
+            if news:
+                rec.log(f"{base}/events", rr.TextLog(news, level="WARN" if msg.failure else "INFO"))
+            if msg.failure:  # no picture rather than a frozen one
+                rec.log(f"{base}/{suffix}", rr.Clear(recursive=False))
+            elif msg.t - last_frame.get(r.key, -period) >= period and msg.encoding == "jpeg":
                 last_frame[r.key] = msg.t
                 rec.log(f"{base}/{suffix}", rr.EncodedImage(contents=msg.data, media_type="image/jpeg"))
             else:

@@ -30,7 +30,7 @@ from iorthand.protocol import (
     TwinSnapshot,
     VideoFrame,
     message_type_for,
-    perception_news,
+    source_news,
     superseded_news,
 )
 
@@ -240,8 +240,9 @@ class TwinStore:
             p = prev if isinstance(prev, RobotState) else None
             if msg.fault and (p is None or p.fault != msg.fault):
                 out.append(Event(r, t, "ERROR", f"robot fault: {msg.fault}"))
-        elif isinstance(msg, Markers):
-            news = perception_news(prev.failure if isinstance(prev, Markers) else "", msg.failure)
+        elif isinstance(msg, Markers | VideoFrame):
+            what = "perception" if isinstance(msg, Markers) else f"{msg.source} video"
+            news = source_news(what, prev.failure if isinstance(prev, type(msg)) else "", msg.failure)
             if news:
                 out.append(Event(r, t, "WARN" if msg.failure else "INFO", news))
         return out
@@ -298,6 +299,7 @@ class TwinStore:
                     snap.images.append(ImageInfo(
                         source=suffix.rsplit("/", 1)[-1], seq=f.seq, t=f.t, age=now_mono - vs.recv_mono,
                         width=f.width, height=f.height, encoding=f.encoding, data=f.data if include_images else b"",
+                        failure=f.failure,
                     ))
             snap.events = [f"{e.level} {e.text}"[:200] for e in list(twin.events)[-16:]]
         return snap.stamp(0, now_ns)

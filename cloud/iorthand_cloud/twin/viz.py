@@ -422,8 +422,11 @@ class Visualizer:
 
     def _on_image(self, robot: str, drawn: _Drawn, data: tuple[str, VideoFrame]) -> None:
         suffix, frame = data
-        media = "image/jpeg" if frame.encoding.lower() in ("jpeg", "jpg") else "image/png"
         path = f"robots/{robot}/tcp/camera/image" if suffix == keys.VIDEO_CAMERA else f"robots/{robot}/ultrasound"
+        if frame.failure:  # no picture rather than a frozen one that reads as live; the event log says why
+            self.rec.log(path, rr.Clear(recursive=False))
+            return
+        media = "image/jpeg" if frame.encoding.lower() in ("jpeg", "jpg") else "image/png"
         self.rec.log(path, rr.EncodedImage(contents=frame.data, media_type=media))
 
     def _on_event(self, robot: str, drawn: _Drawn, ev: Event) -> None:

@@ -19,6 +19,10 @@ class StreamConfig:
     height: int = setting(480, lo=16, hi=4096)
     fps: float = setting(30.0, lo=0.5, hi=120.0)
     quality: int = setting(80, lo=10, hi=100, help="JPEG quality")
+    retry_interval: float = setting(2.0, lo=0.1, hi=60.0, help="s between attempts to reopen a source that failed "
+                                    "(each one sends why to the twin and the recorder)")
+    stall_timeout: float = setting(2.0, lo=0.1, hi=60.0, help="s without a frame after which an open source counts "
+                                   "as failed and is reopened (at least two frame periods)")
 
 
 @dataclass
@@ -30,3 +34,7 @@ class VideoConfig:
     def check(self) -> None:
         if self.ultrasound is not None and self.ultrasound.source == "pattern":
             raise ValueError("ultrasound.source: use ultrasound_sim or opencv (a capture device)")
+        for name, stream in (("camera", self.camera), ("ultrasound", self.ultrasound)):
+            if stream is not None and stream.stall_timeout < 2.0 / stream.fps:
+                raise ValueError(f"{name}.stall_timeout: {stream.stall_timeout:g} s is shorter than two frame periods "
+                                 f"at {stream.fps:g} fps")

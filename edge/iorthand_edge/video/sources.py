@@ -26,6 +26,8 @@ class VideoError(RuntimeError):
 
 
 class FrameSource(ABC):
+    description = "a frame source"  # what the operator reads when it fails: "no frame from <description> …"
+
     @abstractmethod
     def open(self) -> None: ...
 
@@ -39,6 +41,8 @@ class FrameSource(ABC):
 
 class PatternSource(FrameSource):
     """Colour bars drifting over a fixed noise texture, with a frame counter: JPEG sizes like a real scene."""
+
+    description = "the test pattern"
 
     def __init__(self, width: int, height: int, seed: int = 1) -> None:
         self.size = (width, height)
@@ -64,6 +68,7 @@ class PatternSource(FrameSource):
 class OpenCVSource(FrameSource):
     def __init__(self, config: StreamConfig) -> None:
         self.config = config
+        self.description = f"video device {config.device!r}"
         self._cap: cv2.VideoCapture | None = None
 
     def open(self) -> None:
@@ -124,6 +129,8 @@ def render_ultrasound(width: int, height: int, force: float, rng: np.random.Gene
 
 
 class UltrasoundSimSource(FrameSource):
+    description = "the simulated ultrasound probe"
+
     def __init__(self, config: StreamConfig, contact_force: Callable[[], float], seed: int | None = None) -> None:
         self.config = config
         self.contact_force = contact_force
@@ -139,6 +146,8 @@ class UltrasoundSimSource(FrameSource):
 class SharedFrameSource(FrameSource):
     """The newest image another component already captured (the perception camera): one camera device feeds
     both the marker detection and the video stream. Returns None until a new image arrives."""
+
+    description = "the perception camera"
 
     def __init__(self, latest: Callable[[], Image | None]) -> None:
         self._latest = latest

@@ -5,6 +5,11 @@ time and a sequence number; it hands them over through a one-frame slot. The sen
 encodes it and ``put()``s it. When encoding or the network is slower than the camera, the frame waiting in
 the slot is replaced — dropped before it costs any encoding — so nothing queues and latency stays one
 frame; the gaps in ``seq`` tell the receiver how many were dropped.
+
+A source that cannot be opened, fails, or gives no frame for ``stall_timeout`` s is closed and reopened every
+``retry_interval`` s (a USB camera that enumerates after the edge starts, or is unplugged and plugged back).
+Every attempt sends a ``VideoFrame`` with no image and ``failure`` set, through the same slot so that it
+never overtakes a frame captured before it: the twin shows why the picture stopped instead of a frozen one.
 """
 
 from __future__ import annotations
@@ -37,7 +42,8 @@ VIDEO_NICE = 10  # scheduling niceness of the video threads (0 = as the control 
 class Captured:
     seq: int
     t_ns: int  # capture time, wall clock
-    image: Image
+    image: Image | None  # None: no frame, ``failure`` says why
+    failure: str = ""
 
 
 class LatestSlot:
@@ -70,9 +76,13 @@ def encode_jpeg(image: Image, quality: int) -> bytes:
     return buf.tobytes()
 
 
-def encode_frame(source: str, item: Captured, quality: int) -> VideoFrame:
-    h, w = item.image.shape[:2]
-    return VideoFrame(source=source, width=w, height=h, data=encode_jpeg(item.image, quality)).stamp(item.seq, item.t_ns)
+def encode_frame(source: str, item: Captured, config: StreamConfig) -> VideoFrame:
+    if item.image is None:
+        frame = VideoFrame(source=source, width=config.width, height=config.height, failure=item.failure)
+    else:
+        h, w = item.image.shape[:2]
+        frame = VideoFrame(source=source, width=w, height=h, data=encode_jpeg(item.image, config.quality))
+    return frame.stamp(item.seq, item.t_ns)
 
 
 def decode_frame(frame: VideoFrame) -> Image:
@@ -90,7 +100,9 @@ class VideoStream:
         self.config = config
         self.source = source
         self.slot = LatestSlot()
-        self.captured = 0
+        self.captured = 0  # frames
+        self.failures = 0  # failed attempts to open or read the source
+        self._seq = 0  # every item handed to the sender: frames and failure notices
         self.sent = 0
         self.bytes_sent = 0
         self.encode_s = 0.0
@@ -114,7 +126,7 @@ class VideoStream:
             self._workers.append(w)
 
     def _guarded(self, fn: Callable[[threading.Event], None]) -> Callable[[threading.Event], None]:
-        """A failing source or encoder ends this stream only (logged, kept in ``error``), never the others."""
+        """A bug in a stream's code ends this stream only (logged, kept in ``error``), never the others."""
 
         def run(stop: threading.Event) -> None:
             try:
@@ -135,21 +147,33 @@ class VideoStream:
         self.source.close()
 
     def _capture_loop(self, stop: threading.Event) -> None:
-        try:
-            self.source.open()
-        except VideoError as exc:
-            # A missing camera must not take the robot down: report and stop this stream only.
-            self.error = str(exc)
-            log.error("video %s unavailable: %s", self.name, exc)
-            return
+        while not stop.is_set():
+            try:
+                self.source.open()
+                self._capture(stop)
+            except (VideoError, cv2.error) as exc:
+                # A missing or failed camera must not take the robot down: report, and try again.
+                self._failed(str(exc))
+            finally:
+                self.source.close()
+            stop.wait(self.config.retry_interval)
+
+    def _capture(self, stop: threading.Event) -> None:
+        """Grab frames on schedule until stopped; raise VideoError when the source stalls."""
         period = 1.0 / self.config.fps
-        next_tick = time.monotonic()
+        next_tick = last_frame = time.monotonic()
         while not stop.is_set():
             image = self.source.grab()
             t_ns = time.time_ns()
             if image is not None:
+                last_frame = time.monotonic()
                 self.captured += 1
-                self.slot.put(Captured(self.captured, t_ns, image))
+                self.slot.put(Captured(self._next_seq(), t_ns, image))
+                if self.error:
+                    log.info("video %s: %s delivers frames again", self.name, self.source.description)
+                    self.error = ""
+            elif time.monotonic() - last_frame > self.config.stall_timeout:
+                raise VideoError(f"no frame from {self.source.description} for {self.config.stall_timeout:g} s")
             next_tick += period
             delay = next_tick - time.monotonic()
             if delay > 0:
@@ -157,13 +181,24 @@ class VideoStream:
             else:
                 next_tick = time.monotonic()  # a slow source: never burst to catch up
 
+    def _failed(self, reason: str) -> None:
+        self.failures += 1
+        if reason != self.error:  # once per change, not at every retry
+            log.error("video %s: %s (retrying every %g s)", self.name, reason, self.config.retry_interval)
+        self.error = reason
+        self.slot.put(Captured(self._next_seq(), time.time_ns(), None, failure=reason))
+
+    def _next_seq(self) -> int:
+        self._seq += 1
+        return self._seq
+
     def _send_loop(self, stop: threading.Event) -> None:
         while not stop.is_set():
             item = self.slot.take(timeout=0.2)
             if item is None or self._pub is None:
                 continue
             t0 = time.perf_counter()
-            payload = encode_frame(self.name, item, self.config.quality).encode()
+            payload = encode_frame(self.name, item, self.config).encode()
             self.encode_s += time.perf_counter() - t0
             self._pub.put(payload)
             self.sent += 1
