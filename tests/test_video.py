@@ -143,27 +143,31 @@ def _run_stream(source: FrameSource, config: StreamConfig, until) -> tuple[Video
 
 
 def test_a_camera_that_cannot_be_opened_is_retried_and_every_attempt_says_why() -> None:
-    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.05)
+    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.3)
     source = FlakySource(fail_opens=2, frames_per_open=1_000_000)
     stream, pub = _run_stream(source, config, lambda frames: sum(f.failure == "" for f in frames) >= 3)
     failures = [f for f in pub.frames if f.failure]
-    assert [f.failure for f in failures] == [f"cannot open the flaky camera (attempt {n})" for n in (1, 2)]
+    texts = [f.failure for f in failures]
+    # Both attempts, in order. (The sender keeps only the newest item: a notice not sent within retry_interval
+    # is replaced by the next one, as the stream's design intends, so a starved machine may show one.)
+    expected = [f"cannot open the flaky camera (attempt {n})" for n in (1, 2)]
+    assert texts and texts == [e for e in expected if e in texts], texts
     assert all((f.data, f.width, f.height, f.source) == (b"", 32, 24, "camera") for f in failures)
-    assert pub.frames[:2] == failures  # the notices came first, then pictures
-    assert all(decode_frame(f).shape == (24, 32, 3) for f in pub.frames[2:])
+    assert pub.frames[: len(failures)] == failures  # the notices came first, then pictures
+    assert all(decode_frame(f).shape == (24, 32, 3) for f in pub.frames[len(failures):])
     seqs = [f.seq for f in pub.frames]
     assert seqs == sorted(set(seqs))  # one sequence for notices and pictures: the recorder's loss count holds
     assert (stream.failures, stream.error) == (2, "")
 
 
 def test_a_camera_that_stops_giving_frames_is_reopened() -> None:
-    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.05, stall_timeout=0.2)
+    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.3, stall_timeout=0.2)
     source = FlakySource(fail_opens=0, frames_per_open=5)
     _, pub = _run_stream(source, config, lambda frames: sum(bool(f.failure) for f in frames) >= 2
                          and frames[-1].failure == "")
     kinds = "".join("x" if f.failure else "." for f in pub.frames)
-    # 5 frames, a stall, reopened: 5 frames again (fewer only if the sender had to drop one on a loaded machine)
-    assert re.match(r"\.{1,5}x\.{1,5}x", kinds), kinds
+    # Frames, a stall, reopened: frames again. At most 5 in a row (fewer if the sender had to drop one).
+    assert re.fullmatch(r"(\.{1,5}x)+\.{1,5}x?", kinds), kinds  # (x?: a stall just as the test stopped)
     first = kinds.index("x")
     assert pub.frames[first].failure == "no frame from the flaky camera for 0.2 s"
     assert source.opens >= 3 and source.closes >= 2
