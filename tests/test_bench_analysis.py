@@ -5,8 +5,9 @@ from __future__ import annotations
 import math
 
 from iorthand_operator.bench import report
+from iorthand_operator.bench.linkemu import LinkProfile
 from iorthand_operator.bench.transports import analyse_ping, merge_ping_rounds
-from iorthand_operator.bench.wan import blackout_trials, summarize_trials
+from iorthand_operator.bench.wan import PROFILES, blackout_trials, netem_args, summarize_trials
 
 MS = 1_000_000
 
@@ -52,6 +53,16 @@ def test_blackout_trial_robot_not_moving_is_not_a_pass() -> None:
     states = [[int(t * MS), 1, 0, False, 0] for t in range(0, 3000, 8)]
     (trial,) = blackout_trials(states, [], [(1000 * MS, 1995 * MS, 2000 * MS)])
     assert not trial["ok"]
+
+
+def test_netem_arguments_of_known_links() -> None:
+    # 4G: the relay's uniform 40 ± 15 ms, its 1 % stalls as 1 % packet loss, paced at the profile's rate.
+    assert netem_args(PROFILES["4g"].link, PROFILES["4g"].rate) == [
+        "netem", "limit", "10000", "delay", "40ms", "15ms", "loss", "random", "1%", "rate", "20mbit"]
+    # No jitter, no loss, no rate: still paced (at a rate that limits nothing), so packets keep their order.
+    assert netem_args(LinkProfile(0.5)) == ["netem", "limit", "10000", "delay", "0.5ms", "rate", "10gbit"]
+    assert netem_args(LinkProfile(150.0, 80.0, 0.025, 300.0), "2mbit")[5:] == [
+        "80ms", "loss", "random", "2.5%", "rate", "2mbit"]
 
 
 def test_analyse_ping_records() -> None:

@@ -13,13 +13,15 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 from iorthand.cpu_latency import CpuLatencyHold
 from iorthand_operator.bench import plots, report
-from iorthand_operator.bench.procs import run_cleanups, set_nice
+from iorthand_operator.bench.procs import Unavailable, run_cleanups, set_nice
+from iorthand_operator.bench.wan import EMULATORS
 
 log = logging.getLogger("iorthand.bench")
 
@@ -109,9 +111,9 @@ def run_wan_part(args: argparse.Namespace) -> dict[str, Any]:
     from iorthand_operator.bench.wan import run_wan
 
     res = run_wan(_workdir(args), args.profiles, args.duration, args.trials, args.blackout_s, args.links, args.loopback,
-                  tuple(args.long_blackout_s))
+                  tuple(args.long_blackout_s), args.emulator)
     profs = res["profiles"]
-    print(f"\nWAN profiles ({res['isolation']}: {res['why']}; profile on the {res['links']} link(s))")
+    print(f"\nWAN profiles ({res['isolation']}, {res['emulator']}: {res['why']}; profile on the {res['links']} link(s))")
     rows = report.latency_rows(profs)
     for row, p in zip(rows, profs.values(), strict=True):
         row.append(p["deadman_stops_while_driving"])
@@ -173,6 +175,9 @@ def _run(args: argparse.Namespace) -> int:
         _finish(args, name, result, cpu_before)
         report.print_targets(report.targets({args.bench.replace("-", "_"): result}))
         return 0
+    except Unavailable as exc:
+        print(f"iorthand bench {args.bench}: {exc}", file=sys.stderr)
+        return 2
     finally:
         run_cleanups()
         if hold:
@@ -188,7 +193,7 @@ def _run_all(args: argparse.Namespace) -> int:
                         "rounds": 2 if q else 3}),
         ("load", {"duration": 8.0 if q else 60.0, "fps": 30.0}),
         ("wan", {"duration": 8.0 if q else 15.0, "profiles": ["lan", "5g", "4g", "poor", "blackout"],
-                 "trials": 5 if q else 20, "blackout_s": 1.5, "links": "edge", "loopback": False,
+                 "trials": 5 if q else 20, "blackout_s": 1.5, "links": "edge", "loopback": False, "emulator": "auto",
                  "long_blackout_s": [] if q else [5.0]}),
         ("scale", {"duration": 8.0 if q else 15.0, "counts": [1, 5, 10, 20], "topologies": ["router"] if q else ["router", "mesh"],
                    "per_process": 10, "edges": "light", "operators": "light"}),
@@ -285,6 +290,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--links", default="edge", choices=["edge", "both"],
                    help="the profile applies to the edge's link only (operator on LAN) or to both links")
     w.add_argument("--loopback", action="store_true", help="do not use namespaces (relays on 127.0.0.1)")
+    w.add_argument("--emulator", default="auto", choices=EMULATORS,
+                   help="what adds delay, jitter and loss: the kernel's netem, the project's TCP relay, or auto "
+                        "(netem where the kernel has it)")
     w.add_argument("--long-blackout-s", type=float, nargs="*", default=[5.0],
                    help="extra blackouts longer than the Zenoh lease (sessions drop and must recover)")
 

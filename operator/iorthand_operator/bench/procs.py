@@ -30,6 +30,11 @@ _handlers_installed = False
 NICE = 0
 
 
+class Unavailable(RuntimeError):
+    """What a benchmark needs is not on this machine; the message says what is missing and what to do. The
+    command line prints it without a traceback."""
+
+
 def set_nice(value: int) -> None:
     global NICE
     NICE = value

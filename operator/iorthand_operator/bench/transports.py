@@ -28,7 +28,7 @@ import yaml
 
 from iorthand.transport import free_port
 from iorthand_operator.bench import report, stats
-from iorthand_operator.bench.procs import Group, iorthand_argv, python_argv
+from iorthand_operator.bench.procs import Group, Unavailable, iorthand_argv, python_argv
 
 ROLES = "iorthand_operator.bench.roles"
 ZENOH_TRANSPORTS = ("zenoh-peer", "zenoh-router", "zenoh-chain2", "zenoh-chain3")
@@ -93,7 +93,7 @@ def mosquitto_binary() -> str | None:
 def start_mosquitto(group: Group) -> tuple[int, Any]:
     binary = mosquitto_binary()
     if binary is None:
-        raise RuntimeError("mosquitto is not installed: apt-get install -y mosquitto (the MQTT baseline needs it)")
+        raise Unavailable("mosquitto is not installed: apt-get install -y mosquitto (the MQTT baseline needs it)")
     port = free_port()
     conf = group.workdir / "mosquitto.conf"
     conf.write_text(

@@ -7,13 +7,20 @@ addresses 10.201.1.0/24 (operator↔cloud) and 10.201.2.0/24 (cloud↔edge), onl
     cloud ns:    cloud router 127.0.0.1:7447 ◄──────────────────────────────────────────┘◄─┐
     edge ns:     edge agent + state monitor ─► edge-site router ─► 10.201.2.1:17448 [relay, edge-link profile]
 
-This kernel has no netem, so delay and jitter come from the project's TCP relay (``linkemu``, order
-preserving) running in the cloud namespace; bandwidth is limited with ``tc tbf`` on the veth, and a blackout is
-an nftables drop rule in the edge namespace (nothing passes, both directions). The edge-site router lets a
-monitor in the edge namespace watch the robot during a blackout (the deadman stop is measured at the edge).
+Delay and jitter come from one of two emulators (``--emulator``; ``auto`` takes netem where it can):
 
-Without root (or without ``ip netns``) everything runs on 127.0.0.1 and the relay itself holds all traffic
-during a blackout; the run says so. Everything created is removed on exit, failure or signal.
+- ``netem``, where the kernel has it: a netem qdisc on each veth end delays, jitters, drops and paces the packets
+  of that direction, and the clients dial the cloud router's veth addresses directly (no relays). A profile's
+  stalls become packet loss, so TCP's own retransmissions make them, as on a real radio link.
+- ``relay``: the project's TCP relay (``linkemu``, order preserving) in the cloud namespace, at the addresses
+  above; bandwidth is limited with ``tc tbf`` on the veth. This machine's kernel has no netem, so it runs here.
+
+Either way a blackout is an nftables drop rule in the edge namespace (nothing passes, both directions). The
+edge-site router lets a monitor in the edge namespace watch the robot during a blackout (the deadman stop is
+measured at the edge).
+
+Without root (or without ``ip netns``) everything runs on 127.0.0.1 through relays, and the relay itself holds
+all traffic during a blackout; the run says so. Everything created is removed on exit, failure or signal.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ from typing import Any
 from iorthand.transport import free_port
 from iorthand_operator.bench import stats
 from iorthand_operator.bench.linkemu import LinkProfile
-from iorthand_operator.bench.procs import Group, on_cleanup, python_argv
+from iorthand_operator.bench.procs import Group, Unavailable, on_cleanup, python_argv
 from iorthand_operator.bench.transports import ROLES, analyse_probe, ep, start_edge, start_router
 
 log = logging.getLogger("iorthand.bench.wan")
@@ -61,6 +68,24 @@ PROFILES: dict[str, WanProfile] = {
     "blackout": WanProfile("blackout", LinkProfile(0.5, 0.2), blackout=True,
                            note="LAN link with repeated blackouts: nothing passes for N s"),
 }
+
+
+EMULATORS = ("auto", "netem", "relay")
+# netem sends a packet no earlier than the one queued before it only while it paces a rate; without one, jitter
+# would reorder packets, which no wired or radio link does to a TCP stream. This rate limits nothing here.
+NETEM_UNLIMITED_RATE = "10gbit"
+NETEM_LIMIT_PACKETS = 10000  # netem's queue (default 1000) must hold a poor link's delay × bandwidth
+
+
+def netem_args(link: LinkProfile, rate: str = "") -> list[str]:
+    """The ``tc qdisc … root`` arguments of a netem qdisc for one direction of ``link``: the relay's uniform delay
+    ± jitter, its stall probability as packet loss (the stall is then TCP's retransmission), at ``rate``."""
+    args = ["netem", "limit", str(NETEM_LIMIT_PACKETS), "delay", f"{link.delay_ms:g}ms"]
+    if link.jitter_ms:
+        args.append(f"{link.jitter_ms:g}ms")
+    if link.stall_prob:
+        args += ["loss", "random", f"{link.stall_prob * 100:g}%"]
+    return [*args, "rate", rate or NETEM_UNLIMITED_RATE]
 
 
 def _run(argv: list[str], stdin: str | None = None, check: bool = True) -> subprocess.CompletedProcess[str]:
@@ -93,6 +118,21 @@ class Namespaces:
         if shutil.which("nft") is None:
             return False, "nftables is not installed (apt-get install -y nftables): blackouts need it"
         return True, "namespaces, veth, tbf and nftables"
+
+    @staticmethod
+    def netem_available() -> tuple[bool, str]:
+        """Whether this kernel takes a netem qdisc (tried on the loopback of a throwaway namespace), and tc's
+        words when it does not. Call only where :meth:`available` holds."""
+        probe = f"ioh-netem-{os.getpid()}"
+        _run(["ip", "netns", "add", probe])
+        try:
+            r = _run(["tc", "-n", probe, "qdisc", "add", "dev", "lo", "root", *netem_args(LinkProfile(1.0))],
+                     check=False)
+        finally:
+            _run(["ip", "netns", "del", probe], check=False)
+        if r.returncode == 0:
+            return True, "netem qdiscs on the veth links"
+        return False, f"this kernel has no netem qdisc (tc: {(r.stderr or r.stdout).strip()})"
 
     def create(self) -> Namespaces:
         self._unregister = on_cleanup(self.destroy)
@@ -133,6 +173,15 @@ class Namespaces:
                 _run(["tc", "-n", ns, "qdisc", "add", "dev", dev, "root", "tbf", "rate", rate, "burst", "64kb",
                       "latency", "100ms"])
 
+    def emulate(self, op_link: LinkProfile, edge_link: LinkProfile, edge_rate: str) -> None:
+        """netem on both ends of both links (each end shapes what it sends): ``op_link`` on the operator's link,
+        ``edge_link`` at ``edge_rate`` on the edge's. Replaces what an earlier profile set."""
+        v = self.veth
+        for ns, dev, link, rate in ((self.op, v["op"], op_link, ""), (self.cloud, v["cloud_op"], op_link, ""),
+                                    (self.edge, v["edge"], edge_link, edge_rate),
+                                    (self.cloud, v["cloud_edge"], edge_link, edge_rate)):
+            _run(["tc", "-n", ns, "qdisc", "replace", "dev", dev, "root", *netem_args(link, rate)])
+
     def destroy(self) -> None:
         if self._unregister:
             self._unregister()
@@ -161,7 +210,10 @@ class Plan:
 
 
 def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespaces | None, links: str = "edge",
-                robot: str = "wan") -> dict[str, Any]:
+                robot: str = "wan", netem: bool = False) -> dict[str, Any]:
+    """One profile: ``netem`` (needs ``netns``) shapes the veth links in the kernel, else relays carry them."""
+    if netem and netns is None:
+        raise ValueError("netem emulation needs the network namespaces")
     name = f"wan-{profile.name}"
     schedule = [plan.blackout_s] * plan.trials + list(plan.long_blackouts) if profile.blackout else []
     total = plan.duration if not profile.blackout else sum(
@@ -172,26 +224,35 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
     out, mon_out = workdir / f"{name}-probe.json", workdir / f"{name}-monitor.json"
     blackouts: list[tuple[int, int, int]] = []  # (cut, restore requested, restore done), ns
     with Group(workdir / name) as g:
-        if netns is not None:
-            ns_op, ns_cloud, ns_edge = netns.op, netns.cloud, netns.edge
-            cloud_port = edge_port = 7447  # each namespace has its own loopback
-            op_relay, edge_relay = "10.201.1.1:17447", "10.201.2.1:17448"
-            netns.shape(profile.rate)
-        else:
+        relay_edge = None
+        if netns is None:
             ns_op = ns_cloud = ns_edge = None
             cloud_port, edge_port = free_port(), free_port()
-            op_relay, edge_relay = f"127.0.0.1:{free_port()}", f"127.0.0.1:{free_port()}"
-        start_router(g, "router-cloud", cloud_port, netns=ns_cloud)
-        g.start("relay-op", _relay_argv(op_relay, f"127.0.0.1:{cloud_port}", op_link, 11, max_s), netns=ns_cloud,
-                ready="linkemu ready")
-        relay_edge = g.start("relay-edge", _relay_argv(edge_relay, f"127.0.0.1:{cloud_port}", profile.link, 12, max_s),
-                             netns=ns_cloud, ready="linkemu ready")
-        start_router(g, "router-edge", edge_port, [f"tcp/{edge_relay}"], netns=ns_edge)
+            op_dial, edge_dial = f"127.0.0.1:{free_port()}", f"127.0.0.1:{free_port()}"
+        else:
+            ns_op, ns_cloud, ns_edge = netns.op, netns.cloud, netns.edge
+            cloud_port = edge_port = 7447  # each namespace has its own loopback
+            # netem: the operator and the edge-site router dial the cloud router across the shaped veths;
+            # relay: they dial the relays in the cloud namespace.
+            op_dial, edge_dial = (f"10.201.1.1:{cloud_port}", f"10.201.2.1:{cloud_port}") if netem else (
+                "10.201.1.1:17447", "10.201.2.1:17448")
+        if netem and netns is not None:  # (netem without namespaces was refused above)
+            netns.emulate(op_link, profile.link, profile.rate)
+            start_router(g, "router-cloud", cloud_port, netns=ns_cloud, host="0.0.0.0")
+        else:
+            if netns is not None:
+                netns.shape(profile.rate)
+            start_router(g, "router-cloud", cloud_port, netns=ns_cloud)
+            g.start("relay-op", _relay_argv(op_dial, f"127.0.0.1:{cloud_port}", op_link, 11, max_s), netns=ns_cloud,
+                    ready="linkemu ready")
+            relay_edge = g.start("relay-edge", _relay_argv(edge_dial, f"127.0.0.1:{cloud_port}", profile.link, 12,
+                                                           max_s), netns=ns_cloud, ready="linkemu ready")
+        start_router(g, "router-edge", edge_port, [f"tcp/{edge_dial}"], netns=ns_edge)
         start_edge(g, robot, [ep(edge_port)], netns=ns_edge)
         g.start("monitor", python_argv(ROLES, "state-monitor", "--connect", ep(edge_port), "--robot", robot,
                                        "--duration", str(total + 60), "--out", str(mon_out), "--max-seconds", str(max_s)),
                 netns=ns_edge, ready="monitor ready")
-        probe = g.start("operator", python_argv(ROLES, "operator-probe", "--connect", f"tcp/{op_relay}", "--robots", robot,
+        probe = g.start("operator", python_argv(ROLES, "operator-probe", "--connect", f"tcp/{op_dial}", "--robots", robot,
                                                 "--duration", str(total), "--out", str(out), "--max-seconds", str(max_s)),
                         netns=ns_op, ready="probe ready", timeout=120.0)
         if profile.blackout:
@@ -217,7 +278,7 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
     result = analyse_probe(rd)
     states = json.loads(mon_out.read_text())["states"] if mon_out.exists() else []
     result.update(profile=profile.name, note=profile.note, link=asdict(profile.link), rate=profile.rate,
-                  links=links, events=probe_data.get("events", []))
+                  links=links, emulator="netem" if netem else "relay", events=probe_data.get("events", []))
     result["deadman_stops_while_driving"] = _spurious_stops(states, blackouts)
     if profile.blackout:
         result["trials"] = blackout_trials(states, rd["records"], blackouts)
@@ -297,20 +358,42 @@ def summarize_trials(trials: list[dict[str, Any]], long_from_ms: float = 2000.0)
     }
 
 
-def run_wan(workdir: Path, profiles: list[str], duration: float, trials: int, blackout_s: float, links: str = "edge",
-            force_loopback: bool = False, long_blackouts: tuple[float, ...] = ()) -> dict[str, Any]:
+def choose_emulator(emulator: str, force_loopback: bool) -> tuple[bool, bool, str]:
+    """(namespaces, netem, why) for ``--emulator`` (one of :data:`EMULATORS`). ``auto`` takes what the machine
+    has and says what it fell back from; ``netem`` where the machine cannot do it is an error naming why."""
+    if emulator not in EMULATORS:
+        raise ValueError(f"unknown link emulator {emulator!r} (known: {', '.join(EMULATORS)})")
     ok, why = (False, "loopback requested") if force_loopback else Namespaces.available()
     if not ok:
+        if emulator == "netem":
+            raise Unavailable(f"--emulator netem needs network namespaces: {why}")
         print(f"iorthand bench wan: no namespaces ({why}); falling back to relays on 127.0.0.1 — blackouts hold "
               "traffic in the relay instead of dropping it, and tbf rate limits are not applied", flush=True)
+        return False, False, why
+    if emulator == "relay":
+        return True, False, f"{why}; relays requested"
+    netem, netem_why = Namespaces.netem_available()
+    if not netem and emulator == "netem":
+        raise Unavailable(f"--emulator netem: {netem_why}; use --emulator relay (or auto)")
+    if not netem:
+        print(f"iorthand bench wan: {netem_why}; delay and jitter come from the project's TCP relay", flush=True)
+        return True, False, f"{why}; relays: {netem_why}"
+    return True, True, f"{why}; {netem_why}"
+
+
+def run_wan(workdir: Path, profiles: list[str], duration: float, trials: int, blackout_s: float, links: str = "edge",
+            force_loopback: bool = False, long_blackouts: tuple[float, ...] = (), emulator: str = "auto") -> dict[str, Any]:
+    unknown = [name for name in profiles if name not in PROFILES]
+    if unknown:
+        raise ValueError(f"unknown WAN profile {unknown[0]!r} (known: {', '.join(PROFILES)})")
+    ok, netem, why = choose_emulator(emulator, force_loopback)
     netns = Namespaces().create() if ok else None
-    results: dict[str, Any] = {"isolation": "namespaces" if ok else "loopback", "why": why, "links": links, "profiles": {}}
+    results: dict[str, Any] = {"isolation": "namespaces" if ok else "loopback", "emulator": "netem" if netem else "relay",
+                               "why": why, "links": links, "profiles": {}}
     try:
         for name in profiles:
-            if name not in PROFILES:
-                raise ValueError(f"unknown WAN profile {name!r} (known: {', '.join(PROFILES)})")
             plan = Plan(duration=duration, trials=trials, blackout_s=blackout_s, long_blackouts=tuple(long_blackouts))
-            r = run_profile(workdir, PROFILES[name], plan, netns, links)
+            r = run_profile(workdir, PROFILES[name], plan, netns, links, netem=netem)
             if "trials" in r:
                 r["blackout_summary"] = summarize_trials(r["trials"])
             results["profiles"][name] = r
