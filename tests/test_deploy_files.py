@@ -1,0 +1,43 @@
+"""What an installer runs, checked by the tools that run it. The systemd units in deploy/systemd, read by systemd
+itself: ``systemd-analyze verify`` names every key it does not know or that sits in the wrong section (such a
+line is ignored at boot, silently for the user); the executables live in /opt/iorthand on a deployed host, so
+that they are missing here is the one thing it may say. The shell scripts, read by shellcheck. Each test skips
+where its tool is not installed (``make test`` installs both as root)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+UNITS = sorted((ROOT / "deploy" / "systemd").glob("*.service"))
+SCRIPTS = [ROOT / "deploy" / "pi-setup.sh", ROOT / "scripts" / "install-test-deps.sh", ROOT / ".ci" / "run"]
+
+
+def test_every_service_is_checked() -> None:
+    assert {u.name for u in UNITS} >= {"iorthand-edge.service", "iorthand-router.service"}
+
+
+@pytest.mark.parametrize("unit", UNITS, ids=lambda u: u.name)
+def test_systemd_takes_every_line_of_the_unit(unit: Path, tmp_path: Path) -> None:
+    analyze = shutil.which("systemd-analyze")
+    if analyze is None:
+        pytest.skip("systemd-analyze is not installed")
+    copy = tmp_path / unit.name  # verify loads the unit's whole directory: give it this one alone
+    shutil.copy(unit, copy)
+    r = subprocess.run([analyze, "verify", "--man=no", str(copy)], capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "SYSTEMD_LOG_LEVEL": "warning"})
+    said = [line for line in (r.stdout + r.stderr).splitlines() if line.strip()]
+    assert [line for line in said if "is not executable" not in line] == [], said
+
+
+def test_the_shell_scripts_pass_shellcheck() -> None:
+    shellcheck = shutil.which("shellcheck")
+    if shellcheck is None:
+        pytest.skip("shellcheck is not installed")
+    r = subprocess.run([shellcheck, "--shell=bash", *map(str, SCRIPTS)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
