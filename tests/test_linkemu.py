@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import random
 import socket
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -11,6 +12,7 @@ from collections.abc import Iterator
 import pytest
 
 from iorthand_operator.bench.linkemu import DelayLine, LinkEmulator, LinkProfile
+from tests.conftest import iorthand_cmd
 
 
 @pytest.fixture
@@ -121,3 +123,24 @@ def test_close_ends_connections(echo_server: tuple[str, int]) -> None:
     s.close()
     with pytest.raises(OSError):
         socket.create_connection(("127.0.0.1", emu.port), timeout=1).close()
+
+
+def test_the_bench_command_runs_the_relay(echo_server: tuple[str, int]) -> None:
+    argv = iorthand_cmd("bench", "linkemu", "--listen", "127.0.0.1:0", "--connect", f"{echo_server[0]}:{echo_server[1]}",
+                        "--delay-ms", "25", "--max-seconds", "30")
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        ready = proc.stdout.readline()
+        assert ready.startswith("linkemu ready 127.0.0.1:"), ready
+        port = int(ready.split()[2].rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+            t0 = time.monotonic()
+            s.sendall(b"ping")
+            assert _recv_exactly(s, 4) == b"ping"
+            assert time.monotonic() - t0 >= 0.050  # 25 ms each way
+        proc.terminate()
+        assert proc.wait(10) == 0
+    finally:
+        proc.kill()
+        proc.wait(10)

@@ -1,5 +1,6 @@
 """``iorthand bench ...``: latency benchmarks. Each sub-command prints a summary table and writes JSON and
-PNG files into ``--out`` (default ``benchmarks/results``). ``iorthand bench all`` runs every part.
+PNG files into ``--out`` (default ``benchmarks/results``). ``iorthand bench all`` runs transports, load, wan
+and scale (load measures the command path with and without video, so command-latency is left to runs alone).
 
     iorthand bench transports   # Zenoh peer / router / chain of 2 and 3 routers vs MQTT, 64 B and 300 KB
     iorthand bench load         # commands with and without 30 fps video through the same router
@@ -19,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from iorthand.cpu_latency import CpuLatencyHold
-from iorthand_operator.bench import plots, report
+from iorthand_operator.bench import linkemu, plots, report
 from iorthand_operator.bench.procs import Unavailable, run_cleanups, set_nice
 from iorthand_operator.bench.wan import EMULATORS
 
@@ -229,12 +230,6 @@ def _run_all(args: argparse.Namespace) -> int:
 TRANSPORTS_ALL = ("zenoh-peer", "zenoh-router", "zenoh-chain2", "zenoh-chain3", "mqtt")
 
 
-def _linkemu(args: argparse.Namespace) -> int:
-    from iorthand_operator.bench import linkemu
-
-    return linkemu.main(args.linkemu_args)
-
-
 def _microseconds(text: str) -> int:
     try:
         value = int(text)
@@ -307,5 +302,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="light: LightOperator stand-ins; client: the real OperatorClient (measures this machine)")
 
     le = bsub.add_parser("linkemu", help="run the link emulator (TCP relay with delay/jitter) in the foreground")
-    le.add_argument("linkemu_args", nargs=argparse.REMAINDER, help="--listen H:P --connect H:P --delay-ms ...")
-    le.set_defaults(func=_linkemu)
+    linkemu.add_arguments(le)
+    le.set_defaults(func=linkemu.run)

@@ -246,17 +246,20 @@ def _hostport(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m iorthand_operator.bench.linkemu", description=__doc__.splitlines()[0])
-    p.add_argument("--listen", type=_hostport, required=True)
-    p.add_argument("--connect", type=_hostport, required=True)
-    p.add_argument("--delay-ms", type=float, default=0.0)
-    p.add_argument("--jitter-ms", type=float, default=0.0)
-    p.add_argument("--stall-prob", type=float, default=0.0)
-    p.add_argument("--stall-ms", type=float, default=0.0)
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The emulator's options, for this module's own command line and for ``iorthand bench linkemu``."""
+    p.add_argument("--listen", type=_hostport, required=True, help="HOST:PORT to accept on (port 0: any free one)")
+    p.add_argument("--connect", type=_hostport, required=True, help="HOST:PORT each accepted connection is relayed to")
+    p.add_argument("--delay-ms", type=float, default=0.0, help="one-way delay of each direction")
+    p.add_argument("--jitter-ms", type=float, default=0.0, help="± this much, uniform, order kept")
+    p.add_argument("--stall-prob", type=float, default=0.0, help="probability per chunk of a retransmission stall")
+    p.add_argument("--stall-ms", type=float, default=0.0, help="length of a stall")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--max-seconds", type=float, default=3600.0, help="exit after this long (a time bound)")
-    args = p.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Relay until SIGTERM/SIGINT or ``max_seconds``; SIGUSR1 starts a blackout, SIGUSR2 ends it."""
     prof = LinkProfile(args.delay_ms, args.jitter_ms, args.stall_prob, args.stall_ms)
     emu = LinkEmulator(args.listen, args.connect, prof, seed=args.seed).start()
     stop = threading.Event()
@@ -268,6 +271,12 @@ def main(argv: list[str] | None = None) -> int:
     stop.wait(args.max_seconds)
     emu.close()
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m iorthand_operator.bench.linkemu", description=__doc__.splitlines()[0])
+    add_arguments(p)
+    return run(p.parse_args(argv))
 
 
 if __name__ == "__main__":
