@@ -2,7 +2,8 @@
 itself: ``systemd-analyze verify`` names every key it does not know or that sits in the wrong section (such a
 line is ignored at boot, silently for the user); the executables live in /opt/iorthand on a deployed host, so
 that they are missing here is the one thing it may say. The shell scripts, read by shellcheck. Each test skips
-where its tool is not installed (``make test`` installs both as root)."""
+where its tool is not installed (``make test`` installs both as root). And the example router configuration,
+which must be what the generator writes for the example deployment."""
 
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
+
+from iorthand.config import load
+from iorthand.security import acl
 
 ROOT = Path(__file__).resolve().parents[1]
 UNITS = sorted((ROOT / "deploy" / "systemd").glob("*.service"))
@@ -41,3 +45,11 @@ def test_the_shell_scripts_pass_shellcheck() -> None:
         pytest.skip("shellcheck is not installed")
     r = subprocess.run([shellcheck, "--shell=bash", *map(str, SCRIPTS)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_the_example_router_configuration_is_what_the_generator_writes() -> None:
+    # A reviewer reads this file to see what a deployment gets: it must not lag behind the generator.
+    generated = acl.to_json5(acl.router_config(load(ROOT / "deploy" / "deployment.example.yaml", acl.Deployment)))
+    assert (ROOT / "deploy" / "router" / "router.example.json5").read_text() == generated, (
+        "regenerate: iorthand certs router-config --deployment deploy/deployment.example.yaml "
+        "--out deploy/router/router.example.json5")
