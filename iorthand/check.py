@@ -164,6 +164,8 @@ def check_file(path: Path, role: str | None = None, router_config: Path | None =
         if not isinstance(data, dict) or "zenoh" not in data:
             raise ConfigError(str(path), "zenoh", "missing")
         obj = from_dict(data["zenoh"], ZenohConfig, source=str(path), base_dir=path.parent)
+    if hasattr(obj, "warnings"):  # role-specific settings that load but defeat their purpose
+        rep.findings += [Finding("warning", subject, message) for subject, message in obj.warnings()]
     if role == "deployment":
         certs_dir = Path(obj.certs_dir)
         rep.findings += check_certificate_files(certs_dir / "ca.pem", certs_dir / "router.pem", certs_dir / "router.key")

@@ -66,3 +66,17 @@ def test_cli_exit_codes(lab: Lab, tmp_path: Path) -> None:
     assert out["good"].returncode == 0, out["good"].stdout + out["good"].stderr
     assert out["bad"].returncode == 2 and "not valid YAML" in out["bad"].stdout
     assert out["missing"].returncode == 1 and "edge-nope.pem" in out["missing"].stdout
+
+
+def test_an_edge_nothing_can_arm_is_a_warning(tmp_path: Path) -> None:
+    # auto_arm is false by default: without the local socket no one could ever confirm arming.
+    base = {"robot_id": "sim1", "zenoh": {"connect": ["tcp/127.0.0.1:7447"]}, "robot": {"kind": "sim"}}
+    path = tmp_path / "edge.yaml"
+    path.write_text(yaml.safe_dump(base))
+    rep = check_file(path)
+    assert rep.ok  # a warning, not an error: the agent runs, and says so in its log
+    assert [(f.level, f.subject) for f in rep.findings if "arming" in f.message] == [("warning", "local_socket")]
+    path.write_text(yaml.safe_dump({**base, "local_socket": str(tmp_path / "edge.sock")}))
+    assert not [f for f in check_file(path).findings if "arming" in f.message]
+    path.write_text(yaml.safe_dump({**base, "safety": {"auto_arm": True}}))
+    assert not [f for f in check_file(path).findings if "arming" in f.message]

@@ -16,6 +16,7 @@ import pytest
 
 from iorthand.config import load
 from iorthand.security import acl
+from iorthand_edge.config import load_edge_config
 
 ROOT = Path(__file__).resolve().parents[1]
 UNITS = sorted((ROOT / "deploy" / "systemd").glob("*.service"))
@@ -53,3 +54,13 @@ def test_the_example_router_configuration_is_what_the_generator_writes() -> None
     assert (ROOT / "deploy" / "router" / "router.example.json5").read_text() == generated, (
         "regenerate: iorthand certs router-config --deployment deploy/deployment.example.yaml "
         "--out deploy/router/router.example.json5")
+
+
+def test_the_pi_can_arm_its_robot() -> None:
+    # The deployed edge is armed only by local confirmation, through a socket in the unit's runtime directory
+    # (the one place under /run its user may write with ProtectSystem=strict).
+    edge = load_edge_config(ROOT / "deploy" / "configs" / "edge.yaml")
+    assert not edge.safety.auto_arm and edge.warnings() == []
+    unit = (ROOT / "deploy" / "systemd" / "iorthand-edge.service").read_text().splitlines()
+    assert edge.local_socket is not None and f"RuntimeDirectory={edge.local_socket.parent.name}" in unit
+    assert edge.local_socket.parent.parent == Path("/run")

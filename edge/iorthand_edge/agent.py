@@ -211,6 +211,8 @@ class EdgeAgent:
             self.supervisor.armed, self.supervisor.profile, 1000 * self.supervisor.limits.linear,
             self._cpu_latency.state if self._cpu_latency else "as the host sets it",
         )
+        for setting_name, why in self.config.warnings():
+            log.warning("%s: %s", setting_name, why)
 
     def _start_components(self) -> None:
         assert self.session is not None

@@ -57,6 +57,15 @@ class EdgeConfig:
         if self.phantom is not None and not simulated:
             raise ValueError("phantom: a simulated phantom only makes sense with the simulated robot (robot.kind sim)")
 
+    def warnings(self) -> list[tuple[str, str]]:
+        """Settings that load but that leave the agent unable to do its job: (setting, why). ``iorthand check``
+        shows them and the agent logs them at start."""
+        out = []
+        if not self.safety.auto_arm and self.local_socket is None:
+            out.append(("local_socket", "not set while safety.auto_arm is false: nothing can confirm arming "
+                                        "(iorthand arm), so the robot never moves"))
+        return out
+
 
 def load_edge_config(path: str | Path) -> EdgeConfig:
     return load(path, EdgeConfig)
