@@ -68,8 +68,9 @@ def guess_role(path: Path, data: Any) -> str:
         if ("robots" in data or "operators" in data) and "zenoh" not in data:
             return "deployment"
         name = path.name.lower()
-        for role in ("twin", "recorder"):
-            if role in name:
+        # A replay identity's file is a recorder configuration (``iorthand replay --config``).
+        for word, role in (("twin", "twin"), ("recorder", "recorder"), ("replay", "recorder")):
+            if word in name:
                 return role
     raise ConfigError(str(path), "", "cannot tell the role of this file: pass --role edge|operator|twin|recorder|router|deployment")
 

@@ -13,7 +13,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import yaml
 
+from iorthand.check import check_file
 from iorthand.config import load
 from iorthand.security import acl
 from iorthand_edge.config import load_edge_config
@@ -64,3 +66,22 @@ def test_the_pi_can_arm_its_robot() -> None:
     unit = (ROOT / "deploy" / "systemd" / "iorthand-edge.service").read_text().splitlines()
     assert edge.local_socket is not None and f"RuntimeDirectory={edge.local_socket.parent.name}" in unit
     assert edge.local_socket.parent.parent == Path("/run")
+
+
+@pytest.mark.parametrize("name", ["edge", "operator", "twin", "recorder", "replay"])
+def test_each_deploy_config_loads_as_its_role_and_misses_only_the_installed_files(name: str) -> None:
+    # The configurations an installer copies to /etc/iorthand (or ~/.config/iorthand): their role is told from
+    # the file, every key loads, and all that is wrong here is that no certificate has been installed.
+    path = ROOT / "deploy" / "configs" / f"{name}.yaml"
+    rep = check_file(path)
+    assert rep.role == {"replay": "recorder"}.get(name, name)
+    errors = [f for f in rep.findings if f.level == "error"]
+    assert errors and all("does not exist" in f.message for f in errors), errors
+    assert [f for f in rep.findings if f.level == "warning"] == []
+
+
+@pytest.mark.parametrize("name", ["twin", "recorder", "replay"])
+def test_the_cloud_services_dial_the_router_on_the_loopback_with_their_own_identity(name: str) -> None:
+    zenoh = yaml.safe_load((ROOT / "deploy" / "configs" / f"{name}.yaml").read_text())["zenoh"]
+    assert zenoh["connect"] == ["tls/127.0.0.1:7447"] and zenoh["username"] == name
+    assert zenoh["tls"]["certificate"] == f"/etc/iorthand/certs/{name}.pem"
