@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from iorthand.cpu_latency import CpuLatencyHold
-from iorthand_operator.bench import linkemu, plots, report
+from iorthand_operator.bench import linkemu, report
 from iorthand_operator.bench.procs import Unavailable, run_cleanups, set_nice
 from iorthand_operator.bench.wan import EMULATORS
 
@@ -59,6 +59,7 @@ def _config(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_transports(args: argparse.Namespace) -> dict[str, Any]:
+    from iorthand_operator.bench import plots  # matplotlib: loaded only when a part draws
     from iorthand_operator.bench.transports import run_pings_interleaved
 
     work = _workdir(args)
@@ -82,6 +83,7 @@ def run_transports(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_load_part(args: argparse.Namespace) -> dict[str, Any]:
+    from iorthand_operator.bench import plots  # matplotlib: loaded only when a part draws
     from iorthand_operator.bench.load import run_load
 
     res = run_load(_workdir(args), args.duration, fps=args.fps)
@@ -95,6 +97,7 @@ def run_load_part(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_command_latency(args: argparse.Namespace) -> dict[str, Any]:
+    from iorthand_operator.bench import plots  # matplotlib: loaded only when a part draws
     from iorthand_operator.bench.load import video_load
     from iorthand_operator.bench.transports import run_command_path
 
@@ -109,6 +112,7 @@ def run_command_latency(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_wan_part(args: argparse.Namespace) -> dict[str, Any]:
+    from iorthand_operator.bench import plots  # matplotlib: loaded only when a part draws
     from iorthand_operator.bench.wan import run_wan
 
     res = run_wan(_workdir(args), args.profiles, args.duration, args.trials, args.blackout_s, args.links, args.loopback,
@@ -137,6 +141,7 @@ def run_wan_part(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run_scale_part(args: argparse.Namespace) -> dict[str, Any]:
+    from iorthand_operator.bench import plots  # matplotlib: loaded only when a part draws
     from iorthand_operator.bench.scale import run_scale
 
     res = run_scale(_workdir(args), args.counts, args.duration, args.topologies, args.per_process, args.edges,
