@@ -99,6 +99,9 @@ for i in $(seq 100); do
   sleep 0.2
 done
 {BIN}/iorthand arm --config /etc/iorthand/edge.yaml
+for i in $(seq 30); do
+  {BIN}/iorthand recorder status --config /etc/iorthand/recorder.yaml > /dev/null 2>&1 && break
+done
 
 step LAPTOP
 mkdir -p {laptop}/home {laptop}/bundle && cd {laptop}/bundle && ln -s {ROOT}/deploy deploy
