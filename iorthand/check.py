@@ -23,9 +23,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from iorthand.config import ConfigError, from_dict, load
+from iorthand.config import ConfigError, from_dict, load, read_yaml
 from iorthand.security.diagnose import Finding, check_certificate_files, precheck
 from iorthand.transport import ZenohConfig
 
@@ -141,12 +139,7 @@ def check_file(path: Path, role: str | None = None, router_config: Path | None =
     path = Path(path)
     if path.suffix in (".json5", ".json") and role in (None, "router"):
         return check_router(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(str(path), "", f"cannot read the file ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(path), "", f"not valid YAML ({exc})") from None
+    data = read_yaml(path)
     role = role or guess_role(path, data)
     if role == "router":
         return check_router(path)

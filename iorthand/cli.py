@@ -8,7 +8,16 @@ import logging
 import sys
 from importlib.metadata import entry_points
 
+import zenoh
+
 from iorthand.config import ConfigError
+from iorthand.security.certs import CertError
+from iorthand.transport import ConnectError
+
+# What a user's mistake or an absent peer raises, when the message says it all: one line, no traceback
+# (--log-level debug logs the traceback too).
+USER_ERRORS = (ConnectError, CertError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
+               PermissionError, zenoh.ZError)
 
 
 def _setup_logging(level: str) -> None:
@@ -44,6 +53,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"iorthand: configuration error: {exc}", file=sys.stderr)
         return 2
+    except USER_ERRORS as exc:
+        logging.getLogger("iorthand").debug("%s failed", args.command, exc_info=True)
+        print(f"iorthand {args.command}: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
 

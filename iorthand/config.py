@@ -10,6 +10,7 @@ dataclass per kind of device, as the robot and sensor drivers do).
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import os
@@ -29,6 +30,22 @@ class ConfigError(ValueError):
         self.source = source
         self.key = key
         self.problem = problem
+
+
+def cli_number(kind: type[int] | type[float] = float, lo: float | None = None,
+               hi: float | None = None) -> typing.Callable[[str], float]:
+    """An argparse ``type``: a number within [lo, hi], so that the command line gets the checks a YAML setting
+    gets (argparse prints the message as a usage error naming the option)."""
+    def parse(text: str) -> float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a {'whole number' if kind is int else 'number'}") from None
+        if math.isnan(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not within {'-inf' if lo is None else f'{lo:g}'}..{'inf' if hi is None else f'{hi:g}'}")
+        return value
+    return parse
 
 
 def setting(
@@ -156,20 +173,27 @@ def from_dict(data: Any, cls: type[T], source: str = "<config>", base_dir: Path 
     return _build(source, "", data, cls, base_dir)
 
 
-def load(path: str | os.PathLike[str], cls: type[T]) -> T:
-    """Read a YAML file into ``cls``. Relative paths inside the file are relative to the file."""
+def read_yaml(path: str | os.PathLike[str]) -> Any:
+    """A YAML file's data; ConfigError naming the file when it cannot be read or is not YAML."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(str(path), "", f"cannot read the file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(path), "", f"not UTF-8 text (byte {exc.start}): a YAML file is expected") from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         raise ConfigError(str(path), "", f"not valid YAML ({where}{getattr(exc, 'problem', exc)})") from None
-    return _build(str(path), "", data, cls, path.parent)
+
+
+def load(path: str | os.PathLike[str], cls: type[T]) -> T:
+    """Read a YAML file into ``cls``. Relative paths inside the file are relative to the file."""
+    path = Path(path)
+    return _build(str(path), "", read_yaml(path), cls, path.parent)
 
 
 def to_dict(obj: Any) -> Any:

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import zenoh
 
-from iorthand.transport import announced_lease, load_router_config, router_settings
+from iorthand.config import ConfigError, cli_number
+from iorthand.transport import announced_lease, check_endpoint, load_router_config, router_settings
 
 log = logging.getLogger("iorthand.router")
 
@@ -39,6 +40,11 @@ def run_router(config: zenoh.Config, describe: str) -> None:
 
 
 def _cmd(args: argparse.Namespace) -> int:
+    for endpoint in [*(args.listen or []), *(args.connect or [])]:
+        try:
+            check_endpoint(endpoint)
+        except ValueError as exc:
+            raise ConfigError("command line", "--listen/--connect", str(exc)) from None
     if args.config:
         config = load_router_config(Path(args.config))
         if args.listen:
@@ -68,7 +74,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="router JSON5 configuration (e.g. configs/router.json5)")
     p.add_argument("--listen", action="append", help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--connect", action="append", help="another router to connect to (a chain of sites)")
-    p.add_argument("--lease-ms", type=int, help="the lease this router announces (default 2000 ms, 1000 ms more with --connect: see announced_lease)")
+    p.add_argument("--lease-ms", type=cli_number(int, lo=500, hi=60_000), help="the lease this router announces (default 2000 ms, 1000 ms more with --connect: see announced_lease)")
     p.add_argument("--no-shared-memory", action="store_true",
                    help="never hand payloads over through shared memory (a router modelling its own host)")
     p.set_defaults(func=_cmd)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import threading
 import time
 from collections import deque
@@ -24,7 +25,7 @@ from typing import Any
 import zenoh
 
 from iorthand import keys
-from iorthand.config import setting
+from iorthand.config import ConfigError, setting
 
 log = logging.getLogger(__name__)
 
@@ -96,12 +97,23 @@ class ZenohConfig:
         if self.mode == "client" and not self.connect:
             raise ValueError("connect: a client needs at least one router endpoint, e.g. tcp/127.0.0.1:7447")
         for ep in [*self.connect, *self.listen]:
-            if "/" not in ep:
-                raise ValueError(f"endpoint {ep!r} must look like tcp/HOST:PORT or tls/HOST:PORT")
+            check_endpoint(ep)
             if ep.startswith(("tls/", "quic/")) and self.tls is None:
                 raise ValueError(f"endpoint {ep!r} needs a tls section (root_ca, certificate, private_key)")
         if self.username and self.password_file is None:
             raise ValueError(f"username {self.username!r} needs a password_file (a file with the password, mode 0600)")
+
+
+def check_endpoint(endpoint: str) -> None:
+    """A Zenoh endpoint PROTOCOL/HOST:PORT (metadata after ``?`` or ``#`` allowed); ValueError naming it if not."""
+    form = f"endpoint {endpoint!r} must look like tcp/HOST:PORT or tls/HOST:PORT"
+    protocol, _, address = endpoint.partition("/")
+    if not protocol or not address:
+        raise ValueError(form)
+    if protocol in ("tcp", "tls", "udp", "quic", "ws"):
+        host, _, port = re.split(r"[?#]", address, maxsplit=1)[0].rpartition(":")
+        if not host or not port.isdigit() or int(port) > 65535:
+            raise ValueError(f"{form}: {port!r} is not a port number (0-65535)" if host else form)
 
 
 def zenoh_config(cfg: ZenohConfig, entries: dict[str, Any] | None = None) -> zenoh.Config:
@@ -196,6 +208,10 @@ def open_session(cfg: ZenohConfig, stop: threading.Event | None = None) -> zenoh
     probe connection with Zenoh's log at warn in a child process) logs which endpoint, which certificate and
     the likely cause, and the final :class:`ConnectError` carries it.
     """
+    try:
+        cfg.check()  # settings given on a command line did not pass through the YAML loader's check
+    except ValueError as exc:
+        raise ConfigError("settings", "zenoh", str(exc)) from None
     try:
         entries = zenoh_entries(cfg)
     except OSError as exc:
@@ -384,7 +400,7 @@ def load_router_config(path: Path) -> zenoh.Config:
     try:
         return zenoh.Config.from_file(str(path))
     except zenoh.ZError as exc:
-        raise ValueError(f"{path}: not a valid Zenoh configuration: {exc}") from None
+        raise ConfigError(str(path), "", f"not a valid Zenoh configuration: {exc}") from None
 
 
 def free_port() -> int:

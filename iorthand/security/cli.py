@@ -9,7 +9,7 @@ import secrets
 import sys
 from pathlib import Path
 
-from iorthand.config import load
+from iorthand.config import cli_number, load
 from iorthand.security import acl, certs
 
 
@@ -39,6 +39,9 @@ def _show(args: argparse.Namespace) -> int:
 
 def _password(args: argparse.Namespace) -> int:
     """Create a random password for ``name``: a 0600 file for the role, a line in the router's dictionary."""
+    if not certs.ROLE_PATTERN.match(args.name):  # the router's user names are the certificates' names
+        raise certs.CertError(f"{args.name!r} is not a certificate name: expected router, twin, recorder, replay, "
+                              "edge-<robot>, operator-<name> or viewer-<name>")
     password = secrets.token_urlsafe(24)
     out = Path(args.out or Path(args.dir) / f"{args.name}.password")
     fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
@@ -70,7 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cs = p.add_subparsers(dest="certs_command", metavar="ACTION", required=True)
     i = cs.add_parser("init", help="create the CA (ca.pem, ca.key)")
     i.add_argument("--dir", default="certs")
-    i.add_argument("--days", type=int, default=certs.CA_DAYS)
+    i.add_argument("--days", type=cli_number(int, lo=1), default=certs.CA_DAYS)
     i.add_argument("--force", action="store_true", help="replace an existing CA")
     i.set_defaults(func=_init)
     s = cs.add_parser("issue", help="issue role certificates: router, twin, recorder, replay, edge-<robot>, operator-<name>, viewer-<name>")
@@ -78,7 +81,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--dir", default="certs", help="where the CA is")
     s.add_argument("--out", help="where to write (default: --dir)")
     s.add_argument("--host", action="append", help="DNS name or IP in the certificate (the router's; repeatable)")
-    s.add_argument("--days", type=int, default=certs.LEAF_DAYS)
+    s.add_argument("--days", type=cli_number(int, lo=1), default=certs.LEAF_DAYS)
     s.set_defaults(func=_issue)
     w = cs.add_parser("show", help="inspect a certificate (exit 1 if expired)")
     w.add_argument("file")

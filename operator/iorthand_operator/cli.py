@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from iorthand.config import ConfigError, from_dict, load
+from iorthand.config import ConfigError, cli_number, from_dict, load
 from iorthand.transport import open_session
 from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.config import OperatorConfig
@@ -195,10 +195,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     m = osub.add_parser("move", help="move the tool at a constant velocity, then print where it went")
     _common(m)
-    m.add_argument("--vx", type=float, default=0.0, help="m/s")
-    m.add_argument("--vy", type=float, default=0.0, help="m/s")
-    m.add_argument("--vz", type=float, default=0.0, help="m/s")
-    m.add_argument("--seconds", type=float, default=1.0)
+    m.add_argument("--vx", type=cli_number(float, lo=-1.0, hi=1.0), default=0.0, help="m/s")
+    m.add_argument("--vy", type=cli_number(float, lo=-1.0, hi=1.0), default=0.0, help="m/s")
+    m.add_argument("--vz", type=cli_number(float, lo=-1.0, hi=1.0), default=0.0, help="m/s")
+    m.add_argument("--seconds", type=cli_number(float, lo=0.1, hi=600.0), default=1.0)
     m.add_argument("--profile", help="speed profile to ask for (local, remote)", default=argparse.SUPPRESS)
     m.set_defaults(func=_move)
 

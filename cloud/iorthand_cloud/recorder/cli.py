@@ -13,7 +13,7 @@ import threading
 from pathlib import Path
 
 from iorthand import keys
-from iorthand.config import from_dict, load
+from iorthand.config import cli_number, from_dict, load
 from iorthand.transport import ZenohConfig, client_config, open_session
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
 
@@ -172,7 +172,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="republish a recorded session into Zenoh with its original timing")
     p.add_argument("session", help="session folder")
     connection(p)
-    p.add_argument("--speed", type=float, default=1.0, help="2 = twice as fast")
+    p.add_argument("--speed", type=cli_number(float, lo=0.01, hi=100.0), default=1.0, help="2 = twice as fast")
     p.add_argument("--loop", action="store_true")
     p.add_argument("--keys", action="append", help="key expression to replay (repeatable; default: all)")
     p.add_argument("--include-malformed", action="store_true")
@@ -186,7 +186,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("report", help="session report: performance index, latencies, plots (Markdown + JSON)")
     p.add_argument("session")
     p.add_argument("--config", help="recorder YAML whose `report:` section to use")
-    p.add_argument("--contact-threshold", type=float, help="N")
+    p.add_argument("--contact-threshold", type=cli_number(float, lo=0.0), help="N")
     p.add_argument("--out", help="folder (default SESSION/report)")
     p.set_defaults(func=_cmd_report)
 
@@ -195,7 +195,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", help=".rrd path (default SESSION/<id>.rrd)")
     p.add_argument("--start", type=float, help="s from the session's first message")
     p.add_argument("--end", type=float)
-    p.add_argument("--video-fps", type=float, default=5.0)
+    p.add_argument("--video-fps", type=cli_number(float, lo=0.1), default=5.0)
     p.set_defaults(func=_cmd_export)
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from iorthand.config import cli_number
+
 
 def _twin(args: argparse.Namespace) -> int:
     from .config import load_twin_config
@@ -33,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--save", help="also write the rerun data to this .rrd file")
     p.add_argument("--no-serve", action="store_true", help="do not serve the web viewer (with --save: file only)")
     p.add_argument("--bind", help="address of the viewer's ports, overrides viewer.bind")
-    p.add_argument("--web-port", type=int, help="overrides viewer.web_port")
-    p.add_argument("--grpc-port", type=int, help="overrides viewer.grpc_port")
+    p.add_argument("--web-port", type=cli_number(int, lo=1, hi=65535), help="overrides viewer.web_port")
+    p.add_argument("--grpc-port", type=cli_number(int, lo=1, hi=65535), help="overrides viewer.grpc_port")
     p.add_argument("--log-dir", help="folder for the rerun relay's log")
     p.set_defaults(func=_twin)

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import yaml
 
-from iorthand.config import ConfigError, load, to_dict
+from iorthand.config import ConfigError, cli_number, load, to_dict
 from iorthand.geometry import matrix_to_pose
 
 from .calibration import (
@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     render = commands.add_parser("render", help="render a synthetic ChArUco dataset with a known camera")
     render.add_argument("out", type=Path, help="folder to write images, poses.yaml and truth.yaml into")
     render.add_argument("--config", type=Path, help="perception YAML: synthetic camera and mount geometry")
-    render.add_argument("--views", type=int, default=15)
+    render.add_argument("--views", type=cli_number(int, lo=1), default=15)
     render.add_argument("--pan", type=float, default=0.0, help="servo pan during the dataset, rad")
     render.add_argument("--tilt", type=float, default=0.0, help="servo tilt during the dataset, rad")
     render.add_argument("--robot-noise", type=float, nargs=2, default=(0.0002, 0.0005), metavar=("M", "RAD"))
@@ -68,7 +68,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     source.add_argument("--images", type=Path, help="folder of images of the target")
     source.add_argument("--device", type=int, help="capture live from this camera index")
     intrinsics.add_argument("--size", type=int, nargs=2, default=(640, 480), metavar=("W", "H"), help="live only")
-    intrinsics.add_argument("--views", type=int, default=20, help="views to capture live")
+    intrinsics.add_argument("--views", type=cli_number(int, lo=1), default=20, help="views to capture live")
     intrinsics.add_argument("--timeout", type=float, default=120.0, help="s to wait for live views")
     intrinsics.add_argument("--out", type=Path, required=True)
     _target_arguments(intrinsics)

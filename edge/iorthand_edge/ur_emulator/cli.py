@@ -9,6 +9,8 @@ import signal
 import sys
 import threading
 
+from iorthand.config import cli_number
+
 from .controller import ControllerConfig
 from .emulator import DEFAULT_CONTROL_PORT, EmulatorConfig, UREmulator
 from .faults import OPS, ControlClient
@@ -30,16 +32,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "loopback addresses (127.0.0.2, 127.0.0.3, ...).",
     )
     ap.add_argument("--host", default="127.0.0.1", help="address to bind (default %(default)s)")
-    ap.add_argument("--rtde-port", type=int, default=30004)
-    ap.add_argument("--dashboard-port", type=int, default=29999)
+    ap.add_argument("--rtde-port", type=cli_number(int, lo=1, hi=65535), default=30004)
+    ap.add_argument("--dashboard-port", type=cli_number(int, lo=1, hi=65535), default=29999)
     ap.add_argument("--script-ports", type=int, nargs="*", default=[30002, 30003],
                     help="ports accepting URScript (ur_rtde uses 30003)")
     ap.add_argument("--control-port", type=int, default=DEFAULT_CONTROL_PORT,
                     help="fault-injection JSON-lines port; negative disables (default %(default)s)")
-    ap.add_argument("--frequency", type=float, default=500.0, help="controller loop rate in Hz (e-Series: 500)")
+    ap.add_argument("--frequency", type=cli_number(float, lo=1.0, hi=2000.0), default=500.0, help="controller loop rate in Hz (e-Series: 500)")
     ap.add_argument("--version", type=_version, default=(5, 15, 2, 0), dest="ur_version",
                     help="reported PolyScope/URControl version (default 5.15.2.0)")
-    ap.add_argument("--unlock-delay", type=float, default=5.0,
+    ap.add_argument("--unlock-delay", type=cli_number(float, lo=0.0), default=5.0,
                     help="seconds after a protective stop during which unlocking is refused (PolyScope: 5)")
     ap.add_argument("--shared-inputs", action="store_true",
                     help="let several RTDE clients claim the same input registers (a real controller refuses)")

@@ -19,10 +19,11 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from iorthand.config import cli_number
 from iorthand.cpu_latency import CpuLatencyHold
 from iorthand_operator.bench import linkemu, report
 from iorthand_operator.bench.procs import Unavailable, run_cleanups, set_nice
-from iorthand_operator.bench.wan import EMULATORS
+from iorthand_operator.bench.wan import EMULATORS, PROFILES
 
 log = logging.getLogger("iorthand.bench")
 
@@ -252,7 +253,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     def common(b: argparse.ArgumentParser, duration: float) -> None:
         b.add_argument("--out", default=str(DEFAULT_OUT), help="where JSON and PNG go (default benchmarks/results)")
         b.add_argument("--workdir", default=None, help="parent folder for logs of the processes (default: /tmp)")
-        b.add_argument("--duration", type=float, default=duration, help="s measured per case")
+        b.add_argument("--duration", type=cli_number(float, lo=1.0), default=duration, help="s measured per case")
         b.add_argument("--nice", type=int, default=0,
                        help="nice increment of every process started (e.g. -5 as root: shield from other load)")
         b.add_argument("--cpu-latency-us", type=_microseconds, default=None, metavar="US",
@@ -269,13 +270,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     common(t, 30.0)
     t.add_argument("--transports", nargs="+", default=list(TRANSPORTS_ALL), choices=TRANSPORTS_ALL)
     t.add_argument("--sizes", nargs="+", default=["small", "frame"], choices=sorted(SIZES))
-    t.add_argument("--rounds", type=int, default=3,
+    t.add_argument("--rounds", type=cli_number(int, lo=1), default=3,
                    help="the measured time is split into this many slices, transports alternating (fair under load)")
 
     lo = bsub.add_parser("load", help="commands with and without video + state load through one router")
     # 60 s per case: a p99 from 20 s (1,200 commands) rests on its 12 slowest and flips with one burst of load.
     common(lo, 60.0)
-    lo.add_argument("--fps", type=float, default=30.0)
+    lo.add_argument("--fps", type=cli_number(float, lo=1.0, hi=120.0), default=30.0)
 
     c = bsub.add_parser("command-latency", help="command → applied latency through one router, simulated edge")
     common(c, 20.0)
@@ -284,23 +285,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     w = bsub.add_parser("wan", help="WAN profiles between operator, cloud and edge namespaces; blackout trials")
     common(w, 15.0)
-    w.add_argument("--profiles", nargs="+", default=["lan", "5g", "4g", "poor", "blackout"])
-    w.add_argument("--trials", type=int, default=20, help="blackout trials")
-    w.add_argument("--blackout-s", type=float, default=1.5, help="s each blackout lasts")
+    w.add_argument("--profiles", nargs="+", default=list(PROFILES), choices=list(PROFILES))
+    w.add_argument("--trials", type=cli_number(int, lo=1), default=20, help="blackout trials")
+    w.add_argument("--blackout-s", type=cli_number(float, lo=0.2), default=1.5, help="s each blackout lasts")
     w.add_argument("--links", default="edge", choices=["edge", "both"],
                    help="the profile applies to the edge's link only (operator on LAN) or to both links")
     w.add_argument("--loopback", action="store_true", help="do not use namespaces (relays on 127.0.0.1)")
     w.add_argument("--emulator", default="auto", choices=EMULATORS,
                    help="what adds delay, jitter and loss: the kernel's netem, the project's TCP relay, or auto "
                         "(netem where the kernel has it)")
-    w.add_argument("--long-blackout-s", type=float, nargs="*", default=[5.0],
+    w.add_argument("--long-blackout-s", type=cli_number(float, lo=0.2), nargs="*", default=[5.0],
                    help="extra blackouts longer than the Zenoh lease (sessions drop and must recover)")
 
     s = bsub.add_parser("scale", help="N robots and N operators through one router / a mesh of three")
     common(s, 15.0)
-    s.add_argument("--counts", type=int, nargs="+", default=[1, 5, 10, 20])
+    s.add_argument("--counts", type=cli_number(int, lo=1), nargs="+", default=[1, 5, 10, 20])
     s.add_argument("--topologies", nargs="+", default=["router", "mesh"], choices=["router", "mesh"])
-    s.add_argument("--per-process", type=int, default=10, help="operators (and light robots) per process")
+    s.add_argument("--per-process", type=cli_number(int, lo=1), default=10, help="operators (and light robots) per process")
     s.add_argument("--edges", default="light", choices=["light", "full"],
                    help="light: LightRobot stand-ins, several per process; full: one iorthand edge process each")
     s.add_argument("--operators", default="light", choices=["light", "client"],

@@ -1,0 +1,64 @@
+"""A user's mistake on the command line: one line that names what is wrong, a non-zero exit, no traceback."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from iorthand.config import ConfigError, cli_number, read_yaml
+from iorthand.transport import check_endpoint
+from tests.conftest import iorthand_cmd
+
+
+def test_numbers_on_the_command_line_are_checked_like_settings() -> None:
+    seconds = cli_number(float, lo=0.1, hi=600.0)
+    assert seconds("2.5") == 2.5
+    for text, why in (("0", "not within 0.1..600"), ("nan", "not within"), ("abc", "not a number")):
+        with pytest.raises(argparse.ArgumentTypeError, match=why):
+            seconds(text)
+    with pytest.raises(argparse.ArgumentTypeError, match="not a whole number"):
+        cli_number(int, lo=1)("1.5")
+
+
+def test_endpoints_need_a_protocol_a_host_and_a_port() -> None:
+    for good in ("tcp/127.0.0.1:7447", "tls/router.example.org:7447", "tcp/[::1]:7447", "tcp/0.0.0.0:7447#iface=eth0"):
+        check_endpoint(good)
+    for bad, why in (("nonsense", "must look like"), ("tcp/127.0.0.1:notaport", "'notaport' is not a port"),
+                     ("tcp/127.0.0.1:99999", "'99999' is not a port"), ("tcp/:7447", "must look like")):
+        with pytest.raises(ValueError, match=why):
+            check_endpoint(bad)
+
+
+def test_a_file_that_is_not_text_is_named(tmp_path: Path) -> None:
+    path = tmp_path / "binary.yaml"
+    path.write_bytes(b"\xff\xfe\x00bin")
+    with pytest.raises(ConfigError, match=r"binary\.yaml: <top level>: not UTF-8 text"):
+        read_yaml(path)
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(iorthand_cmd(*args), capture_output=True, text=True, timeout=60, cwd=cwd,
+                          stdin=subprocess.DEVNULL)
+
+
+@pytest.mark.parametrize(("args", "code", "said"), [
+    (["certs", "show", "nosuch.pem"], 1, "nosuch.pem: cannot read"),
+    (["certs", "password", "a:b", "--dir", "."], 1, "'a:b' is not a certificate name"),
+    (["certs", "init", "--dir", "ca", "--days", "0"], 2, "--days: '0' is not within 1..inf"),
+    (["report", "nosuchsession"], 1, "No such file or directory: 'nosuchsession/manifest.json'"),
+    (["operator", "--connect", "nonsense", "stop"], 2, "endpoint 'nonsense' must look like tcp/HOST:PORT"),
+    (["router", "--listen", "tcp/127.0.0.1:notaport"], 2, "'notaport' is not a port number"),
+    (["check", "--config", "binary.yaml"], 2, "not UTF-8 text"),
+    (["bench", "transports", "--duration", "0"], 2, "--duration: '0' is not within 1..inf"),
+    (["bench", "wan", "--profiles", "nosuch"], 2, "invalid choice: 'nosuch'"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+def test_mistakes_are_answered_in_one_line(tmp_path: Path, args: list[str], code: int, said: str) -> None:
+    (tmp_path / "binary.yaml").write_bytes(b"\xff\xfe\x00bin")
+    r = _run(*args, cwd=tmp_path)
+    assert (r.returncode, "Traceback" in r.stderr + r.stdout) == (code, False), r.stderr
+    assert said in r.stderr + r.stdout
+    assert not (tmp_path / "a:b.password").exists()  # a refused name writes nothing
+    assert not (tmp_path / "ca").exists()
