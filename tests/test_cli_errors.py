@@ -48,7 +48,8 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     (["certs", "show", "nosuch.pem"], 1, "nosuch.pem: cannot read"),
     (["certs", "password", "a:b", "--dir", "."], 1, "'a:b' is not a certificate name"),
     (["certs", "init", "--dir", "ca", "--days", "0"], 2, "--days: '0' is not within 1..inf"),
-    (["report", "nosuchsession"], 1, "No such file or directory: 'nosuchsession/manifest.json'"),
+    (["report", "nosuchsession"], 1, "nosuchsession is not a recorded session: it has no manifest.json"),
+    (["replay", "nosuchsession"], 1, "nosuchsession is not a recorded session"),  # before connecting (no router)
     (["operator", "--connect", "nonsense", "stop"], 2, "endpoint 'nonsense' must look like tcp/HOST:PORT"),
     (["router", "--listen", "tcp/127.0.0.1:notaport"], 2, "'notaport' is not a port number"),
     (["check", "--config", "binary.yaml"], 2, "not UTF-8 text"),

@@ -81,8 +81,10 @@ def _cmd_annotate(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
+    from iorthand_cloud.recorder.manifest import Manifest
     from iorthand_cloud.recorder.replay import Replayer
 
+    Manifest.read(Path(args.session))  # a wrong folder is said at once, not after connecting
     session = _session(args)
     try:
         try:

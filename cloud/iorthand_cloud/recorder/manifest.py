@@ -140,8 +140,11 @@ class Manifest:
 
     @classmethod
     def read(cls, folder: Path) -> Manifest:
-        with (folder / MANIFEST).open(encoding="utf-8") as f:
-            return cls.from_dict(json.load(f))
+        try:
+            with (folder / MANIFEST).open(encoding="utf-8") as f:
+                return cls.from_dict(json.load(f))
+        except FileNotFoundError:
+            raise FileNotFoundError(f"{folder} is not a recorded session: it has no {MANIFEST}") from None
 
 
 def iso(ns: int | None) -> str:
