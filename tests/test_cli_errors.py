@@ -46,7 +46,7 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
 
 @pytest.mark.parametrize(("args", "code", "said"), [
     (["certs", "show", "nosuch.pem"], 1, "nosuch.pem: cannot read"),
-    (["certs", "password", "a:b", "--dir", "."], 1, "'a:b' is not a certificate name"),
+    (["certs", "password", "a:b", "--dir", "."], 1, "certificate name 'a:b' is not a role"),
     (["certs", "init", "--dir", "ca", "--days", "0"], 2, "--days: '0' is not within 1..inf"),
     (["report", "nosuchsession"], 1, "nosuchsession is not a recorded session: it has no manifest.json"),
     (["replay", "nosuchsession"], 1, "nosuchsession is not a recorded session"),  # before connecting (no router)

@@ -112,6 +112,15 @@ def _san(hosts: list[str]) -> list[x509.GeneralName]:
     return out
 
 
+def check_name(name: str) -> None:
+    """A certificate's name, which is also its router user name: one of the roles, or CertError."""
+    if not ROLE_PATTERN.match(name):
+        raise CertError(
+            f"certificate name {name!r} is not a role: expected router, twin, recorder, replay, edge-<robot>, "
+            "operator-<name> or viewer-<name>"
+        )
+
+
 def issue(
     directory: Path,
     name: str,
@@ -124,11 +133,7 @@ def issue(
 
     ``hosts`` go into the subjectAltName (the router: its DNS names and IPs). Every certificate also carries
     its own name as a DNS SAN, which rustls needs even when names are not verified."""
-    if not ROLE_PATTERN.match(name):
-        raise CertError(
-            f"certificate name {name!r} is not a role: expected router, twin, recorder, replay, edge-<robot>, "
-            "operator-<name> or viewer-<name>"
-        )
+    check_name(name)
     ca_cert, ca_key = load_ca(Path(directory))
     out = Path(out_dir) if out_dir else Path(directory)
     key = ec.generate_private_key(ec.SECP256R1())

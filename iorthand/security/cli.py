@@ -39,9 +39,7 @@ def _show(args: argparse.Namespace) -> int:
 
 def _password(args: argparse.Namespace) -> int:
     """Create a random password for ``name``: a 0600 file for the role, a line in the router's dictionary."""
-    if not certs.ROLE_PATTERN.match(args.name):  # the router's user names are the certificates' names
-        raise certs.CertError(f"{args.name!r} is not a certificate name: expected router, twin, recorder, replay, "
-                              "edge-<robot>, operator-<name> or viewer-<name>")
+    certs.check_name(args.name)  # the router's user names are the certificates' names
     password = secrets.token_urlsafe(24)
     out = Path(args.out or Path(args.dir) / f"{args.name}.password")
     fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
