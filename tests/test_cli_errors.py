@@ -55,6 +55,9 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     (["check", "--config", "binary.yaml"], 2, "not UTF-8 text"),
     (["bench", "transports", "--duration", "0"], 2, "--duration: '0' is not within 1..inf"),
     (["bench", "wan", "--profiles", "nosuch"], 2, "invalid choice: 'nosuch'"),
+    (["export", "nosuchsession", "--start", "10", "--end", "5"], 2, "--end: 5 s is not after --start 10 s"),
+    (["calibrate", "render", "board", "--dictionary", "NOSUCH"], 2, "unknown ArUco dictionary 'NOSUCH'"),
+    (["calibrate", "render", "board", "--squares", "0", "0"], 2, "squares_x: expected at least 3, got 0"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_mistakes_are_answered_in_one_line(tmp_path: Path, args: list[str], code: int, said: str) -> None:
     (tmp_path / "binary.yaml").write_bytes(b"\xff\xfe\x00bin")
@@ -62,4 +65,4 @@ def test_mistakes_are_answered_in_one_line(tmp_path: Path, args: list[str], code
     assert (r.returncode, "Traceback" in r.stderr + r.stdout) == (code, False), r.stderr
     assert said in r.stderr + r.stdout
     assert not (tmp_path / "a:b.password").exists()  # a refused name writes nothing
-    assert not (tmp_path / "ca").exists()
+    assert not (tmp_path / "ca").exists() and not (tmp_path / "board").exists()

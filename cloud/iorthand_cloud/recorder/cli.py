@@ -13,7 +13,7 @@ import threading
 from pathlib import Path
 
 from iorthand import keys
-from iorthand.config import cli_number, from_dict, load
+from iorthand.config import ConfigError, cli_number, from_dict, load
 from iorthand.transport import ZenohConfig, client_config, open_session
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
 
@@ -142,6 +142,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     from iorthand_cloud.recorder.export import export_rrd
 
+    if args.start is not None and args.end is not None and args.end <= args.start:
+        raise ConfigError("command line", "--end", f"{args.end:g} s is not after --start {args.start:g} s")
     path, n = export_rrd(args.session, args.out, args.start, args.end, args.video_fps)
     print(f"exported {n} entries to {path}")
     return 0

@@ -33,6 +33,8 @@ from iorthand.geometry import (
     rotation_angle,
 )
 
+from .config import check_aruco_dictionary
+
 MIN_INTRINSICS_VIEWS = 10
 MIN_HANDEYE_POSES = 5
 RECOMMENDED_HANDEYE_POSES = 15
@@ -163,6 +165,11 @@ class TargetSpec:
     square: float = setting(0.03, lo=0.001, hi=1.0)
     marker: float = setting(0.022, lo=0.001, hi=1.0)  # ChArUco only
     dictionary: str = "DICT_4X4_50"
+
+    def check(self) -> None:
+        check_aruco_dictionary(self.dictionary)
+        if self.kind == "charuco" and self.marker >= self.square:
+            raise ValueError(f"marker ({self.marker:g} m) must be smaller than square ({self.square:g} m)")
 
     def describe(self) -> str:
         size = f"{self.squares_x}×{self.squares_y} squares of {self.square * 1000:g} mm"

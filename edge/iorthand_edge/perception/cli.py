@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import yaml
 
-from iorthand.config import ConfigError, cli_number, load, to_dict
+from iorthand.config import ConfigError, cli_number, from_dict, load, to_dict
 from iorthand.geometry import matrix_to_pose
 
 from .calibration import (
@@ -96,7 +96,10 @@ def _target_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _target(args: argparse.Namespace) -> TargetSpec:
-    return TargetSpec(args.target, args.squares[0], args.squares[1], args.square, args.marker, args.dictionary)
+    # Through the loader, so that the options get the checks the same settings get in a YAML file.
+    return from_dict({"kind": args.target, "squares_x": args.squares[0], "squares_y": args.squares[1],
+                      "square": args.square, "marker": args.marker, "dictionary": args.dictionary},
+                     TargetSpec, source="command line")
 
 
 def _refuse(reason: str) -> int:

@@ -107,6 +107,12 @@ CORNER_REFINEMENTS = {
 }
 
 
+def check_aruco_dictionary(name: str) -> None:
+    """One of OpenCV's predefined ArUco dictionaries, or ValueError naming it."""
+    if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
+        raise ValueError(f"unknown ArUco dictionary {name!r} (e.g. DICT_4X4_50, DICT_5X5_100)")
+
+
 @dataclass
 class DetectorConfig:
     dictionary: str = "DICT_4X4_50"
@@ -123,8 +129,7 @@ class DetectorConfig:
     ambiguity_ratio: float = setting(2.0, lo=1.0, hi=100.0)
 
     def check(self) -> None:
-        if not self.dictionary.startswith("DICT_") or not hasattr(cv2.aruco, self.dictionary):
-            raise ValueError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. DICT_4X4_50, DICT_5X5_100)")
+        check_aruco_dictionary(self.dictionary)
         if self.adaptive_window_max < self.adaptive_window_min:
             raise ValueError("adaptive_window_max must be at least adaptive_window_min")
 
