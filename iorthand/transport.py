@@ -349,8 +349,10 @@ def raise_priority(realtime: bool, native_id: int | None = None) -> str:
     if not realtime or not hasattr(os, "sched_setscheduler"):
         return "normal"
     try:
-        os.sched_setscheduler(threading.get_native_id() if native_id is None else native_id, os.SCHED_FIFO,
-                              os.sched_param(REALTIME_PRIORITY))
+        # SCHED_RESET_ON_FORK: a thread or process this thread starts (the UR driver, restarted by the control
+        # loop after a fault) begins at normal priority instead of inheriting real time.
+        os.sched_setscheduler(threading.get_native_id() if native_id is None else native_id,
+                              os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(REALTIME_PRIORITY))
         return "SCHED_FIFO"
     except (PermissionError, OSError) as exc:
         log.debug("thread stays at normal priority: %s", exc)
