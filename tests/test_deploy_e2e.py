@@ -127,8 +127,10 @@ def test_the_deployment_guide_installs_a_working_system(tmp_path: Path) -> None:
         os.makedirs(folder, exist_ok=True)
     driver = tmp_path / "deploy.sh"
     driver.write_text(script(tmp_path))
-    r = subprocess.run(["unshare", "--mount", "--net", "--pid", "--fork", "--mount-proc", "--propagation", "private",
-                        "bash", str(driver)], capture_output=True, text=True, timeout=300)
+    # --kill-child: if this test is stopped (a timeout kills unshare), the namespace's first process dies, and with
+    # it every process in the namespace.
+    r = subprocess.run(["unshare", "--mount", "--net", "--pid", "--fork", "--kill-child", "--mount-proc",
+                        "--propagation", "private", "bash", str(driver)], capture_output=True, text=True, timeout=200)
     logs = "".join(f"\n--- {p.name}\n{p.read_text()[-1500:]}" for p in sorted(tmp_path.glob("*.log")))
     assert r.returncode == 0 and "=== DONE" in r.stdout, f"{r.stdout[-4000:]}\n{r.stderr[-3000:]}{logs}"
     # iorthand check said OK of the router, twin, recorder, edge and operator configurations.
