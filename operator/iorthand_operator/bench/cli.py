@@ -199,7 +199,7 @@ def _run_all(args: argparse.Namespace) -> int:
         ("transports", {"duration": 6.0 if q else 30.0, "transports": list(TRANSPORTS_ALL), "sizes": ["small", "frame"],
                         "rounds": 2 if q else 3}),
         ("load", {"duration": 8.0 if q else 60.0, "fps": 30.0}),
-        ("wan", {"duration": 8.0 if q else 15.0, "profiles": ["lan", "5g", "4g", "poor", "blackout"],
+        ("wan", {"duration": 8.0 if q else 15.0, "profiles": list(PROFILES),
                  "trials": 5 if q else 20, "blackout_s": 1.5, "links": "edge", "loopback": False, "emulator": "auto",
                  "long_blackout_s": [] if q else [5.0]}),
         ("scale", {"duration": 8.0 if q else 15.0, "counts": [1, 5, 10, 20], "topologies": ["router"] if q else ["router", "mesh"],
@@ -236,16 +236,6 @@ def _run_all(args: argparse.Namespace) -> int:
 TRANSPORTS_ALL = ("zenoh-peer", "zenoh-router", "zenoh-chain2", "zenoh-chain3", "mqtt")
 
 
-def _microseconds(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of microseconds ≥ 0")
-    return value
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="latency benchmarks: transports, load, WAN profiles, scale (JSON + PNG)")
     bsub = p.add_subparsers(dest="bench", metavar="BENCHMARK", required=True)
@@ -256,7 +246,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         b.add_argument("--duration", type=cli_number(float, lo=1.0), default=duration, help="s measured per case")
         b.add_argument("--nice", type=int, default=0,
                        help="nice increment of every process started (e.g. -5 as root: shield from other load)")
-        b.add_argument("--cpu-latency-us", type=_microseconds, default=None, metavar="US",
+        b.add_argument("--cpu-latency-us", type=cli_number(int, lo=0), default=None, metavar="US",
                        help="hold a PM QoS request for the whole run (root): no CPU enters an idle state slower than "
                             "US µs to leave; 0 keeps idle CPUs polling, as a host tuned for latency would. "
                             "Default: the host as it is")
