@@ -24,7 +24,7 @@ import zenoh
 from iorthand import keys
 from iorthand.protocol import TwistCommand
 from iorthand.security.lab import make_lab
-from iorthand.transport import COMMAND, ZenohConfig, client_config, free_port, open_session, publisher, router_json5
+from iorthand.transport import ZenohConfig, client_config, free_port, open_session, publisher, router_json5
 
 
 class Pair:
@@ -33,7 +33,7 @@ class Pair:
         self.op = open_session(op_cfg)
         self.edge = open_session(edge_cfg)
         self.echo_pub = publisher(self.edge, k.key(keys.STATE_APPLIED))
-        self.cmd_pub = publisher(self.op, k.key(keys.CMD_TWIST), COMMAND)
+        self.cmd_pub = publisher(self.op, k.key(keys.CMD_TWIST))
         self.got = threading.Event()
         self.edge.declare_subscriber(k.key(keys.CMD_TWIST), lambda s: self.echo_pub.put(s.payload.to_bytes()))
         self.op.declare_subscriber(k.key(keys.STATE_APPLIED), lambda s: self.got.set())

@@ -36,6 +36,15 @@ ROLE_CONFIGS: dict[str, tuple[str, str]] = {
     "deployment": ("iorthand.security.acl", "Deployment"),
 }
 
+# What an edge or operator with bind_operator_keys off meets behind a router generated with it (the default).
+UNBOUND = {
+    "edge": "off on a secured link: behind a router generated with bind_operator_keys (the default) operators "
+            "command on .../cmd/<kind>/<their id>, which this edge does not listen to; and it cannot tell which "
+            "certificate sent a command, only the name in it",
+    "operator": "off on a secured link: a router generated with bind_operator_keys (the default) drops this "
+                "operator's commands and control queries on the plain keys",
+}
+
 
 @dataclasses.dataclass
 class Report:
@@ -166,8 +175,13 @@ def check_file(path: Path, role: str | None = None, router_config: Path | None =
         if obj.users_file is not None and not Path(obj.users_file).exists():
             rep.findings.append(Finding("error", str(obj.users_file), "user dictionary file does not exist"))
         return rep
+    sections = _zenoh_sections(obj)
+    if role in UNBOUND and getattr(obj, "bind_operator_keys", True) is False and any(
+        zc.tls is not None or zc.username for _, zc in sections
+    ):
+        rep.findings.append(Finding("warning", "bind_operator_keys", UNBOUND[role]))
     router_subjects = _subjects(_load_json5(Path(router_config))) if router_config else None
-    for where, zc in _zenoh_sections(obj):
+    for where, zc in sections:
         for f in precheck(zc):
             rep.findings.append(Finding(f.level, f"{where}: {f.subject}" if not f.subject.startswith("zenoh") else f.subject, f.message))
         if zc.tls is None and any(not ep.startswith(("tcp/127.", "tcp/localhost")) for ep in zc.connect):

@@ -9,34 +9,37 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+from iorthand import channels
+
 ROOT = "iorthand"
 ROBOT_ID_PATTERN = re.compile(r"^[a-z0-9_-]{1,64}$")
 OPERATOR_ID_PATTERN = re.compile(r"^[A-Za-z0-9_.@-]{1,64}$")
 
-# Suffixes under iorthand/<robot>/, named once.
-CMD_TWIST = "cmd/twist"
-CMD_SERVO = "cmd/servo"
-CMD_TORCH = "cmd/torch"
-CMD_STOP = "cmd/stop"
-STATE_ROBOT = "state/robot"
-STATE_SAFETY = "state/safety"
-STATE_APPLIED = "state/applied"
-STATE_FORCE = "state/force"
-STATE_FORCE_LEVEL = "state/force_level"
-STATE_SERVO = "state/servo"
-STATE_TORCH = "state/torch"
-MARKERS = "markers"
-VIDEO_CAMERA = "video/camera"
-VIDEO_ULTRASOUND = "video/ultrasound"
-CONTROL_ACQUIRE = "control/acquire"
-CONTROL_RELEASE = "control/release"
-CONTROL_ARM = "control/arm"
-CONTROL_POSES = "control/poses"
-CONTROL_GOTO = "control/goto"
-CONTROL_FORCE_ZERO = "control/force_zero"
-CONTROL_PREVIEW = "control/preview"  # edge queryable: plan a named pose, answer the verdict and a token
-ALIVE_EDGE = "alive/edge"
-ALIVE_OPERATOR = "alive/operator"
+# Suffixes under iorthand/<robot>/: each is a row of the table of channels, aliased here so that callers name
+# keys by keys.X.
+CMD_TWIST = channels.CMD_TWIST.suffix
+CMD_SERVO = channels.CMD_SERVO.suffix
+CMD_TORCH = channels.CMD_TORCH.suffix
+CMD_STOP = channels.CMD_STOP.suffix
+STATE_ROBOT = channels.STATE_ROBOT.suffix
+STATE_SAFETY = channels.STATE_SAFETY.suffix
+STATE_APPLIED = channels.STATE_APPLIED.suffix
+STATE_FORCE = channels.STATE_FORCE.suffix
+STATE_FORCE_LEVEL = channels.STATE_FORCE_LEVEL.suffix
+STATE_SERVO = channels.STATE_SERVO.suffix
+STATE_TORCH = channels.STATE_TORCH.suffix
+MARKERS = channels.MARKERS.suffix
+VIDEO_CAMERA = channels.VIDEO_CAMERA.suffix
+VIDEO_ULTRASOUND = channels.VIDEO_ULTRASOUND.suffix
+CONTROL_ACQUIRE = channels.CONTROL_ACQUIRE.suffix
+CONTROL_RELEASE = channels.CONTROL_RELEASE.suffix
+CONTROL_ARM = channels.CONTROL_ARM.suffix
+CONTROL_POSES = channels.CONTROL_POSES.suffix
+CONTROL_GOTO = channels.CONTROL_GOTO.suffix
+CONTROL_FORCE_ZERO = channels.CONTROL_FORCE_ZERO.suffix
+CONTROL_PREVIEW = channels.CONTROL_PREVIEW.suffix
+ALIVE_EDGE = channels.ALIVE_EDGE.suffix
+ALIVE_OPERATOR = channels.ALIVE_OPERATOR.suffix
 
 TWIN = "_twin"
 RECORDER = "_recorder"
@@ -126,13 +129,13 @@ def all_replays(suffix: str) -> str:
 
 
 # Every operator → robot command is a put under iorthand/<robot>/cmd/ (bound keys add /<operator>).
-ALL_COMMANDS = f"{ROOT}/*/cmd/**"
+ALL_COMMANDS = f"{ROOT}/*/{channels.COMMANDS}/**"
 
 
 def is_command_key(key: str) -> bool:
     """True for an operator → robot command key (``iorthand/<robot>/cmd/...``)."""
     try:
-        return split_key(key)[1].startswith("cmd/")
+        return split_key(key)[1].startswith(f"{channels.COMMANDS}/")
     except KeyExprError:
         return False
 

@@ -17,19 +17,21 @@ import threading
 import time
 import types
 import typing
-from collections.abc import Callable
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 from typing import Any, ClassVar, Self
 
 import msgpack
 
-from iorthand import keys
+from iorthand import channels, keys
 
 MAX_PAYLOAD = 64 * 1024  # default size limit of one message, bytes
 MAX_VIDEO_PAYLOAD = 8 * 1024 * 1024
 _MAX_INT = 2**63 - 1
 _FAR_FUTURE_NS = 2**62  # about year 2116: any later source time is garbage
+MAC_MAX = 32  # bytes of a command's signature field (iorthand.security.auth uses 16)
 
 
 class DecodeError(ValueError):
@@ -283,24 +285,37 @@ class Sequencer:
 
 
 class RejectCounter:
-    """Counts rejected payloads per key; keeps the last reason for each key (to show and log once)."""
+    """Counts rejected payloads, in total and per key; keeps the last reason for each key (to show and log once).
 
-    def __init__(self) -> None:
+    The key is the sender's choice: an attacker who publishes on ``cmd/twist/<random>`` makes a new one with
+    every message, and a table with a row per key grows for as long as the flood lasts (and never shrinks).
+    So only the ``max_keys`` keys rejected most recently keep a row; ``total`` counts every reject, also those
+    of keys whose row was dropped."""
+
+    def __init__(self, max_keys: int = 256, max_reason: int = 200) -> None:
         self._lock = threading.Lock()
-        self.counts: dict[str, int] = {}
+        self.max_keys = max_keys
+        self.max_reason = max_reason
+        self.counts: OrderedDict[str, int] = OrderedDict()  # least recently rejected first
         self.last_reason: dict[str, str] = {}
+        self._total = 0
 
     def add(self, key: str, reason: str) -> int:
+        """Count one reject on ``key``; returns how many that key has had while it kept its row."""
         with self._lock:
-            n = self.counts.get(key, 0) + 1
+            self._total += 1
+            n = self.counts.pop(key, 0) + 1
             self.counts[key] = n
-            self.last_reason[key] = reason
+            self.last_reason[key] = reason[: self.max_reason]
+            while len(self.counts) > self.max_keys:
+                oldest, _ = self.counts.popitem(last=False)
+                del self.last_reason[oldest]
             return n
 
     @property
     def total(self) -> int:
         with self._lock:
-            return sum(self.counts.values())
+            return self._total
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -318,28 +333,50 @@ class ForceLevel(IntEnum):
 FORCE_LEVEL_COLOURS = {ForceLevel.SAFE: "green", ForceLevel.CAUTION: "yellow", ForceLevel.DANGER: "red"}
 
 
-class Status:
-    """Supervisor status codes: one for every state and every reason a command is refused or motion halts."""
+class Status(StrEnum):
+    """Supervisor status codes: one for every state and every reason a command is refused or motion halts.
 
-    OK = "ok"
-    IDLE = "idle"
-    DISARMED = "disarmed"
-    NOT_OWNER = "not_owner"
-    NO_DEADMAN = "deadman_released"
-    COMMAND_TIMEOUT = "command_timeout"
-    STALE_COMMAND = "stale_command"
-    OUT_OF_ORDER = "out_of_order"
-    SPEED_LIMITED = "speed_limited"
-    ACCEL_LIMITED = "accel_limited"
-    WORKSPACE = "workspace_limit"
-    FORCE_CAUTION = "force_caution"
-    FORCE_DANGER = "force_danger"
-    FORCE_STALE = "force_stale"
-    STOPPED = "stopped"
-    FAULT = "fault"
-    MALFORMED = "malformed"
-    OWNER_LOST = "owner_lost"
-    NOT_ALLOWED = "operator_not_allowed"
+    Each member is its wire string (``Status.OK == "ok"``) and carries ``message``, what it means to an
+    operator; ``halts`` says whether the robot is held stopped in that state (a previewed move ends there)."""
+
+    def __new__(cls, value: str, message: str, halts: bool = False) -> Status:
+        member = str.__new__(cls, value)
+        member._value_ = value
+        member.message = message  # type: ignore[attr-defined]
+        member.halts = halts  # type: ignore[attr-defined]
+        return member
+
+    message: str
+    halts: bool
+
+    OK = "ok", "moving as commanded"
+    IDLE = "idle", "armed, waiting for an operator's command"
+    DISARMED = "disarmed", "not armed: arming is confirmed on the robot's side", True
+    NOT_OWNER = "not_owner", "the command does not come from the session that holds control"
+    NO_DEADMAN = "deadman_released", "the deadman is released: no motion"
+    COMMAND_TIMEOUT = "command_timeout", "no fresh command within the timeout: the robot stopped", True
+    STALE_COMMAND = "stale_command", "the command is too old (or from the future: check clock sync)"
+    OUT_OF_ORDER = "out_of_order", "the command's sequence is not after the last one, or jumps absurdly"
+    SPEED_LIMITED = "speed_limited", "the speed was clipped to the profile's limit"
+    WORKSPACE = "workspace_limit", "velocity leaving the workspace box was removed"
+    FORCE_CAUTION = "force_caution", "caution-level force: the approach is slowed"
+    FORCE_DANGER = "force_danger", "danger-level force: motion pressing harder removed", True
+    FORCE_STALE = "force_stale", "the force sensor is silent: motion toward contact refused", True
+    STOPPED = "stopped", "stopped: release the deadman and press it again to move", True
+    FAULT = "fault", "a robot fault: the robot stopped", True
+    OWNER_LOST = "owner_lost", "the owner's session was lost: acquire control again", True
+    NOT_ALLOWED = "operator_not_allowed", "this operator may not command this robot"
+    LINK_GAP = "link_gap", "commands resumed after a long gap: release the deadman and press it again", True
+    STALE_VIEW = "stale_view", "the operator's picture of the robot is too old to act on", True
+
+    @classmethod
+    def halting(cls, code: str) -> bool:
+        """Whether a status code from the wire holds the robot stopped (an unknown code counts as one: a newer
+        edge's new reason to stop must not read as all clear)."""
+        try:
+            return cls(code).halts
+        except ValueError:
+            return True
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -354,10 +391,14 @@ class TwistCommand(Message):
     """Operator → edge at a fixed rate: tool velocity in the base frame, with the deadman flag."""
 
     KEY: ClassVar[str] = keys.CMD_TWIST
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"state_age", "mac"})
     operator: str = spec("", max_len=64)
     linear: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # m/s
     angular: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # rad/s
     deadman: bool = False
+    # Age (s) of the newest robot state the operator's screen showed when this was sent; -1: none seen yet.
+    state_age: float = spec(-1.0, lo=-1.0, hi=1e9)
+    mac: bytes = spec(b"", max_len=MAC_MAX)  # iorthand.security.auth: signed with the key of the acquire
 
 
 @dataclass(kw_only=True)
@@ -372,17 +413,21 @@ class ServoCommand(Message):
     """Absolute pan/tilt angles (rad). A missing axis (None) keeps its current target."""
 
     KEY: ClassVar[str] = keys.CMD_SERVO
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac"})
     operator: str = spec("", max_len=64)
     pan: float | None = spec(None, lo=-2 * math.pi, hi=2 * math.pi)
     tilt: float | None = spec(None, lo=-2 * math.pi, hi=2 * math.pi)
+    mac: bytes = spec(b"", max_len=MAC_MAX)
 
 
 @dataclass(kw_only=True)
 class TorchCommand(Message):
     KEY: ClassVar[str] = keys.CMD_TORCH
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac"})
     operator: str = spec("", max_len=64)
     on: bool = False
     brightness: float = spec(1.0, lo=0.0, hi=1.0)
+    mac: bytes = spec(b"", max_len=MAC_MAX)
 
 
 @dataclass(kw_only=True)
@@ -422,6 +467,7 @@ class SafetyStatus(Message):
     """Edge → all at 20 Hz and on change: the supervisor's state and why it is what it is."""
 
     KEY: ClassVar[str] = keys.STATE_SAFETY
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"forged"})
     armed: bool = False
     arm_requested: bool = False
     owner: str = spec("", max_len=64)
@@ -441,6 +487,7 @@ class SafetyStatus(Message):
     malformed: int = spec(0, lo=0)
     superseded: int = spec(0, lo=0)  # twists dropped unread: newer ones queued behind them while the edge was busy
     stops: int = spec(0, lo=0)
+    forged: int = spec(0, lo=0)  # commands in the owner's name without the owner's signature, refused unanswered
 
 
 def superseded_news(before: int, now: int) -> str | None:
@@ -546,21 +593,27 @@ def source_news(what: str, before: str, now: str) -> str | None:
 
 @dataclass(kw_only=True)
 class ControlRequest(Message):
-    """Payload of a ``control/*`` query."""
+    """Payload of a ``control/*`` query. The owner's requests (renewing, releasing, moving to a pose, zeroing the
+    force sensor) are signed with the key its acquire returned (``mac``); a first acquire is not."""
 
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac"})
     operator: str = spec("", max_len=64)
     profile: str = spec("", max_len=32)  # acquire: the speed profile asked for ("" = the edge's default)
     name: str = spec("", max_len=64)  # goto/preview: the named pose
     token: str = spec("", max_len=128)  # goto: the preview token
+    mac: bytes = spec(b"", max_len=MAC_MAX)
 
 
 @dataclass(kw_only=True)
 class ControlReply(Message):
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"key"})
     ok: bool = False
     reason: str = spec("", max_len=200)
     owner: str = spec("", max_len=64)
     lease: float = spec(0.0, lo=0.0)
     detail: str = spec("", max_len=4096)  # JSON text for richer answers (pose lists, previews)
+    # acquire: the secret that signs this owner's commands. A query's reply goes to the querier alone.
+    key: bytes = spec(b"", max_len=MAC_MAX * 2)
 
 
 @dataclass(kw_only=True)
@@ -671,25 +724,20 @@ class TwinSnapshot(Message):
     events: list[str] = spec(default_factory=list, max_len=200)  # latest safety events, newest last (≤ 200 chars each)
 
 
-MESSAGES_BY_KEY: dict[str, type[Message]] = {
-    m.KEY: m
-    for m in (
-        TwistCommand,
-        StopCommand,
-        ServoCommand,
-        TorchCommand,
-        RobotState,
-        AppliedCommand,
-        SafetyStatus,
-        ForceSample,
-        ForceLevelState,
-        ServoState,
-        TorchState,
-        Markers,
-    )
-}
-MESSAGES_BY_KEY[keys.VIDEO_CAMERA] = VideoFrame
-MESSAGES_BY_KEY[keys.VIDEO_ULTRASOUND] = VideoFrame
+def message_class(name: str) -> type[Message]:
+    """A message class of this module by its name (the table of channels names them: it imports nothing)."""
+    cls = globals().get(name)
+    if not (isinstance(cls, type) and issubclass(cls, Message)):
+        raise LookupError(f"{name!r} is not a message class of iorthand.protocol")
+    return cls
+
+
+def messages_by_key(table: Iterable[channels.Channel] = channels.TABLE) -> dict[str, type[Message]]:
+    """The decoder of every stream of the table of channels, by key suffix (puts: what is recorded and replayed)."""
+    return {c.suffix: message_class(c.message) for c in table if c.kind is channels.Kind.PUT}
+
+
+MESSAGES_BY_KEY: dict[str, type[Message]] = messages_by_key()
 
 
 def message_type_for(key: str) -> type[Message] | None:

@@ -2,7 +2,8 @@
 
 :func:`open_session` builds a session for ``router``, ``client`` or ``peer`` mode from a :class:`ZenohConfig`
 (endpoints, lease, scouting off by default) and retries with back-off while no router answers. The QoS of
-every key is decided once, in :data:`QOS_BY_KEY`; :func:`publisher` applies it.
+every key is a column of the table of channels (:mod:`iorthand.channels`), looked up in :data:`QOS_BY_KEY`;
+:func:`publisher` applies it.
 
 Zenoh's Python callbacks share one receive path per session: a slow callback stalls every subscriber of the
 session. So callbacks here only hand data over (:class:`Inbox`), and work happens in named worker threads.
@@ -17,15 +18,16 @@ import re
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from iorthand import keys
+from iorthand import channels, keys
 from iorthand.config import ConfigError, setting
+from iorthand.protocol import MAX_PAYLOAD, MAX_VIDEO_PAYLOAD, RejectCounter
 
 log = logging.getLogger(__name__)
 
@@ -44,23 +46,23 @@ SAFETY = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.BLO
 DATA = QosProfile(zenoh.Priority.DATA, zenoh.CongestionControl.DROP)
 VIDEO = QosProfile(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP)
 
-# The QoS of every key suffix of DESIGN.md, in one place.
-QOS_BY_KEY: dict[str, QosProfile] = {
-    keys.CMD_TWIST: COMMAND,
-    keys.CMD_SERVO: CONTROL,
-    keys.CMD_TORCH: CONTROL,
-    keys.CMD_STOP: CONTROL,
-    keys.STATE_ROBOT: STATE,
-    keys.STATE_APPLIED: COMMAND,  # the command's echo: its own leg of the command path, at the command's priority
-    keys.STATE_SAFETY: SAFETY,
-    keys.STATE_FORCE: STATE,
-    keys.STATE_FORCE_LEVEL: SAFETY,
-    keys.STATE_SERVO: DATA,
-    keys.STATE_TORCH: DATA,
-    keys.MARKERS: DATA,
-    keys.VIDEO_CAMERA: VIDEO,
-    keys.VIDEO_ULTRASOUND: VIDEO,
+# What each QoS profile named by the table of channels is on the wire.
+QOS_PROFILES: dict[channels.Qos, QosProfile] = {
+    channels.Qos.COMMAND: COMMAND,
+    channels.Qos.CONTROL: CONTROL,
+    channels.Qos.STATE: STATE,
+    channels.Qos.SAFETY: SAFETY,
+    channels.Qos.DATA: DATA,
+    channels.Qos.VIDEO: VIDEO,
 }
+
+
+def qos_by_key(table: Iterable[channels.Channel] = channels.TABLE) -> dict[str, QosProfile]:
+    """The QoS of every stream of the table of channels, by key suffix."""
+    return {c.suffix: QOS_PROFILES[c.qos] for c in table if c.qos is not None}
+
+
+QOS_BY_KEY: dict[str, QosProfile] = qos_by_key()
 
 
 @dataclass
@@ -124,6 +126,15 @@ def zenoh_config(cfg: ZenohConfig, entries: dict[str, Any] | None = None) -> zen
     return zc
 
 
+# The largest message a client or peer session accepts from the network (Zenoh's default: 1 GiB). Zenoh drops
+# a larger one while it reassembles the fragments, so it is never held whole, and the link and everything else
+# on it carry on. None of our messages is larger than a video frame; the headroom is the key and Zenoh's
+# headers. Only what a session receives is limited: it still sends messages of any size. A role that receives
+# commands alone sets a smaller one in ``extra`` (the edge: iorthand_edge.config.EDGE_RX_MAX_MESSAGE).
+RX_MAX_MESSAGE_KEY = "transport/link/rx/max_message_size"
+RX_MAX_MESSAGE = MAX_VIDEO_PAYLOAD + MAX_PAYLOAD
+
+
 def zenoh_entries(cfg: ZenohConfig) -> dict[str, Any]:
     entries: dict[str, Any] = {
         "mode": cfg.mode,
@@ -133,6 +144,7 @@ def zenoh_entries(cfg: ZenohConfig) -> dict[str, Any]:
     }
     if cfg.mode != "router":
         entries["scouting/gossip/enabled"] = False
+        entries[RX_MAX_MESSAGE_KEY] = RX_MAX_MESSAGE  # a router forwards its sites' messages, whatever they are
     if cfg.connect:
         entries["connect/endpoints"] = list(cfg.connect)
     if cfg.listen:
@@ -267,7 +279,8 @@ class Inbox:
     ``keep="newest"`` drops the oldest items when full (streams: only the latest matters); ``keep="oldest"``
     refuses new items when full (nothing already queued is lost). Full means ``maxlen`` items, or, with
     ``max_bytes``, that many payload bytes (as given to :meth:`put`): a count alone lets a queue of video
-    frames grow to gigabytes while a writer stalls. Dropped items are counted.
+    frames grow to gigabytes while a writer stalls. Dropped items are counted, and so are items refused before
+    they were queued (:meth:`refuse`: too large to take at all), with the last reason.
     """
 
     def __init__(self, maxlen: int = 256, keep: str = "newest", max_bytes: int | None = None) -> None:
@@ -280,7 +293,15 @@ class Inbox:
         self._cond = threading.Condition()
         self.nbytes = 0
         self.dropped = 0
+        self.refused = 0
+        self.last_refusal = ""
         self.closed = False
+
+    def refuse(self, reason: str) -> None:
+        """Count an item that was refused before it reached the queue, and why."""
+        with self._cond:
+            self.refused += 1
+            self.last_refusal = reason
 
     def _full(self, nbytes: int) -> bool:
         if len(self._items) >= self._maxlen:
@@ -328,11 +349,25 @@ class Inbox:
         return len(self._items)
 
 
-def subscribe(session: zenoh.Session, key: str, inbox: Inbox) -> zenoh.Subscriber:
-    """Subscribe ``key``; the callback only queues ``(key, payload bytes, receive time ns)``."""
+def subscribe(session: zenoh.Session, key: str, inbox: Inbox, max_payload: int = MAX_PAYLOAD,
+              rejects: RejectCounter | None = None) -> zenoh.Subscriber:
+    """Subscribe ``key``; the callback only queues ``(key, payload bytes, receive time ns)``, with the payload's
+    size for the inbox's ``max_bytes``.
+
+    A payload larger than ``max_payload`` (a command's limit by default) is refused in the callback, before it
+    is copied out of Zenoh's buffers, with a reason that names its size: counted by the inbox
+    (:meth:`Inbox.refuse`) and in ``rejects``. Copied first, each one is a Python object of its size that the
+    decoder refuses anyway, and a queue of them holds its maxlen times that size."""
 
     def on_sample(sample: zenoh.Sample) -> None:
-        inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+        size = len(sample.payload)
+        if size > max_payload:
+            reason = f"payload of {size} bytes exceeds the limit of {max_payload} bytes"
+            inbox.refuse(reason)
+            if rejects is not None:
+                rejects.add(str(sample.key_expr), reason)
+            return
+        inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()), size)
 
     return session.declare_subscriber(key, on_sample)
 
@@ -449,7 +484,10 @@ def router_settings(listen: list[str], connect: list[str] | None = None, lease_m
         "mode": "router",
         "listen": {"endpoints": list(listen)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": {"tx": {"lease": lease_ms, "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}}},
+        # rx: nothing legitimate is larger than a video frame; Zenoh's default (1 GiB) lets one sender make the
+        # router reassemble and forward gigabytes.
+        "transport": {"link": {"tx": {"lease": lease_ms, "queue": {"size": dict(ROUTER_QUEUE_SIZE)}},
+                               "rx": {"max_message_size": RX_MAX_MESSAGE}}},
     }
     if not shared_memory:
         cfg["transport"]["shared_memory"] = {"enabled": False}
@@ -470,6 +508,7 @@ def client_config(endpoint: str, **overrides: Any) -> ZenohConfig:
 __all__ = [
     "COMMAND",
     "QOS_BY_KEY",
+    "QOS_PROFILES",
     "ConnectError",
     "Inbox",
     "QosProfile",

@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # System packages some tests use: Chromium (the twin's browser test), nftables (WAN blackouts), mosquitto
-# (the MQTT baseline), shellcheck (the deployment scripts). Installed with apt when we are root; otherwise those
-# tests skip and say why.
+# (the MQTT baseline), shellcheck (the deployment scripts), stress-ng (the CPU hogs of benchmarks/bench_cpu_hogs.py).
+# Installed with apt when we are root; otherwise those tests skip and say why.
 set -u
 need=()
 command -v chromium >/dev/null 2>&1 || need+=(chromium)
 command -v nft >/dev/null 2>&1 || need+=(nftables)
 command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || need+=(mosquitto)
 command -v shellcheck >/dev/null 2>&1 || need+=(shellcheck)
+command -v stress-ng >/dev/null 2>&1 || need+=(stress-ng)
 [ ${#need[@]} -eq 0 ] && exit 0
 if [ "$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1; then
   echo "install-test-deps: not root or no apt-get: ${need[*]} not installed; the tests that need them will skip" >&2

@@ -13,6 +13,7 @@ import pytest
 
 from iorthand import keys
 from iorthand.protocol import DecodeError, ServoCommand, ServoState, TorchCommand, TorchState
+from iorthand.security import auth
 from iorthand_edge.actuators import (
     ActuatorError,
     PCA9685DriverConfig,
@@ -217,8 +218,15 @@ def test_servo_and_torch_commands_through_the_router(edge_factory, operator_fact
     # Not the owner: refused and reported.
     pub_servo.put(ServoCommand(operator="op1", pan=0.5).stamp(1).encode())
     wait_until(lambda: any("refused" in m.reason for m in states["servo"]), message="refusal on state/servo")
-    op.acquire()
-    pub_servo.put(ServoCommand(operator="op1", pan=math.radians(250), tilt=math.radians(30)).stamp(2).encode())
+    key = op.acquire().key  # the grant's key: the edge acts only on commands signed with it
+    # The owner's name alone is not enough: unsigned, or signed with another key, it is refused.
+    pub_servo.put(ServoCommand(operator="op1", pan=0.5).stamp(1).encode())
+    pub_servo.put(auth.sign(b"k" * 32, auth.context("sim1", keys.CMD_SERVO), ServoCommand(operator="op1", pan=0.5).stamp(1)).encode())
+    wait_until(lambda: sum("not signed by the session" in m.reason for m in states["servo"]) >= 2,
+               message="refusal of the unsigned and the wrongly signed command")
+    assert agent.servos.servo_angles_at(2**62)[0] == pytest.approx(HOME)
+    servo = ServoCommand(operator="op1", pan=math.radians(250), tilt=math.radians(30)).stamp(2)
+    pub_servo.put(auth.sign(key, auth.context("sim1", keys.CMD_SERVO), servo).encode())
     wait_until(lambda: any(m.clamped and "clamped to 180.0°" in m.reason for m in states["servo"]), message="clamp report")
     wait_until(lambda: abs(agent.servos.servo_angles_at(2**62)[0] - math.pi) < 1e-9, message="servo at 180°")
     assert agent.servos.servo_angles_at(2**62)[1] == pytest.approx(math.radians(30))
@@ -229,7 +237,8 @@ def test_servo_and_torch_commands_through_the_router(edge_factory, operator_fact
     wait_until(lambda: any("ServoCommand.pan: must be finite" in m.reason for m in states["servo"]), message="NaN rejection")
     assert agent.rejects.counts.get(k.key(keys.CMD_SERVO)) == 1
 
-    pub_torch.put(TorchCommand(operator="op1", on=True, brightness=1.0).stamp(4).encode())
+    torch = TorchCommand(operator="op1", on=True, brightness=1.0).stamp(4)
+    pub_torch.put(auth.sign(key, auth.context("sim1", keys.CMD_TORCH), torch).encode())
     wait_until(lambda: any(m.on and m.brightness == pytest.approx(0.8) for m in states["torch"]), message="torch on")
     assert agent.torch.driver.driver.levels[2] == pytest.approx(0.8)
     assert agent.supervisor.status != "stopped"  # neither command was taken for a stop

@@ -80,3 +80,32 @@ def test_an_edge_nothing_can_arm_is_a_warning(tmp_path: Path) -> None:
     assert not [f for f in check_file(path).findings if "arming" in f.message]
     path.write_text(yaml.safe_dump({**base, "safety": {"auto_arm": True}}))
     assert not [f for f in check_file(path).findings if "arming" in f.message]
+
+
+def test_bind_operator_keys_off_behind_security_is_a_warning(lab: Lab, tmp_path: Path) -> None:
+    # The generated router binds operators' command keys by default: an edge or an operator that does not use
+    # them on a secured link cannot work with it, and a deployment without them trusts the name in a command.
+    edge = _edge_yaml(lab, tmp_path / "edge.yaml")
+    operator = tmp_path / "operator.yaml"
+    operator.write_text(yaml.safe_dump({
+        "operator_id": "alice", "robot": "sim1",
+        "zenoh": {"connect": [lab.endpoint], "tls": {"root_ca": str(lab.directory / "ca.pem"),
+                  "certificate": str(lab.directory / "operator-alice.pem"),
+                  "private_key": str(lab.directory / "operator-alice.key")}},
+    }))
+
+    def unbound(path: Path, data: dict, **overrides: object) -> list[str]:
+        path.write_text(yaml.safe_dump({**data, **overrides}))
+        return [f.level for f in check_file(path).findings if f.subject == "bind_operator_keys"]
+
+    for path in (edge, operator):
+        data = yaml.safe_load(path.read_text())
+        assert unbound(path, data) == ["warning"], path.name  # the edge's and the operator's default: an open router
+        assert unbound(path, data, bind_operator_keys=True) == []
+        assert unbound(path, data, zenoh={"connect": ["tcp/127.0.0.1:7447"]}) == []  # no security: nothing to bind to
+    dep = tmp_path / "deployment.yaml"
+    base = {"certs_dir": str(lab.directory), "robots": ["sim1"], "operators": {"alice": ["sim1"]}}
+    dep.write_text(yaml.safe_dump(base))
+    assert [f.subject for f in check_file(dep).findings if f.level == "warning"] == []  # bound by default
+    dep.write_text(yaml.safe_dump({**base, "bind_operator_keys": False}))
+    assert [f.subject for f in check_file(dep).findings if f.level == "warning"] == ["bind_operator_keys"]

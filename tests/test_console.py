@@ -11,7 +11,7 @@ import pytest
 from textual import events
 
 from iorthand import keys
-from iorthand.protocol import ForceLevelState
+from iorthand.protocol import ForceLevelState, TwistCommand
 from iorthand.transport import publisher
 from iorthand_operator.console.app import OperatorConsole
 from iorthand_operator.console.controller import ConsoleController
@@ -181,21 +181,30 @@ def test_a_camera_that_cannot_open_is_shown_with_its_reason(edge_factory, operat
     assert "/nonexistent/video9" in news[0].reason and "the edge retries" in news[0].reason
 
 
-def test_refused_control_shows_the_reason(edge_factory, operator_factory) -> None:
+def test_refused_control_shows_the_reason(edge_factory, operator_factory, session_factory) -> None:
     from iorthand_operator.client import ControlRefused
 
-    edge_factory(safety={"auto_arm": True, "allowed_operators": ["someone_else"]})
+    edge = edge_factory(safety={"auto_arm": True, "allowed_operators": ["someone_else"]})
     client, ctrl, app = _console(operator_factory)
     client.wait_for_state()
     with pytest.raises(ControlRefused):
         client.acquire()
     client.start()
     ctrl.start()
+    pub = publisher(session_factory(), keys.RobotKeys("sim1").key(keys.CMD_TWIST))
 
     async def run() -> str:
         async with app.run_test(size=(160, 50)) as pilot:
+            rejects = edge.rejects.total  # the refused acquire
             await _key(app, "space")
-            await _key(app, "w")  # the edge refuses these: not the owner
+            await _key(app, "w")
+            # Without a grant (no key to sign with) the client sends no command at all: nothing reaches the edge.
+            await asyncio.sleep(0.3)
+            assert client.sent_count == 0 and edge.supervisor.counters.received == 0 and edge.rejects.total == rejects
+            # A command in op1's name from elsewhere: the edge refuses it and answers in op1's name; the console
+            # shows that refusal too.
+            cmd = TwistCommand(operator="op1", linear=[0.005, 0.0, 0.0], deadman=True, state_age=0.02).stamp(1)
+            pub.put(cmd.encode())
             await _wait(lambda: any(e.kind == "refused" for e in client.events), 3.0, "a refusal")
             await pilot.pause(0.3)
             log = app.query_one("#events")

@@ -84,7 +84,8 @@ def test_markers_are_published_in_the_base_frame_and_servos_do_not_move_them(
     # Markers in view can be moved above; once the camera stalls, their poses age out and no move may aim
     # at where the patient was (goto.marker_max_age, 0.5 s by default).
     assert {"above_marker:3", "above_marker:7", "above_marker:11"} <= {p["name"] for p in op.list_poses()}
-    edge.perception.stop()  # the camera stalls: no frames, no news
+    assert edge.media is not None
+    edge.media.stop()  # the camera (in the media process) stalls: no frames, no news
     time.sleep(edge.config.goto.marker_max_age + 0.1)
     assert not [p["name"] for p in op.list_poses() if p["name"].startswith("above_marker:")]
     stale = op.preview_pose("above_marker:3")

@@ -12,6 +12,7 @@ import pytest
 
 from iorthand import keys
 from iorthand.protocol import ControlReply, ControlRequest, ForceLevelState, ForceSample, SafetyStatus, Status
+from iorthand.security import auth
 from iorthand.transport import query
 from tests.conftest import wait_until
 
@@ -120,9 +121,12 @@ def test_press_levels_reaction_retreat_and_stale(edge_factory, operator_factory,
     op.set_twist([0, 0, 0], [0, 0, 0], deadman=False)
 
 
-def _zero(session, operator: str) -> ControlReply:
-    payload = ControlRequest(operator=operator).stamp(1).encode()
-    return ControlReply.decode(query(session, keys.RobotKeys("sim1").key(keys.CONTROL_FORCE_ZERO), payload)[0])
+def _zero(session, operator: str, key: bytes = b"", seq: int = 1) -> ControlReply:
+    """A force-zero request, signed with ``key`` (the owner's grant) when given."""
+    req = ControlRequest(operator=operator).stamp(seq)
+    if key:
+        auth.sign(key, auth.context("sim1", keys.CONTROL_FORCE_ZERO), req)
+    return ControlReply.decode(query(session, keys.RobotKeys("sim1").key(keys.CONTROL_FORCE_ZERO), req.encode())[0])
 
 
 def test_zeroing_on_request_only_by_the_owner_and_out_of_contact(edge_factory, operator_factory) -> None:
@@ -131,15 +135,18 @@ def test_zeroing_on_request_only_by_the_owner_and_out_of_contact(edge_factory, o
     op.wait_for_state()
     wait_until(lambda: not agent.force.state.stale, message="fresh sensor")
     assert not _zero(op.session, "op1").ok  # not the owner
-    op.acquire()
+    key = op.acquire().key
     biased = np.array(agent.force.last_wrench)
     assert abs(biased[2]) > 0.3  # the configured bias shows before zeroing
-    reply = _zero(op.session, "op1")
+    reply = _zero(op.session, "op1")  # the owner's name without its grant's signature
+    assert not reply.ok and "not signed" in reply.reason
+    assert abs(agent.force.last_wrench[2]) > 0.3
+    reply = _zero(op.session, "op1", key, seq=1)
     assert reply.ok, reply.reason
     wait_until(lambda: abs(agent.force.last_wrench[2]) < 0.15, message="zeroed reading")
     agent.robot.teleport([0.30, 0.0, SURFACE - 0.0018, np.pi, 0.0, 0.0])  # 7.2 N into the phantom
     wait_until(lambda: agent.force.state.level == 1, message="caution")
-    reply = _zero(op.session, "op1")
+    reply = _zero(op.session, "op1", key, seq=2)
     assert not reply.ok and "contact" in reply.reason
 
 

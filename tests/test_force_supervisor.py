@@ -16,7 +16,8 @@ from iorthand_edge.force.monitor import ForceMonitor
 from iorthand_edge.force.sensors import ForceSensor, WrenchSample
 from iorthand_edge.robots.config import SimRobotConfig
 from iorthand_edge.robots.sim import SimRobot
-from iorthand_edge.supervisor import ForceReaction, SafetyConfig, Supervisor
+from iorthand_edge.supervisor import Action, ForceReaction, SafetyConfig, Supervisor
+from tests.grants import Grants
 
 START = [0.30, 0.0, 0.20, math.pi, 0.0, 0.0]  # tool pointing down: pressing is −z in the base frame
 PHANTOM = PhantomConfig(surface_z=0.199, stiffness=2000.0, damping=20.0)
@@ -40,15 +41,17 @@ class Rig:
         self.twist_cmd = np.zeros(6)
         self.deadman = False
         self.sensor_on = True
-        self.sv.acquire("op", self.t)
+        self.grants = Grants()
+        assert self.grants.acquire(self.sv, "op", self.t)[0]
 
     def depth(self) -> float:
         return PHANTOM.depth(self.reading.tcp_pose)
 
     def drive(self, decision) -> None:
-        if np.any(decision.twist):
+        """The supervisor's action, carried out as the agent does (every decision: its action says what to do)."""
+        if decision.action == Action.MOVE:
             self.commanded = self.robot.send_twist(decision.twist, self.safety.max_linear_acceleration)
-        elif np.any(self.commanded):
+        elif decision.action == Action.STOP:
             self.robot.stop(self.safety.stop_deceleration)
             self.commanded = np.zeros(6)
 
@@ -71,11 +74,12 @@ class Rig:
                 self.on_level((self.tracker.level, self.tracker.stale(self.t - 0.01)))
             if ms % 17 == 0:  # operator at ~60 Hz
                 self.seq += 1
-                cmd = TwistCommand(operator="op", linear=self.twist_cmd[:3], angular=self.twist_cmd[3:], deadman=self.deadman)
+                # The operator's screen shows the control loop's latest state (at most one 8 ms cycle old).
+                cmd = TwistCommand(operator="op", linear=self.twist_cmd[:3], angular=self.twist_cmd[3:], deadman=self.deadman,
+                                   state_age=0.008)
                 cmd.stamp(self.seq, int(self.t * 1e9))
-                d = self.sv.on_command(cmd, self.t, self.t, self.reading.tcp_pose)
-                if d.accepted:
-                    self.drive(d)
+                cmd = self.grants.sign(self.sv, "op", cmd)
+                self.drive(self.sv.on_command(cmd, self.t, self.t, self.reading.tcp_pose))
 
     def on_level(self, before: tuple[int, bool]) -> None:
         state = self.tracker.state(self.t)

@@ -14,10 +14,11 @@ import pytest
 from iorthand import geometry
 from iorthand.config import from_dict
 from iorthand.protocol import TwistCommand
-from iorthand_edge.goto import GotoConfig, GotoController, substitute
+from iorthand_edge.goto import GotoConfig, GotoController
 from iorthand_edge.robots.config import SimRobotConfig
 from iorthand_edge.robots.sim import SimRobot
 from iorthand_edge.supervisor import SafetyConfig, Supervisor
+from tests.grants import Grants
 
 START = [0.30, 0.0, 0.20, math.pi, 0.0, 0.0]
 HOME = [0.32, 0.05, 0.25, math.pi, 0.0, 0.0]
@@ -111,7 +112,8 @@ def _drive(ctl: GotoController, safety: SafetyConfig, robot: SimRobot, clock: Fa
     replaces the velocity, the supervisor applies its rules, the robot moves."""
     period = robot.control_period
     sup = Supervisor(safety, period=period)
-    ok, _ = sup.acquire("op1", clock.t)
+    grants = Grants()
+    ok, _ = grants.acquire(sup, "op1", clock.t)
     assert ok
     seq = 0
     next_cmd = clock.t
@@ -122,13 +124,11 @@ def _drive(ctl: GotoController, safety: SafetyConfig, robot: SimRobot, clock: Fa
         if clock.t >= next_cmd:
             seq += 1
             held = clock.t - t0 < deadman_until
-            cmd = TwistCommand(operator="op1", deadman=held).stamp(seq, int(clock.t * 1e9))
-            if not held:
-                ctl.cancel("deadman released")
-            cmd = substitute(cmd, ctl.twist(pose, clock.t))
-            decision = sup.on_command(cmd, clock.t, clock.t, pose)
-            if not decision.accepted:
-                ctl.cancel(f"command refused: {decision.reason}")
+            cmd = TwistCommand(operator="op1", deadman=held, state_age=0.02).stamp(seq, int(clock.t * 1e9))
+            goto = ctl.twist(pose, clock.t).tolist() if ctl.active else None
+            decision = sup.on_command(grants.sign(sup, "op1", cmd), clock.t, clock.t, pose, goto)
+            if decision.cancel_goto:
+                ctl.cancel(decision.cancel_goto)
             next_cmd += 1 / 60
         decision = sup.step(clock.t, pose)
         if np.any(decision.twist):

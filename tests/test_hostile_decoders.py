@@ -196,16 +196,19 @@ def test_replayed_reordered_and_mistimed_commands_never_move(events: list[tuple[
     """seq replays/reorders and source times from the far past/future: an accepted command is always newer than
     every earlier accepted one and within max_command_age of the receive time."""
     from iorthand_edge.supervisor import SafetyConfig, Supervisor
+    from tests.grants import Grants
 
     cfg = SafetyConfig(auto_arm=True)
     sup = Supervisor(cfg)
     now = 1000.0
-    sup.acquire("alice", now)
+    alice = Grants()
+    assert alice.acquire(sup, "alice", now)[0]
     last_seq = 0
     wall = 1.7e9
     for seq, offset in events:
-        cmd = TwistCommand(operator="alice", linear=[0.001, 0, 0], deadman=True)
+        cmd = TwistCommand(operator="alice", linear=[0.001, 0, 0], deadman=True, state_age=0.02)
         cmd.seq, cmd.t = seq, max(0, int((wall + offset) * 1e9))
+        alice.sign(sup, "alice", cmd)  # alice's own session: only the sequence and the time are hostile
         before = sup._target.copy()
         d = sup.on_command(cmd, wall, now, np.array([0.3, 0, 0.2, 3.14, 0, 0]))
         if d.accepted:

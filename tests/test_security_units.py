@@ -122,8 +122,16 @@ def test_acl_policy_by_role() -> None:
     cfg = acl.router_config(_dep())
     assert cfg["access_control"]["default_permission"] == "deny"
     assert cfg["transport"]["link"]["tls"]["enable_mtls"] is True
-    assert _allowed(cfg, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/**"]
-    assert sorted(_allowed(cfg, "operator-bob", "put", "ingress")) == ["iorthand/r1/cmd/**", "iorthand/r2/cmd/**"]
+    # Operators' command and control keys are bound to their certificates by default; a stop is everyone's.
+    assert _allowed(cfg, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/*/alice", "iorthand/r1/cmd/stop"]
+    assert sorted(_allowed(cfg, "operator-bob", "put", "ingress")) == [
+        "iorthand/r1/cmd/*/bob", "iorthand/r1/cmd/stop", "iorthand/r2/cmd/*/bob", "iorthand/r2/cmd/stop"]
+    assert _allowed(cfg, "operator-alice", "query", "ingress") == ["iorthand/r1/control/*/alice", "iorthand/_twin/**",
+                                                                   "iorthand/_recorder/**"]
+    unbound = acl.router_config(_dep(bind_operator_keys=False))
+    assert _allowed(unbound, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/**"]
+    assert sorted(_allowed(unbound, "operator-bob", "put", "ingress")) == ["iorthand/r1/cmd/**", "iorthand/r2/cmd/**"]
+    assert _allowed(unbound, "operator-alice", "query", "ingress")[0] == "iorthand/r1/control/**"
     assert _allowed(cfg, "operator-alice", "liveliness_token", "ingress") == ["iorthand/r1/alive/operator/alice"]
     edge_puts = _allowed(cfg, "edge-r1", "put", "ingress")
     assert all(k.startswith("iorthand/r1/") and "/cmd" not in k for k in edge_puts)
@@ -140,9 +148,10 @@ def test_acl_policy_by_role() -> None:
     assert subj["operator-alice"] == {"id": "operator-alice", "cert_common_names": ["operator-alice"], "usernames": ["operator-alice"]}
 
 
-def test_generated_config_is_accepted_by_zenoh(tmp_path: Path) -> None:
+@pytest.mark.parametrize("bind", [True, False])
+def test_generated_config_is_accepted_by_zenoh(tmp_path: Path, bind: bool) -> None:
     p = tmp_path / "router.json5"
-    p.write_text(acl.to_json5(acl.router_config(_dep(bind_operator_keys=True))))
+    p.write_text(acl.to_json5(acl.router_config(_dep(bind_operator_keys=bind))))
     zc = zenoh.Config.from_file(str(p))
     assert json.loads(zc.get_json("access_control/enabled")) is True
 
@@ -177,6 +186,11 @@ def test_a_router_modelling_its_own_host_shares_no_memory() -> None:
     off = zenoh.Config.from_json5(json.dumps(router_settings(["tcp/127.0.0.1:7447"], shared_memory=False)))
     assert json.loads(on.get_json("transport/shared_memory/enabled")) is True
     assert json.loads(off.get_json("transport/shared_memory/enabled")) is False
+
+
+def test_a_deployment_without_bound_keys_is_a_warning() -> None:
+    assert acl.Deployment().bind_operator_keys and _dep().warnings() == []
+    assert [subject for subject, _ in _dep(bind_operator_keys=False).warnings()] == ["bind_operator_keys"]
 
 
 def test_deployment_validation() -> None:

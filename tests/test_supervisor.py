@@ -7,20 +7,29 @@ import pytest
 
 from iorthand.protocol import ForceLevel, Status, TwistCommand
 from iorthand_edge.supervisor import SafetyConfig, Supervisor, WorkspaceBox
+from tests.grants import Grants
 
 POSE = np.array([0.30, 0.0, 0.20, 3.14159, 0.0, 0.0])  # tool pointing down, inside the default box
 T0 = 1_700_000_000.0  # wall clock of the tests, s
 
 
-class Clock:
-    def __init__(self) -> None:
+class Clock(Grants):
+    """Time, and the operators' grants: commands are signed with the key of the operator's grant."""
+
+    def __init__(self, sv: Supervisor | None = None) -> None:
+        super().__init__()
+        self.sv = sv
         self.mono = 100.0
         self.seq = 0
 
-    def cmd(self, vx: float = 0.005, deadman: bool = True, operator: str = "op1", age: float = 0.0, **kw: object) -> TwistCommand:
+    def cmd(self, vx: float = 0.005, deadman: bool = True, operator: str = "op1", age: float = 0.0,
+            view_age: float = 0.02, **kw: object) -> TwistCommand:
         self.seq += 1
-        c = TwistCommand(operator=operator, linear=[vx, kw.get("vy", 0.0), kw.get("vz", 0.0)], angular=[0.0, 0.0, kw.get("wz", 0.0)], deadman=deadman)
-        return c.stamp(kw.get("seq", self.seq), int((self.wall - age) * 1e9))
+        c = TwistCommand(operator=operator, linear=[vx, kw.get("vy", 0.0), kw.get("vz", 0.0)],
+                         angular=[0.0, 0.0, kw.get("wz", 0.0)], deadman=deadman, state_age=view_age)
+        c.stamp(kw.get("seq", self.seq), int((self.wall - age) * 1e9))
+        assert self.sv is not None
+        return self.sign(self.sv, operator, c)
 
     @property
     def wall(self) -> float:
@@ -29,16 +38,16 @@ class Clock:
 
 def armed(**cfg: object) -> tuple[Supervisor, Clock]:
     sv = Supervisor(SafetyConfig(auto_arm=True, **cfg))
-    clock = Clock()
-    ok, _ = sv.acquire("op1", clock.mono)
+    clock = Clock(sv)
+    ok, _ = clock.acquire(sv, "op1", clock.mono)
     assert ok
     return sv, clock
 
 
 def test_starts_disarmed_and_remote_can_only_request() -> None:
     sv = Supervisor(SafetyConfig())
-    c = Clock()
-    sv.acquire("op1", c.mono)
+    c = Clock(sv)
+    c.acquire(sv, "op1", c.mono)
     d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
     assert not d.accepted and d.status == Status.DISARMED and not np.any(d.twist)
     ok, reason = sv.request_arm("op1")
@@ -49,12 +58,12 @@ def test_starts_disarmed_and_remote_can_only_request() -> None:
 
 def test_ownership_is_exclusive_with_reason_and_lease() -> None:
     sv, c = armed()
-    ok, reason = sv.acquire("op2", c.mono + 1.0)
+    ok, reason = c.acquire(sv, "op2", c.mono + 1.0)
     assert not ok and "op1" in reason
     d = sv.on_command(c.cmd(operator="op2"), c.wall, c.mono, POSE)
     assert not d.accepted and d.status == Status.NOT_OWNER and "op1" in d.reason
     # The lease runs out without renewal: another operator may take over.
-    ok, _ = sv.acquire("op2", c.mono + sv.config.lease + 0.1)
+    ok, _ = c.acquire(sv, "op2", c.mono + sv.config.lease + 0.1)
     assert ok and sv.owner == "op2"
 
 
@@ -64,7 +73,7 @@ def test_owner_lost_stops_and_latches_until_reacquired() -> None:
     assert sv.owner_lost("op1", "liveliness lost")
     assert sv.owner == "" and sv.status == Status.OWNER_LOST
     assert not np.any(sv.step(c.mono, POSE).twist)
-    sv.acquire("op1", c.mono)
+    c.acquire(sv, "op1", c.mono)
     d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
     assert not d.accepted and "press it again" in d.reason  # acquiring only acknowledges
     sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
@@ -78,21 +87,22 @@ def test_lease_renewal_never_resumes_after_a_fault_or_a_stop() -> None:
     sv.set_fault("protective stop")
     sv.set_fault("")  # cleared on the robot side
     for _ in range(3):  # renewals, deadman held all along
-        assert sv.acquire("op1", c.mono)[0]
+        assert c.acquire(sv, "op1", c.mono)[0]
         d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
         assert not d.accepted and not np.any(d.twist) and not np.any(sv.step(c.mono, POSE).twist)
     sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
     assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
     sv.stop("e-stop")
-    sv.acquire("op1", c.mono)
+    c.acquire(sv, "op1", c.mono)
     assert not sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
 
 
 def test_allow_list() -> None:
     sv = Supervisor(SafetyConfig(auto_arm=True, allowed_operators=["alice"]))
-    ok, reason = sv.acquire("mallory", 0.0)
+    c = Clock(sv)
+    ok, reason = c.acquire(sv, "mallory", 0.0)
     assert not ok and "allow-list" in reason
-    assert sv.acquire("alice", 0.0)[0]
+    assert c.acquire(sv, "alice", 0.0)[0]
 
 
 def test_deadman_flag_required() -> None:
@@ -166,7 +176,7 @@ def test_fault_refuses_and_needs_reacquire() -> None:
     sv.set_fault("")
     d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
     assert not d.accepted and d.status == Status.FAULT  # cleared fault: still latched
-    sv.acquire("op1", c.mono)
+    c.acquire(sv, "op1", c.mono)
     assert not sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted  # acknowledged, deadman still held
     sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
     assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
@@ -174,8 +184,8 @@ def test_fault_refuses_and_needs_reacquire() -> None:
 
 def test_force_danger_removes_pressing_component() -> None:
     sv = Supervisor(SafetyConfig(auto_arm=True), force_required=True)
-    c = Clock()
-    sv.acquire("op1", c.mono)
+    c = Clock(sv)
+    c.acquire(sv, "op1", c.mono)
     sv.update_force(ForceLevel.SAFE, stale=False)
     # Tool points down (rotation π about x): pressing is −z in the base frame.
     assert sv.on_command(c.cmd(vx=0.0, vz=-0.005), c.wall, c.mono, POSE).twist[2] < 0
@@ -189,8 +199,8 @@ def test_force_danger_removes_pressing_component() -> None:
 
 def test_stale_force_stops_then_refuses_contact_motion() -> None:
     sv = Supervisor(SafetyConfig(auto_arm=True), force_required=True)
-    c = Clock()
-    sv.acquire("op1", c.mono)
+    c = Clock(sv)
+    c.acquire(sv, "op1", c.mono)
     sv.update_force(ForceLevel.SAFE, stale=False)
     sv.on_command(c.cmd(vx=0.0, vz=-0.005), c.wall, c.mono, POSE)
     sv.update_force(ForceLevel.SAFE, stale=True)

@@ -16,6 +16,7 @@ import pytest
 
 from iorthand import keys
 from iorthand.protocol import RobotState, TwistCommand
+from iorthand.security import auth
 from iorthand.transport import QOS_BY_KEY, publisher
 from iorthand_edge.agent import TWIST_QUEUE
 from iorthand_operator.client import ControlRefused
@@ -161,6 +162,19 @@ def test_killed_operator_stops_the_robot_and_releases_control(router_endpoint, e
             proc.wait(5)
 
 
+def test_the_owner_can_still_release_after_a_long_session(edge_factory, operator_factory) -> None:
+    """The client renews its lease every lease/3 (1 s by default); 1001 renewals are ~17 minutes of control."""
+    edge = edge_factory()
+    op = operator_factory()
+    op.wait_for_state()
+    op.acquire()
+    for _ in range(1001):
+        op.acquire()
+    reply = op.release()
+    assert reply is not None and reply.ok, reply
+    assert edge.supervisor.owner == ""
+
+
 def test_workspace_box_stops_outward_motion_at_the_boundary(edge_factory, operator_factory) -> None:
     edge = edge_factory(safety={"profile": "local", "workspace": {"min": [0.1, -0.3, 0.02], "max": [0.31, 0.3, 0.45]}})
     op = operator_factory()
@@ -184,9 +198,11 @@ def test_malformed_commands_are_counted_and_never_applied(edge_factory, operator
     edge = edge_factory()
     op = operator_factory()
     op.wait_for_state()
-    op.acquire()
+    key = op.acquire().key
     pub = session_factory().declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_TWIST))
-    good = TwistCommand(operator="op1", linear=[0.005, 0, 0], deadman=True).stamp(1)
+    # Signed by the owner's session and from a live view: only the damage below keeps it from being applied.
+    good = TwistCommand(operator="op1", linear=[0.005, 0, 0], deadman=True, state_age=0.02).stamp(1)
+    auth.sign(key, auth.context("sim1", keys.CMD_TWIST), good)
     bad = [b"garbage", good.encode()[:-3], good.encode().replace(b"\xcb", b"\xc3", 1)]
     for payload in bad:
         pub.put(payload)
@@ -205,13 +221,13 @@ def test_demo_exits_zero(tmp_path) -> None:
 
 
 def test_commands_the_edge_drops_unread_are_counted_and_shown(edge_factory, operator_factory, session_factory) -> None:
-    """The edge keeps only the newest TWIST_QUEUE twists while its command thread is busy (here: the test holds the
+    """The edge keeps only the newest TWIST_QUEUE twists while its control loop is busy (here: the test holds the
     agent's lock, as a slow robot call would). The ones it drops are not lost silently: the safety status counts
     them and the operator's event list says so."""
     edge = edge_factory()
     op = operator_factory()
     op.wait_for_state()
-    op.acquire()
+    key = op.acquire().key  # the twists below are the owner's: signed with its grant's key
     wait_until(lambda: op.safety is not None, message="a safety status")
     pub = publisher(session_factory(), keys.RobotKeys("sim1").key(keys.CMD_TWIST), QOS_BY_KEY[keys.CMD_TWIST])
     time.sleep(0.3)  # the publisher's route to the edge
@@ -222,8 +238,8 @@ def test_commands_the_edge_drops_unread_are_counted_and_shown(edge_factory, oper
         while edge.twists_superseded < 100 and time.monotonic() < deadline:
             for _ in range(TWIST_QUEUE):
                 sent += 1
-                cmd = TwistCommand(operator=op.operator_id, linear=[0.0, 0.0, 0.0], deadman=True)
-                pub.put(cmd.stamp(sent).encode())
+                cmd = TwistCommand(operator=op.operator_id, linear=[0.0, 0.0, 0.0], deadman=True, state_age=0.02)
+                pub.put(auth.sign(key, auth.context("sim1", keys.CMD_TWIST), cmd.stamp(sent)).encode())
             time.sleep(0.05)
         assert edge.twists_superseded >= 100, f"the edge dropped {edge.twists_superseded} of {sent} twists unread"
     dropped = edge.twists_superseded

@@ -224,7 +224,8 @@ def test_the_replay_identity_publishes_only_as_a_replay(lab: Lab, tls_router: st
 
 def test_bind_operator_keys_acl(tmp_path: Path) -> None:
     """With identity-scoped keys, alice may publish only on cmd/<kind>/alice: a twist in bob's name on
-    cmd/twist/bob (or on the plain key) never reaches the edge."""
+    cmd/twist/bob (or on the plain key) never reaches the edge. A stop is everyone's: on the plain cmd/stop, or
+    on cmd/stop/alice, which tells the edge who sent it."""
     lab = make_lab(tmp_path, free_port(), robots=["sim1"], operators={"alice": ["sim1"], "bob": ["sim1"]},
                    bind_operator_keys=True)
     router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
@@ -235,11 +236,12 @@ def test_bind_operator_keys_acl(tmp_path: Path) -> None:
         edge.declare_subscriber("iorthand/sim1/cmd/**", lambda s: got.append(str(s.key_expr)))
         time.sleep(0.3)
         for key in ("iorthand/sim1/cmd/twist/bob", "iorthand/sim1/cmd/twist", "iorthand/sim1/cmd/twist/alice",
-                    "iorthand/sim1/cmd/stop"):
+                    "iorthand/sim1/cmd/stop", "iorthand/sim1/cmd/stop/alice", "iorthand/sim1/cmd/stop/bob",
+                    "iorthand/sim1/cmd/servo"):
             alice.put(key, msgpack.packb({"x": 1}))
-        wait_until(lambda: len(got) >= 2, 3.0, message="alice's own keys")
+        wait_until(lambda: len(got) >= 3, 3.0, message="alice's own keys")
         time.sleep(0.2)
-        assert sorted(got) == ["iorthand/sim1/cmd/stop", "iorthand/sim1/cmd/twist/alice"]
+        assert sorted(got) == ["iorthand/sim1/cmd/stop", "iorthand/sim1/cmd/stop/alice", "iorthand/sim1/cmd/twist/alice"]
     finally:
         for s in (alice, edge, router):
             s.close()

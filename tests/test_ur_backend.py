@@ -19,6 +19,7 @@ pytest.importorskip("rtde_control", reason="ur-rtde is not installed on this pla
 from iorthand_edge.robots.base import RobotFault, RobotReading
 from iorthand_edge.robots.config import URRobotConfig
 from iorthand_edge.robots.ur import URRobot
+from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator import HOME_POSE, HOME_Q, ControllerConfig, EmulatorConfig, UREmulator
 from iorthand_edge.ur_emulator.process import UR_PORTS, free_loopback_host
 
@@ -38,7 +39,7 @@ def make_robot(emu: UREmulator) -> Iterator[Callable[..., URRobot]]:
     robots: list[URRobot] = []
 
     def make(**overrides: object) -> URRobot:
-        robot = URRobot(URRobotConfig(host=emu.config.host, **overrides))  # type: ignore[arg-type]
+        robot = URRobot(URRobotConfig(host=emu.config.host, **overrides), SafetyConfig().stop_deceleration)  # type: ignore[arg-type]
         robots.append(robot)
         return robot
 
@@ -241,7 +242,7 @@ def test_disconnect_stops_motion_and_program(emu: UREmulator, make_robot: Callab
 
 
 def test_unreachable_controller_raises_at_once() -> None:
-    robot = URRobot(URRobotConfig(host=free_loopback_host(UR_PORTS), connect_timeout=5.0))
+    robot = URRobot(URRobotConfig(host=free_loopback_host(UR_PORTS), connect_timeout=5.0), SafetyConfig().stop_deceleration)
     t0 = time.monotonic()
     with pytest.raises(RobotFault, match="cannot connect"):
         robot.connect()

@@ -1,18 +1,25 @@
 """The edge agent: the safety authority on the end-effector computer.
 
 Threads (all named):
-- ``control``: the control loop at the robot's rate — reads the robot, runs the supervisor's cycle (deadman
-  timeout, limits), sends the twist, publishes ``state/robot`` and ``state/safety``.
-- ``commands``: decodes twists as they arrive and applies them at once (low latency), publishing the
-  supervisor's verdict on ``state/applied``.
+- ``control``: the control loop, the only caller of the robot driver. It waits for a twist or the next tick
+  (or the deadman's timeout, whichever comes first): a twist is judged by the supervisor and driven at once,
+  its verdict published on ``state/applied`` (low latency, no further hand-off); a tick reads the robot, runs the
+  supervisor's cycle (deadman timeout, limits), drives, publishes ``state/robot`` and ``state/safety``. Other
+  threads that change the supervisor's state (a stop, a fault, the owner lost, a force level) wake it, and it
+  drives the consequence at once.
 - ``control-plane``: stop commands, ownership queries, operator liveliness, servo and torch commands and the
-  force-zero request, in arrival order (only the owner may move the servos, switch the torch or zero the sensor).
+  force-zero request, in arrival order (only the owner's signed requests may move the servos, switch the torch,
+  zero the sensor or start a move).
 - Optional components, each from its own config section and with its own named thread(s): ``edge-force``
-  (sensor, warning levels; a change goes straight to the supervisor), ``edge-servos``, ``edge-torch``, and
-  ``edge-video-<source>-capture/-send`` on a separate Zenoh session so video never delays control traffic.
+  (sensor, warning levels; a change goes straight to the supervisor), ``edge-servos``, ``edge-torch``.
+- Perception and video run in a child process (:mod:`iorthand_edge.media`: camera, ArUco, the simulators,
+  JPEG, on its own Zenoh session), so they cannot take this process's CPU or GIL. ``edge-media`` watches it and
+  restarts it after a crash; ``edge-markers`` takes its markers back from the ``markers`` key for
+  ``above_marker:<id>`` moves.
 
-Zenoh callbacks only queue bytes into bounded inboxes. The supervisor is shared under one lock; nothing outside
-this process can move the robot except through it.
+Zenoh callbacks only queue bytes into bounded inboxes. The supervisor is shared under one lock and decides
+everything; this adapter carries events in and the supervisor's actions out. Nothing outside this process can
+move the robot except through it.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import signal
 import socket
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
@@ -39,7 +47,6 @@ from iorthand.protocol import (
     ControlReply,
     ControlRequest,
     DecodeError,
-    ForceLevel,
     Markers,
     RejectCounter,
     RobotState,
@@ -52,18 +59,16 @@ from iorthand.protocol import (
     TwistCommand,
 )
 from iorthand.security import sdnotify
-from iorthand.security.identity import CommandGate
+from iorthand.security.identity import CommandGate, operator_in_key
 from iorthand.transport import Inbox, Worker, open_session, publisher, subscribe
 from iorthand_edge.actuators import ServoUnit, TorchUnit
 from iorthand_edge.config import EdgeConfig
-from iorthand_edge.force import LevelState, SensorError, contact_wrench, make_force_sensor
+from iorthand_edge.force import LevelState, SensorError, make_force_sensor
 from iorthand_edge.force.monitor import ForceMonitor
-from iorthand_edge.goto import GotoController, substitute
-from iorthand_edge.perception.history import PoseHistory
-from iorthand_edge.perception.pipeline import PerceptionPipeline
+from iorthand_edge.goto import GotoController
+from iorthand_edge.media import MediaProcess, needs_media
 from iorthand_edge.robots import Robot, RobotFault, RobotReading, make_robot
-from iorthand_edge.supervisor import Decision, Supervisor
-from iorthand_edge.video import VideoStream, make_source
+from iorthand_edge.supervisor import Action, Decision, Supervisor
 
 log = logging.getLogger("iorthand.edge")
 
@@ -71,40 +76,45 @@ log = logging.getLogger("iorthand.edge")
 # ones dropped unread are reported as SafetyStatus.superseded.
 TWIST_QUEUE = 64
 
-# Supervisor states that end a previewed move (it never resumes by itself; the operator previews again).
-_HALTS = frozenset({
-    Status.STOPPED, Status.FAULT, Status.OWNER_LOST, Status.FORCE_DANGER, Status.FORCE_STALE,
-    Status.COMMAND_TIMEOUT, Status.DISARMED,
-})
+# Put into the twist inbox by a thread that changed the supervisor's state: the control loop wakes and drives
+# the consequence at once (a flood of twists that pushes it out wakes the loop just as well).
+_WAKE = ("wake", b"", 0)
 
 
 class RateLimitedLog:
     """Logs a repeated message once, then at most every ``interval`` seconds with a count (floods of garbage
-    must not flood the log, but nothing is hidden)."""
+    must not flood the log, but nothing is hidden). Remembers the ``max_kinds`` most recent kinds of message: a
+    flood of new kinds (keys an attacker makes up) costs log lines, never memory."""
 
-    def __init__(self, logger: logging.Logger, interval: float = 5.0) -> None:
+    def __init__(self, logger: logging.Logger, interval: float = 5.0, max_kinds: int = 256) -> None:
         self._log = logger
         self._interval = interval
-        self._last: dict[str, float] = {}
+        self._max_kinds = max_kinds
+        self._last: OrderedDict[str, float] = OrderedDict()
         self._suppressed: dict[str, int] = {}
 
-    def warning(self, key: str, msg: str) -> None:
+    def warning(self, kind: str, msg: str) -> None:
         now = time.monotonic()
-        if now - self._last.get(key, -math.inf) >= self._interval:
-            extra = self._suppressed.pop(key, 0)
+        if now - self._last.get(kind, -math.inf) >= self._interval:
+            extra = self._suppressed.pop(kind, 0)
             self._log.warning("%s%s", msg, f" (+{extra} similar)" if extra else "")
-            self._last[key] = now
+            self._last[kind] = now
+            self._last.move_to_end(kind)
+            while len(self._last) > self._max_kinds:
+                gone, _ = self._last.popitem(last=False)
+                self._suppressed.pop(gone, None)
         else:
-            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            self._suppressed[kind] = self._suppressed.get(kind, 0) + 1
 
 
 class EdgeAgent:
     def __init__(self, config: EdgeConfig, robot: Robot | None = None) -> None:
         self.config = config
         self.keys = keys.RobotKeys(config.robot_id)
-        self.robot = robot if robot is not None else make_robot(config.robot)
+        self.robot = robot if robot is not None else make_robot(config.robot, config.safety.stop_deceleration)
         self.period = self.robot.control_period
-        self.supervisor = Supervisor(config.safety, period=self.period, force_required=config.force is not None)
+        self.supervisor = Supervisor(config.safety, period=self.period, force_required=config.force is not None,
+                                     robot=config.robot_id)
         self.lock = threading.RLock()
         self.stop_event = threading.Event()
         self.rejects = RejectCounter()
@@ -120,7 +130,7 @@ class EdgeAgent:
         self._workers: list[Worker] = []
         self._rlog = RateLimitedLog(log)
         self.session: zenoh.Session | None = None
-        # Components (force, servos, perception, video) register per-cycle hooks here.
+        # Called with every reading, after the cycle (systemd's watchdog registers here).
         self.cycle_hooks: list[Callable[[RobotReading], None]] = []
         self.force: ForceMonitor | None = None
         if config.force is not None:
@@ -128,36 +138,23 @@ class EdgeAgent:
             self.force = ForceMonitor(config.force, sensor, self._on_force_change)
         self.servos = ServoUnit(config.servos) if config.servos is not None else None
         self.torch = TorchUnit(config.torch) if config.torch is not None else None
-        self.video: list[VideoStream] = []
-        if config.video is not None:
-            for name, suffix, stream in (
-                ("camera", keys.VIDEO_CAMERA, config.video.camera),
-                ("ultrasound", keys.VIDEO_ULTRASOUND, config.video.ultrasound),
-            ):
-                if stream is not None:
-                    shared = self._perception_image if config.perception is not None else None
-                    source = make_source(stream, self._contact_force, shared)
-                    self.video.append(VideoStream(name, suffix, stream, source))
-        self.video_session: zenoh.Session | None = None
+        # Perception and video run in a child process (iorthand_edge.media) so that they never take the control
+        # loop's CPU or GIL. Raises PerceptionError or VideoError (a calibration for another image size, a corrupt
+        # file, a video source that needs the perception camera): refuse to start.
+        self.media = MediaProcess(config) if needs_media(config) else None
         self.gate = CommandGate(
             allowed=list(config.safety.allowed_operators),
             require_alive=config.require_operator_alive,
             bind_keys=config.bind_operator_keys,
         )
         self.goto = GotoController(config.goto, config.safety.workspace.min, config.safety.workspace.max)
-        self.markers: dict[int, np.ndarray] = {}  # latest filtered T_base_marker per id (for above_marker:<id>)
-        self.markers_at = -math.inf  # time.monotonic() when self.markers was set
-        self.perception: PerceptionPipeline | None = None
-        self.pose_history: PoseHistory | None = None
-        if config.perception is not None:
-            self.pose_history = PoseHistory(config.perception.history_span, config.perception.max_extrapolation)
-            # Raises PerceptionError (a calibration for another image size, a corrupt file): refuse to start.
-            self.perception = PerceptionPipeline(
-                config.perception, self.pose_history.at, self._servo_angles_at, self._publish_markers
-            )
-            self.cycle_hooks.append(
-                lambda r: self.pose_history.add(r.timestamp_ns, geometry.pose_to_matrix(r.tcp_pose))  # type: ignore[union-attr]
-            )
+        # The media process's markers, from this robot's markers key (for above_marker:<id>): latest filtered
+        # T_base_marker per id, and time.monotonic() when they arrived.
+        self.markers: dict[int, np.ndarray] = {}
+        self.markers_at = -math.inf
+        self._markers_in = Inbox(4, keep="newest")  # only the newest message matters
+        self._markers_sub: zenoh.Subscriber | None = None
+        self._markers_worker: Worker | None = None
         self.cycle_hooks.append(sdnotify.cycle_hook())  # systemd: READY once, then the watchdog from the loop
         self._local_server: socket.socket | None = None
         # Servos, torch and video stop with the agent but a crash of theirs must not stop the robot's control:
@@ -177,15 +174,16 @@ class EdgeAgent:
         self._pub_robot = publisher(s, k.key(keys.STATE_ROBOT))
         self._pub_safety = publisher(s, k.key(keys.STATE_SAFETY))
         self._pub_applied = publisher(s, k.key(keys.STATE_APPLIED))
-        self._pub_markers = publisher(s, k.key(keys.MARKERS))
         # With bound keys, operators command on .../cmd/twist/<id> and query .../control/<verb>/<id>, keys the
         # router's ACL grants only to that operator's certificate (iorthand.security.identity).
         bound = "/*" if self.config.bind_operator_keys else ""
         self._declared = [
-            subscribe(s, k.key(keys.CMD_TWIST) + bound, self._twists),
-            subscribe(s, k.key(keys.CMD_STOP), self._control),
-            subscribe(s, k.key(keys.CMD_SERVO), self._control),
-            subscribe(s, k.key(keys.CMD_TORCH), self._control),
+            subscribe(s, k.key(keys.CMD_TWIST) + bound, self._twists, rejects=self.rejects),
+            # A stop is everyone's: on the shared key, or on the sender's own (which names who sent it).
+            subscribe(s, k.key(keys.CMD_STOP), self._control, rejects=self.rejects),
+            subscribe(s, k.key(keys.CMD_STOP) + "/*", self._control, rejects=self.rejects),
+            subscribe(s, k.key(keys.CMD_SERVO) + bound, self._control, rejects=self.rejects),
+            subscribe(s, k.key(keys.CMD_TORCH) + bound, self._control, rejects=self.rejects),
             s.declare_queryable(k.key(keys.CONTROL_FORCE_ZERO) + bound, lambda q: self._control.put(("force_zero", q))),
             s.declare_queryable(k.key(keys.CONTROL_ACQUIRE) + bound, lambda q: self._control.put(("acquire", q))),
             s.declare_queryable(k.key(keys.CONTROL_RELEASE) + bound, lambda q: self._control.put(("release", q))),
@@ -198,8 +196,7 @@ class EdgeAgent:
         self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
         # The control loop and the command path run at real-time priority where allowed (root on the Pi):
         # both block between short bursts, so they cannot starve the rest.
-        for name, fn, rt in (("control", self._control_loop, True), ("commands", self._command_loop, True),
-                             ("control-plane", self._control_plane_loop, False)):
+        for name, fn, rt in (("control", self._control_loop, True), ("control-plane", self._control_plane_loop, False)):
             w = Worker(f"edge-{name}", fn, self.stop_event, realtime=rt and self.config.realtime)
             w.start()
             self._workers.append(w)
@@ -216,33 +213,28 @@ class EdgeAgent:
 
     def _start_components(self) -> None:
         assert self.session is not None
-        if self.perception is not None:
-            self.perception.start()
         if self.force is not None:
             self.force.start(self.session, self.keys, self.stop_event)
         for unit in (self.servos, self.torch):
             if unit is not None:
                 unit.start(self.session, self.keys, self._aux_stop)
-        if self.video:
-            # Video gets a session of its own: its large samples then never share a receive path or a
-            # transmission queue with commands (FACTS: a busy session delays everything on it).
-            assert self.config.video is not None
-            self.video_session = open_session(self.config.video.zenoh or self.config.zenoh, stop=self.stop_event)
-            for stream in self.video:
-                stream.start(self.video_session, self.keys, self._aux_stop)
+        if self.config.perception is not None:
+            self._markers_sub = subscribe(self.session, self.keys.key(keys.MARKERS), self._markers_in)
+            self._markers_worker = Worker("edge-markers", self._markers_loop, self._aux_stop)
+            self._markers_worker.start()
+        if self.media is not None:
+            self.media.start(self.session)
 
     def _stop_components(self) -> None:
         self._aux_stop.set()
-        if self.perception is not None:
-            self.perception.stop()
+        if self.media is not None:
+            self.media.stop()
         if self._local_server is not None:
             self._local_server.close()
-        for comp in (self.force, self.servos, self.torch, *self.video):
+        self._markers_in.close()
+        for comp in (self.force, self.servos, self.torch, self._markers_worker):
             if comp is not None:
                 comp.join()
-        if self.video_session is not None:
-            self.video_session.close()
-            self.video_session = None
 
     def run_forever(self) -> None:
         self.start()
@@ -253,6 +245,7 @@ class EdgeAgent:
 
     def shutdown(self) -> None:
         self.stop_event.set()
+        self._aux_stop.set()  # the local socket's worker is among the workers joined next
         self._twists.close()
         self._control.close()
         for w in self._workers:
@@ -285,7 +278,7 @@ class EdgeAgent:
     def disarm(self, reason: str) -> None:
         with self.lock:
             self.supervisor.disarm(reason)
-            self._drive(Decision([0.0] * 6, False, Status.DISARMED))
+        self._wake()
         log.warning("disarmed: %s", reason)
         self._publish_safety(force=True)
 
@@ -344,54 +337,64 @@ class EdgeAgent:
         next_tick = time.monotonic()
         while not stop.is_set():
             now = time.monotonic()
-            with self.lock:
-                reading = self.robot.read_state()
-                self.reading = reading
-                fault = reading.fault or ("" if reading.connected else "robot link lost")
-                if fault != self.supervisor.fault:
-                    if fault:
-                        log.error("robot fault: %s — stopping", fault)
-                    self.supervisor.set_fault(fault)
-                decision = self.supervisor.step(now, reading.tcp_pose)
-                if self.goto.active and decision.status in _HALTS:
-                    self._cancel_goto(decision.reason or decision.status)
-                self._drive(decision)
-                self._log_interventions()
-                state = RobotState(
-                    tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=reading.q,
-                    commanded=self._commanded, mode=reading.mode, connected=reading.connected,
-                    fault=fault, robot_time=reading.robot_time,
-                    cmd_seq=self._last_cmd_seq, cmd_recv_t=self._last_cmd_recv,
-                ).stamp(self._seq["robot"].next(), reading.timestamp_ns)
-            for hook in self.cycle_hooks:
-                hook(reading)
-            self._pub_robot.put(state.encode())
-            self._publish_safety()
-            now = time.monotonic()
-            if now >= next_tick:  # this cycle was a tick (not an early wake for the deadman)
-                next_tick += self.period
-                if next_tick <= now:
-                    next_tick = now + self.period  # overran: do not try to catch up with a burst
-            # Wake at the next tick, or earlier when the deadman times out before it.
+            # Wake at the next tick, or earlier when the deadman times out before it, or when a twist arrives.
             wake = min(next_tick, self.supervisor.timeout_at() + 1e-4)
-            if wake > now:
-                stop.wait(wake - now)
+            item = self._twists.get(timeout=max(0.0, wake - now))
+            if item is not None and item is not _WAKE:
+                echo = self.handle_twist(*item)
+                if echo is not None:
+                    self._pub_applied.put(echo.encode())
+            now = time.monotonic()
+            if item is _WAKE or now >= wake:
+                self._cycle(now)
+                if now >= next_tick:  # this cycle was a tick (not an early wake)
+                    next_tick += self.period
+                    if next_tick <= now:
+                        next_tick = now + self.period  # overran: do not try to catch up with a burst
+
+    def _cycle(self, now: float) -> None:
+        """One control cycle: read the robot, let the supervisor decide, drive, publish the state."""
+        with self.lock:
+            reading = self.robot.read_state()
+            self.reading = reading
+            before = self.supervisor.fault
+            fault = self.supervisor.on_reading(reading.fault, reading.connected)
+            if fault and fault != before:
+                log.error("robot fault: %s — stopping", fault)
+            decision = self.supervisor.step(now, reading.tcp_pose)
+            if self.goto.active and decision.status.halts:
+                self._cancel_goto(decision.reason or decision.status.message)
+            self._drive(decision)
+            self._log_interventions()
+            state = RobotState(
+                tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=reading.q,
+                commanded=self._commanded, mode=reading.mode, connected=reading.connected,
+                fault=fault, robot_time=reading.robot_time,
+                cmd_seq=self._last_cmd_seq, cmd_recv_t=self._last_cmd_recv,
+            ).stamp(self._seq["robot"].next(), reading.timestamp_ns)
+        for hook in self.cycle_hooks:
+            hook(reading)
+        self._pub_robot.put(state.encode())
+        self._publish_safety()
+
+    def _wake(self) -> None:
+        """Another thread changed the supervisor's state: the control loop drives the consequence now."""
+        self._twists.put(_WAKE)
 
     def _drive(self, decision: Decision) -> None:
-        """Send the decided twist to the robot (caller holds the lock). A zero twist after motion is a stop
-        with the configured deceleration; the UR driver keeps its watchdog kicked on its own."""
-        twist = decision.twist
+        """Carry out the supervisor's action (the control loop only, holding the lock)."""
         try:
-            if any(twist):
-                self._commanded = self.robot.send_twist(twist, self.config.safety.max_linear_acceleration)
-            elif self._commanded.any():
-                self.robot.stop(self.config.safety.stop_deceleration)
+            if decision.action == Action.MOVE:
+                self._commanded = self.robot.send_twist(decision.twist, self.config.safety.max_linear_acceleration)
+            elif decision.action == Action.STOP:
                 self._commanded = np.zeros(6)
+                self.robot.stop(self.config.safety.stop_deceleration)
         except RobotFault as exc:
             self._commanded = np.zeros(6)
             log.error("robot refused the command: %s — stopping", exc)
-            self.supervisor.set_fault(str(exc))
-            self.robot.stop(self.config.safety.stop_deceleration)
+            if self.supervisor.driver_failed(str(exc)).action == Action.STOP:
+                with contextlib.suppress(RobotFault):
+                    self.robot.stop(self.config.safety.stop_deceleration)
 
     def _log_interventions(self) -> None:
         """Log each safety intervention of the supervisor once, with its reason (caller holds the lock)."""
@@ -403,31 +406,28 @@ class EdgeAgent:
     # ------------------------------------------------------------------ components
 
     def _on_force_change(self, state: LevelState) -> None:
-        """From the force thread: a new level or staleness goes to the supervisor and takes effect at once
-        (not at the next control cycle)."""
+        """From the force thread: a new level or staleness goes to the supervisor, and the control loop wakes
+        to drive it at once (not at its next tick)."""
         with self.lock:
-            now = time.monotonic()
-            self.supervisor.update_force(state.level, state.stale, now)
-            pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
-            self._drive(self.supervisor.step(now, pose))
-            self._log_interventions()
+            self.supervisor.update_force(state.level, state.stale, time.monotonic())
+        self._wake()
         self._publish_safety(force=True)
 
-    def _perception_image(self) -> np.ndarray | None:
-        return self.perception.latest_image if self.perception is not None else None
-
-    def _servo_angles_at(self, t_ns: int) -> tuple[float, float]:
-        """Servo angles (rad, as the servos report them) at a camera frame's time. Without servos the camera
-        is fixed at the chain's zero (``perception.geometry.pan_zero``/``tilt_zero``)."""
-        if self.servos is not None:
-            return self.servos.servo_angles_at(t_ns)
-        assert self.config.perception is not None
-        return self.config.perception.geometry.pan_zero, self.config.perception.geometry.tilt_zero
-
-    def _publish_markers(self, msg: Markers) -> None:
-        """From the perception thread: publish, and keep the filtered poses for ``above_marker:<id>``."""
-        self.markers, self.markers_at = {m.id: geometry.unflatten(m.pose) for m in msg.markers}, time.monotonic()
-        self._pub_markers.put(msg.encode())
+    def _markers_loop(self, stop: threading.Event) -> None:
+        """The media process's markers: decoded here, off the Zenoh callback; malformed ones are counted."""
+        while not stop.is_set():
+            item = self._markers_in.get(timeout=0.2)
+            if item is None:
+                continue
+            key, payload, _ = item
+            try:
+                msg = Markers.decode(payload)
+            except DecodeError as exc:
+                self.rejects.add(key, str(exc))
+                self._rlog.warning(f"malformed:{key}", f"rejected malformed markers on {key}: {exc}")
+                continue
+            # A failure notice (the camera failed) has no markers: none to aim at until the camera sees again.
+            self.markers, self.markers_at = {m.id: geometry.unflatten(m.pose) for m in msg.markers}, time.monotonic()
 
     def _fresh_markers(self) -> dict[int, np.ndarray]:
         """The marker poses a move may aim at: none once they are older than ``goto.marker_max_age`` (the
@@ -435,15 +435,6 @@ class EdgeAgent:
         if time.monotonic() - self.markers_at > self.config.goto.marker_max_age:
             return {}
         return dict(self.markers)
-
-    def _contact_force(self) -> float:
-        """The contact force (N) the simulated ultrasound image responds to."""
-        if self.force is not None:
-            return 0.0 if self.force.state.stale else self.force.state.value
-        reading = self.reading
-        if self.config.phantom is not None and reading is not None:
-            return float(np.linalg.norm(contact_wrench(self.config.phantom, reading.tcp_pose, reading.tcp_speed)[:3]))
-        return 0.0
 
     def _publish_safety(self, force: bool = False) -> None:
         with self.lock:
@@ -464,42 +455,35 @@ class EdgeAgent:
                 limits_hit=list(sv.limits_hit), command_age=age, status=sv.status, reason=sv.reason,
                 force_level=int(sv.force_level), force_stale=sv.force_stale,
                 received=c.received, applied=c.applied, rejected=c.rejected,
-                malformed=self.rejects.total, superseded=self.twists_superseded, stops=c.stops,
+                malformed=self.rejects.total, superseded=self.twists_superseded, stops=c.stops, forged=c.forged,
             ).stamp(self._seq["safety"].next())
             # Put under the lock: two threads publishing at once must not reorder the sequence numbers.
             self._pub_safety.put(msg.encode())
 
     # ------------------------------------------------------------------ commands
 
-    def _command_loop(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            item = self._twists.get(timeout=0.1)
-            if item is None:
-                continue
-            echo = self.handle_twist(*item)
-            if echo is not None:
-                self._pub_applied.put(echo.encode())
-
     @property
     def twists_superseded(self) -> int:
-        """Twist commands dropped unread: newer ones queued behind them while the command thread was busy."""
+        """Twist commands dropped unread: newer ones queued behind them while the control loop was busy."""
         return self._twists.dropped
 
     def handle_twist(self, key: str, payload: bytes, recv_ns: int) -> AppliedCommand | None:
         """Judge one twist command that arrived on ``key`` at ``recv_ns`` (wall clock, ns) and drive the robot
-        with what the supervisor allows. Returns the echo for state/applied, refusals included; None for a
-        malformed command, which is counted and logged (it names no operator to answer)."""
+        with what the supervisor allows (the control loop's thread). Returns the echo for state/applied,
+        refusals included; None for a malformed command, which is counted and logged (it names no operator to
+        answer), and for a forgery (a command in the owner's name that its session did not sign), counted in
+        ``SafetyStatus.forged`` and logged, never answered."""
         try:
             cmd = TwistCommand.decode(payload)
         except DecodeError as exc:
             self.rejects.add(key, str(exc))
-            self._rlog.warning(f"malformed:{key}", f"rejected malformed command on {key}: {exc}")
+            self._rlog.warning(f"malformed:{keys.CMD_TWIST}", f"rejected malformed command on {key}: {exc}")
             return None
         ok, why = self.gate.check_command(key, keys.CMD_TWIST, cmd.operator)
         if not ok:
             # Refused at the door, before the supervisor: still answered, so the operator sees why.
             self.rejects.add(key, why)
-            self._rlog.warning(f"gate:{key}", f"refused command from {cmd.operator!r}: {why}")
+            self._rlog.warning(f"gate:{keys.CMD_TWIST}", f"refused command from {cmd.operator!r}: {why}")
             return AppliedCommand(
                 operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns, accepted=False,
                 status=Status.NOT_ALLOWED, reason=why[:200],
@@ -509,15 +493,18 @@ class EdgeAgent:
             now = time.monotonic()
             # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
             received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
-            if self.goto.active:
-                cmd = self._goto_command(cmd, pose, now)
-            decision = self.supervisor.on_command(cmd, recv_ns / 1e9, received, pose)
-            if self.goto.active and not decision.accepted:
-                self._cancel_goto(decision.reason)
+            goto = self.goto.twist(pose, now).tolist() if self.goto.active else None
+            decision = self.supervisor.on_command(cmd, recv_ns / 1e9, received, pose, goto)
+            if decision.cancel_goto:
+                self._cancel_goto(decision.cancel_goto)
             self._log_interventions()
+            self._drive(decision)
             if decision.accepted:
-                self._drive(decision)
                 self._last_cmd_seq, self._last_cmd_recv = cmd.seq, recv_ns
+            elif not decision.answer:
+                self._rlog.warning("forged", f"refused a forged command in the name of {cmd.operator!r} on {key}: "
+                                   f"{decision.reason}")
+                return None
             else:
                 self._rlog.warning(f"refused:{decision.status}", f"refused command {cmd.seq} from {cmd.operator!r}: {decision.reason}")
             return AppliedCommand(
@@ -528,19 +515,6 @@ class EdgeAgent:
 
     # ------------------------------------------------------------------ preview and goto (hold-to-run)
 
-    def _goto_command(self, cmd: TwistCommand, pose: np.ndarray, now: float) -> TwistCommand:
-        """While a previewed move runs, the operator holds the deadman and the edge supplies the velocity. A
-        released deadman, another operator or a non-zero twist (the operator takes over) cancels it."""
-        if not cmd.deadman:
-            self._cancel_goto("deadman released")
-        elif cmd.operator != self.goto.operator:
-            self._cancel_goto(f"command from {cmd.operator!r} during {self.goto.operator!r}'s move")
-        elif any(cmd.linear) or any(cmd.angular):
-            self._cancel_goto("the operator took over with a manual twist")
-        else:
-            return substitute(cmd, self.goto.twist(pose, now))
-        return cmd
-
     def _cancel_goto(self, reason: str) -> None:
         if self.goto.cancel(reason):
             log.warning("move cancelled: %s", reason)
@@ -550,14 +524,14 @@ class EdgeAgent:
         return self.goto.limits(p.linear, p.angular, self.config.safety.max_linear_acceleration)
 
     def _on_poses(self, query: zenoh.Query) -> None:
-        if self._request(query) is None:
+        if self._request(query, keys.CONTROL_POSES) is None:
             return
         names = [*self.config.goto.poses, "retract", *(f"above_marker:{i}" for i in sorted(self._fresh_markers()))]
         detail = json.dumps([{"name": n} for n in names])
         self._reply(query, True, f"{len(names)} poses", detail=detail)
 
     def _on_preview(self, query: zenoh.Query) -> None:
-        req = self._request(query)
+        req = self._request(query, keys.CONTROL_PREVIEW)
         if req is None:
             return
         with self.lock:
@@ -573,11 +547,11 @@ class EdgeAgent:
         self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", detail=json.dumps(pv.detail()))
 
     def _on_goto(self, query: zenoh.Query) -> None:
-        req = self._request(query)
+        req = self._request(query, keys.CONTROL_GOTO)
         if req is None:
             return
         with self.lock:
-            refusal = self._not_owner(req.operator)
+            refusal = self.supervisor.owner_refusal(req, keys.CONTROL_GOTO)
             if refusal:
                 ok, reason = False, refusal
             elif self.reading is None:
@@ -609,28 +583,39 @@ class EdgeAgent:
             "goto": self._on_goto,
             "poses": self._on_poses,
         }
-        by_key = {self.keys.key(keys.CMD_SERVO): self._on_servo, self.keys.key(keys.CMD_TORCH): self._on_torch}
+        by_suffix = {keys.CMD_SERVO: self._on_servo, keys.CMD_TORCH: self._on_torch, keys.CMD_STOP: self._on_stop}
         while not stop.is_set():
             item = self._control.get(timeout=0.1)
             if item is None:
                 continue
-            if isinstance(item[0], str) and item[0] in handlers:
+            if item[0] in handlers:
                 handlers[item[0]](item[1])
-            elif item[0] in by_key:
-                by_key[item[0]](item)
-            else:
-                self._on_stop(item)
+                continue
+            _, rest = keys.split_key(item[0])  # cmd/<kind>, or cmd/<kind>/<operator> with bound keys
+            by_suffix["/".join(rest.split("/")[:2])](item)
 
-    def _request(self, query: zenoh.Query) -> ControlRequest | None:
+    def _request(self, query: zenoh.Query, suffix: str) -> ControlRequest | None:
+        """The request of a ``control/<verb>`` query, or None once refused (malformed, or, with bound keys, in
+        the name of another operator than the one the router authenticated for the key)."""
         payload = query.payload.to_bytes() if query.payload is not None else b""
+        key = str(query.key_expr)
         try:
-            return ControlRequest.decode(payload)
+            req = ControlRequest.decode(payload)
         except DecodeError as exc:
-            self.rejects.add(str(query.key_expr), str(exc))
+            self.rejects.add(key, str(exc))
             self._reply(query, False, f"malformed request: {exc}")
             return None
+        ok, why = self.gate.check_key(key, suffix, req.operator)
+        if not ok:
+            self.rejects.add(key, why)
+            self._rlog.warning(f"gate:{suffix}", f"refused {suffix} from {req.operator!r}: {why}")
+            self._reply(query, False, why)
+            return None
+        return req
 
     def _reply(self, query: zenoh.Query, ok: bool, reason: str, **extra: Any) -> None:
+        """Answer a control query. The reply goes to the querier alone (Zenoh routes it back): the only way
+        the acquire's key travels."""
         reply = ControlReply(ok=ok, reason=reason, owner=self.supervisor.owner, **extra).stamp(0)
         try:
             query.reply(query.key_expr, reply.encode())
@@ -640,7 +625,7 @@ class EdgeAgent:
             query.drop()
 
     def _on_acquire(self, query: zenoh.Query) -> None:
-        req = self._request(query)
+        req = self._request(query, keys.CONTROL_ACQUIRE)
         if req is None:
             return
         ok, reason = self.gate.check_acquire(str(query.key_expr), keys.CONTROL_ACQUIRE, req.operator)
@@ -648,13 +633,16 @@ class EdgeAgent:
             # The operator's token and its acquire race through the router: ask Zenoh before refusing.
             self.gate.operator_alive(req.operator)
             ok, reason = self.gate.check_acquire(str(query.key_expr), keys.CONTROL_ACQUIRE, req.operator)
+        key = b""
         if not ok:
             self.rejects.add(str(query.key_expr), reason)
         else:
             with self.lock:
-                ok, reason = self.supervisor.acquire(req.operator, time.monotonic(), req.profile)
-        (log.info if ok else log.warning)("acquire by %r: %s", req.operator, reason)
-        self._reply(query, ok, reason, lease=self.config.safety.lease)
+                grant = self.supervisor.acquire(req, time.monotonic())
+            ok, reason, key = grant.ok, grant.reason, grant.key
+        if key or not ok:  # a new grant or a refusal; renewals (every lease/3) are not worth a line
+            (log.info if ok else log.warning)("acquire by %r: %s", req.operator, reason)
+        self._reply(query, ok, reason, lease=self.config.safety.lease, key=key)
         self._publish_safety(force=True)
 
     def _operator_token_present(self, operator: str) -> bool:
@@ -668,17 +656,20 @@ class EdgeAgent:
             return False
 
     def _on_release(self, query: zenoh.Query) -> None:
-        req = self._request(query)
+        req = self._request(query, keys.CONTROL_RELEASE)
         if req is None:
             return
         with self.lock:
-            ok, reason = self.supervisor.release(req.operator)
-        log.info("release by %r: %s", req.operator, reason)
+            ok, reason = self.supervisor.release(req)
+            if ok and self.goto.active:
+                self._cancel_goto("control released")
+        self._wake()
+        (log.info if ok else log.warning)("release by %r: %s", req.operator, reason)
         self._reply(query, ok, reason)
         self._publish_safety(force=True)
 
     def _on_arm(self, query: zenoh.Query) -> None:
-        req = self._request(query)
+        req = self._request(query, keys.CONTROL_ARM)
         if req is None:
             return
         with self.lock:
@@ -693,28 +684,23 @@ class EdgeAgent:
             if self.goto.operator == operator:
                 self._cancel_goto(f"{operator!r} disappeared")
             lost = self.supervisor.owner_lost(operator, f"owner {operator!r} disappeared (liveliness lost)")
-            if lost:
-                self._drive(Decision([0.0] * 6, False, Status.OWNER_LOST))
         if lost:
+            self._wake()
             log.warning("owner %r lost: robot stopped, control released", operator)
             self._publish_safety(force=True)
 
-    def _not_owner(self, operator: str) -> str:
-        owner = self.supervisor.owner
-        if operator == owner and owner:
-            return ""
-        return f"{operator!r} does not hold control" + (f" ({owner!r} does)" if owner else " (nobody does)")
 
     def _on_servo(self, item: tuple[str, bytes, int]) -> None:
-        self._on_actuator(item, self.servos, ServoCommand, "servo", lambda cmd: self.servos.command(cmd.pan, cmd.tilt))  # type: ignore[union-attr]
+        self._on_actuator(item, self.servos, ServoCommand, keys.CMD_SERVO, lambda cmd: self.servos.command(cmd.pan, cmd.tilt))  # type: ignore[union-attr]
 
     def _on_torch(self, item: tuple[str, bytes, int]) -> None:
-        self._on_actuator(item, self.torch, TorchCommand, "torch", lambda cmd: self.torch.command(cmd.on, cmd.brightness))  # type: ignore[union-attr]
+        self._on_actuator(item, self.torch, TorchCommand, keys.CMD_TORCH, lambda cmd: self.torch.command(cmd.on, cmd.brightness))  # type: ignore[union-attr]
 
     def _on_actuator(self, item: tuple[str, bytes, int], unit: ServoUnit | TorchUnit | None,
-                     cls: type[ServoCommand] | type[TorchCommand], name: str, apply: Callable[[Any], None]) -> None:
+                     cls: type[ServoCommand] | type[TorchCommand], suffix: str, apply: Callable[[Any], None]) -> None:
         """A servo or torch command: decoded, from the owner only; every refusal is published by the unit."""
         key, payload, _ = item
+        name = suffix.rsplit("/", 1)[-1]
         if unit is None:
             self._rlog.warning(f"no-{name}", f"{name} command ignored: this robot has no {name} configured")
             return
@@ -722,11 +708,12 @@ class EdgeAgent:
             cmd = cls.decode(payload)
         except DecodeError as exc:
             self.rejects.add(key, str(exc))
-            self._rlog.warning(f"malformed:{key}", f"rejected {name} command: {exc}")
+            self._rlog.warning(f"malformed:{suffix}", f"rejected {name} command: {exc}")
             unit.reject(f"rejected: {exc}")
             return
+        ok, why = self.gate.check_key(key, suffix, cmd.operator)
         with self.lock:
-            refusal = self._not_owner(cmd.operator)
+            refusal = why if not ok else self.supervisor.owner_refusal(cmd, suffix)
         if refusal:
             self._rlog.warning(f"{name}-owner", f"{name} command refused: {refusal}")
             unit.reject(f"refused: {refusal}")
@@ -734,19 +721,15 @@ class EdgeAgent:
         apply(cmd)
 
     def _on_force_zero(self, query: zenoh.Query) -> None:
-        req = self._request(query)
+        req = self._request(query, keys.CONTROL_FORCE_ZERO)
         if req is None:
             return
         with self.lock:
-            refusal = self._not_owner(req.operator)
-        state = self.force.state if self.force is not None else None
-        if self.force is None or state is None:
+            refusal = self.supervisor.owner_refusal(req, keys.CONTROL_FORCE_ZERO) or self.supervisor.force_zero_refusal()
+        if self.force is None:
             ok, reason = False, "this robot has no force sensor"
         elif refusal:
             ok, reason = False, refusal
-        elif state.stale or state.level != ForceLevel.SAFE:
-            # Zeroing in contact would hide the contact force from every threshold afterwards.
-            ok, reason = False, f"force sensor not zeroed: level {int(state.level)}{', stale' if state.stale else ''}; lift the tool out of contact first"
         else:
             try:
                 self.force.zero()
@@ -764,11 +747,15 @@ class EdgeAgent:
             # A garbled stop is still a stop request: stopping is always the safe side.
             self.rejects.add(key, str(exc))
             cmd = StopCommand(operator="?", reason=f"malformed stop command ({exc.field})")
+        # Who sent it: the id in the key where the router binds keys to certificates, else only a claim.
+        sender = operator_in_key(key, keys.CMD_STOP)
+        who = (f"{sender!r}" if sender == cmd.operator else f"{sender!r} (claiming {cmd.operator!r})") if sender \
+            else f"{cmd.operator!r} (unauthenticated)"
         with self.lock:
-            self._cancel_goto(f"stop from {cmd.operator!r}")
-            self.supervisor.stop(f"stop from {cmd.operator!r}: {cmd.reason}")
-            self._drive(Decision([0.0] * 6, False, Status.STOPPED))
-        log.warning("stop from %r: %s", cmd.operator, cmd.reason)
+            self._cancel_goto(f"stop from {who}")
+            self.supervisor.stop(f"stop from {who}: {cmd.reason}")
+        self._wake()
+        self._rlog.warning(f"stop:{sender or cmd.operator}", f"stop from {who} on {key}: {cmd.reason}")
         self._publish_safety(force=True)
 
 

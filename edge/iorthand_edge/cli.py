@@ -6,6 +6,7 @@ import argparse
 import socket
 import sys
 
+from iorthand.memory import Trimmer
 from iorthand_edge.agent import run
 from iorthand_edge.config import load_edge_config
 
@@ -14,7 +15,13 @@ def _edge(args: argparse.Namespace) -> int:
     config = load_edge_config(args.config)
     if args.connect:
         config.zenoh.connect = list(args.connect)
-    run(config)
+    # What a flood of input made the agent allocate goes back to the system once it is freed (iorthand.memory).
+    trimmer = Trimmer()
+    trimmer.start()
+    try:
+        run(config)
+    finally:
+        trimmer.stop()
     return 0
 
 

@@ -7,7 +7,8 @@ from pathlib import Path
 
 from iorthand import keys
 from iorthand.config import load, setting
-from iorthand.transport import ZenohConfig
+from iorthand.protocol import MAX_PAYLOAD
+from iorthand.transport import RX_MAX_MESSAGE_KEY, ZenohConfig
 from iorthand_edge.actuators.config import ServosConfig, TorchConfig
 from iorthand_edge.force.config import ForceConfig, SimForceSensorConfig
 from iorthand_edge.force.contact import PhantomConfig
@@ -16,6 +17,15 @@ from iorthand_edge.perception.config import PerceptionConfig
 from iorthand_edge.robots.config import RobotConfig, SimRobotConfig
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.video.config import VideoConfig
+
+# The largest message the edge's sessions take from the network. The edge receives commands and control
+# queries only, each under MAX_PAYLOAD (its video frames go out, and a session's limit is on what it receives),
+# so Zenoh drops anything larger before reassembling it: a flood of 10 MB payloads then costs the edge no
+# memory (before this and the other fixes of issue 20, benchmarks/bench_flood_memory.py's flood of malformed
+# messages and twenty 10 MB payloads left the edge 106 MB larger, for good). Twice the payload
+# limit leaves room for the key and Zenoh's headers; a larger command still reaches the subscriber's own size
+# check, which names its size. ``zenoh.extra`` in the YAML may set another value.
+EDGE_RX_MAX_MESSAGE = 2 * MAX_PAYLOAD
 
 
 @dataclass
@@ -46,6 +56,9 @@ class EdgeConfig:
     bind_operator_keys: bool = setting(
         False, help="commands and control queries only on keys that carry the operator id (with the generated ACL)"
     )
+
+    def __post_init__(self) -> None:
+        self.zenoh.extra.setdefault(RX_MAX_MESSAGE_KEY, EDGE_RX_MAX_MESSAGE)
 
     def check(self) -> None:
         keys.check_edge_robot_id(self.robot_id)

@@ -10,9 +10,9 @@ Flow (DESIGN.md "Safety model", issue 6 §5):
    fresh, for the same pose, issued to the same operator, and the robot is still where the preview started
    (the approved path begins there). Then the move is active.
 3. While active, the operator keeps sending ``cmd/twist`` with the deadman held (hold-to-run): the agent
-   replaces the command's velocity with :meth:`GotoController.twist` (:func:`substitute`) and passes it
-   through the supervisor as any command — owner, sequence, age, deadman, speed and workspace limits and the
-   force reaction all apply. Releasing the deadman, a refused command, a stop, a fault or a tracking error
+   gives :meth:`GotoController.twist` to the supervisor with the command (``Supervisor.on_command``'s
+   ``goto_twist``), which judges it as any command — the owner's signature, sequence, age, deadman, speed and
+   workspace limits and the force reaction all apply — and moves with the goto's velocity instead. Releasing the deadman, a refused command, a stop, a fault or a tracking error
    cancels the move (:meth:`GotoController.cancel`); nothing resumes by itself.
 
 Tracking: the twist is the path's feed-forward velocity plus a proportional correction toward the path's
@@ -26,7 +26,7 @@ import math
 import secrets
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -34,7 +34,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from iorthand import geometry, motion
 from iorthand.config import setting
-from iorthand.protocol import TwistCommand
 
 Vector = NDArray[np.float64]
 
@@ -266,11 +265,4 @@ def _clip_norm(v: Vector, limit: float) -> Vector:
     return v * (limit / n) if n > limit > 0 else (v if limit > 0 else np.zeros_like(v))
 
 
-def substitute(cmd: TwistCommand, twist: ArrayLike) -> TwistCommand:
-    """The operator's command with its velocity replaced by the goto's twist (same operator, seq, time and
-    deadman), to pass through :meth:`Supervisor.on_command` like any command."""
-    tw = np.asarray(twist, dtype=float)
-    return replace(cmd, linear=[float(v) for v in tw[:3]], angular=[float(v) for v in tw[3:]])
-
-
-__all__ = ["GotoConfig", "GotoController", "Preview", "substitute"]
+__all__ = ["GotoConfig", "GotoController", "Preview"]

@@ -20,18 +20,33 @@ Rules (DESIGN.md, "Safety model"):
 - After a stop command the robot stays stopped until the deadman is released and pressed again; after a fault
   or the owner's loss, until an operator acquires control again *and then* releases and presses the deadman (a
   lease renewal alone never moves the robot). Nothing resumes by itself.
+- Ownership belongs to the session that acquired it, never to a name: each grant draws a fresh key that only
+  the acquirer receives, and only commands signed with it act (:mod:`iorthand.security.auth`). A command in the
+  owner's name without the owner's signature is a forgery: refused, counted, never answered. Every grant starts
+  a new sequence; a command whose sequence jumps further than ``max_sequence_jump`` is refused.
+- After a gap in the commands longer than ``resume_gap`` while the deadman was held, motion resumes only after
+  the deadman is released and pressed again (shorter gaps resume). A command states how old the robot state on
+  the operator's screen is; motion from a picture older than ``max_view_age`` is refused and the robot stops.
+
+Every event (a command, a control cycle, a stop, arming, ownership, a fault, a force level) goes through one
+method with its time; each answer is a :class:`Decision` whose ``action`` says what the driver must do (move,
+decelerate to a stop, or nothing). The agent around it only carries events in and actions out.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
+from iorthand import keys
 from iorthand.config import setting
 from iorthand.geometry import rotate
-from iorthand.protocol import ForceLevel, Status, TwistCommand
+from iorthand.protocol import ControlRequest, ForceLevel, Message, Status, TwistCommand
+from iorthand.security import auth
 from iorthand_edge.robots.base import Vector
 
 
@@ -97,10 +112,25 @@ class SafetyConfig:
     workspace: WorkspaceBox = field(default_factory=WorkspaceBox)
     allowed_operators: list[str] = setting(default_factory=list, help="empty: any operator may acquire")
     force: ForceReaction = field(default_factory=ForceReaction)
+    resume_gap: float = setting(
+        0.5, lo=0.05, hi=10.0, help="s; after a longer gap in the commands motion needs a fresh deadman press",
+    )
+    max_view_age: float = setting(
+        0.5, lo=0.05, hi=10.0, help="s; motion from an operator whose robot state is older is refused",
+    )
+    max_sequence_jump: int = setting(1000, lo=1, hi=1_000_000, help="a larger jump in a command's sequence is refused")
 
     def check(self) -> None:
         if self.profile not in self.profiles:
             raise ValueError(f"profile {self.profile!r} is not one of the profiles {sorted(self.profiles)}")
+
+
+class Action(StrEnum):
+    """What the driver must do with a decision."""
+
+    MOVE = "move"  # send the twist
+    STOP = "stop"  # decelerate to zero at the stop deceleration (the robot was commanded to move)
+    HOLD = "hold"  # nothing to send: the robot was already commanded to stand still
 
 
 @dataclass
@@ -109,9 +139,21 @@ class Decision:
 
     twist: list[float]  # what to send to the robot, [vx, vy, vz, wx, wy, wz] (m/s, rad/s)
     accepted: bool
-    status: str
+    status: Status
     reason: str = ""
     limits_hit: list[str] = field(default_factory=list)
+    action: Action = Action.HOLD
+    answer: bool = True  # False: a forgery, counted but not answered on state/applied (no echo to amplify)
+    cancel_goto: str = ""  # why a previewed move under way ends with this command ("" = it goes on, if any)
+
+
+@dataclass
+class Grant:
+    """The answer to an acquire: ``key`` is set when a new grant starts (the acquirer alone receives it)."""
+
+    ok: bool
+    reason: str
+    key: bytes = b""
 
 
 @dataclass
@@ -120,12 +162,16 @@ class Counters:
     applied: int = 0
     rejected: int = 0
     stops: int = 0
+    forged: int = 0
 
 
 class Supervisor:
-    def __init__(self, config: SafetyConfig, period: float = 1.0 / 125.0, force_required: bool = False) -> None:
+    def __init__(self, config: SafetyConfig, period: float = 1.0 / 125.0, force_required: bool = False,
+                 robot: str = "robot", keygen: Callable[[], bytes] = auth.new_key) -> None:
         self.config = config
         self.period = period
+        self.robot = keys.check_robot_id(robot)
+        self._keygen = keygen
         self.armed = config.auto_arm
         self.arm_requested = False
         self.owner = ""
@@ -135,17 +181,20 @@ class Supervisor:
         self.force_level = ForceLevel.SAFE
         self.force_stale = force_required
         self.fault = ""
+        self._key = b""  # the owner's secret (see iorthand.security.auth); empty while nobody holds control
         self._lease_until = 0.0
-        self._last_seq = 0
+        self._last_seq: dict[str, int] = {}  # per key suffix, within the current grant
         self._last_accepted = -math.inf  # monotonic time of the last accepted command
+        self._last_deadman = False  # the deadman flag of the last accepted command
         self._deadman = False
         self._target = [0.0] * 6  # the last accepted command, already limited
-        self._latched = ""  # status that keeps the robot stopped until cleared (see module doc)
+        self._sent_motion = False  # the driver was last told to move (a zero then means: stop)
+        self._latched: Status | None = None  # keeps the robot stopped until cleared (see module doc)
         self._latch_reason = ""
         self._now = 0.0  # the latest monotonic time given to on_command/step
         self._retreat_until = -math.inf  # monotonic time until which the tool backs off from contact
-        self._force_active = ""  # the force intervention in effect (edge-triggers ``interventions``)
-        self.interventions: list[tuple[str, str]] = []  # (status, reason), drained by the agent to log
+        self._force_active: Status | None = None  # the force intervention in effect (edge-triggers ``interventions``)
+        self.interventions: list[tuple[Status, str]] = []  # (status, reason), drained by the agent to log
         self.status = Status.DISARMED if not self.armed else Status.IDLE
         self.reason = "" if self.armed else "not armed: confirm arming on the robot side"
         self.limits_hit: list[str] = []
@@ -187,43 +236,87 @@ class Supervisor:
         self.armed = False
         self._halt(Status.DISARMED, reason)
 
-    def acquire(self, operator: str, now: float, profile: str = "") -> tuple[bool, str]:
+    def owner_refusal(self, msg: Message, suffix: str) -> str:
+        """"" if ``msg`` (a command or control request on ``suffix``) comes from the session holding control —
+        the owner's name, a valid signature with this grant's key, and a sequence after the last one on that
+        suffix (a replayed message fails), which is then recorded — else why not."""
+        operator = getattr(msg, "operator", "")
+        if not self.owner:
+            return f"{operator!r} does not hold control (nobody does)"
+        if operator != self.owner:
+            return f"{operator!r} does not hold control ({self.owner!r} does)"
+        if not auth.verify(self._key, self._context(suffix), msg):
+            return f"not signed by the session that holds control for {operator!r}"
+        return self._sequence_refusal(msg.seq, suffix)
+
+    def _sequence_refusal(self, seq: int, suffix: str) -> str:
+        """"" and ``seq`` recorded if it follows the last one on ``suffix`` within the jump bound, else why not."""
+        last = self._last_seq.get(suffix, 0)
+        if seq <= last:
+            return f"sequence {seq} is not after {last} (a replay, or out of order)"
+        if seq - last > self.config.max_sequence_jump:
+            return (f"sequence {seq} jumps {seq - last} past {last} (max {self.config.max_sequence_jump}): "
+                    "acquire control again")
+        self._last_seq[suffix] = seq
+        return ""
+
+    def acquire(self, req: ControlRequest, now: float) -> Grant:
+        """A request for control. The holder renews its lease (and may switch profile) with a signed request;
+        anyone else is refused while the lease runs. A new grant draws a new key and starts a new sequence."""
+        operator, profile = req.operator, req.profile
         allowed = self.config.allowed_operators
         if allowed and operator not in allowed:
-            return False, f"operator {operator!r} is not on this robot's allow-list"
-        if self.owner and self.owner != operator and now < self._lease_until:
-            return False, f"robot is controlled by {self.owner!r}"
+            return Grant(False, f"operator {operator!r} is not on this robot's allow-list")
         if profile and profile not in self.config.profiles:
-            return False, f"unknown speed profile {profile!r} (this robot has {sorted(self.config.profiles)})"
-        if self.owner != operator:
-            self._last_seq = 0  # a new owner starts its own sequence
-            self._deadman = False
-        self.owner = operator
+            return Grant(False, f"unknown speed profile {profile!r} (this robot has {sorted(self.config.profiles)})")
+        held = bool(self.owner) and now < self._lease_until
+        renewal = held and not self.owner_refusal(req, keys.CONTROL_ACQUIRE)
+        if held and not renewal:
+            why = " (from a session that does not hold its key)" if operator == self.owner else ""
+            return Grant(False, f"robot is controlled by {self.owner!r}{why}")
+        if not renewal:
+            self.owner = operator
+            self._key = self._keygen()
+            self._last_seq = {}
+            self._deadman = self._last_deadman = False
         self._lease_until = now + self.config.lease
         if profile:
             self.profile = profile
         if self._latched in (Status.FAULT, Status.OWNER_LOST) and not self.fault:
-            # Acquiring again acknowledges the fault, but never moves the robot by itself: the client renews
-            # its lease with acquire while the operator may still hold the deadman. Motion needs a fresh press.
+            # Acquiring (or renewing) acknowledges the fault, but never moves the robot by itself: motion needs
+            # a fresh press of the deadman.
             self._latched = Status.STOPPED
             self._latch_reason = f"{self._latch_reason} — acknowledged: release the deadman and press it again"
             self._set(Status.STOPPED, self._latch_reason)
-        return True, f"control granted to {operator!r} for {self.config.lease:g} s, profile {self.profile}"
+        if renewal:
+            return Grant(True, f"lease of {operator!r} renewed for {self.config.lease:g} s, profile {self.profile}")
+        return Grant(True, f"control granted to {operator!r} for {self.config.lease:g} s, profile {self.profile}",
+                     key=self._key)
 
-    def release(self, operator: str, reason: str = "released by its owner") -> tuple[bool, str]:
-        if operator != self.owner:
-            return False, f"{operator!r} does not hold control"
-        self.owner = ""
-        self._halt(Status.IDLE, reason)
-        return True, reason
+    def release(self, req: ControlRequest) -> tuple[bool, str]:
+        """The owner gives control back (a signed request)."""
+        refusal = self.owner_refusal(req, keys.CONTROL_RELEASE)
+        if refusal:
+            return False, refusal
+        self._drop_owner()
+        self._halt(Status.IDLE, "released by its owner")
+        return True, "released by its owner"
 
     def owner_lost(self, operator: str, reason: str) -> bool:
         """The owner's liveliness token vanished (or its lease ran out): stop and release."""
         if not self.owner or operator != self.owner:
             return False
-        self.owner = ""
+        self._drop_owner()
         self._halt(Status.OWNER_LOST, reason, latch=True)
         return True
+
+    def _drop_owner(self) -> None:
+        self.owner = ""
+        self._key = b""
+        self._last_seq = {}
+
+    def _context(self, suffix: str) -> bytes:
+        return auth.context(self.robot, suffix)
 
     # ---------------------------------------------------------------- faults, stops, force
 
@@ -237,6 +330,12 @@ class Supervisor:
             self._halt(Status.FAULT, reason, latch=True)
         elif not reason:
             self.fault = ""
+
+    def on_reading(self, fault: str, connected: bool) -> str:
+        """The robot driver's health from one reading: a fault it reports, or a lost link, is a fault here.
+        Returns the fault in effect ("" when healthy)."""
+        self.set_fault(fault or ("" if connected else "robot link lost"))
+        return self.fault
 
     def update_force(self, level: int, stale: bool, now: float | None = None) -> None:
         """A change of the force level or staleness. ``now`` (monotonic) times the retreat; by default the
@@ -264,37 +363,80 @@ class Supervisor:
             self._set(Status.FORCE_DANGER, reason)
             self._intervene(Status.FORCE_DANGER, reason)
 
+    def force_zero_refusal(self) -> str:
+        """Why the force sensor may not be zeroed now ("" if it may): zeroing in contact would hide the contact
+        force from every threshold afterwards."""
+        if not self.force_required:
+            return "this robot has no force sensor"
+        if self.force_stale or self.force_level != ForceLevel.SAFE:
+            stale = ", stale" if self.force_stale else ""
+            return f"force sensor not zeroed: level {int(self.force_level)}{stale}; lift the tool out of contact first"
+        return ""
+
     # ---------------------------------------------------------------- commands and control cycles
 
-    def on_command(self, cmd: TwistCommand, recv_wall: float, now: float, tcp_pose: Vector) -> Decision:
+    def on_command(self, cmd: TwistCommand, recv_wall: float, now: float, tcp_pose: Vector,
+                   goto_twist: list[float] | None = None) -> Decision:
         """A decoded twist command. ``recv_wall`` is the receive time (s since the epoch, to compare with
-        ``cmd.t``); ``now`` is the monotonic time; ``tcp_pose`` the latest ``[x,y,z,rx,ry,rz]``."""
+        ``cmd.t``); ``now`` is the monotonic time; ``tcp_pose`` the latest ``[x,y,z,rx,ry,rz]``.
+
+        ``goto_twist``: a previewed move is under way and this is its velocity now. The owner holds the deadman
+        with zero twists while it runs (hold-to-run); a released deadman, a manual twist (the operator takes
+        over) or any refusal of the owner's command ends it (``Decision.cancel_goto``)."""
+        decision = self._on_command(cmd, recv_wall, now, tcp_pose, goto_twist)
+        if goto_twist is not None and not decision.cancel_goto and decision.answer and decision.status != Status.NOT_OWNER:
+            if not cmd.deadman:
+                decision.cancel_goto = "deadman released"
+            elif not decision.accepted:
+                decision.cancel_goto = decision.reason or decision.status.message
+        return decision
+
+    def _on_command(self, cmd: TwistCommand, recv_wall: float, now: float, tcp_pose: Vector,
+                    goto_twist: list[float] | None) -> Decision:
         self.counters.received += 1
         self._now = now
         refusal = self._refuse(cmd, recv_wall)
         if refusal is not None:
             self.counters.rejected += 1
             status, reason = refusal
-            return Decision(self._current(), False, status, reason)
-        self._last_seq = cmd.seq
+            forged = cmd.operator == self.owner and bool(self.owner) and status == Status.NOT_OWNER
+            if forged:
+                self.counters.forged += 1
+            return self._decide(self._current(), False, status, reason, answer=not forged)
+        gap = now - self._last_accepted
+        resumed_after_gap = cmd.deadman and self._last_deadman and gap > self.config.resume_gap
         self._last_accepted = now
+        self._last_deadman = cmd.deadman
         self._lease_until = now + self.config.lease
         if not cmd.deadman:
             self._deadman = False
-            if self._latched == Status.STOPPED:
-                self._latched = ""  # deadman released after a stop: the next press may move again
+            if self._latched in (Status.STOPPED, Status.LINK_GAP):
+                self._latched = None  # deadman released after a stop: the next press may move again
             self._target = [0.0] * 6
             self.counters.applied += 1
             self._set(Status.NO_DEADMAN, "deadman released")
-            return Decision([0.0] * 6, True, Status.NO_DEADMAN, "deadman released")
+            return self._decide([0.0] * 6, True, Status.NO_DEADMAN, "deadman released")
+        if resumed_after_gap and not self._latched:
+            self._halt(Status.LINK_GAP, f"commands resumed after a gap of {1000 * gap:.0f} ms (more than "
+                       f"{1000 * self.config.resume_gap:.0f}): release the deadman and press it again", latch=True)
+        if cmd.state_age < 0 or cmd.state_age > self.config.max_view_age:
+            # Acting on an old picture: the robot stops, and moves again once the operator sees it live.
+            seen = "no robot state" if cmd.state_age < 0 else f"a robot state {1000 * cmd.state_age:.0f} ms old"
+            self.counters.rejected += 1
+            self._halt(Status.STALE_VIEW, f"motion refused: the operator's screen shows {seen} "
+                       f"(max {1000 * self.config.max_view_age:.0f} ms)")
+            return self._decide([0.0] * 6, False, self.status, self.reason)
         self._deadman = True
         if self._latched:
             self.counters.rejected += 1
-            return Decision([0.0] * 6, False, self._latched, self._latch_reason)
-        self._target = [float(v) for v in (*cmd.linear, *cmd.angular)]
+            return self._decide([0.0] * 6, False, self._latched, self._latch_reason)
+        manual = [float(v) for v in (*cmd.linear, *cmd.angular)]
+        took_over = goto_twist is not None and any(manual)
+        self._target = [float(v) for v in goto_twist] if goto_twist is not None and not took_over else manual
         decision = self._limit(self._target, tcp_pose, now)
+        if took_over:
+            decision.cancel_goto = "the operator took over with a manual twist"
         self.counters.applied += 1
-        decision.accepted = True
         return decision
 
     def step(self, now: float, tcp_pose: Vector) -> Decision:
@@ -303,7 +445,7 @@ class Supervisor:
         if self.owner and now >= self._lease_until and now - self._last_accepted > self.config.lease:
             self.owner_lost(self.owner, f"lease of {self.owner!r} expired")
         if self._latched or not self.armed:
-            return Decision([0.0] * 6, False, self.status, self.reason)
+            return self._decide([0.0] * 6, False, self.status, self.reason)
         if self._deadman and now - self._last_accepted > self.config.command_timeout:
             self._deadman = False
             self._target = [0.0] * 6
@@ -316,9 +458,40 @@ class Supervisor:
             return self._retreat_only(tcp_pose, now)
         return self._limit(self._target, tcp_pose, now)
 
+    def halt_now(self) -> Decision:
+        """The decision for an event that stopped the robot (a stop, a fault, the owner lost, disarming): what
+        the driver must do right away, without waiting for the next cycle."""
+        return self._decide([0.0] * 6, False, self.status, self.reason)
+
+    def driver_failed(self, reason: str) -> Decision:
+        """The driver refused or failed a command: a fault, and the robot is told to stop."""
+        self.set_fault(reason)
+        self._sent_motion = True  # whatever it did with the last command, stop it
+        return self.halt_now()
+
     # ---------------------------------------------------------------- internals
 
-    def _refuse(self, cmd: TwistCommand, recv_wall: float) -> tuple[str, str] | None:
+    def _decide(self, twist: list[float], accepted: bool, status: Status, reason: str,
+                hit: list[str] | None = None, answer: bool = True) -> Decision:
+        """Every decision leaves through here: the driver's action follows from the twist and what the driver
+        was last told (a zero after motion is a stop at the stop deceleration; a zero after a zero is nothing)."""
+        if any(twist):
+            action, self._sent_motion = Action.MOVE, True
+        elif self._sent_motion:
+            action, self._sent_motion = Action.STOP, False
+        else:
+            action = Action.HOLD
+        return Decision(twist, accepted, status, reason, hit or [], action, answer)
+
+    def _refuse(self, cmd: TwistCommand, recv_wall: float) -> tuple[Status, str] | None:
+        # The owner's authentic commands count in its sequence whatever happens to them next (a fault, disarmed):
+        # an operator holding the deadman through a protective stop must not run into the jump bound afterwards.
+        if self.owner and cmd.operator == self.owner:
+            if not auth.verify(self._key, self._context(keys.CMD_TWIST), cmd):
+                return Status.NOT_OWNER, f"command in the name of {cmd.operator!r} not signed by its session"
+            out_of_order = self._sequence_refusal(cmd.seq, keys.CMD_TWIST)
+            if out_of_order:
+                return Status.OUT_OF_ORDER, out_of_order
         if self.fault:
             return Status.FAULT, self.fault
         if not self.armed:
@@ -327,8 +500,6 @@ class Supervisor:
             return Status.NOT_OWNER, "no operator holds control: acquire it first"
         if cmd.operator != self.owner:
             return Status.NOT_OWNER, f"robot is controlled by {self.owner!r}, not {cmd.operator!r}"
-        if cmd.seq <= self._last_seq:
-            return Status.OUT_OF_ORDER, f"sequence {cmd.seq} is not after {self._last_seq}"
         age = recv_wall - cmd.t / 1e9
         if age > self.config.max_command_age:
             return Status.STALE_COMMAND, f"command is {1000 * age:.0f} ms old (max {1000 * self.config.max_command_age:.0f})"
@@ -339,10 +510,10 @@ class Supervisor:
     def _current(self) -> list[float]:
         return list(self._target) if self._deadman and not self._latched else [0.0] * 6
 
-    def _set(self, status: str, reason: str) -> None:
+    def _set(self, status: Status, reason: str) -> None:
         self.status, self.reason = status, reason
 
-    def _halt(self, status: str, reason: str, latch: bool = False) -> None:
+    def _halt(self, status: Status, reason: str, latch: bool = False) -> None:
         was_moving = self.moving or any(self._target)
         self._deadman = False
         self._target = [0.0] * 6
@@ -367,11 +538,11 @@ class Supervisor:
             self._clip_workspace(twist, pose)
             self.moving = any(twist)
             self._set(Status.FORCE_DANGER, "retracting from danger-level force")
-            return Decision(twist, True, Status.FORCE_DANGER, "retracting from danger-level force", ["force"])
+            return self._decide(twist, True, Status.FORCE_DANGER, "retracting from danger-level force", ["force"])
         self.moving = False
-        return Decision([0.0] * 6, False, self.status, self.reason)
+        return self._decide([0.0] * 6, False, self.status, self.reason)
 
-    def _intervene(self, status: str, reason: str) -> None:
+    def _intervene(self, status: Status, reason: str) -> None:
         if status != self._force_active:
             self._force_active = status
             self.interventions.append((status, reason))
@@ -384,7 +555,8 @@ class Supervisor:
         limits = self.limits
         twist = list(target)
         hit: list[str] = []
-        status, reason = Status.OK, ""
+        status: Status = Status.OK
+        reason = ""
         lin_speed = math.hypot(*twist[:3])
         if lin_speed > limits.linear:
             scale = limits.linear / lin_speed
@@ -405,14 +577,14 @@ class Supervisor:
             status, reason = force_status
             self._intervene(status, reason)
         else:
-            self._force_active = ""
+            self._force_active = None
         if self._clip_workspace(twist, pose):
             hit.append("workspace")
             status, reason = Status.WORKSPACE, "velocity leaving the workspace box removed"
         self.limits_hit = hit
         self.moving = any(abs(v) > 1e-9 for v in twist)
         self._set(status, reason)
-        return Decision(twist, True, status, reason, hit)
+        return self._decide(twist, True, status, reason, hit)
 
     def _clip_workspace(self, twist: list[float], pose: list[float]) -> bool:
         """Remove velocity components that would carry the tool out of the box: the allowed speed toward a
@@ -437,7 +609,7 @@ class Supervisor:
                 clipped = True
         return clipped
 
-    def _clip_force(self, twist: list[float], pose: list[float], now: float) -> tuple[str, str] | None:
+    def _clip_force(self, twist: list[float], pose: list[float], now: float) -> tuple[Status, str] | None:
         """Shape ``twist`` (in place) by the force state; return (status, reason) if it intervened."""
         reaction = self.config.force
         if not reaction.enabled or not self.force_required:
@@ -449,7 +621,7 @@ class Supervisor:
                 return None
             _add_along(twist, -toward, n)
             return Status.FORCE_STALE, "force sensor stale: motion toward contact refused"
-        result: tuple[str, str] | None = None
+        result: tuple[Status, str] | None = None
         if self.force_level == ForceLevel.DANGER and toward > 0:
             _add_along(twist, -toward, n)
             toward = 0.0

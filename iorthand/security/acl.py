@@ -6,14 +6,18 @@ reads unchanged. Nothing here opens a socket or reads a file, so the whole polic
 
 Identity: every subject matches on its certificate common name *and* a username equal to it (Zenoh requires
 both to match when both are given): a stolen password without the key, or a key without the password, is not
-enough. Roles (common names as issued by :mod:`iorthand.security.certs`):
+enough. Which role may write or query which key of a robot is a column of the table of channels
+(:mod:`iorthand.channels`); the rules below are derived from it. Roles (common names as issued by
+:mod:`iorthand.security.certs`):
 
 - ``edge-<robot>``: publishes only ``iorthand/<robot>/state/**``, ``markers`` and ``video/**``; declares the
   queryables (and replies) under ``iorthand/<robot>/control/**``; subscribes to its own commands; holds only
   the ``alive/edge`` token. It receives traffic of its own robot only.
-- ``operator-<name>``: publishes ``cmd/**`` and queries ``control/**`` only for the robots it is granted;
-  its liveliness token is restricted to ``alive/operator/<name>`` so nobody can look like another operator
-  to the edge's owner-loss logic. It sees only its robots and the cloud services.
+- ``operator-<name>``: publishes commands and queries ``control/**`` only for the robots it is granted, with
+  ``bind_operator_keys`` (the default) only on its own keys ``cmd/<kind>/<name>`` and ``control/<verb>/<name>``
+  plus the shared ``cmd/stop`` (a stop is everyone's); its liveliness token is restricted to
+  ``alive/operator/<name>`` so nobody can look like another operator to the edge's owner-loss logic. It sees
+  only its robots and the cloud services.
 - ``twin``, ``recorder`` (services) and ``viewer-<name>`` (observers): subscribe and query; the services also
   serve their own ``iorthand/_twin/**`` / ``iorthand/_recorder/**`` space. Viewers cannot query a robot's
   ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership).
@@ -29,11 +33,13 @@ routed (Zenoh drops denied messages silently): that is why the edge also checks 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from iorthand import keys
+from iorthand import channels, keys
+from iorthand.channels import Channel, Kind, OperatorKey, Role
 from iorthand.config import setting
 from iorthand.transport import ROUTER_LEASE_MS, ROUTER_QUEUE_SIZE, announced_lease
 
@@ -43,7 +49,7 @@ ALL_MESSAGES = [
 ]
 SUBSCRIBE = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
 SERVICES = ("twin", "recorder")
-REPLAY = "replay"  # the identity of `iorthand replay`
+REPLAY = Role.REPLAY.value  # the identity of `iorthand replay`
 
 
 @dataclass
@@ -60,7 +66,8 @@ class Deployment:
     lease_ms: int = setting(ROUTER_LEASE_MS, lo=500, hi=60_000)
     connect: list[str] = setting(default_factory=list, help="other routers (a chain of sites)")
     bind_operator_keys: bool = setting(
-        False, help="operators may publish commands only on .../cmd/<kind>/<their name> (identity-scoped keys)"
+        True, help="operators may put commands only on .../cmd/<kind>/<their name> and query only "
+        ".../control/<verb>/<their name> (identity-scoped keys; edges and operators must set it too)"
     )
     replay: bool = setting(True, help="let the replay identity publish recordings under <robot>-replay ids")
 
@@ -79,6 +86,14 @@ class Deployment:
             if not ep.startswith(("tls/", "quic/")):
                 raise ValueError(f"listen endpoint {ep!r} is not encrypted: use tls/HOST:PORT")
 
+    def warnings(self) -> list[tuple[str, str]]:
+        """Settings that load but weaken the deployment (``iorthand check`` prints them)."""
+        if self.bind_operator_keys:
+            return []
+        return [("bind_operator_keys", "off: an operator may command and query on the plain keys of every robot "
+                 "it is granted, so its certificate can command in another operator's name (the edge sees only "
+                 "the name in the message); set it true, as on the edges and operators")]
+
 
 def _rule(rid: str, messages: list[str], flows: list[str], key_exprs: list[str]) -> dict[str, Any]:
     return {"id": rid, "messages": messages, "flows": flows, "permission": "allow", "key_exprs": key_exprs}
@@ -88,8 +103,34 @@ def _service_space(name: str) -> str:
     return f"{keys.ROOT}/_{name}/**"
 
 
-def acl_rules(dep: Deployment) -> dict[str, Any]:
-    """The ``access_control`` section (rules, subjects, policies) for ``dep``."""
+def _grants(table: Iterable[Channel], role: Role, kind: Kind, *, query: bool = False,
+            bound: str | None = None) -> list[str]:
+    """The key suffixes ``role`` may write (``query``: query) among the ``kind`` rows of ``table``: each family
+    whole (``state/**``, and the plain key where a row is the family itself: ``markers``). With ``bound`` (an
+    operator's name, under bind_operator_keys) a bound family only on that operator's keys (``cmd/*/<name>``),
+    plus the plain keys its rows share (``cmd/stop``)."""
+    out: list[str] = []
+    for fam, rows in channels.families(table, kind).items():
+        if role not in (rows[0].callers if query else rows[0].writers):
+            continue  # channels.check: every row of a family has the same writers, callers and operator key
+        if bound is not None and rows[0].operator_key is OperatorKey.BOUND:
+            out += [f"{fam}/*/{bound}", *(c.suffix for c in rows if c.shared)]
+        else:
+            out += [*([fam] if any(c.suffix == fam for c in rows) else []), f"{fam}/**"]
+    return out
+
+
+def _tokens(table: Iterable[Channel], role: Role, operator: str = "") -> list[str]:
+    """The liveliness tokens ``role`` may declare, by exact key (an operator's carries its name)."""
+    return [f"{c.suffix}/{keys.check_operator_id(operator)}" if c.operator_key is OperatorKey.ALWAYS else c.suffix
+            for c in table if c.kind is Kind.TOKEN and role in c.writers]
+
+
+def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dict[str, Any]:
+    """The ``access_control`` section (rules, subjects, policies) for ``dep``; who may write or query which
+    key comes from ``table``, the table of channels."""
+    table = tuple(table)
+    channels.check(table)  # a family is granted whole: only sound where its rows agree
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
@@ -105,30 +146,30 @@ def acl_rules(dep: Deployment) -> dict[str, Any]:
         k = keys.RobotKeys(robot)
         sid = f"edge-{robot}"
         add(sid, [
-            _rule(f"{sid}-publish", ["put", "delete"], ["ingress"],
-                  [k.key("state/**"), k.key(keys.MARKERS), k.key(f"{keys.MARKERS}/**"), k.key("video/**")]),
-            _rule(f"{sid}-serve", ["declare_queryable", "reply"], ["ingress"], [k.key("control/**")]),
+            _rule(f"{sid}-publish", ["put", "delete"], ["ingress"], [k.key(s) for s in _grants(table, Role.EDGE, Kind.PUT)]),
+            _rule(f"{sid}-serve", ["declare_queryable", "reply"], ["ingress"],
+                  [k.key(s) for s in _grants(table, Role.EDGE, Kind.QUERY)]),
             _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all]),
-            _rule(f"{sid}-alive", ["liveliness_token"], ["ingress"], [k.key(keys.ALIVE_EDGE)]),
+            _rule(f"{sid}-alive", ["liveliness_token"], ["ingress"], [k.key(s) for s in _tokens(table, Role.EDGE)]),
             _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all]),
         ])
 
     for op, robots in dep.operators.items():
         sid = f"operator-{op}"
         rks = [keys.RobotKeys(r) for r in robots]
-        cmd_keys = [k.key(f"cmd/*/{op}") for k in rks] if dep.bind_operator_keys else [k.key("cmd/**") for k in rks]
-        if dep.bind_operator_keys:
-            cmd_keys += [k.key(keys.CMD_STOP) for k in rks]  # anyone granted may stop the robot: the safe side
+        bound = op if dep.bind_operator_keys else None
         rl = [
             _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all for k in rks] + services),
             _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all for k in rks] + services),
         ]
         if rks:
             rl += [
-                _rule(f"{sid}-command", ["put"], ["ingress"], cmd_keys),
+                _rule(f"{sid}-command", ["put"], ["ingress"],
+                      [k.key(s) for k in rks for s in _grants(table, Role.OPERATOR, Kind.PUT, bound=bound)]),
                 _rule(f"{sid}-control", ["query"], ["ingress"],
-                      [k.key(f"control/*/{op}") for k in rks] if dep.bind_operator_keys else [k.key("control/**") for k in rks]),
-                _rule(f"{sid}-alive", ["liveliness_token"], ["ingress"], [k.alive_operator(op) for k in rks]),
+                      [k.key(s) for k in rks for s in _grants(table, Role.OPERATOR, Kind.QUERY, query=True, bound=bound)]),
+                _rule(f"{sid}-alive", ["liveliness_token"], ["ingress"],
+                      [k.key(s) for k in rks for s in _tokens(table, Role.OPERATOR, op)]),
             ]
         if services:
             rl.append(_rule(f"{sid}-services", ["query"], ["ingress"], services))
@@ -150,7 +191,7 @@ def acl_rules(dep: Deployment) -> dict[str, Any]:
     if dep.replay:
         add(REPLAY, [
             _rule(f"{REPLAY}-publish", ["put"], ["ingress"],
-                  [keys.all_replays(s) for s in ("state/**", keys.MARKERS, f"{keys.MARKERS}/**", "video/**")]),
+                  [keys.all_replays(s) for s in _grants(table, Role.REPLAY, Kind.PUT)]),
             _rule(f"{REPLAY}-receive", ALL_MESSAGES, ["egress"], [keys.all_replays("**")]),
         ])
 

@@ -23,7 +23,7 @@ import math
 import sys
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict, defaultdict, deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,13 +49,13 @@ from iorthand.protocol import (
     StopCommand,
     TorchCommand,
     TorchState,
-    TwistCommand,
     source_news,
     superseded_news,
 )
+from iorthand.security import auth
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
 from iorthand_operator.link import LinkQuality, LinkWindow
-from iorthand_operator.sender import ProcessSender
+from iorthand_operator.sender import CommandStream, ProcessSender, run_fixed_rate
 
 log = logging.getLogger("iorthand.operator")
 
@@ -90,10 +90,7 @@ class Event:
 
 
 # Safety statuses that mean the robot was stopped (worth a line in the log when the edge enters them).
-STOP_STATUSES = {
-    Status.STOPPED, Status.COMMAND_TIMEOUT, Status.FAULT, Status.OWNER_LOST, Status.FORCE_DANGER,
-    Status.FORCE_STALE, Status.DISARMED,
-}
+STOP_STATUSES = frozenset(s for s in Status if s.halts)
 
 class OperatorClient:
     def __init__(
@@ -123,10 +120,16 @@ class OperatorClient:
         self._twist = np.zeros(6)
         self._deadman = False
         self._released_at = 0.0
-        # One sequence per key: the edge and the recorder count gaps per key, so a counter shared between
-        # twists and stops would look like lost twists.
-        self._seq = Sequencer()  # cmd/twist
-        self._seq_other = {name: Sequencer() for name in ("stop", "servo", "torch", "control")}
+        # The grant of control: the key the edge's acquire reply carried (signs every command of ours) and a
+        # counter of grants (each restarts the command sequence). Empty while we do not hold control.
+        self._key = b""
+        self._key_gen = 0
+        self._acquire_lock = threading.Lock()
+        self._heartbeat = time.monotonic()  # the UI is alive (see CommandStream): beaten by the link thread
+        self._state_t = 0  # source time (ns) of the newest robot state: each command states its age
+        # One sequence per key suffix: the edge and the recorder count gaps per key, and the edge checks a signed
+        # message's sequence per suffix (a counter shared between control verbs would jump on each of them).
+        self._seq_other: defaultdict[str, Sequencer] = defaultdict(Sequencer)
         self.bind_keys = bind_keys  # commands and control queries on keys carrying our id (ACL-bound)
         self._sent: OrderedDict[int, int] = OrderedDict()  # seq → send time (ns), bounded
         self.echoes: list[Echo] = []
@@ -162,6 +165,7 @@ class OperatorClient:
         self._servo_target = [0.0, 0.0]
         self._last_refusal_key: tuple[str, str] | None = None
         self._last_safety_status = ""
+        self._last_forged: int | None = None  # likewise for SafetyStatus.forged
         self._last_superseded: int | None = None  # None until the first status: a count from before we joined is not news
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -171,14 +175,18 @@ class OperatorClient:
         self._proc_sender: ProcessSender | None = None
         if sender_config is not None:
             self._proc_sender = ProcessSender(
-                sender_config, twist_key, self.operator_id, rate_hz, release_tail, ui_timeout, realtime,
+                sender_config, twist_key, robot_id, self.operator_id, rate_hz, release_tail, ui_timeout, realtime,
                 self._lock, self._on_send_record,
             )
+        self._stream = CommandStream(robot_id, self.operator_id, release_tail, ui_timeout)  # the thread sender's
         # Twists leave from exactly one place: the child's own publisher, or this one for the thread sender.
         self._pub_twist = None if self._proc_sender is not None else publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
-        self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP))
-        self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO))
-        self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH))
+        # With bound keys every command goes on the key carrying our id, the one the router's ACL lets only our
+        # certificate publish on (a stop there also tells the edge who sent it).
+        own = f"/{self.operator_id}" if bind_keys else ""
+        self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP) + own, QOS_BY_KEY[keys.CMD_STOP])
+        self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO) + own, QOS_BY_KEY[keys.CMD_SERVO])
+        self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH) + own, QOS_BY_KEY[keys.CMD_TORCH])
         self._token = session.liveliness().declare_token(self.keys.alive_operator(operator_id))
         self._subs = [
             session.declare_subscriber(self.keys.key(keys.STATE_ROBOT), self._on_robot),
@@ -195,8 +203,12 @@ class OperatorClient:
     # ------------------------------------------------------------------ control
 
     def _control(self, suffix: str, profile: str = "", *, key: str | None = None, **fields: str) -> ControlReply:
-        payload = ControlRequest(operator=self.operator_id, profile=profile, **fields)
-        payload = payload.stamp(self._seq_other["control"].next()).encode()
+        """A control query; signed with our grant's key while we hold control (renewing, releasing, moving to
+        a pose and zeroing the sensor are the owner's alone: the edge checks the signature, not the name)."""
+        req = ControlRequest(operator=self.operator_id, profile=profile, **fields)
+        req.stamp(self._next_seq(suffix))
+        self._sign(req, suffix)
+        payload = req.encode()
         key = key or self.keys.key(suffix) + (f"/{self.operator_id}" if self.bind_keys else "")
         replies = query(self.session, key, payload, timeout=self.query_timeout)
         if not replies:
@@ -207,12 +219,39 @@ class OperatorClient:
             raise ControlRefused(f"malformed reply on {suffix}: {exc}") from None
 
     def acquire(self, profile: str = "") -> ControlReply:
-        reply = self._control(keys.CONTROL_ACQUIRE, profile)
+        """Acquire control, or renew it (a request signed with the key we hold). A new grant's key replaces
+        ours; from then on every command is signed with it and the sequence starts again."""
+        with self._acquire_lock:  # the lease thread and the user: one request at a time, in sequence order
+            reply = self._control(keys.CONTROL_ACQUIRE, profile)
         if not reply.ok:
             self.log_event("control", Status.NOT_OWNER, f"control refused: {reply.reason}")
             raise ControlRefused(reply.reason)
+        if reply.key:
+            self._set_key(reply.key)
+        elif not self._key:
+            raise ControlRefused("the edge granted control without a key (an edge older than this client?)")
         self.owner, self.lease = True, reply.lease
         return reply
+
+    def _set_key(self, key: bytes) -> None:
+        with self._lock:
+            self._key = key
+            self._key_gen += 1
+            stop = self._seq_other[keys.CMD_STOP]  # stops are not signed: one sequence for the session
+            self._seq_other.clear()  # the edge counts each grant's signed messages afresh
+            self._seq_other[keys.CMD_STOP] = stop
+            if self._proc_sender is not None:
+                self._proc_sender.write(key=key, key_gen=self._key_gen)
+
+    def _next_seq(self, suffix: str) -> int:
+        with self._lock:
+            return self._seq_other[suffix].next()
+
+    def _sign(self, msg: Any, suffix: str) -> None:
+        """Sign ``msg`` (stamped) with our grant's key, if we hold one."""
+        key = self._key
+        if key:
+            auth.sign(key, auth.context(self.keys.robot, suffix), msg)
 
     def switch_profile(self, profile: str) -> ControlReply:
         """Ask the edge for another speed profile (renewing the lease); the edge refuses unknown ones."""
@@ -247,7 +286,8 @@ class OperatorClient:
             self._servo_target[0] = pan
         if tilt is not None:
             self._servo_target[1] = tilt
-        cmd = ServoCommand(operator=self.operator_id, pan=pan, tilt=tilt).stamp(self._seq_other["servo"].next())
+        cmd = ServoCommand(operator=self.operator_id, pan=pan, tilt=tilt).stamp(self._next_seq(keys.CMD_SERVO))
+        self._sign(cmd, keys.CMD_SERVO)
         self._pub_servo.put(cmd.encode())
 
     def step_servo(self, dpan: float = 0.0, dtilt: float = 0.0, limit: float = math.pi / 2) -> tuple[float, float]:
@@ -260,7 +300,9 @@ class OperatorClient:
         return pan, tilt
 
     def set_torch(self, on: bool, brightness: float = 1.0) -> None:
-        self._pub_torch.put(TorchCommand(operator=self.operator_id, on=on, brightness=brightness).stamp(self._seq_other["torch"].next()).encode())
+        cmd = TorchCommand(operator=self.operator_id, on=on, brightness=brightness).stamp(self._next_seq(keys.CMD_TORCH))
+        self._sign(cmd, keys.CMD_TORCH)
+        self._pub_torch.put(cmd.encode())
 
     def toggle_torch(self) -> bool:
         on = not (self.torch.on if self.torch is not None else False)
@@ -285,6 +327,8 @@ class OperatorClient:
         except (ControlRefused, RuntimeError) as exc:
             log.warning("release: %s", exc)
             return None
+        finally:
+            self._set_key(b"")
 
     def request_arm(self) -> ControlReply:
         return self._control(keys.CONTROL_ARM)
@@ -292,7 +336,7 @@ class OperatorClient:
     def emergency_stop(self, reason: str = "operator e-stop") -> None:
         self.set_twist(np.zeros(3), np.zeros(3), deadman=False)
         self.log_event("stop", Status.STOPPED, f"e-stop sent: {reason}")
-        self._pub_stop.put(StopCommand(operator=self.operator_id, reason=reason).stamp(self._seq_other["stop"].next()).encode())
+        self._pub_stop.put(StopCommand(operator=self.operator_id, reason=reason).stamp(self._next_seq(keys.CMD_STOP)).encode())
 
     # ------------------------------------------------------------------ the command stream
 
@@ -358,34 +402,19 @@ class OperatorClient:
 
     def _sender(self) -> None:
         self._raise_priority()
-        period = 1.0 / self.rate_hz
-        next_tick = time.monotonic()
-        while not self._stop.is_set():
-            with self._lock:
-                twist, deadman = self._twist.copy(), self._deadman
-                quiet = not deadman and time.monotonic() - self._released_at > self.release_tail
-            if not quiet and not self.muted:
-                self._send(twist, deadman)
-            next_tick += period
-            delay = next_tick - time.monotonic()
-            if delay > 0:
-                # Sleep most of the way, then spin briefly: sleep alone overshoots by ~0.1–1 ms.
-                if not self.spin:
-                    self._stop.wait(delay)
-                elif delay > 0.002:
-                    self._stop.wait(delay - 0.0015)
-                while self.spin and time.monotonic() < next_tick:
-                    pass
-            else:
-                next_tick = time.monotonic()  # overran: resume the schedule from now, never burst
 
-    def _send(self, twist: np.ndarray, deadman: bool) -> None:
-        cmd = TwistCommand(operator=self.operator_id, linear=twist[:3], angular=twist[3:], deadman=deadman)
-        cmd.stamp(self._seq.next())
-        payload = cmd.encode()
-        self._record_send(cmd.seq, cmd.t, time.monotonic())
-        assert self._pub_twist is not None, "the thread sender's publisher"
-        self._pub_twist.put(payload)
+        def tick() -> bool:
+            with self._lock:
+                cmd = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
+                                        self._muted, self._heartbeat, self._state_t, self._key_gen, self._key)
+            if cmd is not None:
+                payload = cmd.encode()
+                self._record_send(cmd.seq, cmd.t, time.monotonic())
+                assert self._pub_twist is not None, "the thread sender's publisher"
+                self._pub_twist.put(payload)
+            return not self._stop.is_set()
+
+        run_fixed_rate(tick, self.rate_hz, self.spin, self._stop.wait)
 
     def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
         with self._lock:
@@ -400,14 +429,28 @@ class OperatorClient:
         self.link.sent(seq, t_ns)
 
     def _renew_lease(self) -> None:
-        while not self._stop.wait(max(0.2, self.lease / 3.0) if self.lease else 0.5):
+        """The client's heartbeat (every 50 ms: this process is alive and running Python, see CommandStream)
+        and, while we own the robot, the lease renewal every lease/3."""
+        renew_at = time.monotonic()
+        while not self._stop.wait(0.05):
+            self.beat()
+            now = time.monotonic()
+            if now < renew_at:
+                continue
+            renew_at = now + (max(0.2, self.lease / 3.0) if self.lease else 0.5)
             if self.owner:
                 try:
                     self.acquire()
                 except (ControlRefused, RuntimeError) as exc:
                     self.owner = False
+                    self._set_key(b"")
                     self.log_event("control", Status.NOT_OWNER, f"lost control: {exc}")
                     log.warning("lost control: %s", exc)
+
+    def beat(self) -> None:
+        """The UI is alive: without a beat for ``ui_timeout`` the sender releases the deadman. The process
+        sender has its own beat (its link thread); a frozen interpreter stops both."""
+        self._heartbeat = time.monotonic()
 
     def close(self) -> None:
         self._stop.set()
@@ -436,6 +479,10 @@ class OperatorClient:
         if msg is not None:
             self.robot_state = msg
             self.robot_state_at = time.monotonic()
+            self._state_t = msg.t
+            if self._proc_sender is not None:
+                with self._lock:
+                    self._proc_sender.write(state_t=msg.t)
             self.link.state(msg.seq, time.time_ns())
 
     def _on_safety(self, sample: zenoh.Sample) -> None:
@@ -450,6 +497,10 @@ class OperatorClient:
             if news:
                 self.log_event("warning", "superseded", news)
             self._last_superseded = msg.superseded
+            if self._last_forged is not None and msg.forged > self._last_forged:
+                self.log_event("warning", "forged", f"the edge refused {msg.forged - self._last_forged} commands in "
+                               f"{msg.owner or 'the owner'!r}'s name that its session did not sign")
+            self._last_forged = msg.forged
 
     def _on_force_level(self, sample: zenoh.Sample) -> None:
         msg = self._decode(ForceLevelState, sample)

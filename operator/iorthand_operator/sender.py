@@ -16,6 +16,11 @@ The child exits when the parent dies (PR_SET_PDEATHSIG, a parent-pid check every
 
 Child → parent: one record per send (seq, send time, monotonic send instant) through a pipe, written before
 the put, so the parent can match the edge's echo to its send time exactly as with the thread sender.
+
+What each tick sends is decided in one place for both senders, :class:`CommandStream` (the deadman released
+when the UI is silent, the quiet tail after a release, a sequence that restarts with every grant of control,
+the age of the robot state the operator sees, the signature with the grant's key); :func:`run_fixed_rate`
+keeps the schedule for both.
 """
 
 from __future__ import annotations
@@ -33,13 +38,18 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from iorthand import keys
+from iorthand.protocol import TwistCommand
+from iorthand.security import auth
 from iorthand.transport import raise_priority
 
 log = logging.getLogger("iorthand.operator.sender")
 
-# Shared array layout (doubles).
-_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP = 0, 1, 7, 8, 9, 10, 11
-_SIZE = 12
+# Shared array layout (doubles). The grant's key (bytes) is in a second array, written under the same seqlock.
+_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN = 0, 1, 7, 8, 9, 10, 11, 12, 13
+_SIZE = 14
+_FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT, "stop": _STOP,
+           "state_t": _STATE_T, "key_gen": _KEY_GEN}
 _RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
 _PR_SET_PDEATHSIG = 1
 
@@ -62,11 +72,74 @@ def _real_std_streams():
         sys.stdout, sys.stderr = saved
 
 
-class SharedCommand:
-    """The parent's side of the shared array: a single writer at a time (the caller's lock), seqlocked."""
+class CommandStream:
+    """What the sender sends at each tick, for the thread and the process sender alike. No I/O.
 
-    def __init__(self, array: Any) -> None:
+    ``next`` gets the client's current intent and returns the signed command to send, or None (quiet: the
+    deadman released for longer than ``release_tail``, muted, or no key yet). The deadman counts as released
+    while the UI's heartbeat is older than ``ui_timeout`` (a frozen UI must not keep the robot moving). Each new
+    key (a new grant of control) restarts the sequence at 1, as the edge expects."""
+
+    def __init__(self, robot: str, operator_id: str, release_tail: float, ui_timeout: float) -> None:
+        self.operator_id = operator_id
+        self.release_tail = release_tail
+        self.ui_timeout = ui_timeout
+        self.ctx = auth.context(robot, keys.CMD_TWIST)
+        self.seq = 0
+        self._key_gen = -1.0
+        self._stale_since: float | None = None
+
+    def next(self, now: float, twist: Any, deadman: bool, released_at: float, muted: bool, heartbeat: float,
+             state_t: float, key_gen: float, key: bytes) -> TwistCommand | None:
+        if now - heartbeat > self.ui_timeout:  # the UI is frozen (or gone): release the deadman
+            if self._stale_since is None:
+                self._stale_since = now
+                log.warning("operator UI silent for %.2f s: releasing the deadman", now - heartbeat)
+            released_at = self._stale_since if deadman else released_at
+            deadman = False
+        else:
+            self._stale_since = None
+        if key_gen != self._key_gen:
+            self._key_gen, self.seq = key_gen, 0
+        quiet = not deadman and now - released_at > self.release_tail
+        if quiet or muted or not key:
+            return None
+        self.seq += 1
+        t = time.time_ns()
+        # The age of the newest robot state this operator has, on the edge's clock as the state was stamped
+        # (-1: none yet, and the edge refuses motion).
+        state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
+        lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
+        cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age)
+        return auth.sign(key, self.ctx, cmd.stamp(self.seq, t))
+
+
+def run_fixed_rate(tick: Callable[[], bool], rate_hz: float, spin: bool, wait: Callable[[float], Any]) -> None:
+    """Call ``tick`` on an absolute schedule until it returns False. ``wait(seconds)`` sleeps (an Event's wait,
+    so a stop request ends it early); with ``spin`` the last ~1.5 ms are spun, as sleep alone overshoots by
+    ~0.1–1 ms. An overrun resumes the schedule from now: never a burst."""
+    period = 1.0 / rate_hz
+    next_tick = time.monotonic()
+    while tick():
+        next_tick += period
+        delay = next_tick - time.monotonic()
+        if delay > 0:
+            if not spin:
+                wait(delay)
+            elif delay > 0.002:
+                wait(delay - 0.0015)
+            while spin and time.monotonic() < next_tick:
+                pass
+        else:
+            next_tick = time.monotonic()
+
+
+class SharedCommand:
+    """The parent's side of the shared arrays: a single writer at a time (the caller's lock), seqlocked."""
+
+    def __init__(self, array: Any, key: Any) -> None:
         self.array = array
+        self.key = key
 
     def write(self, **fields: Any) -> None:
         a = self.array
@@ -75,20 +148,21 @@ class SharedCommand:
         for name, value in fields.items():
             if name == "twist":
                 a[_TWIST:_TWIST + 6] = [float(v) for v in value]
+            elif name == "key":
+                self.key[:] = bytes(value).ljust(auth.KEY_BYTES, b"\0")[:auth.KEY_BYTES]
             else:
-                a[{"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT,
-                   "stop": _STOP}[name]] = float(value)
+                a[_FIELDS[name]] = float(value)
         a[_GEN] = g + 2
 
 
-def _read(array: Any, last: list[float] | None) -> list[float] | None:
-    """A consistent copy of the shared array, or ``last`` if the writer is mid-write (never wait for it)."""
+def _read(array: Any, key: Any, last: tuple[list[float], bytes] | None) -> tuple[list[float], bytes] | None:
+    """A consistent copy of the shared arrays, or ``last`` if the writer is mid-write (never wait for it)."""
     for _ in range(50):
         g1 = array[_GEN]
         if int(g1) % 2 == 0:
-            vals = array[:]
+            vals, k = array[:], bytes(key[:])
             if array[_GEN] == g1:
-                return vals
+                return vals, k
     return last
 
 
@@ -99,6 +173,7 @@ class ProcessSender:
         self,
         zenoh_config: Any,
         twist_key: str,
+        robot: str,
         operator_id: str,
         rate_hz: float,
         release_tail: float,
@@ -110,14 +185,15 @@ class ProcessSender:
     ) -> None:
         self._ctx = mp.get_context("spawn")
         self.array = self._ctx.RawArray("d", _SIZE)
-        self.shared = SharedCommand(self.array)
+        self.key = self._ctx.RawArray("B", auth.KEY_BYTES)
+        self.shared = SharedCommand(self.array, self.key)
         self._lock = lock  # the client's lock: serialises the parent's writers
         self._on_record = on_record
         self._drain_lock = threading.Lock()
         self.heartbeat_s = heartbeat_s
         self.heartbeat_suspended = False  # test hook: models a frozen UI (no heartbeat, no set_twist)
         self.priority = "normal"
-        self._args = (zenoh_config, twist_key, operator_id, rate_hz, release_tail, ui_timeout, realtime)
+        self._args = (zenoh_config, twist_key, robot, operator_id, rate_hz, release_tail, ui_timeout, realtime)
         self.proc: Any = None
         self._conn: Any = None
         self._thread: threading.Thread | None = None
@@ -141,7 +217,7 @@ class ProcessSender:
         pdeathsig = threading.current_thread() is threading.main_thread()  # PDEATHSIG follows the *thread*
         self.proc = self._ctx.Process(
             target=child_main, name="iorthand-sender", daemon=True,
-            args=(send, self.array, *self._args, os.getpid(), pdeathsig),
+            args=(send, self.array, self.key, *self._args, os.getpid(), pdeathsig),
         )
         with _real_std_streams():
             self.proc.start()
@@ -227,8 +303,8 @@ class ProcessSender:
 # ---------------------------------------------------------------------- the child
 
 
-def child_main(conn, array, zenoh_config, twist_key: str, operator_id: str, rate_hz: float, release_tail: float,
-               ui_timeout: float, realtime: bool, parent_pid: int, pdeathsig: bool) -> None:
+def child_main(conn, array, key, zenoh_config, twist_key: str, robot: str, operator_id: str, rate_hz: float,
+               release_tail: float, ui_timeout: float, realtime: bool, parent_pid: int, pdeathsig: bool) -> None:
     if pdeathsig:
         with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -239,8 +315,8 @@ def child_main(conn, array, zenoh_config, twist_key: str, operator_id: str, rate
     # shutdown here: it joins Zenoh's non-daemon threads and can hang, leaving an orphan.
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
     try:
-        _child_loop(conn, array, zenoh_config, twist_key, operator_id, rate_hz, release_tail, ui_timeout, realtime,
-                    parent_pid)
+        stream = CommandStream(robot, operator_id, release_tail, ui_timeout)
+        _child_loop(conn, array, key, zenoh_config, twist_key, stream, rate_hz, realtime, parent_pid)
     finally:
         with contextlib.suppress(Exception):
             sys.stdout.flush()
@@ -248,13 +324,9 @@ def child_main(conn, array, zenoh_config, twist_key: str, operator_id: str, rate
         os._exit(0)
 
 
-def _child_loop(conn, array, zenoh_config, twist_key: str, operator_id: str, rate_hz: float, release_tail: float,
-                ui_timeout: float, realtime: bool, parent_pid: int) -> None:
+def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandStream, rate_hz: float,
+                realtime: bool, parent_pid: int) -> None:
     try:
-        import numpy as np
-
-        from iorthand import keys
-        from iorthand.protocol import TwistCommand
         from iorthand.transport import QOS_BY_KEY, open_session, publisher
 
         session = open_session(zenoh_config)
@@ -267,48 +339,27 @@ def _child_loop(conn, array, zenoh_config, twist_key: str, operator_id: str, rat
         pub = publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
         priority = raise_priority(realtime)
         conn.send_bytes(b"R" + priority.encode())
-        period = 1.0 / rate_hz
-        zero = np.zeros(6)
-        seq = 0
-        snap = _read(array, None) or [0.0] * _SIZE
-        stale_since: float | None = None
-        next_tick = time.monotonic()
-        while True:
-            snap = _read(array, snap) or snap
+        snap = _read(array, key, None) or ([0.0] * _SIZE, b"")
+        done = threading.Event()
+
+        def tick() -> bool:
+            nonlocal snap
+            snap = _read(array, key, snap) or snap
             if os.getppid() != parent_pid:
                 os._exit(0)  # the parent died: no graceful close (its router link may be gone too)
-            if snap[_STOP]:
-                break
-            now = time.monotonic()
-            if now - snap[_HEARTBEAT] > ui_timeout:  # the UI is frozen (or gone): release the deadman
-                if stale_since is None:
-                    stale_since = now
-                    log.warning("operator UI silent for %.2f s: releasing the deadman", now - snap[_HEARTBEAT])
-                deadman = False
-                released_at = stale_since if snap[_DEADMAN] else snap[_RELEASED]
-            else:
-                stale_since = None
-                deadman = bool(snap[_DEADMAN])
-                released_at = snap[_RELEASED]
-            quiet = not deadman and now - released_at > release_tail
-            if not quiet and not snap[_MUTED]:
-                twist = np.asarray(snap[_TWIST:_TWIST + 6]) if deadman else zero
-                seq += 1
-                cmd = TwistCommand(operator=operator_id, linear=twist[:3], angular=twist[3:], deadman=deadman)
-                cmd.stamp(seq)
+            vals, k = snap
+            if vals[_STOP]:
+                return False
+            cmd = stream.next(time.monotonic(), vals[_TWIST:_TWIST + 6], bool(vals[_DEADMAN]), vals[_RELEASED],
+                              bool(vals[_MUTED]), vals[_HEARTBEAT], vals[_STATE_T], vals[_KEY_GEN],
+                              k if any(k) else b"")
+            if cmd is not None:
                 payload = cmd.encode()
-                conn.send_bytes(b"S" + _RECORD.pack(seq, cmd.t, time.monotonic()))
+                conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic()))
                 pub.put(payload)
-            next_tick += period
-            delay = next_tick - time.monotonic()
-            if delay > 0:
-                # Sleep most of the way, then spin briefly: sleep alone overshoots by ~0.1–1 ms.
-                if delay > 0.002:
-                    time.sleep(delay - 0.0015)
-                while time.monotonic() < next_tick:
-                    pass
-            else:
-                next_tick = time.monotonic()  # overran: resume the schedule from now, never burst
+            return True
+
+        run_fixed_rate(tick, rate_hz, spin=True, wait=done.wait)
     except (BrokenPipeError, EOFError, OSError):
         pass  # the parent went away
     finally:

@@ -110,7 +110,7 @@ def robot_figures(s: RobotSeries, cfg: ReportConfig, session_span: float) -> dic
     stops = metrics.rising_edges(s.safety, DEADMAN_STATES)
     return {
         "index": index.as_dict(),
-        "levels_source": "state/force_level" if s.levels else "state/force thresholds",
+        "levels_source": keys.STATE_FORCE_LEVEL if s.levels else f"{keys.STATE_FORCE} thresholds",
         "warning_edges": [{"t": t, "level": lv} for t, lv in edges],
         "command_latency_ms": {k: v if k == "count" else _num(v) for k, v in stats.summary(s.latency_ms).items()},
         "commands": len(s.commands),

@@ -25,6 +25,7 @@ from iorthand.protocol import (
     RobotState,
     SafetyStatus,
     ServoState,
+    Status,
     StreamInfo,
     TorchState,
     TwinSnapshot,
@@ -216,11 +217,14 @@ class TwinStore:
                 out.append(Event(r, t, "INFO" if msg.armed else "WARN", "armed" if msg.armed else f"disarmed: {msg.reason}"))
             if p is None or p.owner != msg.owner:
                 out.append(Event(r, t, "INFO", f"control held by {msg.owner!r}" if msg.owner else "no operator holds control"))
-            if p is not None and (p.status, p.reason) != (msg.status, msg.reason) and msg.status not in ("ok", "idle"):
-                level = "ERROR" if msg.status in ("stopped", "fault", "owner_lost", "force_danger", "force_stale") else "WARN"
-                out.append(Event(r, t, level, f"{msg.status}: {msg.reason}"))
-            if p is not None and msg.stops > p.stops and msg.status not in ("stopped", "fault", "owner_lost"):
+            halting = Status.halting(msg.status)
+            if p is not None and (p.status, p.reason) != (msg.status, msg.reason) and msg.status not in (Status.OK, Status.IDLE):
+                out.append(Event(r, t, "ERROR" if halting else "WARN", f"{msg.status}: {msg.reason}"))
+            if p is not None and msg.stops > p.stops and not halting:  # a halting status has its line already
                 out.append(Event(r, t, "WARN", f"stop #{msg.stops}: {msg.status} {msg.reason}".strip()))
+            if p is not None and msg.forged > p.forged:
+                out.append(Event(r, t, "ERROR", f"{msg.forged - p.forged} commands in {msg.owner or 'the owner'!r}'s "
+                                 "name without its session's signature refused"))
             news = superseded_news(p.superseded, msg.superseded) if p is not None else None
             if news:
                 out.append(Event(r, t, "WARN", news))

@@ -1,5 +1,6 @@
 """Edge perception: camera sources, ArUco detection and pose, chaining to the robot base frame, filtering.
 
-The lead wires :class:`iorthand_edge.perception.pipeline.PerceptionPipeline` into the edge agent and
-:func:`iorthand_edge.perception.cli.register` into the ``iorthand`` command.
+:class:`iorthand_edge.perception.pipeline.PerceptionPipeline` runs in the edge's media process
+(:mod:`iorthand_edge.media`), out of the control process; :func:`iorthand_edge.perception.cli.register` adds the
+calibration commands to ``iorthand``.
 """

@@ -57,6 +57,10 @@ class CameraSource(ABC):
     @abstractmethod
     def close(self) -> None: ...
 
+    def interrupt(self) -> None:  # noqa: B027 (optional)
+        """From another thread: make a ``read`` that is waiting return soon (it raises :class:`CameraError`).
+        Sources whose ``read`` returns within a frame period by itself need nothing."""
+
     def __enter__(self) -> CameraSource:
         self.open()
         return self
@@ -173,7 +177,7 @@ def _sleep_until(due: float, period_s: float) -> float:
 def make_camera(
     config: PerceptionConfig,
     robot_pose_at: Callable[[int], np.ndarray | None],
-    servo_angles_at: Callable[[int], tuple[float, float]],
+    servo_angles_at: Callable[[int], tuple[float, float] | None],
 ) -> CameraSource:
     """The source ``config.camera`` describes. The synthetic one renders from the pose callables."""
     camera: CameraConfig = config.camera

@@ -69,7 +69,7 @@ class PerceptionPipeline:
         self,
         config: PerceptionConfig,
         robot_pose_at: Callable[[int], np.ndarray | None],
-        servo_angles_at: Callable[[int], tuple[float, float]],
+        servo_angles_at: Callable[[int], tuple[float, float] | None],
         publish: Callable[[Markers], None],
         camera: CameraSource | None = None,
     ) -> None:
@@ -91,6 +91,7 @@ class PerceptionPipeline:
         self._recent_frame_times: deque[int] = deque(maxlen=_FPS_WINDOW)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._active_camera: CameraSource | None = None  # the worker's, for stop() to interrupt
         self._last_warning = 0.0
 
     # -- set-up ------------------------------------------------------------------------------------------
@@ -144,13 +145,16 @@ class PerceptionPipeline:
 
         markers: list[MarkerPose] = []
         t_base_tcp = self.robot_pose_at(frame.t_ns) if detections else None
-        if detections and t_base_tcp is None:
+        angles = self.servo_angles_at(frame.t_ns) if t_base_tcp is not None else None
+        if detections and (t_base_tcp is None or angles is None):
             self.stats.frames_without_robot_pose += 1
             self._warn(
                 "no robot pose at the frame's capture time: markers seen but not published (is the robot state flowing?)"
+                if t_base_tcp is None else
+                "no servo angles at the frame's capture time: markers seen but not published (is the servo state flowing?)"
             )
-        elif detections:
-            pan, tilt = self.servo_angles_at(frame.t_ns)
+        elif detections and t_base_tcp is not None and angles is not None:
+            pan, tilt = angles
             t_base_camera = self.chain.base_camera(t_base_tcp, pan, tilt)
             r_camera_base = t_base_camera[:3, :3].T
             for detection in detections:
@@ -226,6 +230,9 @@ class PerceptionPipeline:
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
+        camera = self._active_camera
+        if camera is not None:
+            camera.interrupt()
         if self._thread is not None:
             self._thread.join(timeout)
             if self._thread.is_alive():
@@ -238,6 +245,7 @@ class PerceptionPipeline:
 
     def _run(self) -> None:
         camera = self._camera or make_camera(self.config, self.robot_pose_at, self.servo_angles_at)
+        self._active_camera = camera
         while not self._stop.is_set():
             try:
                 self._stream(camera)
@@ -245,6 +253,8 @@ class PerceptionPipeline:
                 self._failed(str(exc), final=True)
                 return
             except (CameraError, PerceptionError) as exc:
+                if self._stop.is_set():
+                    return  # interrupted by stop(): not a failure
                 self._failed(str(exc))
             except Exception as exc:  # a bug: as visible as a camera failure, and retried the same way
                 reason = f"internal error: {exc!r}"

@@ -43,7 +43,6 @@ class URRobotConfig(RobotConfig):
     rtde_frequency: float = setting(125.0, lo=10.0, hi=500.0)
     watchdog_hz: float = setting(10.0, lo=1.0, hi=500.0, help="controller stops the program after 1/f s silent")
     connect_timeout: float = setting(5.0, lo=0.5, hi=60.0)
-    stop_deceleration: float = setting(0.5, lo=0.05, hi=5.0, help="m/s² for speedStop")
     reconnect_max_s: float = setting(5.0, lo=0.1, hi=60.0, help="longest back-off between reconnects")
     link_timeout: float = setting(0.1, lo=0.01, hi=2.0, help="controller timestamp frozen this long = link lost")
 

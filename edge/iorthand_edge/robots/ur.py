@@ -200,8 +200,9 @@ class URRobot(Robot):
     Every method returns at once; a fault sends the phase back to ``down`` and schedules a reconnect with
     back-off (0.5 s doubling to ``reconnect_max_s``)."""
 
-    def __init__(self, config: URRobotConfig) -> None:
+    def __init__(self, config: URRobotConfig, stop_deceleration: float) -> None:
         self.config = config
+        self.stop_deceleration = stop_deceleration  # the safety config's, for the child's own stops
         self._ctx = mp.get_context("spawn")  # never fork a process that holds Zenoh threads
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -226,8 +227,8 @@ class URRobot(Robot):
 
     def _spawn(self) -> None:
         parent, child = self._ctx.Pipe()
-        cfg = {k: v for k, v in asdict(self.config).items() if k in (
-            "host", "rtde_frequency", "watchdog_hz", "stop_deceleration")}
+        cfg = {k: v for k, v in asdict(self.config).items() if k in ("host", "rtde_frequency", "watchdog_hz")}
+        cfg["stop_deceleration"] = self.stop_deceleration
         # The agent heartbeats every control cycle; silence for two watchdog periods means it is frozen.
         cfg["parent_timeout"] = max(2.0 / self.config.watchdog_hz, 3 * self.control_period)
         self._proc = self._ctx.Process(target=_driver_main, args=(child, cfg), name="ur-driver", daemon=True)

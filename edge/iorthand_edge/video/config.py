@@ -29,7 +29,8 @@ class StreamConfig:
 class VideoConfig:
     camera: StreamConfig | None = setting(default_factory=StreamConfig)
     ultrasound: StreamConfig | None = None
-    zenoh: ZenohConfig | None = setting(None, help="the video session; default: the edge's own zenoh settings")
+    zenoh: ZenohConfig | None = setting(None, help="the media process's session (video, markers, and the robot, "
+                                        "servo and force state they need); default: the edge's own zenoh settings")
 
     def check(self) -> None:
         if self.ultrasound is not None and self.ultrasound.source == "pattern":

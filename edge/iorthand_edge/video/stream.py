@@ -14,9 +14,7 @@ never overtakes a frame captured before it: the twin shows why the picture stopp
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -34,8 +32,6 @@ from iorthand_edge.video.config import StreamConfig
 from iorthand_edge.video.sources import FrameSource, Image, VideoError
 
 log = logging.getLogger("iorthand.edge.video")
-
-VIDEO_NICE = 10  # scheduling niceness of the video threads (0 = as the control threads, 19 = lowest)
 
 
 @dataclass(frozen=True)
@@ -129,11 +125,9 @@ class VideoStream:
         """A bug in a stream's code ends this stream only (logged, kept in ``error``), never the others."""
 
         def run(stop: threading.Event) -> None:
+            # (The streams run in the edge's media process, whose threads all run at a lower priority than the
+            # control process's: iorthand_edge.media.MEDIA_NICE.)
             try:
-                # Encoding is the agent's biggest CPU cost: on a busy 2-4 core computer the kernel should run
-                # the control threads first (a per-thread nice value on Linux; best effort elsewhere).
-                with contextlib.suppress(AttributeError, OSError):
-                    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), VIDEO_NICE)
                 fn(stop)
             except Exception as exc:
                 self.error = f"{type(exc).__name__}: {exc}"

@@ -48,7 +48,9 @@ def idle_penalty(samples: int = 40, gap_s: float = 0.016) -> dict[str, Any]:
 
     from iorthand.protocol import TwistCommand
 
-    payload = TwistCommand(operator="bench", linear=[0.0, 0.02, 0.0], angular=[0.0, 0.0, 0.0], deadman=True).stamp(1).encode()
+    # As an operator sends it: the age of its robot state and a 16-byte signature (iorthand.security.auth).
+    payload = TwistCommand(operator="bench", linear=[0.0, 0.02, 0.0], angular=[0.0, 0.0, 0.0], deadman=True,
+                           state_age=0.01, mac=bytes(16)).stamp(1).encode()
 
     def decode_us(gap: float) -> float:
         costs = []

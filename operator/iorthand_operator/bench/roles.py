@@ -44,11 +44,10 @@ from iorthand.protocol import (
     TwistCommand,
     VideoFrame,
 )
+from iorthand.security import auth
 from iorthand.transport import (
     COMMAND,
     QOS_BY_KEY,
-    STATE,
-    VIDEO,
     QosProfile,
     ZenohConfig,
     open_session,
@@ -263,9 +262,7 @@ def video_pub(args: argparse.Namespace) -> int:
     stop = _stop_event(args.max_seconds)
     session = _zenoh(args)
     k = keys.RobotKeys(args.robot)
-    pub = session.declare_publisher(
-        k.key(keys.VIDEO_CAMERA), priority=VIDEO.priority, congestion_control=VIDEO.congestion, express=VIDEO.express,
-    )
+    pub = publisher(session, k.key(keys.VIDEO_CAMERA))
     frames = [synthetic_jpeg(quality=args.quality, seed=i) for i in range(4)]
     print(f"video ready {len(frames[0])} bytes per frame", flush=True)
     period, t0, n = 1.0 / args.fps, time.monotonic(), 0
@@ -307,8 +304,8 @@ def state_pub(args: argparse.Namespace) -> int:
     stop = _stop_event(args.max_seconds)
     session = _zenoh(args)
     k = keys.RobotKeys(args.robot)
-    force = session.declare_publisher(k.key(keys.STATE_FORCE), priority=STATE.priority, congestion_control=STATE.congestion)
-    markers = session.declare_publisher(k.key(keys.MARKERS), priority=zenoh.Priority.DATA, congestion_control=zenoh.CongestionControl.DROP)
+    force = publisher(session, k.key(keys.STATE_FORCE))
+    markers = publisher(session, k.key(keys.MARKERS))
     print("state ready", flush=True)
     t0, n = time.monotonic(), 0
     while not stop.is_set():
@@ -341,11 +338,10 @@ class BenchClient(OperatorClient):
         super().__init__(*args, **kwargs)
         self._bench_sub = self.session.declare_subscriber(self.keys.key(keys.STATE_APPLIED), self._bench_on_applied)
 
-    def _send(self, twist: np.ndarray, deadman: bool) -> None:
-        super()._send(twist, deadman)
+    def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
+        super()._record_send(seq, t_ns, mono)
         with self._lock:
-            seq = next(reversed(self._sent))
-            self.bench_sent.append((seq, self._sent[seq]))
+            self.bench_sent.append((seq, t_ns))
 
     def _bench_on_applied(self, sample: zenoh.Sample) -> None:
         self.bench_echo.append((sample.payload.to_bytes(), time.time_ns()))  # decoded after the run
@@ -575,13 +571,18 @@ class LightOperator:
         self.keys = k = keys.RobotKeys(robot)
         self.operator_id = operator_id
         self.seq = Sequencer()
+        self.key = b""  # the grant's key from the acquire reply: signs every command
+        self.control_seq = 0
         self.sent: list[tuple[int, int]] = []
         self.echoes: list[tuple[bytes, int]] = []
         self.states = 0
+        # Receive time of the newest robot state: a light stand-in for its source time (it decodes nothing),
+        # so the age each command states leaves out the edge→operator transit.
+        self.state_at_ns = 0
         self.pub_twist = publisher(session, k.key(keys.CMD_TWIST), QOS_BY_KEY[keys.CMD_TWIST])
         self._token = session.liveliness().declare_token(k.alive_operator(operator_id))
         self._decl = [
-            session.declare_subscriber(k.key(keys.STATE_ROBOT), self._on_state),
+            session.declare_subscriber(k.key(keys.STATE_ROBOT), self._on_robot_state),
             session.declare_subscriber(k.key(keys.STATE_SAFETY), self._on_state),
             session.declare_subscriber(k.key(keys.STATE_APPLIED), self._on_applied),
         ]
@@ -589,18 +590,31 @@ class LightOperator:
     def _on_state(self, sample: zenoh.Sample) -> None:
         self.states += 1
 
+    def _on_robot_state(self, sample: zenoh.Sample) -> None:
+        self.states += 1
+        self.state_at_ns = time.time_ns()
+
     def _on_applied(self, sample: zenoh.Sample) -> None:
         self.echoes.append((sample.payload.to_bytes(), time.time_ns()))
 
     def acquire(self) -> None:
-        req = ControlRequest(operator=self.operator_id).stamp(1).encode()
-        replies = query(self.session, self.keys.key(keys.CONTROL_ACQUIRE), req, timeout=2.0)
-        if not replies or not ControlReply.decode(replies[0]).ok:
+        self.control_seq += 1
+        req = ControlRequest(operator=self.operator_id).stamp(self.control_seq)
+        if self.key:  # renewing our own grant
+            auth.sign(self.key, auth.context(self.keys.robot, keys.CONTROL_ACQUIRE), req)
+        replies = query(self.session, self.keys.key(keys.CONTROL_ACQUIRE), req.encode(), timeout=2.0)
+        reply = ControlReply.decode(replies[0]) if replies else None
+        if reply is None or not reply.ok:
             raise RuntimeError(f"{self.keys.robot}: control not granted")
+        if reply.key:  # a new grant: new sequences
+            self.key, self.seq, self.control_seq = reply.key, Sequencer(), 0
 
     def send(self, linear: list[float], deadman: bool) -> None:
-        cmd = TwistCommand(operator=self.operator_id, linear=linear, angular=[0.0, 0.0, 0.0], deadman=deadman)
-        payload = cmd.stamp(self.seq.next()).encode()
+        t = time.time_ns()
+        age = (t - self.state_at_ns) / 1e9 if self.state_at_ns else -1.0
+        cmd = TwistCommand(operator=self.operator_id, linear=linear, angular=[0.0, 0.0, 0.0], deadman=deadman,
+                           state_age=age).stamp(self.seq.next(), t)
+        payload = auth.sign(self.key, auth.context(self.keys.robot, keys.CMD_TWIST), cmd).encode()
         self.sent.append((cmd.seq, cmd.t))
         self.pub_twist.put(payload)
 

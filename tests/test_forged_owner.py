@@ -1,0 +1,222 @@
+"""The forged-owner attack through real routers: a second session writes the owner's name into its commands, with a
+huge sequence, and replays the owner's own commands. On an open router, and behind mTLS + ACL from the holder of
+another operator certificate granted the same robot (``bind_operator_keys`` off, the weaker deployment): nothing
+it sends is applied, the robot does not move, and the owner keeps control throughout.
+
+Then link gaps with the deadman held: a 1 s blackout does not resume motion without a fresh press; a 0.2 s gap
+does. The blackout is the operator's sender going silent (``muted``) while everything else keeps running.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from iorthand import keys
+from iorthand.protocol import AppliedCommand, ControlReply, ControlRequest, Status, StopCommand, TwistCommand
+from iorthand.security.lab import make_lab
+from iorthand.transport import ZenohConfig, free_port, open_session
+from iorthand_operator.client import ControlRefused, OperatorClient
+from tests.conftest import edge_config, wait_until
+
+FORGED_SEQ = 2**62
+
+
+def _attack(session: zenoh.Session, robot: str, owner: str, captured: list[bytes], n: int = 180) -> dict[str, int]:
+    """``n`` forged twists in ``owner``'s name at 60 Hz (huge sequence, fast motion), every captured command of
+    the owner replayed, then an acquire and a release in its name. Returns what the router let through to us."""
+    k = keys.RobotKeys(robot)
+    pub = session.declare_publisher(k.key(keys.CMD_TWIST))
+    for i in range(n):
+        cmd = TwistCommand(operator=owner, linear=[0.03, 0.0, 0.0], deadman=True, state_age=0.01)
+        pub.put(cmd.stamp(FORGED_SEQ + i).encode())
+        if i % 3 == 0 and captured:
+            pub.put(captured[-1])  # the owner's own latest command, byte for byte
+        time.sleep(1 / 60)
+    answers = {}
+    for verb in (keys.CONTROL_ACQUIRE, keys.CONTROL_RELEASE):
+        req = ControlRequest(operator=owner).stamp(FORGED_SEQ).encode()
+        replies = [r.ok.payload.to_bytes() for r in session.get(k.key(verb), payload=req, timeout=2.0) if r.ok]
+        answers[verb] = len(replies)
+        for raw in replies:
+            reply = ControlReply.decode(raw)
+            assert not reply.ok and not reply.key, f"{verb} in {owner!r}'s name was granted: {reply.reason}"
+    pub.undeclare()
+    return answers
+
+
+def _owner_holds_still(alice: OperatorClient) -> None:
+    alice.wait_for_state()
+    alice.acquire()
+    alice.start()
+    alice.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)  # the deadman held, standing still
+    wait_until(lambda: any(e.accepted for e in alice.echoes[-5:]), 5.0, message="the owner's commands applied")
+
+
+def _check_nothing_forged_applied(agent, alice: OperatorClient, echoes: list[AppliedCommand], x0: np.ndarray) -> None:
+    sv = agent.supervisor
+    assert sv.owner == "alice"
+    assert sv.counters.forged >= 150, sv.counters  # the forgeries reached the edge and were counted
+    assert not [e for e in echoes if e.cmd_seq >= FORGED_SEQ], "a forged command was answered"
+    assert not [e for e in echoes if e.accepted and e.cmd_seq >= FORGED_SEQ]
+    moved = np.linalg.norm(np.asarray(agent.reading.tcp_pose[:3]) - x0)
+    assert moved < 1e-4, f"the robot moved {1000 * moved:.2f} mm"
+    # The owner kept control and its stream kept being applied to the end.
+    wait_until(lambda: alice.echoes and alice.echoes[-1].accepted, 3.0, message="the owner's latest command applied")
+    assert not [e for e in alice.echoes if not e.accepted and e.status == Status.NOT_OWNER]
+
+
+def _forge_while_alice_holds(agent, alice: OperatorClient, attacker: zenoh.Session) -> None:
+    """Alice holds control and the deadman, standing still; the attacker watches every command and answer on
+    the robot (as any granted session may), then forges and replays in her name. Nothing of it may act."""
+    _owner_holds_still(alice)
+    x0 = np.asarray(agent.reading.tcp_pose[:3])
+    echoes: list[AppliedCommand] = []
+    captured: list[bytes] = []
+    k = keys.RobotKeys("sim1")
+    subs = [
+        attacker.declare_subscriber(k.key(keys.STATE_APPLIED), lambda s: echoes.append(AppliedCommand.decode(s.payload.to_bytes()))),
+        attacker.declare_subscriber(k.key(keys.CMD_TWIST) + "/**", lambda s: captured.append(s.payload.to_bytes())),
+        attacker.declare_subscriber(k.key(keys.CMD_TWIST), lambda s: captured.append(s.payload.to_bytes())),
+    ]
+    wait_until(lambda: captured, 3.0, message="the attacker seeing the owner's commands")
+    _attack(attacker, "sim1", "alice", captured)
+    _check_nothing_forged_applied(agent, alice, echoes, x0)
+    for sub in subs:
+        sub.undeclare()
+
+
+@pytest.mark.slow
+def test_forged_owner_on_an_open_router(edge_factory, operator_factory, session_factory) -> None:
+    _forge_while_alice_holds(edge_factory(), operator_factory(operator_id="alice"), session_factory())
+
+
+@pytest.fixture(scope="module")
+def shared_robot_lab(tmp_path_factory: pytest.TempPathFactory):
+    """mTLS + passwords + ACL as DEPLOY.md generates it, two operators granted the same robot, and operator keys
+    NOT bound to certificates (the weaker deployment the attack was first shown on)."""
+    lab = make_lab(tmp_path_factory.mktemp("pki"), free_port(), robots=["sim1"],
+                   operators={"alice": ["sim1"], "mallory": ["sim1"]}, bind_operator_keys=False)
+    router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
+    yield lab
+    router.close()
+
+
+def _edge_zenoh(lab, name: str) -> dict:
+    c: ZenohConfig = lab.client(name, retry_s=10.0)
+    assert c.tls is not None
+    return {"mode": "client", "connect": [lab.endpoint], "connect_retry_s": 10.0,
+            "tls": {"root_ca": str(c.tls.root_ca), "certificate": str(c.tls.certificate),
+                    "private_key": str(c.tls.private_key)},
+            "username": c.username, "password_file": str(c.password_file)}
+
+
+@pytest.mark.slow
+def test_forged_owner_from_a_second_granted_certificate(shared_robot_lab) -> None:
+    from iorthand_edge.agent import EdgeAgent
+
+    lab = shared_robot_lab
+    agent = EdgeAgent(edge_config(lab.endpoint, "sim1", zenoh=_edge_zenoh(lab, "edge-sim1")))
+    agent.start()
+    sessions = []
+    try:
+        a_session = open_session(lab.client("operator-alice"))
+        m_session = open_session(lab.client("operator-mallory"))
+        sessions += [a_session, m_session]
+        alice = OperatorClient(a_session, "sim1", "alice")
+        _forge_while_alice_holds(agent, alice, m_session)
+        # Mallory, as herself, is refused with the owner's name; her stop is obeyed and logged as hers.
+        mallory = OperatorClient(m_session, "sim1", "mallory")
+        with pytest.raises(ControlRefused, match="alice"):
+            mallory.acquire()
+        m_session.declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP)).put(
+            StopCommand(operator="mallory", reason="e-stop").stamp(1).encode())
+        wait_until(lambda: agent.supervisor.status == Status.STOPPED and "mallory" in agent.supervisor.reason, 3.0,
+                   message="the second operator's stop obeyed")
+        assert agent.supervisor.owner == "alice"
+        alice.close()
+        mallory.close()
+    finally:
+        agent.shutdown()
+        for s in sessions:
+            s.close()
+
+
+def _moving(alice: OperatorClient) -> bool:
+    return bool(alice.echoes) and alice.echoes[-1].accepted and alice.echoes[-1].status != Status.NO_DEADMAN
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("gap", "resumes"), [(0.2, True), (1.0, False)])
+def test_a_link_gap_with_the_deadman_held(edge_factory, operator_factory, gap: float, resumes: bool) -> None:
+    agent = edge_factory()
+    alice = operator_factory(operator_id="alice")
+    alice.wait_for_state()
+    alice.acquire()
+    alice.start()
+    alice.set_twist([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+    wait_until(lambda: _moving(alice), 5.0, message="moving")
+    alice.muted = True  # the link goes dead; the operator keeps holding the deadman
+    time.sleep(gap)
+    n = len(alice.echoes)
+    alice.muted = False
+    wait_until(lambda: len(alice.echoes) > n + 20, 5.0, message="commands flowing again")
+    after = alice.echoes[n + 10:]
+    if resumes:
+        assert all(e.accepted for e in after), {e.status for e in after}
+        assert np.any(agent._commanded), "the robot moving again"
+    else:
+        assert not any(e.accepted for e in after), "motion resumed by itself after a blackout"
+        assert {e.status for e in after} == {Status.LINK_GAP}
+        assert not np.any(agent._commanded)
+        # A fresh press (release, then press) moves again.
+        alice.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+        time.sleep(0.1)
+        alice.set_twist([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+        wait_until(lambda: _moving(alice), 5.0, message="moving after a fresh press")
+
+
+
+@pytest.mark.slow
+def test_bound_keys_end_to_end(tmp_path) -> None:
+    """With operator keys bound to certificates (the default DEPLOY.md generates): the owner moves the robot, the
+    camera and the torch on its own keys; another granted operator's stop is obeyed and logged in the name the
+    router authenticated, not the one it wrote."""
+    from iorthand_edge.agent import EdgeAgent
+
+    lab = make_lab(tmp_path, free_port(), robots=["sim1"], operators={"alice": ["sim1"], "bob": ["sim1"]},
+                   bind_operator_keys=True)
+    router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
+    agent = EdgeAgent(edge_config(lab.endpoint, "sim1", zenoh=_edge_zenoh(lab, "edge-sim1"), bind_operator_keys=True,
+                                  servos={"driver": {"kind": "sim"}, "max_rate_deg_s": 1000.0},
+                                  torch={"driver": {"kind": "sim"}}))
+    agent.start()
+    sessions = [open_session(lab.client("operator-alice")), open_session(lab.client("operator-bob"))]
+    try:
+        alice = OperatorClient(sessions[0], "sim1", "alice", bind_keys=True)
+        alice.wait_for_state()
+        alice.acquire()
+        alice.start()
+        x0 = alice.robot_state.tcp_pose[0]
+        alice.set_twist([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+        wait_until(lambda: alice.robot_state.tcp_pose[0] > x0 + 0.0005, 5.0, message="the robot moving in +x")
+        alice.send_servo(pan=0.5)
+        alice.set_torch(True)
+        assert agent.servos is not None and agent.torch is not None
+        wait_until(lambda: alice.servo is not None and alice.servo.pan_target == pytest.approx(0.5), 5.0,
+                   message="the servo command applied")
+        wait_until(lambda: alice.torch is not None and alice.torch.on, 5.0, message="the torch on")
+        bob = sessions[1].declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP) + "/bob")
+        bob.put(StopCommand(operator="alice", reason="bob's e-stop").stamp(1).encode())
+        wait_until(lambda: agent.supervisor.status == Status.STOPPED, 3.0, message="bob's stop obeyed")
+        assert "'bob' (claiming 'alice')" in agent.supervisor.reason
+        assert agent.supervisor.owner == "alice"
+        alice.close()
+    finally:
+        agent.shutdown()
+        for s in sessions:
+            s.close()
+        router.close()

@@ -1,0 +1,189 @@
+"""Perception and video in the media process (iorthand_edge.media), through a real router: they are published
+by a child of the agent, not by the agent's process; a killed child is restarted while the robot stays
+controllable; the child never outlives the agent."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+import yaml
+
+from iorthand import keys
+from iorthand.protocol import Markers, VideoFrame
+from tests.conftest import ROOT, edge_config, iorthand_cmd, stop_process, wait_until
+
+
+def demo_sections() -> dict:
+    """The end-effector of the demo configuration (configs/edge-sim.yaml): phantom, force sensor, servos,
+    camera with ArUco markers, camera and ultrasound video."""
+    config = yaml.safe_load((ROOT / "configs" / "edge-sim.yaml").read_text())
+    return {name: config[name] for name in ("phantom", "force", "servos", "video", "perception")}
+
+
+class Streams:
+    """Counts what arrives on the media keys and on state/robot; keeps the messages."""
+
+    def __init__(self, session, robot: str = "sim1") -> None:
+        k = keys.RobotKeys(robot)
+        self.lock = threading.Lock()
+        self.markers: list[Markers] = []
+        self.video: dict[str, list[VideoFrame]] = {"camera": [], "ultrasound": []}
+        self.states = 0
+        self._subs = [
+            session.declare_subscriber(k.key(keys.MARKERS), self._on_markers),
+            session.declare_subscriber(k.key(keys.VIDEO_CAMERA), lambda s: self._on_video("camera", s)),
+            session.declare_subscriber(k.key(keys.VIDEO_ULTRASOUND), lambda s: self._on_video("ultrasound", s)),
+            session.declare_subscriber(k.key(keys.STATE_ROBOT), self._on_state),
+        ]
+
+    def _on_markers(self, sample) -> None:
+        with self.lock:
+            self.markers.append(Markers.decode(sample.payload.to_bytes()))
+
+    def _on_video(self, name: str, sample) -> None:
+        with self.lock:
+            self.video[name].append(VideoFrame.decode(sample.payload.to_bytes()))
+
+    def _on_state(self, _sample) -> None:
+        with self.lock:
+            self.states += 1
+
+    def counts(self) -> tuple[int, int, int, int]:
+        with self.lock:
+            return len(self.markers), len(self.video["camera"]), len(self.video["ultrasound"]), self.states
+
+    def pictures_since(self, n_camera: int, n_ultrasound: int) -> tuple[int, int]:
+        with self.lock:
+            return (sum(bool(f.data) for f in self.video["camera"][n_camera:]),
+                    sum(bool(f.data) for f in self.video["ultrasound"][n_ultrasound:]))
+
+
+def test_markers_and_video_are_published_by_the_media_process(edge_factory, session_factory) -> None:
+    streams = Streams(session_factory())
+    edge = edge_factory(**demo_sections())
+    wait_until(lambda: sum(bool(m.markers) for m in streams.markers) >= 5 and min(streams.counts()[1:3]) >= 5,
+               timeout=20.0, message="markers and both video streams")
+    assert edge.media is not None
+    child = edge.media.pid
+    assert child is not None and child != os.getpid() and psutil.Process(child).ppid() == os.getpid()
+    # Not one perception or video thread in the agent's process.
+    assert not [t.name for t in threading.enumerate() if "video" in t.name or t.name == "perception"]
+
+    # Freeze the child: markers and video stop, the robot's state does not; thaw it: they come back.
+    os.kill(child, signal.SIGSTOP)
+    try:
+        time.sleep(0.5)  # what was in flight arrives
+        before = streams.counts()
+        time.sleep(1.0)
+        during = streams.counts()
+    finally:
+        os.kill(child, signal.SIGCONT)
+    assert during[:3] == before[:3], (before, during)
+    assert during[3] - before[3] >= 50, "the control process kept publishing state/robot"
+    wait_until(lambda: all(n > b for n, b in zip(streams.counts()[:3], during[:3], strict=True)), timeout=10.0,
+               message="markers and video again after SIGCONT")
+
+
+def test_a_killed_media_process_is_restarted_and_the_robot_stays_controllable(
+    edge_factory, session_factory, operator_factory
+) -> None:
+    streams = Streams(session_factory())
+    edge = edge_factory(safety={"profile": "local"}, **demo_sections())
+    op = operator_factory()
+    op.wait_for_state()
+    op.acquire()
+    op.start()
+    wait_until(lambda: min(streams.counts()[1:3]) >= 3, timeout=20.0, message="video")
+    assert edge.media is not None
+    first = edge.media.pid
+    assert first is not None
+
+    op.set_twist([0.005, 0.0, 0.0], [0, 0, 0], deadman=True)
+    wait_until(lambda: op.robot_state is not None and op.robot_state.tcp_speed[0] > 0.004, timeout=5.0,
+               message="the robot moving")
+    x0 = op.robot_state.tcp_pose[0]  # type: ignore[union-attr]
+    refusals = sum(not e.accepted for e in op.echoes)
+    n_camera, n_ultrasound = streams.counts()[1:3]
+    os.kill(first, signal.SIGKILL)
+
+    # The subscribers learn why the picture stopped, then pictures come from a new child.
+    wait_until(lambda: any("killed by SIGKILL" in f.failure for f in streams.video["camera"][n_camera:]),
+               timeout=10.0, message="the failure notice on video/camera")
+    assert any("killed by SIGKILL" in f.failure for f in streams.video["ultrasound"][n_ultrasound:])
+    assert any("killed by SIGKILL" in m.failure for m in streams.markers)
+    wait_until(lambda: min(streams.pictures_since(n_camera, n_ultrasound)) >= 3, timeout=20.0,
+               message="pictures from the restarted media process")
+    assert edge.media.pid not in (None, first) and edge.media.restarts == 1
+    assert "killed by SIGKILL" in edge.media.last_exit
+
+    # The robot was driven throughout: every command accepted, no fault, and it moved on.
+    x1 = op.robot_state.tcp_pose[0]  # type: ignore[union-attr]
+    op.set_twist([0, 0, 0], [0, 0, 0], deadman=False)
+    assert sum(not e.accepted for e in op.echoes) == refusals, op.last_refusal
+    assert edge.supervisor.fault == ""
+    assert x1 - x0 > 0.002, (x0, x1)
+
+
+SMALL_VIDEO = {"camera": {"source": "pattern", "width": 160, "height": 120, "fps": 10}}
+
+
+def test_the_media_process_ends_with_the_agent(router_endpoint) -> None:
+    from iorthand_edge.agent import EdgeAgent
+
+    agent = EdgeAgent(edge_config(router_endpoint, video=SMALL_VIDEO))
+    try:
+        agent.start()
+        assert agent.media is not None
+        wait_until(lambda: agent.media.pid is not None, timeout=10.0, message="the media process")  # type: ignore[union-attr]
+        child = agent.media.pid
+    finally:
+        agent.shutdown()
+    assert not psutil.pid_exists(child)  # type: ignore[arg-type]
+
+
+def test_the_media_process_dies_with_a_killed_agent(router_endpoint, tmp_path: Path) -> None:
+    """The agent killed with SIGKILL (no shutdown of its own): its media process goes too (PDEATHSIG)."""
+    config = {
+        "robot_id": "sim1",
+        "zenoh": {"mode": "client", "connect": [router_endpoint]},
+        "robot": {"kind": "sim"},
+        "safety": {"auto_arm": True},
+        "video": SMALL_VIDEO,
+    }
+    path = tmp_path / "edge.yaml"
+    path.write_text(yaml.safe_dump(config))
+    edge = subprocess.Popen(iorthand_cmd("edge", "--config", str(path)), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    children: list[psutil.Process] = []
+    try:
+        parent = psutil.Process(edge.pid)
+        wait_until(lambda: parent.children(), timeout=20.0, message="the edge's media process")
+        children = parent.children(recursive=True)
+        edge.kill()
+        edge.wait(5.0)
+        wait_until(lambda: all(not c.is_running() or c.status() == psutil.STATUS_ZOMBIE for c in children),
+                   timeout=5.0, message="the media process to exit after its agent was killed")
+    finally:
+        stop_process(edge)
+        for child in children:  # a failed test leaves nothing behind either
+            with contextlib.suppress(psutil.NoSuchProcess):
+                child.kill()
+
+
+@pytest.mark.parametrize("bad", [{"video": {"camera": {"source": "perception"}}},
+                                 {"perception": {"intrinsics_file": "/does/not/exist.yaml"}}])
+def test_a_bad_media_config_refuses_to_start_the_agent(bad: dict) -> None:
+    from iorthand_edge.agent import EdgeAgent
+    from iorthand_edge.perception.pipeline import PerceptionError
+    from iorthand_edge.video import VideoError
+
+    with pytest.raises((PerceptionError, VideoError)):
+        EdgeAgent(edge_config("tcp/127.0.0.1:1", **bad))

@@ -1,0 +1,165 @@
+"""Ownership bound to the session that acquired it, and motion that resumes only on purpose. Pure safety core:
+explicit times, no Zenoh, milliseconds per test (the attacks through real routers: test_forged_owner.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from iorthand import keys
+from iorthand.protocol import ServoCommand, Status, TwistCommand
+from iorthand.security import auth
+from iorthand_edge.supervisor import Action, SafetyConfig, Supervisor
+from tests.grants import Grants
+
+POSE = np.array([0.30, 0.0, 0.20, 3.14159, 0.0, 0.0])
+WALL0 = 1_700_000_000.0
+
+
+class Operator(Grants):
+    """One operator's session against one supervisor, with the time of the test."""
+
+    def __init__(self, sv: Supervisor, name: str, clock: list[float]) -> None:
+        super().__init__()
+        self.sv, self.name, self.clock, self.seq = sv, name, clock, 0
+
+    def take(self) -> tuple[bool, str]:
+        return self.acquire(self.sv, self.name, self.clock[0])
+
+    def twist(self, vx: float = 0.005, deadman: bool = True, view_age: float = 0.02, seq: int | None = None,
+              name: str | None = None) -> TwistCommand:
+        self.seq += 1
+        cmd = TwistCommand(operator=name or self.name, linear=[vx, 0.0, 0.0], deadman=deadman, state_age=view_age)
+        cmd.stamp(self.seq if seq is None else seq, int((WALL0 + self.clock[0]) * 1e9))
+        return self.sign(self.sv, self.name, cmd)
+
+    def send(self, cmd: TwistCommand):
+        return self.sv.on_command(cmd, WALL0 + self.clock[0], self.clock[0], POSE)
+
+
+def setup(**cfg: object) -> tuple[Supervisor, Operator, Operator, list[float]]:
+    sv = Supervisor(SafetyConfig(auto_arm=True, **cfg), robot="sim1")
+    clock = [100.0]
+    alice, mallory = Operator(sv, "alice", clock), Operator(sv, "mallory", clock)
+    assert alice.take()[0]
+    return sv, alice, mallory, clock
+
+
+def test_a_command_in_the_owners_name_without_its_key_is_refused_unanswered() -> None:
+    sv, alice, mallory, _clock = setup()
+    assert alice.send(alice.twist()).accepted
+    # Mallory writes alice's name, a huge sequence, and signs with nothing, or with a key of her own.
+    for forged in (mallory.twist(name="alice", seq=2**62),
+                   auth.sign(b"k" * 32, auth.context("sim1", keys.CMD_TWIST), mallory.twist(name="alice", seq=2**62 + 1))):
+        d = mallory.send(forged)
+        assert not d.accepted and d.status == Status.NOT_OWNER and not d.answer
+    assert sv.counters.forged == 2 and sv.owner == "alice"
+    # Alice's own next command still goes: the forgeries moved her sequence nowhere.
+    assert alice.send(alice.twist()).accepted
+
+
+def test_a_replayed_command_is_refused() -> None:
+    _sv, alice, _, _ = setup()
+    cmd = alice.twist()
+    assert alice.send(cmd).accepted
+    d = alice.send(cmd)
+    assert not d.accepted and d.status == Status.OUT_OF_ORDER
+
+
+def test_an_absurd_sequence_jump_is_refused_even_when_signed() -> None:
+    _sv, alice, _, _ = setup(max_sequence_jump=100)
+    assert alice.send(alice.twist()).accepted
+    d = alice.send(alice.twist(seq=5000))
+    assert not d.accepted and d.status == Status.OUT_OF_ORDER and "jumps" in d.reason
+
+
+def test_another_session_cannot_renew_or_release_the_owners_grant() -> None:
+    sv, alice, mallory, _ = setup()
+    ok, reason = mallory.acquire(sv, "alice", 100.5)  # alice's name, mallory's session: no key
+    assert not ok and "does not hold its key" in reason
+    ok, reason = sv.release(mallory.request(sv, "alice", keys.CONTROL_RELEASE))
+    assert not ok and sv.owner == "alice"
+    servo = ServoCommand(operator="alice", pan=0.3).stamp(1)
+    assert "not signed" in sv.owner_refusal(servo, keys.CMD_SERVO)
+    signed = alice.sign(sv, "alice", ServoCommand(operator="alice", pan=0.3).stamp(1), keys.CMD_SERVO)
+    assert sv.owner_refusal(signed, keys.CMD_SERVO) == ""
+    assert "not after" in sv.owner_refusal(signed, keys.CMD_SERVO)  # the same message again: a replay
+    # Alice renews (signed) and keeps her key; releasing (signed) ends the grant and the key with it.
+    key = alice.keys["alice"]
+    assert alice.take()[0] and alice.keys["alice"] == key
+    ok, _ = sv.release(alice.request(sv, "alice", keys.CONTROL_RELEASE))
+    assert ok and sv.owner == ""
+    d = alice.send(alice.twist())
+    assert not d.accepted and d.status == Status.NOT_OWNER
+
+
+def test_every_grant_has_a_new_key_and_a_new_sequence() -> None:
+    sv, alice, _, _clock = setup()
+    for _ in range(5):
+        assert alice.send(alice.twist()).accepted
+    old = alice.twist()  # signed with the first grant's key, never sent
+    assert sv.owner_lost("alice", "liveliness lost")
+    assert alice.take()[0]  # a new grant
+    assert not alice.send(old).accepted  # the old key is worthless now
+    alice.seq = 0  # the client restarts its sequence with the new key
+    assert alice.send(alice.twist(deadman=False)).accepted
+    assert alice.send(alice.twist()).accepted
+
+
+def test_a_long_gap_with_the_deadman_held_needs_a_fresh_press_and_a_short_one_does_not() -> None:
+    sv, alice, _, clock = setup()
+    assert alice.send(alice.twist()).accepted
+    clock[0] += 0.2  # a 0.2 s gap: the deadman timed out, then motion resumes by itself
+    assert not np.any(sv.step(clock[0] - 0.01, POSE).twist) and sv.status == Status.COMMAND_TIMEOUT
+    d = alice.send(alice.twist())
+    assert d.accepted and np.any(d.twist)
+    clock[0] += 1.0  # a 1 s blackout with the deadman held all along
+    sv.step(clock[0] - 0.5, POSE)
+    for _ in range(3):
+        d = alice.send(alice.twist())
+        assert not d.accepted and not np.any(d.twist) and d.status == Status.LINK_GAP and "press it again" in d.reason
+        assert not np.any(sv.step(clock[0], POSE).twist)
+        clock[0] += 1 / 60
+    assert alice.send(alice.twist(deadman=False)).accepted
+    d = alice.send(alice.twist())
+    assert d.accepted and np.any(d.twist)
+
+
+def test_a_fresh_press_after_a_long_release_moves_at_once() -> None:
+    _sv, alice, _, clock = setup()
+    assert alice.send(alice.twist(deadman=False)).accepted
+    clock[0] += 5.0
+    assert alice.send(alice.twist()).accepted
+
+
+def test_motion_from_an_old_picture_is_refused_and_stops_the_robot() -> None:
+    _sv, alice, _, _clock = setup(max_view_age=0.5)
+    d = alice.send(alice.twist(view_age=0.1))
+    assert d.accepted and d.action == Action.MOVE
+    d = alice.send(alice.twist(view_age=0.8))
+    assert not d.accepted and d.status == Status.STALE_VIEW and "800 ms" in d.reason and d.action == Action.STOP
+    d = alice.send(alice.twist(view_age=-1.0))
+    assert not d.accepted and "no robot state" in d.reason and d.action == Action.HOLD
+    d = alice.send(alice.twist(view_age=0.05))  # the picture is live again (no gap: commands kept coming)
+    assert d.accepted and d.action == Action.MOVE
+
+
+def test_the_driver_is_told_to_stop_once_after_motion_then_nothing() -> None:
+    sv, alice, _, clock = setup()
+    assert alice.send(alice.twist()).action == Action.MOVE
+    sv.stop("e-stop from bob")
+    assert sv.step(clock[0], POSE).action == Action.STOP
+    assert sv.step(clock[0] + 0.01, POSE).action == Action.HOLD
+
+
+def test_a_stop_from_anyone_stops_the_owners_motion() -> None:
+    sv, alice, _, _clock = setup()
+    assert alice.send(alice.twist()).accepted
+    sv.stop("stop from 'mallory': e-stop")
+    d = alice.send(alice.twist())
+    assert not d.accepted and d.status == Status.STOPPED
+    assert sv.owner == "alice"  # a stop is obeyed but takes nobody's control
+
+
+def test_every_status_has_a_message() -> None:
+    for status in Status:
+        assert status.message and status == status.value
