@@ -1,8 +1,8 @@
 """CPU time the edge spends on one twist command, hot (back to back) and cold (after the CPU idled).
 
 No Zenoh and no threads: one edge agent with the simulated robot (the benchmark's edge configuration), armed
-and owned, handles commands with its command thread's own code (``EdgeAgent.handle_twist``: decode, gate,
-supervisor, robot call, echo; then the echo is encoded), and the control loop's state message (robot read +
+and owned, handles signed commands with its control loop's own code (``EdgeAgent.handle_twist``: decode, gate,
+signature, supervisor, robot call, echo; then the echo is encoded), and the control loop's state message (robot read +
 encode) is timed alongside. Each step is measured
 in thread CPU time (``time.thread_time_ns``), so waiting does not count. "Cold" sleeps ``--gap-ms`` before each
 command, as the 60 Hz command stream does between commands: on a VM the first Python after an idle gap runs
@@ -21,7 +21,8 @@ import time
 from pathlib import Path
 
 from iorthand import config, keys
-from iorthand.protocol import RobotState, TwistCommand
+from iorthand.protocol import ControlRequest, RobotState, TwistCommand
+from iorthand.security import auth
 from iorthand_edge.agent import EdgeAgent
 from iorthand_edge.config import EdgeConfig
 from iorthand_operator.bench.transports import edge_config
@@ -29,21 +30,24 @@ from iorthand_operator.bench.transports import edge_config
 STEPS = ("handle_twist", "echo_encode", "state_read_encode")
 
 
-def make_agent() -> EdgeAgent:
+def make_agent() -> tuple[EdgeAgent, bytes]:
+    """The agent, armed and owned by "op", and the key of op's grant (it signs the commands)."""
     agent = EdgeAgent(config.from_dict(edge_config("bench", ["tcp/127.0.0.1:7447"]), EdgeConfig))
     agent.robot.connect()
     agent.reading = agent.robot.read_state()
     agent.supervisor.arm()
-    ok, why = agent.supervisor.acquire("op", time.monotonic())
-    if not ok:
-        raise RuntimeError(why)
-    return agent
+    grant = agent.supervisor.acquire(ControlRequest(operator="op").stamp(1), time.monotonic())
+    if not grant.ok:
+        raise RuntimeError(grant.reason)
+    return agent, grant.key
 
 
-def one_command(agent: EdgeAgent, seq: int, speed: float) -> dict[str, float]:
-    """One command through the command thread's own code (EdgeAgent.handle_twist: decode, gate, supervisor,
-    robot call, echo), its echo encoded, and the control loop's state message; each step's thread CPU time (µs)."""
-    payload = TwistCommand(operator="op", linear=[speed, 0.0, 0.0], deadman=True).stamp(seq).encode()
+def one_command(agent: EdgeAgent, key: bytes, seq: int, speed: float) -> dict[str, float]:
+    """One command through the control loop's own code (EdgeAgent.handle_twist: decode, gate, signature,
+    supervisor, robot call, echo), its echo encoded, and the control loop's state message; each step's thread CPU
+    time (µs). The operator's signing is not timed."""
+    cmd = TwistCommand(operator="op", linear=[speed, 0.0, 0.0], deadman=True, state_age=0.01).stamp(seq)
+    payload = auth.sign(key, auth.context(agent.keys.robot, keys.CMD_TWIST), cmd).encode()
     key = agent.keys.key(keys.CMD_TWIST)
     clock = time.thread_time_ns
     marks = [clock()]
@@ -62,13 +66,13 @@ def one_command(agent: EdgeAgent, seq: int, speed: float) -> dict[str, float]:
     return {step: (b - a) / 1e3 for step, a, b in zip(STEPS, marks[:-1], marks[1:], strict=True)}
 
 
-def run(agent: EdgeAgent, first_seq: int, n: int, gap_s: float) -> dict[str, dict[str, float]]:
+def run(agent: EdgeAgent, key: bytes, first_seq: int, n: int, gap_s: float) -> dict[str, dict[str, float]]:
     samples: dict[str, list[float]] = {step: [] for step in (*STEPS, "command_total")}
     for i in range(n):
         if gap_s:
             time.sleep(gap_s)
         # Alternate a speed under and over the profile's limit: both the plain and the clipping path run.
-        steps = one_command(agent, first_seq + i, 0.004 if i % 2 else 0.012)
+        steps = one_command(agent, key, first_seq + i, 0.004 if i % 2 else 0.012)
         for step, us in steps.items():
             samples[step].append(us)
         samples["command_total"].append(steps["handle_twist"] + steps["echo_encode"])
@@ -84,10 +88,11 @@ def main() -> int:
     ap.add_argument("--gap-ms", type=float, default=16.0, help="idle gap before each cold command (60 Hz ≈ 16 ms)")
     ap.add_argument("--out", default="benchmarks/results/edge_cpu.json")
     args = ap.parse_args()
-    agent = make_agent()
-    run(agent, 1, 200, 0.0)  # warm-up: imports, caches, first allocations
-    hot = run(agent, 1_000, args.commands, 0.0)
-    cold = run(agent, 10_000, args.commands, args.gap_ms / 1000.0)
+    agent, key = make_agent()
+    run(agent, key, 1, 200, 0.0)  # warm-up: imports, caches, first allocations
+    # One sequence, as one operator's stream: the edge refuses a jump over max_sequence_jump.
+    hot = run(agent, key, 201, args.commands, 0.0)
+    cold = run(agent, key, 201 + args.commands, args.commands, args.gap_ms / 1000.0)
     result = {
         "benchmark": "edge_cpu",
         "machine": {"hostname": platform.node(), "python": platform.python_version(), "kernel": platform.release()},

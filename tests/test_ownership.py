@@ -163,3 +163,29 @@ def test_a_stop_from_anyone_stops_the_owners_motion() -> None:
 def test_every_status_has_a_message() -> None:
     for status in Status:
         assert status.message and status == status.value
+
+
+def test_the_operators_stream_is_signed_as_the_edge_decodes_it() -> None:
+    """The operator's send loop signs its commands without a validation round trip: what it builds must be what
+    the edge decodes (ints given as velocities included), or every command would read as a forgery."""
+    import time
+
+    from iorthand.protocol import ControlRequest
+    from iorthand_operator.sender import CommandStream
+
+    sv = Supervisor(SafetyConfig(auto_arm=True), robot="sim1")
+    grant = sv.acquire(ControlRequest(operator="alice").stamp(1), 100.0)
+    stream = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
+    for i in range(3):
+        now = time.monotonic()
+        cmd = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key)
+        assert cmd is not None and cmd.seq == i + 1
+        d = sv.on_command(TwistCommand.decode(cmd.encode()), time.time(), 100.0 + i / 60, POSE)
+        assert d.accepted and d.twist[1] > 0, d
+    # A new grant (a new key) restarts the sequence at 1, as the edge expects.
+    sv.owner_lost("alice", "test")
+    regrant = sv.acquire(ControlRequest(operator="alice").stamp(1), 101.0)
+    now = time.monotonic()
+    cmd = stream.next(now, [0.0] * 6, False, now, False, now, time.time_ns(), 2.0, regrant.key)
+    assert cmd is not None and cmd.seq == 1
+    assert sv.on_command(TwistCommand.decode(cmd.encode()), time.time(), 101.0, POSE).accepted

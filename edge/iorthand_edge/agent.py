@@ -194,8 +194,8 @@ class EdgeAgent:
             s.liveliness().declare_subscriber(k.alive_operators, self._on_operator_liveliness, history=True),
         ]
         self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
-        # The control loop and the command path run at real-time priority where allowed (root on the Pi):
-        # both block between short bursts, so they cannot starve the rest.
+        # The control loop (which carries the command path too) runs at real-time priority where allowed (root
+        # on the Pi): it blocks between short bursts, so it cannot starve the rest.
         for name, fn, rt in (("control", self._control_loop, True), ("control-plane", self._control_plane_loop, False)):
             w = Worker(f"edge-{name}", fn, self.stop_event, realtime=rt and self.config.realtime)
             w.start()

@@ -111,7 +111,7 @@ class CommandStream:
         state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
         lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
         cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age)
-        return auth.sign(key, self.ctx, cmd.stamp(self.seq, t))
+        return auth.sign(key, self.ctx, cmd.stamp(self.seq, t), canonical=True)  # floats and ints, built above
 
 
 def run_fixed_rate(tick: Callable[[], bool], rate_hz: float, spin: bool, wait: Callable[[float], Any]) -> None:
