@@ -34,8 +34,10 @@ def agent(grants: Grants) -> EdgeAgent:
 
 def twist(agent: EdgeAgent, grants: Grants, seq: int, operator: str = "op", vx: float = 0.004,
           deadman: bool = True) -> bytes:
-    """A command of ``operator``'s session, signed with its key (unsigned when it holds none), from a live view."""
-    cmd = TwistCommand(operator=operator, linear=[vx, 0.0, 0.0], deadman=deadman, state_age=0.02).stamp(seq)
+    """A command of ``operator``'s session, signed with its key (unsigned when it holds none), from a live view;
+    ``seq`` counts after the grant's own release command."""
+    cmd = TwistCommand(operator=operator, linear=[vx, 0.0, 0.0], deadman=deadman, state_age=0.02)
+    cmd.stamp(grants.seq + seq)
     return grants.sign(agent.supervisor, operator, cmd).encode()
 
 
@@ -46,7 +48,7 @@ def handle(agent: EdgeAgent, payload: bytes):
 def test_an_allowed_command_drives_the_robot_and_echoes_what_was_sent(agent: EdgeAgent, grants: Grants) -> None:
     echo = handle(agent, twist(agent, grants, 1))
     assert echo is not None and echo.accepted, echo
-    assert echo.cmd_seq == 1 and echo.operator == "op"
+    assert echo.cmd_seq == grants.seq + 1 and echo.operator == "op"
     assert echo.applied[0] == pytest.approx(0.004)
     assert list(agent._commanded) == pytest.approx(list(echo.applied))
 
@@ -99,6 +101,6 @@ def test_a_malformed_command_is_counted_and_gets_no_echo(agent: EdgeAgent) -> No
 
 def test_echoes_carry_their_own_rising_sequence_numbers(agent: EdgeAgent, grants: Grants) -> None:
     echoes = [handle(agent, twist(agent, grants, seq)) for seq in (1, 2, 3)]
-    assert [e.cmd_seq for e in echoes] == [1, 2, 3]
+    assert [e.cmd_seq - grants.seq for e in echoes] == [1, 2, 3]
     seqs = [e.seq for e in echoes]
     assert seqs == sorted(seqs) and len(set(seqs)) == 3

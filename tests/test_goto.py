@@ -115,7 +115,7 @@ def _drive(ctl: GotoController, safety: SafetyConfig, robot: SimRobot, clock: Fa
     grants = Grants()
     ok, _ = grants.acquire(sup, "op1", clock.t)
     assert ok
-    seq = 0
+    seq = grants.seq  # after the grant's release
     next_cmd = clock.t
     end = clock.t + max_s
     t0 = clock.t

@@ -100,8 +100,7 @@ def test_every_grant_has_a_new_key_and_a_new_sequence() -> None:
     assert sv.owner_lost("alice", "liveliness lost")
     assert alice.take()[0]  # a new grant
     assert not alice.send(old).accepted  # the old key is worthless now
-    alice.seq = 0  # the client restarts its sequence with the new key
-    assert alice.send(alice.twist(deadman=False)).accepted
+    assert alice.seq == 1  # the client restarted its sequence with the new key: its release came first
     assert alice.send(alice.twist()).accepted
 
 
@@ -176,12 +175,13 @@ def test_the_operators_stream_is_signed_as_the_edge_decodes_it() -> None:
     sv = Supervisor(SafetyConfig(auto_arm=True), robot="sim1")
     grant = sv.acquire(ControlRequest(operator="alice").stamp(1), 100.0)
     stream = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
-    for i in range(3):
+    for i in range(4):  # the grant's first command is a release (sent by the stream itself), then the press
         now = time.monotonic()
-        cmd = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key)
-        assert cmd is not None and cmd.seq == i + 1
+        cmd = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
+                          pressed_at=now, key_at=now - 0.01)
+        assert cmd is not None and cmd.seq == i + 1 and cmd.deadman == (i > 0)
         d = sv.on_command(TwistCommand.decode(cmd.encode()), time.time(), 100.0 + i / 60, POSE)
-        assert d.accepted and d.twist[1] > 0, d
+        assert d.accepted and (d.twist[1] > 0) == (i > 0), d
     # A new grant (a new key) restarts the sequence at 1, as the edge expects.
     sv.owner_lost("alice", "test")
     regrant = sv.acquire(ControlRequest(operator="alice").stamp(1), 101.0)
@@ -189,3 +189,34 @@ def test_the_operators_stream_is_signed_as_the_edge_decodes_it() -> None:
     cmd = stream.next(now, [0.0] * 6, False, now, False, now, time.time_ns(), 2.0, regrant.key)
     assert cmd is not None and cmd.seq == 1
     assert sv.on_command(TwistCommand.decode(cmd.encode()), time.time(), 101.0, POSE).accepted
+
+
+def test_a_new_grant_moves_nothing_before_a_release_and_a_press_under_it() -> None:
+    """A client that re-acquired by itself (its edge restarted, its lease was lost) while the operator kept the
+    deadman held: the edge refuses motion until it sees a release under the new grant, and the client keeps the
+    old press released until the operator presses again."""
+    import time
+
+    from iorthand.protocol import ControlRequest
+    from iorthand_operator.sender import CommandStream
+
+    sv = Supervisor(SafetyConfig(auto_arm=True), robot="sim1")
+    grant = sv.acquire(ControlRequest(operator="alice").stamp(1), 100.0)
+    raw = TwistCommand(operator="alice", linear=[0.004, 0.0, 0.0], deadman=True, state_age=0.01).stamp(1)
+    d = sv.on_command(auth.sign(grant.key, auth.context("sim1", keys.CMD_TWIST), raw), time.time(), 100.0, POSE)
+    assert not d.accepted and d.status == Status.NO_DEADMAN and "release the deadman" in d.reason
+    # The client side: the press began before the key arrived.
+    stream = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
+    pressed, key_at = time.monotonic() - 2.0, time.monotonic() - 1.0
+    sent = []
+    for _ in range(30):
+        now = time.monotonic()
+        cmd = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
+                          pressed_at=pressed, key_at=key_at)
+        if cmd is not None:
+            sent.append(cmd)
+    assert sent and not any(c.deadman for c in sent)  # held from before: released, then quiet
+    now = time.monotonic()  # the operator releases and presses again
+    cmd = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, now - 0.05, False, now, time.time_ns(), 1.0, grant.key,
+                      pressed_at=now, key_at=key_at)
+    assert cmd is not None and cmd.deadman

@@ -25,7 +25,9 @@ Rules (DESIGN.md, "Safety model"):
   owner's name without the owner's signature is a forgery: refused, counted, never answered. Every grant starts
   a new sequence; a command whose sequence jumps further than ``max_sequence_jump`` is refused.
 - After a gap in the commands longer than ``resume_gap`` while the deadman was held, motion resumes only after
-  the deadman is released and pressed again (shorter gaps resume). A command states how old the robot state on
+  the deadman is released and pressed again (shorter gaps resume). A new grant of control starts the same way:
+  its first motion needs a release and a press under it (the operator's client sends the release itself when the
+  press came after the grant). A command states how old the robot state on
   the operator's screen is; motion from a picture older than ``max_view_age`` is refused and the robot stops.
 
 Every event (a command, a control cycle, a stop, arming, ownership, a fault, a force level) goes through one
@@ -145,6 +147,9 @@ class Decision:
     action: Action = Action.HOLD
     answer: bool = True  # False: a forgery, counted but not answered on state/applied (no echo to amplify)
     cancel_goto: str = ""  # why a previewed move under way ends with this command ("" = it goes on, if any)
+
+
+GRANT_NEEDS_PRESS = "control granted: release the deadman and press it to move"
 
 
 @dataclass
@@ -279,6 +284,10 @@ class Supervisor:
             self._key = self._keygen()
             self._last_seq = {}
             self._deadman = self._last_deadman = False
+            if not self._latched:
+                # A grant moves nothing until the deadman is released and pressed under it: a press held from
+                # before (a client that re-acquired by itself after this edge restarted) is no fresh intent.
+                self._latched, self._latch_reason = Status.NO_DEADMAN, GRANT_NEEDS_PRESS
         self._lease_until = now + self.config.lease
         if profile:
             self.profile = profile
@@ -410,8 +419,8 @@ class Supervisor:
         self._lease_until = now + self.config.lease
         if not cmd.deadman:
             self._deadman = False
-            if self._latched in (Status.STOPPED, Status.LINK_GAP):
-                self._latched = None  # deadman released after a stop: the next press may move again
+            if self._latched in (Status.STOPPED, Status.LINK_GAP, Status.NO_DEADMAN):
+                self._latched = None  # deadman released after a stop or a grant: the next press may move
             self._target = [0.0] * 6
             self.counters.applied += 1
             self._set(Status.NO_DEADMAN, "deadman released")
@@ -492,6 +501,8 @@ class Supervisor:
             out_of_order = self._sequence_refusal(cmd.seq, keys.CMD_TWIST)
             if out_of_order:
                 return Status.OUT_OF_ORDER, out_of_order
+            if not cmd.deadman and self._latched == Status.NO_DEADMAN:
+                self._latched = None  # the grant's release: counts even while disarmed or in a fault
         if self.fault:
             return Status.FAULT, self.fault
         if not self.armed:

@@ -124,6 +124,8 @@ class OperatorClient:
         # counter of grants (each restarts the command sequence). Empty while we do not hold control.
         self._key = b""
         self._key_gen = 0
+        self._key_at = 0.0  # monotonic time the key arrived; a deadman press from before it starts nothing
+        self._pressed_at = 0.0  # monotonic time the deadman was last pressed
         self._acquire_lock = threading.Lock()
         self._heartbeat = time.monotonic()  # the UI is alive (see CommandStream): beaten by the link thread
         self._state_t = 0  # source time (ns) of the newest robot state: each command states its age
@@ -228,6 +230,9 @@ class OperatorClient:
             raise ControlRefused(reply.reason)
         if reply.key:
             self._set_key(reply.key)
+            if self._deadman:  # a press from before this grant starts nothing (CommandStream): say so
+                self.log_event("control", Status.NO_DEADMAN,
+                               "control granted anew: release the deadman and press it again to move")
         elif not self._key:
             raise ControlRefused("the edge granted control without a key (an edge older than this client?)")
         self.owner, self.lease = True, reply.lease
@@ -237,11 +242,12 @@ class OperatorClient:
         with self._lock:
             self._key = key
             self._key_gen += 1
+            self._key_at = time.monotonic()
             stop = self._seq_other[keys.CMD_STOP]  # stops are not signed: one sequence for the session
             self._seq_other.clear()  # the edge counts each grant's signed messages afresh
             self._seq_other[keys.CMD_STOP] = stop
             if self._proc_sender is not None:
-                self._proc_sender.write(key=key, key_gen=self._key_gen)
+                self._proc_sender.write(key=key, key_gen=self._key_gen, key_at=self._key_at)
 
     def _next_seq(self, suffix: str) -> int:
         with self._lock:
@@ -362,12 +368,15 @@ class OperatorClient:
         with self._lock:
             if self._deadman and not deadman:
                 self._released_at = time.monotonic()
+            elif deadman and not self._deadman:
+                self._pressed_at = time.monotonic()
             self._twist = np.concatenate([np.asarray(linear, float), np.asarray(angular, float)])
             self._deadman = bool(deadman)
             if not deadman:
                 self._twist[:] = 0.0
             if self._proc_sender is not None:  # shared memory only: microseconds, never blocks on the child
-                self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at)
+                self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at,
+                                        pressed_at=self._pressed_at)
 
     def start(self) -> None:
         """Start the fixed-rate sender and, while we own the robot, the lease renewal."""
@@ -377,7 +386,8 @@ class OperatorClient:
                 sys.setswitchinterval(self.gil_switch_interval)  # keeps the heartbeat and echo matching prompt
             with self._lock:
                 self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at,
-                                        muted=self._muted)
+                                        muted=self._muted, pressed_at=self._pressed_at, key=self._key,
+                                        key_gen=self._key_gen, key_at=self._key_at, state_t=self._state_t)
             self._proc_sender.start()
             self.sender_priority = f"{self._proc_sender.priority} (process {self._proc_sender.proc.pid})"
         else:
@@ -406,7 +416,8 @@ class OperatorClient:
         def tick() -> bool:
             with self._lock:
                 cmd = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
-                                        self._muted, self._heartbeat, self._state_t, self._key_gen, self._key)
+                                        self._muted, self._heartbeat, self._state_t, self._key_gen, self._key,
+                                        self._pressed_at, self._key_at)
             if cmd is not None:
                 payload = cmd.encode()
                 self._record_send(cmd.seq, cmd.t, time.monotonic())

@@ -46,10 +46,11 @@ from iorthand.transport import raise_priority
 log = logging.getLogger("iorthand.operator.sender")
 
 # Shared array layout (doubles). The grant's key (bytes) is in a second array, written under the same seqlock.
-_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN = 0, 1, 7, 8, 9, 10, 11, 12, 13
-_SIZE = 14
+_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN, _PRESSED, _KEY_AT = (
+    0, 1, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+_SIZE = 16
 _FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT, "stop": _STOP,
-           "state_t": _STATE_T, "key_gen": _KEY_GEN}
+           "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "key_at": _KEY_AT}
 _RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
 _PR_SET_PDEATHSIG = 1
 
@@ -78,7 +79,10 @@ class CommandStream:
     ``next`` gets the client's current intent and returns the signed command to send, or None (quiet: the
     deadman released for longer than ``release_tail``, muted, or no key yet). The deadman counts as released
     while the UI's heartbeat is older than ``ui_timeout`` (a frozen UI must not keep the robot moving). Each new
-    key (a new grant of control) restarts the sequence at 1, as the edge expects."""
+    key (a new grant of control) restarts the sequence at 1, as the edge expects, and its first command is a
+    release: the edge moves nothing under a grant before it has seen the deadman released and pressed. A press
+    that began before the grant (``pressed_at`` < ``key_at``: the client re-acquired by itself, after an edge
+    restart or a lost lease) counts as released until the operator releases and presses again."""
 
     def __init__(self, robot: str, operator_id: str, release_tail: float, ui_timeout: float) -> None:
         self.operator_id = operator_id
@@ -87,10 +91,12 @@ class CommandStream:
         self.ctx = auth.context(robot, keys.CMD_TWIST)
         self.seq = 0
         self._key_gen = -1.0
+        self._release_first = False
         self._stale_since: float | None = None
 
     def next(self, now: float, twist: Any, deadman: bool, released_at: float, muted: bool, heartbeat: float,
-             state_t: float, key_gen: float, key: bytes) -> TwistCommand | None:
+             state_t: float, key_gen: float, key: bytes, pressed_at: float = 0.0,
+             key_at: float = 0.0) -> TwistCommand | None:
         if now - heartbeat > self.ui_timeout:  # the UI is frozen (or gone): release the deadman
             if self._stale_since is None:
                 self._stale_since = now
@@ -100,10 +106,15 @@ class CommandStream:
         else:
             self._stale_since = None
         if key_gen != self._key_gen:
-            self._key_gen, self.seq = key_gen, 0
-        quiet = not deadman and now - released_at > self.release_tail
-        if quiet or muted or not key:
+            self._key_gen, self.seq, self._release_first = key_gen, 0, True
+        if deadman and pressed_at < key_at:  # held from before this grant: not an intent to move under it
+            deadman, released_at = False, max(released_at, key_at)
+        if muted or not key:
             return None
+        if self._release_first:
+            self._release_first, deadman = False, False
+        elif not deadman and now - released_at > self.release_tail:
+            return None  # quiet
         self.seq += 1
         t = time.time_ns()
         # The age of the newest robot state this operator has, on the edge's clock as the state was stamped
@@ -352,7 +363,7 @@ def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandS
                 return False
             cmd = stream.next(time.monotonic(), vals[_TWIST:_TWIST + 6], bool(vals[_DEADMAN]), vals[_RELEASED],
                               bool(vals[_MUTED]), vals[_HEARTBEAT], vals[_STATE_T], vals[_KEY_GEN],
-                              k if any(k) else b"")
+                              k if any(k) else b"", vals[_PRESSED], vals[_KEY_AT])
             if cmd is not None:
                 payload = cmd.encode()
                 conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic()))

@@ -41,6 +41,7 @@ from iorthand.protocol import (
     RobotState,
     SafetyStatus,
     Sequencer,
+    Status,
     TwistCommand,
     VideoFrame,
 )
@@ -57,6 +58,9 @@ from iorthand.transport import (
 from iorthand_operator.client import OperatorClient
 
 log = logging.getLogger("iorthand.bench.roles")
+
+# Refusals that a release and a fresh press of the deadman clear (Supervisor: a stop, a link gap, a new grant).
+NEEDS_PRESS = frozenset({Status.STOPPED, Status.LINK_GAP, Status.NO_DEADMAN})
 
 PING_KEY = "iorthand/_bench/ping"
 PONG_KEY = "iorthand/_bench/pong"
@@ -409,16 +413,21 @@ def operator_probe(args: argparse.Namespace) -> int:
             for c in clients:
                 s = c.safety
                 lost = s is not None and s.owner != c.operator_id and time.time_ns() - s.t < 1e9
+                # After a stop, a long gap or a new grant the edge latches until the deadman is released and
+                # pressed again, and a press held from before a grant starts nothing: release and press as a
+                # person would after a lost link, once per re-acquire or fresh latched refusal.
+                why = ""
                 if lost:
                     events.append([time.time_ns(), c.keys.robot, "reacquire", s.owner if s else ""])
-                    _acquire(c, stop, 2.0)
-                # After a stop the edge latches until the deadman is released and pressed again (as a person
-                # would after a lost link): do that once per fresh latched refusal.
+                    if _acquire(c, stop, 2.0):
+                        why = "control re-acquired"
                 r = c.last_refusal
-                if (r is not None and r.status == "stopped" and r.seq != handled.get(c.keys.robot)
+                if (r is not None and r.status in NEEDS_PRESS and r.seq != handled.get(c.keys.robot)
                         and time.time_ns() - r.t < 1e9):
                     handled[c.keys.robot] = r.seq
-                    events.append([time.time_ns(), c.keys.robot, "re-press deadman", r.reason])
+                    why = r.reason
+                if why:
+                    events.append([time.time_ns(), c.keys.robot, "re-press deadman", why])
                     c.set_twist(np.zeros(3), np.zeros(3), deadman=False)
                     stop.wait(0.1)
                     c.set_twist([0.0, direction * args.speed, 0.0], np.zeros(3), deadman=True)
