@@ -39,6 +39,10 @@ def make_agent() -> tuple[EdgeAgent, bytes]:
     grant = agent.supervisor.acquire(ControlRequest(operator="op").stamp(1), time.monotonic())
     if not grant.ok:
         raise RuntimeError(grant.reason)
+    # The grant's first command releases the deadman, as the operator's client sends it: only then may a press move.
+    release = TwistCommand(operator="op", deadman=False, state_age=0.01).stamp(1)
+    payload = auth.sign(grant.key, auth.context(agent.keys.robot, keys.CMD_TWIST), release).encode()
+    agent.handle_twist(agent.keys.key(keys.CMD_TWIST), payload, time.time_ns())
     return agent, grant.key
 
 
@@ -89,7 +93,7 @@ def main() -> int:
     ap.add_argument("--out", default="benchmarks/results/edge_cpu.json")
     args = ap.parse_args()
     agent, key = make_agent()
-    run(agent, key, 1, 200, 0.0)  # warm-up: imports, caches, first allocations
+    run(agent, key, 2, 199, 0.0)  # warm-up: imports, caches, first allocations (after the grant's release)
     # One sequence, as one operator's stream: the edge refuses a jump over max_sequence_jump.
     hot = run(agent, key, 201, args.commands, 0.0)
     cold = run(agent, key, 201 + args.commands, args.commands, args.gap_ms / 1000.0)

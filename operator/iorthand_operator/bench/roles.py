@@ -615,8 +615,9 @@ class LightOperator:
         reply = ControlReply.decode(replies[0]) if replies else None
         if reply is None or not reply.ok:
             raise RuntimeError(f"{self.keys.robot}: control not granted")
-        if reply.key:  # a new grant: new sequences
+        if reply.key:  # a new grant: new sequences, and its first command releases the deadman (as a client's)
             self.key, self.seq, self.control_seq = reply.key, Sequencer(), 0
+            self.send([0.0, 0.0, 0.0], deadman=False)
 
     def send(self, linear: list[float], deadman: bool) -> None:
         t = time.time_ns()
