@@ -573,6 +573,17 @@ class OperatorClient:
         else:
             self._last_refusal_key = None
 
+    def wait_for_echoes(self, timeout: float = 0.5) -> None:
+        """Wait until every command sent so far has its echo (or ``timeout``): counts of sends and echoes taken
+        after it agree, even for a command that had just left (a grant's release, sent by the stream itself)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._proc_sender is not None:
+                self._proc_sender.drain()
+            if len(self.echoes) >= self.sent_count:
+                return
+            time.sleep(0.005)
+
     def wait_for_state(self, timeout: float = 5.0) -> RobotState:
         deadline = time.monotonic() + timeout
         while self.robot_state is None:

@@ -150,6 +150,7 @@ def _silence(client: OperatorClient, duration: float) -> float | None:
 
 def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
     """Play ``script`` on a started client that holds control; return the JSON-able summary."""
+    client.wait_for_echoes()  # the grant's release, sent as the client started, is not the script's
     start, sent0, echo0 = _pos(client), client.sent_count, len(client.echoes)
     steps = [run_step(client, step) for step in script.steps]
     client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
