@@ -12,8 +12,6 @@ left behind even if the demo is killed. The core imports no role: the demo drive
 from __future__ import annotations
 
 import argparse
-import contextlib
-import ctypes
 import json
 import signal
 import subprocess
@@ -26,15 +24,10 @@ from typing import IO
 
 import yaml
 
+from iorthand.process import die_with_parent
 from iorthand.transport import free_port
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:
-    with contextlib.suppress(OSError):  # not Linux: the Ctrl-C handling still stops the children
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 @dataclass
@@ -48,7 +41,7 @@ class Child:
     def start(self) -> None:
         self.log = self.log_path.open("wb")
         self.proc = subprocess.Popen(
-            self.argv, stdout=self.log, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent, start_new_session=True,
+            self.argv, stdout=self.log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent, start_new_session=True,
         )
 
     def stop(self, timeout: float = 5.0) -> int | None:
@@ -80,7 +73,7 @@ def demo_edge_config(robot: str, endpoint: str) -> dict:
 
 def run_step(argv: list[str], what: str, timeout: float = 60.0) -> str:
     """Run one command to completion; its output, or RuntimeError with what it said."""
-    done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, preexec_fn=_die_with_parent)
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=timeout, preexec_fn=die_with_parent)
     if done.returncode != 0:
         raise RuntimeError(f"{what} failed (exit {done.returncode}): {(done.stderr or done.stdout).strip()[-500:]}")
     return done.stdout

@@ -32,6 +32,7 @@ MAX_VIDEO_PAYLOAD = 8 * 1024 * 1024
 _MAX_INT = 2**63 - 1
 _FAR_FUTURE_NS = 2**62  # about year 2116: any later source time is garbage
 MAC_MAX = 32  # bytes of a command's signature field (iorthand.security.auth uses 16)
+KEY_MAX = 64  # bytes of a grant's key in the acquire reply (iorthand.security.auth uses 32)
 
 
 class DecodeError(ValueError):
@@ -613,7 +614,7 @@ class ControlReply(Message):
     lease: float = spec(0.0, lo=0.0)
     detail: str = spec("", max_len=4096)  # JSON text for richer answers (pose lists, previews)
     # acquire: the secret that signs this owner's commands. A query's reply goes to the querier alone.
-    key: bytes = spec(b"", max_len=MAC_MAX * 2)
+    key: bytes = spec(b"", max_len=KEY_MAX)
 
 
 @dataclass(kw_only=True)

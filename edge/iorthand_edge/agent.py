@@ -14,8 +14,8 @@ Threads (all named):
   (sensor, warning levels; a change goes straight to the supervisor), ``edge-servos``, ``edge-torch``.
 - Perception and video run in a child process (:mod:`iorthand_edge.media`: camera, ArUco, the simulators,
   JPEG, on its own Zenoh session), so they cannot take this process's CPU or GIL. ``edge-media`` watches it and
-  restarts it after a crash; ``edge-markers`` takes its markers back from the ``markers`` key for
-  ``above_marker:<id>`` moves.
+  restarts it after a crash. Its markers come back on the ``markers`` key, the newest kept by Zenoh and decoded
+  only when an ``above_marker:<id>`` move asks for them.
 
 Zenoh callbacks only queue bytes into bounded inboxes. The supervisor is shared under one lock and decides
 everything; this adapter carries events in and the supervisor's actions out. Nothing outside this process can
@@ -148,13 +148,11 @@ class EdgeAgent:
             bind_keys=config.bind_operator_keys,
         )
         self.goto = GotoController(config.goto, config.safety.workspace.min, config.safety.workspace.max)
-        # The media process's markers, from this robot's markers key (for above_marker:<id>): latest filtered
-        # T_base_marker per id, and time.monotonic() when they arrived.
-        self.markers: dict[int, np.ndarray] = {}
-        self.markers_at = -math.inf
-        self._markers_in = Inbox(4, keep="newest")  # only the newest message matters
+        # The media process's markers, from this robot's markers key (for above_marker:<id>): the latest filtered
+        # T_base_marker per id, and the time of the camera frame they come from (ns since the epoch).
+        self._markers: dict[int, np.ndarray] = {}
+        self._markers_t = 0
         self._markers_sub: zenoh.Subscriber | None = None
-        self._markers_worker: Worker | None = None
         self.cycle_hooks.append(sdnotify.cycle_hook())  # systemd: READY once, then the watchdog from the loop
         self._local_server: socket.socket | None = None
         # Servos, torch and video stop with the agent but a crash of theirs must not stop the robot's control:
@@ -219,9 +217,10 @@ class EdgeAgent:
             if unit is not None:
                 unit.start(self.session, self.keys, self._aux_stop)
         if self.config.perception is not None:
-            self._markers_sub = subscribe(self.session, self.keys.key(keys.MARKERS), self._markers_in)
-            self._markers_worker = Worker("edge-markers", self._markers_loop, self._aux_stop)
-            self._markers_worker.start()
+            # Only the newest markers matter, and only when a move asks for them (poses, preview): Zenoh keeps
+            # the newest message in a ring of one, decoded on demand, with no thread of this process woken per frame.
+            self._markers_sub = self.session.declare_subscriber(self.keys.key(keys.MARKERS),
+                                                                zenoh.handlers.RingChannel(1))
         if self.media is not None:
             self.media.start(self.session)
 
@@ -231,8 +230,7 @@ class EdgeAgent:
             self.media.stop()
         if self._local_server is not None:
             self._local_server.close()
-        self._markers_in.close()
-        for comp in (self.force, self.servos, self.torch, self._markers_worker):
+        for comp in (self.force, self.servos, self.torch):
             if comp is not None:
                 comp.join()
 
@@ -413,28 +411,29 @@ class EdgeAgent:
         self._wake()
         self._publish_safety(force=True)
 
-    def _markers_loop(self, stop: threading.Event) -> None:
-        """The media process's markers: decoded here, off the Zenoh callback; malformed ones are counted."""
-        while not stop.is_set():
-            item = self._markers_in.get(timeout=0.2)
-            if item is None:
-                continue
-            key, payload, _ = item
+    @property
+    def markers(self) -> dict[int, np.ndarray]:
+        """The newest markers from the media process (T_base_marker per id); malformed messages are counted."""
+        sub = self._markers_sub
+        while sub is not None and (sample := sub.try_recv()) is not None:
+            key = str(sample.key_expr)
             try:
-                msg = Markers.decode(payload)
+                msg = Markers.decode(sample.payload.to_bytes())
             except DecodeError as exc:
                 self.rejects.add(key, str(exc))
-                self._rlog.warning(f"malformed:{key}", f"rejected malformed markers on {key}: {exc}")
+                self._rlog.warning(f"malformed:{keys.MARKERS}", f"rejected malformed markers on {key}: {exc}")
                 continue
             # A failure notice (the camera failed) has no markers: none to aim at until the camera sees again.
-            self.markers, self.markers_at = {m.id: geometry.unflatten(m.pose) for m in msg.markers}, time.monotonic()
+            self._markers, self._markers_t = {m.id: geometry.unflatten(m.pose) for m in msg.markers}, msg.t
+        return self._markers
 
     def _fresh_markers(self) -> dict[int, np.ndarray]:
-        """The marker poses a move may aim at: none once they are older than ``goto.marker_max_age`` (the
-        camera failed or stalled, and the patient may have moved since)."""
-        if time.monotonic() - self.markers_at > self.config.goto.marker_max_age:
+        """The marker poses a move may aim at: none once their camera frame is older than
+        ``goto.marker_max_age`` (the camera failed or stalled, and the patient may have moved since)."""
+        markers = self.markers
+        if (time.time_ns() - self._markers_t) / 1e9 > self.config.goto.marker_max_age:
             return {}
-        return dict(self.markers)
+        return dict(markers)
 
     def _publish_safety(self, force: bool = False) -> None:
         with self.lock:

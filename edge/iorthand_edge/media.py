@@ -25,7 +25,6 @@ freezing it. Perception and video are not safety-critical: nothing here can stop
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import math
 import multiprocessing as mp
@@ -43,6 +42,7 @@ import numpy as np
 import zenoh
 
 from iorthand import keys
+from iorthand.process import enter_child
 from iorthand.protocol import (
     DecodeError,
     ForceLevelState,
@@ -70,7 +70,6 @@ RING_SIZE = 512  # state samples kept per key until a frame asks: 4 s of state/r
 FORCE_MAX_AGE = 0.5  # s: an older force level (or none) counts as no contact for the ultrasound image
 _PARENT_CHECK_S = 0.25
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"  # as the iorthand command line's
-_PR_SET_PDEATHSIG = 1
 
 
 def needs_media(config: EdgeConfig) -> bool:
@@ -245,15 +244,7 @@ class MediaService:
 def media_main(config: EdgeConfig, parent_pid: int, pdeathsig: bool, stop_flag: Any, conn: Connection,
                log_level: int) -> None:
     """The child's entry point (a fresh interpreter)."""
-    if pdeathsig:
-        with contextlib.suppress(OSError, AttributeError):  # not Linux: the parent-pid check still ends us
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    if os.getppid() != parent_pid:
-        os._exit(0)  # the parent died before the prctl
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the agent stops us
-    # SIGTERM (PDEATHSIG, or the agent's stop after its grace time): leave at once. The interpreter's own
-    # shutdown joins Zenoh's threads and can hang, which would leave an orphan.
-    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
+    enter_child(parent_pid, pdeathsig)  # not Linux: the parent-pid check in run() still ends us
     # Before any thread starts, so that every thread of the child (Zenoh's too) inherits it.
     with contextlib.suppress(AttributeError, OSError):
         os.setpriority(os.PRIO_PROCESS, 0, MEDIA_NICE)

@@ -393,7 +393,7 @@ class Supervisor:
         with zero twists while it runs (hold-to-run); a released deadman, a manual twist (the operator takes
         over) or any refusal of the owner's command ends it (``Decision.cancel_goto``)."""
         decision = self._on_command(cmd, recv_wall, now, tcp_pose, goto_twist)
-        if goto_twist is not None and not decision.cancel_goto and decision.answer and decision.status != Status.NOT_OWNER:
+        if goto_twist is not None and not decision.cancel_goto and decision.status != Status.NOT_OWNER:
             if not cmd.deadman:
                 decision.cancel_goto = "deadman released"
             elif not decision.accepted:
@@ -419,8 +419,9 @@ class Supervisor:
         self._lease_until = now + self.config.lease
         if not cmd.deadman:
             self._deadman = False
-            if self._latched in (Status.STOPPED, Status.LINK_GAP, Status.NO_DEADMAN):
-                self._latched = None  # deadman released after a stop or a grant: the next press may move
+            if self._latched in (Status.STOPPED, Status.LINK_GAP):
+                self._latched = None  # deadman released after a stop or a gap: the next press may move (a grant's
+                # latch is cleared by any authentic release, in _refuse)
             self._target = [0.0] * 6
             self.counters.applied += 1
             self._set(Status.NO_DEADMAN, "deadman released")
@@ -467,16 +468,11 @@ class Supervisor:
             return self._retreat_only(tcp_pose, now)
         return self._limit(self._target, tcp_pose, now)
 
-    def halt_now(self) -> Decision:
-        """The decision for an event that stopped the robot (a stop, a fault, the owner lost, disarming): what
-        the driver must do right away, without waiting for the next cycle."""
-        return self._decide([0.0] * 6, False, self.status, self.reason)
-
     def driver_failed(self, reason: str) -> Decision:
         """The driver refused or failed a command: a fault, and the robot is told to stop."""
         self.set_fault(reason)
         self._sent_motion = True  # whatever it did with the last command, stop it
-        return self.halt_now()
+        return self._decide([0.0] * 6, False, self.status, self.reason)
 
     # ---------------------------------------------------------------- internals
 

@@ -26,11 +26,9 @@ keeps the schedule for both.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import multiprocessing as mp
 import os
-import signal
 import struct
 import sys
 import threading
@@ -39,6 +37,7 @@ from collections.abc import Callable
 from typing import Any
 
 from iorthand import keys
+from iorthand.process import enter_child
 from iorthand.protocol import TwistCommand
 from iorthand.security import auth
 from iorthand.transport import raise_priority
@@ -52,7 +51,6 @@ _SIZE = 16
 _FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT, "stop": _STOP,
            "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "key_at": _KEY_AT}
 _RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
-_PR_SET_PDEATHSIG = 1
 
 
 @contextlib.contextmanager
@@ -316,15 +314,7 @@ class ProcessSender:
 
 def child_main(conn, array, key, zenoh_config, twist_key: str, robot: str, operator_id: str, rate_hz: float,
                release_tail: float, ui_timeout: float, realtime: bool, parent_pid: int, pdeathsig: bool) -> None:
-    if pdeathsig:
-        with contextlib.suppress(OSError, AttributeError):
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    if os.getppid() != parent_pid:
-        return  # the parent died before the prctl
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the UI; the parent stops us
-    # SIGTERM (PDEATHSIG, or the parent's stop after its grace time): leave at once. Never run the interpreter's
-    # shutdown here: it joins Zenoh's non-daemon threads and can hang, leaving an orphan.
-    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
+    enter_child(parent_pid, pdeathsig)  # Ctrl-C goes to the UI; the parent stops us
     try:
         stream = CommandStream(robot, operator_id, release_tail, ui_timeout)
         _child_loop(conn, array, key, zenoh_config, twist_key, stream, rate_hz, realtime, parent_pid)

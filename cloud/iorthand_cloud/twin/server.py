@@ -17,11 +17,9 @@ limit drops the oldest data; static data — the robot model — is kept). The r
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import time
@@ -30,15 +28,11 @@ from pathlib import Path
 
 import rerun as rr
 
+from iorthand.process import die_with_parent
+
 from .config import ViewerConfig
 
 log = logging.getLogger("iorthand.twin.server")
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def rerun_executable() -> str:
@@ -108,7 +102,7 @@ class ViewerServer:
                 out = (self.log_dir / "rerun-relay.log").open("wb")  # type: ignore[assignment]
             env = {**os.environ, "RERUN_ANALYTICS": "0"}
             self.proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                         preexec_fn=_die_with_parent, env=env)
+                                         preexec_fn=die_with_parent, env=env)
             _wait_port(c.bind, c.grpc_port, c.relay_start_timeout, self.proc)
             _wait_port(c.bind, c.web_port, c.relay_start_timeout, self.proc)
             self.grpc_url = f"rerun+http://{'127.0.0.1' if c.bind in ('0.0.0.0', '::') else c.bind}:{c.grpc_port}/proxy"

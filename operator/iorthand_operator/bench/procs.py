@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import ctypes
 import logging
 import os
 import signal
@@ -19,9 +18,10 @@ from pathlib import Path
 
 import psutil
 
+from iorthand.process import die_with_parent
+
 log = logging.getLogger("iorthand.bench")
 
-_PR_SET_PDEATHSIG = 1
 _cleanups: list[Callable[[], None]] = []
 _cleanup_lock = threading.Lock()
 _handlers_installed = False
@@ -44,8 +44,7 @@ def _die_with_parent() -> None:
     if NICE:
         with contextlib.suppress(OSError):
             os.nice(NICE)
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    die_with_parent(signal.SIGKILL)
 
 
 def run_cleanups() -> None:
