@@ -90,11 +90,16 @@ class Trimmer(threading.Thread):
         self.trims = 0
         self._stop_event = threading.Event()
 
+    def start(self) -> None:
+        # The baseline is taken here, in the caller's thread, when it starts us: taken in run() it could come
+        # after what the caller allocates next, and a burst already in RSS would never count as growth.
+        self._floor, self._level = malloc_free_bytes(), rss_bytes()
+        super().start()
+
     def run(self) -> None:
         if _LIBC is None:
             return
-        floor = malloc_free_bytes()
-        level = rss_bytes()
+        floor, level = self._floor, self._level
         while not self._stop_event.wait(self.interval):
             free, rss = malloc_free_bytes(), rss_bytes()
             floor = min(floor, free)
