@@ -117,7 +117,8 @@ def test_a_killed_media_process_is_restarted_and_the_robot_stays_controllable(
     # The subscribers learn why the picture stopped, then pictures come from a new child.
     wait_until(lambda: any("killed by SIGKILL" in f.failure for f in streams.video["camera"][n_camera:]),
                timeout=10.0, message="the failure notice on video/camera")
-    assert any("killed by SIGKILL" in f.failure for f in streams.video["ultrasound"][n_ultrasound:])
+    wait_until(lambda: any("killed by SIGKILL" in f.failure for f in streams.video["ultrasound"][n_ultrasound:]),
+               timeout=5.0, message="the failure notice on video/ultrasound")  # published just after the camera's
     assert any("killed by SIGKILL" in m.failure for m in streams.markers)
     wait_until(lambda: min(streams.pictures_since(n_camera, n_ultrasound)) >= 3, timeout=20.0,
                message="pictures from the restarted media process")
