@@ -177,18 +177,20 @@ def test_the_operators_stream_is_signed_as_the_edge_decodes_it() -> None:
     stream = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
     for i in range(4):  # the grant's first command is a release (sent by the stream itself), then the press
         now = time.monotonic()
-        cmd = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
+        out = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
                           pressed_at=now, key_at=now - 0.01)
-        assert cmd is not None and cmd.seq == i + 1 and cmd.deadman == (i > 0)
-        d = sv.on_command(TwistCommand.decode(cmd.encode()), time.time(), 100.0 + i / 60, POSE)
+        assert out is not None
+        cmd, payload = out
+        assert cmd.seq == i + 1 and cmd.deadman == (i > 0)
+        d = sv.on_command(TwistCommand.decode(payload), time.time(), 100.0 + i / 60, POSE)
         assert d.accepted and (d.twist[1] > 0) == (i > 0), d
     # A new grant (a new key) restarts the sequence at 1, as the edge expects.
     sv.owner_lost("alice", "test")
     regrant = sv.acquire(ControlRequest(operator="alice").stamp(1), 101.0)
     now = time.monotonic()
-    cmd = stream.next(now, [0.0] * 6, False, now, False, now, time.time_ns(), 2.0, regrant.key)
-    assert cmd is not None and cmd.seq == 1
-    assert sv.on_command(TwistCommand.decode(cmd.encode()), time.time(), 101.0, POSE).accepted
+    out = stream.next(now, [0.0] * 6, False, now, False, now, time.time_ns(), 2.0, regrant.key)
+    assert out is not None and out[0].seq == 1
+    assert sv.on_command(TwistCommand.decode(out[1]), time.time(), 101.0, POSE).accepted
 
 
 def test_a_new_grant_moves_nothing_before_a_release_and_a_press_under_it() -> None:
@@ -211,12 +213,12 @@ def test_a_new_grant_moves_nothing_before_a_release_and_a_press_under_it() -> No
     sent = []
     for _ in range(30):
         now = time.monotonic()
-        cmd = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
+        out = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
                           pressed_at=pressed, key_at=key_at)
-        if cmd is not None:
-            sent.append(cmd)
+        if out is not None:
+            sent.append(out[0])
     assert sent and not any(c.deadman for c in sent)  # held from before: released, then quiet
     now = time.monotonic()  # the operator releases and presses again
-    cmd = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, now - 0.05, False, now, time.time_ns(), 1.0, grant.key,
+    out = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, now - 0.05, False, now, time.time_ns(), 1.0, grant.key,
                       pressed_at=now, key_at=key_at)
-    assert cmd is not None and cmd.deadman
+    assert out is not None and out[0].deadman

@@ -158,3 +158,60 @@ def test_keys_are_built_in_one_place() -> None:
     for bad in ("UR3", "a/b", "", "x" * 65, "*"):
         with pytest.raises(keys.KeyExprError):
             keys.RobotKeys(bad)
+
+
+# ------------------------------------------------------------------------ the fast decoder never accepts more
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_edges = st.sampled_from([math.nan, math.inf, -math.inf, 1e308, 2**63 - 1, 2**63, -(2**63), 2**64 - 1, 0, -1, True,
+                          "", b"", 1.0])
+_hostile = st.one_of(
+    _edges, st.lists(_edges, min_size=1, max_size=17),
+    st.none(), st.booleans(), st.integers(min_value=-(2**63), max_value=2**64 - 1),
+    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=300), st.binary(max_size=40),
+    st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-(2**63), 2**63), st.booleans(),
+                       st.text(max_size=3)),
+             max_size=20),
+)
+
+
+def _outcome(decode, payload: bytes):
+    try:
+        return decode(payload)
+    except DecodeError:
+        return None
+
+
+@pytest.mark.parametrize("cls", ALL_MESSAGES, ids=lambda c: c.__name__)
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.data())
+def test_the_fast_decoder_accepts_only_what_the_checked_one_accepts(cls: type[Message], data) -> None:
+    """Message.decode takes msgspec's compiled schema first and the checked decoder for everything else: a payload
+    that the schema accepts must decode to the very message the checked decoder makes of it (the schema is
+    derived from the same declarations; a mistake there would let through what the bounds refuse)."""
+    base = msgpack.unpackb(sample(cls).encode())
+    name = data.draw(st.sampled_from([*base, "v", "surprise"]))
+    mutated = dict(base)
+    if data.draw(st.booleans()) and name in mutated:
+        del mutated[name]
+    else:
+        mutated[name] = data.draw(_hostile)
+    payload = msgpack.packb(mutated, use_bin_type=True)
+    try:
+        fast = cls._from_wire(cls._decoder().decode(payload))
+    except Exception:
+        return  # the checked decoder decides (test_bad_fields_are_rejected_by_name and the hostile tests)
+    checked = _outcome(cls._decode_checked, payload)
+    assert checked is not None, f"the fast decoder accepted what the checked one refuses: {mutated!r}"
+    assert fast == checked
+
+
+def test_a_signed_message_ends_with_its_mac() -> None:
+    """auth signs the bytes before the MAC: every signed type declares mac last, and encodes it last."""
+    signed = [cls for cls in ALL_MESSAGES if cls.SIGNED]
+    assert {c.__name__ for c in signed} >= {"TwistCommand", "ServoCommand", "TorchCommand", "ControlRequest"}
+    for cls in signed:
+        payload = sample(cls).encode()
+        assert list(msgpack.unpackb(payload))[-1] == "mac", cls.__name__

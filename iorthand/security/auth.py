@@ -11,9 +11,11 @@ every acquire draws a new key, so nothing signed for an earlier owner is valid a
 On a router without TLS the acquire reply itself crosses the network in clear: anyone who can read that
 traffic can read the key. TLS to the router (docs/DEPLOY.md) is what keeps it secret on the wire.
 
-The MAC is BLAKE2s keyed (a standard keyed hash, 16 bytes) over the message in its canonical form (what the
-receiver decodes, without the ``mac`` field) and a context: the robot and the key suffix, so a signature for
-one robot or one kind of message is worthless for another.
+The MAC is BLAKE2s keyed (a standard keyed hash, 16 bytes) over a context (the robot and the key suffix, so a
+signature for one robot or one kind of message is worthless for another) and the message's bytes as they travel,
+up to the MAC itself: a signed message's ``mac`` is its last field, so its payload ends with the MAC's 16 bytes.
+The receiver checks the very bytes it decoded (``Message.decode`` keeps them), with no re-encoding and no
+question of a canonical form.
 """
 
 from __future__ import annotations
@@ -23,12 +25,12 @@ import hmac
 import secrets
 from typing import TypeVar
 
-import msgpack
-
 from iorthand.protocol import Message
 
 KEY_BYTES = 32
 MAC_BYTES = 16
+# How a signed payload ends: the key "mac" and a 16-byte bin header (msgpack), then the MAC.
+_TRAILER = b"\xa3mac\xc4" + bytes([MAC_BYTES])
 
 M = TypeVar("M", bound=Message)
 
@@ -43,35 +45,38 @@ def context(robot: str, suffix: str) -> bytes:
     return f"iorthand/{robot}/{suffix}".encode()
 
 
-def _digest(key: bytes, ctx: bytes, msg: Message) -> bytes:
-    # The fields as they are: a decoded (or validated, or canonical) message holds plain Python values only, and
-    # the per-value conversion of _to_map() costs a third of a check on the edge. A message built in-process with
-    # numpy arrays (never one off the wire) is converted first.
-    fields = {name: getattr(msg, name) for name, _, _ in msg._fields() if name != "mac"}
-    try:
-        packed = msgpack.packb([ctx, fields], use_bin_type=True)
-    except TypeError:
-        fields = {name: value for name, value in msg._to_map().items() if name != "mac"}
-        packed = msgpack.packb([ctx, fields], use_bin_type=True)
-    return hashlib.blake2s(packed, key=key, digest_size=MAC_BYTES).digest()
+def _digest(key: bytes, ctx: bytes, signed: bytes) -> bytes:
+    # The context's length first: no context and message can pass for another pair.
+    return hashlib.blake2s(len(ctx).to_bytes(2, "big") + ctx + signed, key=key, digest_size=MAC_BYTES).digest()
 
 
-def sign(key: bytes, ctx: bytes, msg: M, canonical: bool = False) -> M:
-    """Set ``msg.mac`` (the message must be stamped). The MAC covers the message as the receiver will decode
-    it (an int 0 sent in a float field arrives as 0.0), so it is computed on the validated copy — unless the
-    caller says the message is already ``canonical`` (every field of the type decode returns: the operator's
-    60 Hz sender, where the round trip is most of the signing cost on a cold CPU)."""
-    msg.mac = b""  # type: ignore[attr-defined]
-    msg.mac = _digest(key, ctx, msg if canonical else msg.validate())  # type: ignore[attr-defined]
+def seal(key: bytes, ctx: bytes, msg: Message) -> bytes:
+    """Sign ``msg`` (stamped, of a signed type) and return its payload: the encoding with the MAC as its end."""
+    msg.mac = bytes(MAC_BYTES)  # type: ignore[attr-defined]  # the placeholder: the MAC's place in the encoding
+    unsigned = msg.encode()
+    if not unsigned.endswith(_TRAILER + bytes(MAC_BYTES)):
+        raise TypeError(f"{type(msg).__name__} has no mac as its last field: it cannot be signed")
+    signed = unsigned[:-MAC_BYTES]
+    msg.mac = _digest(key, ctx, signed)  # type: ignore[attr-defined]
+    return signed + msg.mac  # type: ignore[attr-defined]
+
+
+def sign(key: bytes, ctx: bytes, msg: M) -> M:
+    """Set ``msg.mac`` (the message must be stamped); its ``encode()`` then carries the signature."""
+    seal(key, ctx, msg)
     return msg
 
 
 def verify(key: bytes, ctx: bytes, msg: Message) -> bool:
-    """Whether ``msg`` (as decoded) carries a valid MAC under ``key``. Constant time."""
-    mac = getattr(msg, "mac", b"")
-    if not key or len(mac) != MAC_BYTES:
+    """Whether ``msg`` carries a valid MAC under ``key``: the payload it was decoded from, or (a message built in
+    this process) its encoding. Constant time in the MAC."""
+    payload = getattr(msg, "_wire", None)
+    if payload is None:
+        payload = msg.encode()
+    if not key or len(payload) <= len(_TRAILER) + MAC_BYTES or \
+            payload[-MAC_BYTES - len(_TRAILER):-MAC_BYTES] != _TRAILER:
         return False
-    return hmac.compare_digest(mac, _digest(key, ctx, msg))
+    return hmac.compare_digest(payload[-MAC_BYTES:], _digest(key, ctx, payload[:-MAC_BYTES]))
 
 
-__all__ = ["KEY_BYTES", "MAC_BYTES", "context", "new_key", "sign", "verify"]
+__all__ = ["KEY_BYTES", "MAC_BYTES", "context", "new_key", "seal", "sign", "verify"]

@@ -415,11 +415,11 @@ class OperatorClient:
 
         def tick() -> bool:
             with self._lock:
-                cmd = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
+                out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
                                         self._muted, self._heartbeat, self._state_t, self._key_gen, self._key,
                                         self._pressed_at, self._key_at)
-            if cmd is not None:
-                payload = cmd.encode()
+            if out is not None:
+                cmd, payload = out
                 self._record_send(cmd.seq, cmd.t, time.monotonic())
                 assert self._pub_twist is not None, "the thread sender's publisher"
                 self._pub_twist.put(payload)

@@ -74,7 +74,7 @@ def _real_std_streams():
 class CommandStream:
     """What the sender sends at each tick, for the thread and the process sender alike. No I/O.
 
-    ``next`` gets the client's current intent and returns the signed command to send, or None (quiet: the
+    ``next`` gets the client's current intent and returns the signed command to send and its payload, or None (quiet: the
     deadman released for longer than ``release_tail``, muted, or no key yet). The deadman counts as released
     while the UI's heartbeat is older than ``ui_timeout`` (a frozen UI must not keep the robot moving). Each new
     key (a new grant of control) restarts the sequence at 1, as the edge expects, and its first command is a
@@ -94,7 +94,7 @@ class CommandStream:
 
     def next(self, now: float, twist: Any, deadman: bool, released_at: float, muted: bool, heartbeat: float,
              state_t: float, key_gen: float, key: bytes, pressed_at: float = 0.0,
-             key_at: float = 0.0) -> TwistCommand | None:
+             key_at: float = 0.0) -> tuple[TwistCommand, bytes] | None:
         if now - heartbeat > self.ui_timeout:  # the UI is frozen (or gone): release the deadman
             if self._stale_since is None:
                 self._stale_since = now
@@ -120,7 +120,7 @@ class CommandStream:
         state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
         lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
         cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age)
-        return auth.sign(key, self.ctx, cmd.stamp(self.seq, t), canonical=True)  # floats and ints, built above
+        return cmd, auth.seal(key, self.ctx, cmd.stamp(self.seq, t))
 
 
 def run_fixed_rate(tick: Callable[[], bool], rate_hz: float, spin: bool, wait: Callable[[float], Any]) -> None:
@@ -351,11 +351,11 @@ def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandS
             vals, k = snap
             if vals[_STOP]:
                 return False
-            cmd = stream.next(time.monotonic(), vals[_TWIST:_TWIST + 6], bool(vals[_DEADMAN]), vals[_RELEASED],
+            out = stream.next(time.monotonic(), vals[_TWIST:_TWIST + 6], bool(vals[_DEADMAN]), vals[_RELEASED],
                               bool(vals[_MUTED]), vals[_HEARTBEAT], vals[_STATE_T], vals[_KEY_GEN],
                               k if any(k) else b"", vals[_PRESSED], vals[_KEY_AT])
-            if cmd is not None:
-                payload = cmd.encode()
+            if out is not None:
+                cmd, payload = out
                 conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic()))
                 pub.put(payload)
             return True
