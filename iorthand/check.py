@@ -34,6 +34,7 @@ ROLE_CONFIGS: dict[str, tuple[str, str]] = {
     "twin": ("iorthand_cloud.twin.config", "TwinConfig"),
     "recorder": ("iorthand_cloud.recorder.config", "RecorderConfig"),
     "deployment": ("iorthand.security.acl", "Deployment"),
+    "web": ("iorthand_operator.web.config", "WebConfig"),
 }
 
 # What an edge or operator with bind_operator_keys off meets behind a router generated with it (the default).
@@ -74,12 +75,14 @@ def guess_role(path: Path, data: Any) -> str:
             return "operator"
         if ("robots" in data or "operators" in data) and "zenoh" not in data:
             return "deployment"
+        if "users_file" in data and "deployment" in data:
+            return "web"
         name = path.name.lower()
         # A replay identity's file is a recorder configuration (``iorthand replay --config``).
         for word, role in (("twin", "twin"), ("recorder", "recorder"), ("replay", "recorder")):
             if word in name:
                 return role
-    raise ConfigError(str(path), "", "cannot tell the role of this file: pass --role edge|operator|twin|recorder|router|deployment")
+    raise ConfigError(str(path), "", "cannot tell the role of this file: pass --role edge|operator|twin|recorder|router|deployment|web")
 
 
 def _zenoh_sections(obj: Any, where: str = "") -> list[tuple[str, ZenohConfig]]:

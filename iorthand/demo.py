@@ -3,7 +3,8 @@
 Starts, as separate processes on 127.0.0.1 with free ports: a Zenoh router, the recorder, the digital twin, a
 simulated edge agent (configs/edge-sim.yaml: robot, force sensor on a phantom, servos, torch, camera with ArUco
 markers, video) and a scripted operator (configs/demo-script.yaml). It records the session, writes its report,
-prints a summary and exits 0. ``--view`` keeps everything running and serves the twin in a browser.
+prints a summary and exits 0. ``--view`` also starts the browser console (``iorthand web``, with generated
+log-ins), keeps everything running and prints the twin's and the console's addresses.
 
 Ctrl-C (or SIGTERM) stops everything; each child also dies with the demo (PR_SET_PDEATHSIG), so no process is
 left behind even if the demo is killed. The core imports no role: the demo drives them by their commands.
@@ -90,6 +91,22 @@ def wait_for_line(child: Child, text: str, timeout: float) -> None:
     raise RuntimeError(f"{child.name} did not report {text!r} within {timeout} s; see {child.log_path}")
 
 
+def web_console(workdir: Path, robot: str, endpoint: str) -> tuple[Child, list[tuple[str, str]]]:
+    """The browser console for ``--view``: a deployment with one operator and one viewer of the demo's robot,
+    their passwords generated (``iorthand web password --generate``), on loopback."""
+    (workdir / "deployment.yaml").write_text(yaml.safe_dump(
+        {"robots": [robot], "operators": {"physician": [robot]}, "viewers": ["student"]}))
+    logins = []
+    for user in ("physician", "student"):
+        out = run_step(iorthand_argv("web", "password", user, "--users-file", str(workdir / "web-users.txt"),
+                                     "--generate"), f"the web password of {user}")
+        logins.append((user, out.strip().rsplit(": ", 1)[-1]))
+    (workdir / "web.yaml").write_text(yaml.safe_dump({
+        "deployment": "deployment.yaml", "users_file": "web-users.txt", "listen": f"127.0.0.1:{free_port()}",
+        "zenoh": {"mode": "client", "connect": [endpoint]}}))
+    return Child("web", iorthand_argv("web", "--config", str(workdir / "web.yaml")), workdir / "web.log"), logins
+
+
 def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, twin_url: str) -> None:
     rtt = result["command_to_echo_ms"]
     stops = result.get("deadman_stops_ms") or [float("nan")]
@@ -137,7 +154,11 @@ def run_demo(args: argparse.Namespace) -> int:
         "twin": Child("twin", iorthand_argv(*twin_argv), workdir / "twin.log"),
         "edge": Child("edge", iorthand_argv("edge", "--config", str(edge_cfg)), workdir / "edge.log"),
     }
-    ready = {"router": "router ready", "recorder": "recorder ready", "twin": "twin ready", "edge": "edge agent"}
+    ready = {"router": "router ready", "recorder": "recorder ready", "twin": "twin ready", "edge": "edge agent",
+             "web": "web console ready"}
+    logins: list[tuple[str, str]] = []
+    if args.view:
+        children["web"], logins = web_console(workdir, args.robot, endpoint)
 
     def on_signal(signum: int, _frame: object) -> None:
         raise KeyboardInterrupt
@@ -165,7 +186,13 @@ def run_demo(args: argparse.Namespace) -> int:
                       report_dir / "report.md", twin_url)
         code = 0
         if args.view:
-            print(f"\nthe twin is live at {twin_url} — Ctrl-C to stop everything", flush=True)
+            web_url = next((line.split("web console ready: ", 1)[1] for line in
+                            (workdir / "web.log").read_text().splitlines() if "web console ready: " in line), "")
+            print(f"\nthe twin is live at {twin_url}", flush=True)
+            print(f"the operator console (phone or desktop browser) is at {web_url}", flush=True)
+            for user, password in logins:
+                print(f"  log in as {user:<10} password {password}", flush=True)
+            print("Ctrl-C stops everything", flush=True)
             while all(c.proc is not None and c.proc.poll() is None for c in children.values()):
                 time.sleep(0.5)
     except KeyboardInterrupt:
@@ -186,5 +213,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robot", default="sim1")
     p.add_argument("--workdir", help="where logs, configs and the recording go (default: a new temporary folder)")
     p.add_argument("--timeout", type=float, default=120.0, help="s the scripted operator may take")
-    p.add_argument("--view", action="store_true", help="serve the twin in a browser and keep running until Ctrl-C")
+    p.add_argument("--view", action="store_true", help="serve the twin and the operator console in a browser and keep "
+                                                          "running until Ctrl-C")
     p.set_defaults(func=run_demo)

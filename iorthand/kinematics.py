@@ -209,6 +209,7 @@ def solve_near(m: URModel, pose: ArrayLike, reference: ArrayLike | None = None,
 
 __all__ = [
     "HOME_Q",
+    "ArmTracker",
     "MODELS",
     "UR3E",
     "UR5E",
@@ -221,3 +222,40 @@ __all__ = [
     "nearest",
     "solve_near",
 ]
+
+
+class ArmTracker:
+    """Joint angles of one robot from its TCP pose, continuous from call to call: what a drawing of the arm needs
+    (the twin, the web console). The simulated robot and many drivers report no usable ``q``; the TCP pose is the
+    truth, so ``q`` is the reported one only where it agrees with the pose (a real UR), else the inverse kinematics
+    solution nearest the previous one, so the drawing never flips."""
+
+    def __init__(self, model_name: str, tcp_offset: ArrayLike | None = None) -> None:
+        self.model = model(model_name)
+        offset = np.asarray(tcp_offset, dtype=float) if tcp_offset is not None else None
+        self.tcp_offset = offset if offset is not None and np.any(offset) else None
+        self.q: Matrix | None = None
+        self.reachable = True
+        self._last_pose: Matrix | None = None
+        self._q_ignored: Matrix | None = None
+
+    def solve(self, tcp_pose: ArrayLike, reported_q: ArrayLike | None = None) -> Matrix | None:
+        """Joint angles that put the TCP at ``tcp_pose``; None (and ``reachable`` False) if there is no solution."""
+        pose = np.asarray(tcp_pose, dtype=float)
+        if self._last_pose is not None and self.q is not None and np.array_equal(pose, self._last_pose):
+            return self.q
+        if reported_q is not None:
+            q = np.asarray(reported_q, dtype=float)
+            # A driver that reports a fixed q (the simulator) fails this check every time: remember that q.
+            if self._q_ignored is None or not np.array_equal(q, self._q_ignored):
+                fk = forward(self.model, q, self.tcp_offset)
+                if geometry.translation_distance(fk, geometry.pose_to_matrix(pose)) < 1e-3:
+                    self.q, self._last_pose, self.reachable = q, pose, True
+                    return q
+                self._q_ignored = q
+        q = solve_near(self.model, pose, self.q, self.tcp_offset)
+        self._last_pose = pose
+        self.reachable = q is not None
+        if q is not None:
+            self.q = q
+        return q

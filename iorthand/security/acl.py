@@ -21,6 +21,9 @@ enough. Which role may write or query which key of a robot is a column of the ta
 - ``twin``, ``recorder`` (services) and ``viewer-<name>`` (observers): subscribe and query; the services also
   serve their own ``iorthand/_twin/**`` / ``iorthand/_recorder/**`` space. Viewers cannot query a robot's
   ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership).
+- ``web`` (``iorthand web``, with ``web: true``): a trusted bridge. It logs its users in by password
+  (:mod:`iorthand_operator.web`) and may send for each operator exactly what that operator's certificate may
+  (its bound keys, its token) and watch every robot; its users' grants are the deployment's, as here.
 - ``replay`` (``iorthand replay``): publishes ``state/**``, ``markers`` and ``video/**`` only under the ids
   reserved for replays (``<robot>-replay``, :data:`iorthand.keys.REPLAY_SUFFIX`), so a replayed recording can
   never pass for a robot; it receives traffic of those ids only.
@@ -50,6 +53,7 @@ ALL_MESSAGES = [
 SUBSCRIBE = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
 SERVICES = ("twin", "recorder")
 REPLAY = Role.REPLAY.value  # the identity of `iorthand replay`
+WEB = "web"  # the identity of `iorthand web`
 
 
 @dataclass
@@ -70,6 +74,8 @@ class Deployment:
         ".../control/<verb>/<their name> (identity-scoped keys; edges and operators must set it too)"
     )
     replay: bool = setting(True, help="let the replay identity publish recordings under <robot>-replay ids")
+    web: bool = setting(False, help="a web console (certificate web) may send for every operator, as that operator "
+                                    "would, and watch every robot (iorthand web)")
 
     def check(self) -> None:
         for r in self.robots:
@@ -154,26 +160,46 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
             _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all]),
         ])
 
+    def operator_rules(rid: str, op: str, robots: list[str]) -> list[dict[str, Any]]:
+        """What operator ``op`` may send to its robots (commands, control queries, its token)."""
+        rks = [keys.RobotKeys(r) for r in robots]
+        bound = op if dep.bind_operator_keys else None
+        if not rks:
+            return []
+        return [
+            _rule(f"{rid}-command", ["put"], ["ingress"],
+                  [k.key(s) for k in rks for s in _grants(table, Role.OPERATOR, Kind.PUT, bound=bound)]),
+            _rule(f"{rid}-control", ["query"], ["ingress"],
+                  [k.key(s) for k in rks for s in _grants(table, Role.OPERATOR, Kind.QUERY, query=True, bound=bound)]),
+            _rule(f"{rid}-alive", ["liveliness_token"], ["ingress"],
+                  [k.key(s) for k in rks for s in _tokens(table, Role.OPERATOR, op)]),
+        ]
+
     for op, robots in dep.operators.items():
         sid = f"operator-{op}"
         rks = [keys.RobotKeys(r) for r in robots]
-        bound = op if dep.bind_operator_keys else None
         rl = [
             _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all for k in rks] + services),
             _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all for k in rks] + services),
+            *operator_rules(sid, op, robots),
         ]
-        if rks:
-            rl += [
-                _rule(f"{sid}-command", ["put"], ["ingress"],
-                      [k.key(s) for k in rks for s in _grants(table, Role.OPERATOR, Kind.PUT, bound=bound)]),
-                _rule(f"{sid}-control", ["query"], ["ingress"],
-                      [k.key(s) for k in rks for s in _grants(table, Role.OPERATOR, Kind.QUERY, query=True, bound=bound)]),
-                _rule(f"{sid}-alive", ["liveliness_token"], ["ingress"],
-                      [k.key(s) for k in rks for s in _tokens(table, Role.OPERATOR, op)]),
-            ]
         if services:
             rl.append(_rule(f"{sid}-services", ["query"], ["ingress"], services))
         add(sid, rl)
+
+    if dep.web:
+        # The web console logs its users in and sends for each operator exactly what that operator's own
+        # certificate may send (on its bound keys), and watches every robot for viewers: a trusted bridge.
+        everything_robots = [keys.RobotKeys(r).all for r in dep.robots]
+        rl = [
+            _rule(f"{WEB}-subscribe", SUBSCRIBE, ["ingress"], everything_robots + services),
+            _rule(f"{WEB}-receive", ALL_MESSAGES, ["egress"], everything_robots + services),
+        ]
+        for op, robots in dep.operators.items():
+            rl += operator_rules(f"{WEB}-{op}", op, robots)
+        if services:
+            rl.append(_rule(f"{WEB}-services", ["query"], ["ingress"], services))
+        add(WEB, rl)
 
     everything = f"{keys.ROOT}/**"
     for name in [*dep.services, *(f"viewer-{v}" for v in dep.viewers)]:

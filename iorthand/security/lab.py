@@ -40,18 +40,18 @@ class Lab:
 
 def make_lab(
     directory: Path, port: int, robots: list[str], operators: dict[str, list[str]], viewers: list[str] | None = None,
-    passwords: bool = True, bind_operator_keys: bool = False,
+    passwords: bool = True, bind_operator_keys: bool = False, web: bool = False,
 ) -> Lab:
     directory = Path(directory)
     certs.init_ca(directory, force=True)
     dep = acl.Deployment(
         listen=[f"tls/127.0.0.1:{port}"], certs_dir=directory,
         users_file=directory / "users.txt" if passwords else None,
-        robots=robots, operators=operators, viewers=viewers or [], bind_operator_keys=bind_operator_keys,
+        robots=robots, operators=operators, viewers=viewers or [], bind_operator_keys=bind_operator_keys, web=web,
     )
     dep.check()
     names = ["router", "twin", "recorder", "replay", *(f"edge-{r}" for r in robots), *(f"operator-{o}" for o in operators),
-             *(f"viewer-{v}" for v in dep.viewers)]
+             *(f"viewer-{v}" for v in dep.viewers), *(["web"] if web else [])]
     lab = Lab(directory, f"tls/127.0.0.1:{port}", dep, directory / "router.json5")
     lines = []
     for n in names:

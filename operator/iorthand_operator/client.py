@@ -24,6 +24,7 @@ import sys
 import threading
 import time
 from collections import OrderedDict, defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,6 +50,7 @@ from iorthand.protocol import (
     StopCommand,
     TorchCommand,
     TorchState,
+    TwistCommand,
     source_news,
     superseded_news,
 )
@@ -108,6 +110,8 @@ class OperatorClient:
         bind_keys: bool = False,
         sender_config: ZenohConfig | None = None,
         ui_timeout: float = 0.5,
+        announce: bool = True,
+        external_sender: bool = False,
     ) -> None:
         self.session = session
         self.keys = keys.RobotKeys(robot_id)
@@ -189,7 +193,14 @@ class OperatorClient:
         self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP) + own, QOS_BY_KEY[keys.CMD_STOP])
         self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO) + own, QOS_BY_KEY[keys.CMD_SERVO])
         self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH) + own, QOS_BY_KEY[keys.CMD_TORCH])
-        self._token = session.liveliness().declare_token(self.keys.alive_operator(operator_id))
+        # The liveliness token tells the edge this operator is alive (its loss releases control); a client that
+        # only watches (the web console's view of a robot) announces nothing.
+        self._token = session.liveliness().declare_token(self.keys.alive_operator(operator_id)) if announce else None
+        # external_sender: no loop of ours; the caller sends each command with send_now at its own fixed rate
+        # (the web console forwards its page's 60 Hz stream, one page message one command).
+        self.external_sender = external_sender
+        # Called (on a Zenoh thread) with each of our commands' echoes as it arrives.
+        self.echo_listener: Callable[[Echo, AppliedCommand], None] | None = None
         self._subs = [
             session.declare_subscriber(self.keys.key(keys.STATE_ROBOT), self._on_robot),
             session.declare_subscriber(self.keys.key(keys.STATE_SAFETY), self._on_safety),
@@ -390,7 +401,7 @@ class OperatorClient:
                                         key_gen=self._key_gen, key_at=self._key_at, state_t=self._state_t)
             self._proc_sender.start()
             self.sender_priority = f"{self._proc_sender.priority} (process {self._proc_sender.proc.pid})"
-        else:
+        elif not self.external_sender:
             fns.insert(0, ("sender", self._sender))
         for name, fn in fns:
             t = threading.Thread(target=fn, name=f"operator-{name}", daemon=True)
@@ -414,18 +425,36 @@ class OperatorClient:
         self._raise_priority()
 
         def tick() -> bool:
-            with self._lock:
-                out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
-                                        self._muted, self._heartbeat, self._state_t, self._key_gen, self._key,
-                                        self._pressed_at, self._key_at)
-            if out is not None:
-                cmd, payload = out
-                self._record_send(cmd.seq, cmd.t, time.monotonic())
-                assert self._pub_twist is not None, "the thread sender's publisher"
-                self._pub_twist.put(payload)
+            self._send()
             return not self._stop.is_set()
 
         run_fixed_rate(tick, self.rate_hz, self.spin, self._stop.wait)
+
+    def _send(self, state_t: int | None = None) -> TwistCommand | None:
+        """What the command stream sends now (the thread sender's tick, or one send_now), sent."""
+        with self._lock:
+            out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
+                                    self._muted, self._heartbeat, self._state_t if state_t is None else state_t,
+                                    self._key_gen, self._key, self._pressed_at, self._key_at)
+        if out is None:
+            return None
+        cmd, payload = out
+        self._record_send(cmd.seq, cmd.t, time.monotonic())
+        assert self._pub_twist is not None, "the thread sender's publisher"
+        self._pub_twist.put(payload)
+        return cmd
+
+    def send_now(self, linear: Any, angular: Any, deadman: bool, state_t: int | None = None) -> TwistCommand | None:
+        """Send one command at once (``external_sender``): the caller's own fixed-rate stream, one message one
+        command, never repeated. ``state_t``: the source time (ns) of the newest robot state the operator's screen
+        showed (default: the newest this client has). Returns what was sent: None when the stream is quiet (no
+        grant, muted, released past the tail), and the deadman reads released under a new grant until a fresh press
+        (:class:`CommandStream`)."""
+        if not self.external_sender:
+            raise RuntimeError("send_now is for a client made with external_sender=True")
+        self.set_twist(linear, angular, deadman)
+        self.beat()  # the caller's message is the sign of life
+        return self._send(state_t)
 
     def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
         with self._lock:
@@ -472,7 +501,8 @@ class OperatorClient:
         try:
             self.release()
         finally:
-            self._token.undeclare()
+            if self._token is not None:
+                self._token.undeclare()
             for s in self._subs:
                 s.undeclare()
 
@@ -564,6 +594,8 @@ class OperatorClient:
                     del self.echoes[: len(self.echoes) - 100_000]
         if sent is not None:
             self.link.echoed(msg.cmd_seq, sent, now)
+            if self.echo_listener is not None:
+                self.echo_listener(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status), msg)
         if not msg.accepted:
             self.last_refusal = msg
             # One log line per distinct refusal, not one per command at 60 Hz.

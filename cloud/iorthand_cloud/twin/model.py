@@ -1,8 +1,7 @@
 """Geometry of the twin's drawing: pure numpy, no rerun (so it is tested without a viewer).
 
-- The arm: joint angles from the TCP pose by inverse kinematics (the simulated robot and many drivers report
-  no usable ``q``; the TCP pose is the truth), the nearest solution to the previous one so the drawing never
-  flips, then capsules between the points of :func:`iorthand.kinematics.link_points`.
+- The arm: joint angles from the TCP pose (:class:`iorthand.kinematics.ArmTracker`), then capsules between the
+  points of :func:`iorthand.kinematics.link_points`.
 - The camera: ``T_tcp_camera`` from the mount chain and the servo angles, and its intrinsic matrix.
 - Force arrows: the colour of the level, grey when stale.
 """
@@ -84,39 +83,12 @@ def segments_to_capsules(points: ArrayLike, radius: float) -> Capsules:
     return Capsules(lengths[keep], radii, starts[keep], quats)
 
 
-class ArmModel:
-    """Joint angles and link capsules of one robot from its TCP pose, continuous from call to call."""
+class ArmModel(kinematics.ArmTracker):
+    """The twin's arm: joint angles from the TCP pose (:class:`iorthand.kinematics.ArmTracker`), drawn as capsules."""
 
     def __init__(self, view: RobotView) -> None:
+        super().__init__(view.model, view.tcp_offset)
         self.view = view
-        self.model = kinematics.model(view.model)
-        self.tcp_offset = np.asarray(view.tcp_offset, dtype=float) if any(view.tcp_offset) else None
-        self.q: Vector | None = None
-        self.reachable = True
-        self._last_pose: Vector | None = None
-        self._q_ignored: Vector | None = None
-
-    def solve(self, tcp_pose: ArrayLike, reported_q: ArrayLike | None = None) -> Vector | None:
-        """Joint angles that put the TCP at ``tcp_pose``: the reported ``q`` when it agrees with the pose
-        (a real UR), otherwise IK nearest the previous drawing. None (and ``reachable`` False) if no solution."""
-        pose = np.asarray(tcp_pose, dtype=float)
-        if self._last_pose is not None and self.q is not None and np.array_equal(pose, self._last_pose):
-            return self.q
-        if reported_q is not None:
-            q = np.asarray(reported_q, dtype=float)
-            # A driver that reports a fixed q (the simulator) fails this check every time: remember that q.
-            if self._q_ignored is None or not np.array_equal(q, self._q_ignored):
-                fk = kinematics.forward(self.model, q, self.tcp_offset)
-                if geometry.translation_distance(fk, geometry.pose_to_matrix(pose)) < 1e-3:
-                    self.q, self._last_pose, self.reachable = q, pose, True
-                    return q
-                self._q_ignored = q
-        q = kinematics.solve_near(self.model, pose, self.q, self.tcp_offset)
-        self._last_pose = pose
-        self.reachable = q is not None
-        if q is not None:
-            self.q = q
-        return q
 
     def capsules(self, q: ArrayLike) -> Capsules:
         return segments_to_capsules(kinematics.link_points(self.model, q), self.model.link_radius)

@@ -1,0 +1,61 @@
+"""The web console's configuration (``configs/web.yaml``)."""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from iorthand.config import setting
+from iorthand.transport import ZenohConfig
+
+
+@dataclass
+class WebTls:
+    certificate: Path = setting(Path("web.pem"), help="the server's certificate (PEM), e.g. from iorthand certs issue")
+    private_key: Path = setting(Path("web.key"), help="its private key (PEM, mode 0600)")
+
+
+@dataclass
+class WebConfig:
+    deployment: Path = setting(Path("deployment.yaml"), help="who may log in: the deployment's operators and viewers")
+    users_file: Path = setting(Path("web-users.txt"), help="their web passwords (scrypt hashes: iorthand web password)")
+    listen: str = setting("127.0.0.1:8443", help="HOST:PORT to serve on")
+    tls: WebTls | None = setting(None, help="HTTPS; required unless the server listens on a loopback address")
+    zenoh: ZenohConfig = field(default_factory=lambda: ZenohConfig(connect=["tcp/127.0.0.1:7447"]))
+    bind_operator_keys: bool = setting(False, help="command on keys carrying each operator's id (the edge's setting)")
+    allowed_origins: list[str] = setting(
+        default_factory=list, help="origins besides the server's own that may open the console (a reverse proxy's)",
+    )
+    session_hours: float = setting(12.0, lo=0.01, hi=24 * 30, help="how long a log-in lasts")
+    state_hz: float = setting(20.0, lo=1.0, hi=60.0, help="robot state pushed to each page per second")
+    arm_model: str = setting("ur3e", choices=("ur3e", "ur5e"), help="the arm drawn in the 3D view")
+    arm_models: dict[str, str] = setting(default_factory=dict, help="robot id → ur3e | ur5e, where not arm_model")
+    release_tail: float = setting(0.3, lo=0.0, hi=5.0, help="s of released-deadman commands forwarded after a release")
+
+    def host_port(self) -> tuple[str, int]:
+        host, sep, port = self.listen.rpartition(":")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"listen {self.listen!r}: expected HOST:PORT")
+        return host.strip("[]"), int(port)
+
+    def check(self) -> None:
+        host, _ = self.host_port()
+        if self.tls is None and not _loopback(host):
+            raise ValueError(f"listen {self.listen!r}: a console reachable from the network needs tls (certificate, "
+                             "private_key): passwords and the deadman must not cross a network in clear")
+        for origin in self.allowed_origins:
+            if not origin.startswith(("https://", "http://")) or origin.endswith("/"):
+                raise ValueError(f"allowed_origins: {origin!r} is not an origin like https://host[:port]")
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+__all__ = ["WebConfig", "WebTls"]

@@ -1,0 +1,158 @@
+"""What a page may send to the web console's server: parsed and checked here, pure.
+
+A page message is one JSON object with a ``type``. Every problem raises :class:`PageError` with a reason the page
+shows (the field that was wrong and what was expected); nothing that fails here reaches Zenoh.
+
+The twist is what the page sends 60 times a second from its timer while it is open, deadman held or not: one
+message, one command (the server never repeats, stores or invents one). Velocities are SI (m/s, rad/s) in the
+robot's base frame; the edge clips them to its limits. ``seen`` is the source time (ns) of the newest robot state
+the page has drawn, so the edge can refuse motion from a screen that shows an old picture.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+# A twist is ~150 bytes; the largest legitimate message is a goto with its token.
+MAX_MESSAGE_BYTES = 2048
+MAX_SPEED = 1.0  # m/s or rad/s: anything faster is not a joystick (the edge's limits are far below)
+NAME_MAX = 64
+
+
+class PageError(ValueError):
+    """A page message that is not valid; the text says what was wrong."""
+
+
+@dataclass(frozen=True)
+class Twist:
+    id: int
+    linear: tuple[float, float, float]
+    angular: tuple[float, float, float]
+    deadman: bool
+    seen: int  # ns: the newest robot state drawn (0: none)
+
+
+@dataclass(frozen=True)
+class Control:
+    """acquire (``profile``: "" or a speed profile), release, stop, poses."""
+
+    verb: str
+    profile: str = ""
+
+
+@dataclass(frozen=True)
+class Pose:
+    """preview a named pose, or goto it with the preview's token."""
+
+    verb: str
+    name: str
+    token: str = ""
+
+
+@dataclass(frozen=True)
+class Camera:
+    """servo steps (rad) and the torch."""
+
+    pan: float = 0.0
+    tilt: float = 0.0
+    torch: bool | None = None
+
+
+@dataclass(frozen=True)
+class View:
+    """What the page wants pushed: video or not (a slow link, a phone saving its battery)."""
+
+    video: bool
+
+
+PageMessage = Twist | Control | Pose | Camera | View
+CONTROL_VERBS = ("acquire", "release", "stop", "poses")
+
+
+def parse(data: str | bytes) -> PageMessage:
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise PageError(f"message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
+    try:
+        obj = json.loads(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise PageError(f"not JSON ({type(exc).__name__})") from None
+    if not isinstance(obj, dict):
+        raise PageError(f"expected a JSON object, got {type(obj).__name__}")
+    kind = obj.get("type")
+    if kind == "twist":
+        _only(obj, {"type", "id", "linear", "angular", "deadman", "seen"})
+        return Twist(_int(obj, "id"), _vec3(obj, "linear"), _vec3(obj, "angular"), _bool(obj, "deadman"),
+                     _int(obj, "seen"))
+    if kind in CONTROL_VERBS:
+        _only(obj, {"type", "profile"})
+        return Control(kind, _name(obj, "profile", required=False))
+    if kind in ("preview", "goto"):
+        _only(obj, {"type", "name", "token"})
+        token = _text(obj, "token", 128) if kind == "goto" else ""
+        return Pose(kind, _name(obj, "name"), token)
+    if kind == "view":
+        _only(obj, {"type", "video"})
+        return View(_bool(obj, "video"))
+    if kind == "camera":
+        _only(obj, {"type", "pan", "tilt", "torch"})
+        torch = obj.get("torch")
+        if torch is not None and not isinstance(torch, bool):
+            raise PageError("torch: expected true, false or nothing")
+        pan, tilt = (_number(obj, k, math.pi / 2) if k in obj else 0.0 for k in ("pan", "tilt"))
+        return Camera(pan, tilt, torch)
+    raise PageError(f"type: unknown message type {str(kind)[:30]!r}")
+
+
+def _only(obj: dict[str, Any], allowed: set[str]) -> None:
+    extra = set(obj) - allowed
+    if extra:
+        raise PageError(f"{sorted(extra)[0][:30]}: unknown field of a {obj['type']} message")
+
+
+def _int(obj: dict[str, Any], name: str) -> int:
+    v = obj.get(name)
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2**63:
+        raise PageError(f"{name}: expected a whole number ≥ 0, got {v!r:.30}")
+    return v
+
+
+def _bool(obj: dict[str, Any], name: str) -> bool:
+    v = obj.get(name)
+    if not isinstance(v, bool):
+        raise PageError(f"{name}: expected true or false, got {v!r:.30}")
+    return v
+
+
+def _number(obj: dict[str, Any], name: str, limit: float) -> float:
+    v = obj.get(name)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > limit:
+        raise PageError(f"{name}: expected a finite number within ±{limit:g}, got {v!r:.30}")
+    return float(v)
+
+
+def _vec3(obj: dict[str, Any], name: str) -> tuple[float, float, float]:
+    v = obj.get(name)
+    if not isinstance(v, list) or len(v) != 3:
+        raise PageError(f"{name}: expected 3 numbers")
+    x, y, z = (_number({name: e}, name, MAX_SPEED) for e in v)
+    return x, y, z
+
+
+def _text(obj: dict[str, Any], name: str, max_len: int, required: bool = True) -> str:
+    v = obj.get(name, None if required else "")
+    if not isinstance(v, str) or len(v) > max_len:
+        raise PageError(f"{name}: expected text of at most {max_len} characters")
+    return v
+
+
+def _name(obj: dict[str, Any], name: str, required: bool = True) -> str:
+    v = _text(obj, name, NAME_MAX, required)
+    if required and not v:
+        raise PageError(f"{name}: must not be empty")
+    return v
+
+
+__all__ = ["MAX_MESSAGE_BYTES", "Camera", "Control", "PageError", "PageMessage", "Pose", "Twist", "View", "parse"]

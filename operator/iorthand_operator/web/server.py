@@ -1,0 +1,702 @@
+"""``iorthand web``: the operator console in a browser, bridged to Zenoh.
+
+One aiohttp server (HTTPS, or HTTP on loopback only) serves a single page and one websocket per open page. The
+server is one Zenoh client. For each robot a page watches it keeps a :class:`Feed`: a watching
+:class:`~iorthand_operator.client.OperatorClient` (state, safety, force, markers and the console's events, no
+liveliness token, never acquiring) and the newest camera and ultrasound frames. A page that takes control gets an
+OperatorClient of its own, in its user's name, and every twist message of that page becomes one command at once:
+the server never repeats, stores or invents one, so the edge's own timeout sees the page's stream (if the page
+stops, the robot stops). A page that closes, or whose websocket drops, releases control.
+
+Who may do what comes from the deployment (:mod:`iorthand_operator.web.users`): log-in by password, a session
+cookie (HttpOnly, SameSite=Strict, Secure under HTTPS), and on the websocket the origin, the session and the
+robot's grant. Every refusal is counted (``/api/stats``) and said on the page; nothing refused reaches Zenoh.
+
+Video: the newest JPEG of each stream is sent when the page's socket has room (newest frame wins, never a queue):
+``benchmarks/bench_web.py`` measured this against the Python client (figures in benchmarks/README.md).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import secrets
+import ssl
+import struct
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from aiohttp import WSMsgType, web
+
+from iorthand import geometry, keys, kinematics
+from iorthand.config import from_dict as config_from_dict
+from iorthand.config import read_yaml
+from iorthand.protocol import DecodeError, Sequencer, StopCommand, VideoFrame
+from iorthand.security.acl import Deployment
+from iorthand.transport import QOS_BY_KEY, open_session, publisher
+from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient
+from iorthand_operator.console.model import force_view
+from iorthand_operator.link import GRADE_COLOURS, LinkThresholds
+from iorthand_operator.web import messages, users
+from iorthand_operator.web.config import WebConfig
+
+log = logging.getLogger("iorthand.web")
+
+STATIC = Path(__file__).resolve().parent / "static"
+COOKIE = "iorthand_session"
+WATCHER_ID = "web"  # the id of the server's watching clients (they never acquire, announce or command)
+VIDEO_STREAMS = {"camera": keys.VIDEO_CAMERA, "ultrasound": keys.VIDEO_ULTRASOUND}
+# A page whose socket holds more than this unsent is behind: it gets no video until it has drained (newest wins).
+VIDEO_BACKLOG_BYTES = 256 * 1024
+WS_MAX_BYTES = 64 * 1024  # aiohttp closes a socket whose message is larger; up to it, messages.parse refuses
+MAX_SESSIONS = 10_000
+SECURITY_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; style-src 'self'; "
+                               "script-src 'self'; connect-src 'self'; frame-ancestors 'none'; base-uri 'none'",
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+    "X-Frame-Options": "DENY",
+}
+
+
+@dataclass
+class Login:
+    user: str
+    expires: float  # monotonic
+
+
+@dataclass
+class Frame:
+    """The newest frame of one video stream: its header for the page, and the JPEG."""
+
+    seq: int
+    t: int  # capture time, ns since the epoch
+    data: bytes
+    failure: str = ""
+
+
+class Feed:
+    """One robot as every page of it sees it (one per robot, shared by its pages)."""
+
+    def __init__(self, session: zenoh.Session, robot: str, arm_model: str, loop: asyncio.AbstractEventLoop) -> None:
+        self.robot = robot
+        self.loop = loop
+        self.watch = OperatorClient(session, robot, WATCHER_ID, announce=False, external_sender=True)
+        self.arm = kinematics.ArmTracker(arm_model)
+        self.frames: dict[str, Frame | None] = dict.fromkeys(VIDEO_STREAMS)
+        self.pages: set[Page] = set()
+        self._arm_seq = -1
+        self._arm_points: list[list[float]] | None = None
+        self._lock = threading.Lock()
+        self._subs = [session.declare_subscriber(keys.RobotKeys(robot).key(suffix), self._on_video(name))
+                      for name, suffix in VIDEO_STREAMS.items()]
+
+    def _on_video(self, name: str) -> Callable[[zenoh.Sample], None]:
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                msg = VideoFrame.decode(sample.payload.to_bytes())
+            except DecodeError as exc:
+                self.watch.rejects.add(str(sample.key_expr), str(exc))
+                return
+            self.frames[name] = Frame(msg.seq, msg.t, msg.data, msg.failure)
+            self.loop.call_soon_threadsafe(self._notify)
+
+        return on_sample
+
+    def _notify(self) -> None:
+        for page in self.pages:
+            page.video_ready.set()
+
+    def arm_points(self) -> list[list[float]] | None:
+        """The arm's drawing points (base frame) for the newest robot state, solved once per state."""
+        st = self.watch.robot_state
+        if st is None:
+            return None
+        with self._lock:
+            if st.seq != self._arm_seq:
+                q = self.arm.solve(st.tcp_pose, st.q)
+                self._arm_points = None if q is None else np.round(kinematics.link_points(self.arm.model, q), 4).tolist()
+                self._arm_seq = st.seq
+            return self._arm_points
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.watch.close()
+
+
+@dataclass
+class Refusals:
+    """Everything the server refused, by reason (``/api/stats``, and logged once a reason per minute)."""
+
+    counts: Counter[str] = field(default_factory=Counter)
+    _logged: dict[str, float] = field(default_factory=dict)
+
+    def add(self, kind: str, detail: str = "") -> None:
+        self.counts[kind] += 1
+        now = time.monotonic()
+        if now - self._logged.get(kind, -math.inf) > 60.0:
+            self._logged[kind] = now
+            log.warning("refused (%s)%s", kind, f": {detail}" if detail else "")
+
+
+class Bridge:
+    """The server's state: users, log-ins, the Zenoh session, the feeds and which page controls which robot."""
+
+    def __init__(self, config: WebConfig, deployment: Deployment, user_hashes: dict[str, str]) -> None:
+        self.config = config
+        self.grants = users.grants(deployment)
+        self.robots = list(deployment.robots)
+        self.hashes = user_hashes
+        self.logins: dict[str, Login] = {}
+        self.guard = users.LoginGuard()
+        self.refusals = Refusals()
+        self.session: zenoh.Session | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.feeds: dict[str, Feed] = {}
+        self.controllers: dict[str, Page] = {}  # robot → the page of this server that holds its control
+        self._stops: dict[tuple[str, str], tuple[zenoh.Publisher, Sequencer]] = {}
+
+    # ------------------------------------------------------------- log-in
+
+    def log_in(self, user: str, password: str, address: str) -> tuple[str, str]:
+        """(token, "") or ("", why not). The same answer for an unknown user and a wrong password."""
+        now = time.monotonic()
+        wait = self.guard.blocked(address, now)
+        if wait:
+            self.refusals.add("login_blocked", address)
+            return "", f"too many failed log-ins from this address: try again in {math.ceil(wait)} s"
+        stored = self.hashes.get(user)
+        ok = user in self.grants and stored is not None and users.check_password(password, stored)
+        if not ok:
+            if stored is None:  # spend the same time on an unknown user: no user-name oracle
+                users.check_password(password, users.hash_password("x", b"\0" * 16))
+            self.guard.failed(address, now)
+            self.refusals.add("login_failed", f"{user[:40]!r} from {address}")
+            return "", "wrong user name or password"
+        self.guard.succeeded(address)
+        self._expire(now)
+        token = secrets.token_urlsafe(32)
+        self.logins[token] = Login(user, now + 3600 * self.config.session_hours)
+        log.info("%s logged in from %s (%s)", user, address, self.grants[user].role)
+        return token, ""
+
+    def _expire(self, now: float) -> None:
+        for token in [t for t, s in self.logins.items() if s.expires < now]:
+            del self.logins[token]
+        while len(self.logins) >= MAX_SESSIONS:
+            self.logins.pop(next(iter(self.logins)))
+
+    def user_of(self, request: web.Request) -> users.Grant | None:
+        login = self.logins.get(request.cookies.get(COOKIE, ""))
+        if login is None or login.expires < time.monotonic():
+            return None
+        return self.grants.get(login.user)
+
+    def origin_ok(self, request: web.Request) -> bool:
+        origin = request.headers.get("Origin", "")
+        own = f"{request.scheme}://{request.host}"
+        return bool(origin) and (origin == own or origin in self.config.allowed_origins)
+
+    # ------------------------------------------------------------- Zenoh
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.session = open_session(self.config.zenoh)
+
+    def feed(self, robot: str) -> Feed:
+        if robot not in self.feeds:
+            assert self.session is not None and self.loop is not None
+            model = self.config.arm_models.get(robot, self.config.arm_model)
+            self.feeds[robot] = Feed(self.session, robot, model, self.loop)
+        return self.feeds[robot]
+
+    def stop_robot(self, robot: str, user: str, reason: str) -> None:
+        """An e-stop from an operator of ``robot``, controlling it or not (a stop is everyone's)."""
+        assert self.session is not None
+        key = (robot, user)
+        if key not in self._stops:
+            suffix = keys.CMD_STOP + (f"/{user}" if self.config.bind_operator_keys else "")
+            pub = publisher(self.session, keys.RobotKeys(robot).key(suffix), QOS_BY_KEY[keys.CMD_STOP])
+            self._stops[key] = pub, Sequencer()
+        pub, seq = self._stops[key]
+        pub.put(StopCommand(operator=user, reason=reason).stamp(seq.next()).encode())
+
+    def close(self) -> None:
+        for feed in self.feeds.values():
+            feed.close()
+        if self.session is not None:
+            self.session.close()
+
+
+class Page:
+    """One open page: its websocket, its user's grant, its robot's feed and, while it holds control, its client."""
+
+    def __init__(self, bridge: Bridge, ws: web.WebSocketResponse, grant: users.Grant, feed: Feed,
+                 transport: asyncio.BaseTransport | None) -> None:
+        self.bridge = bridge
+        self.ws = ws
+        self.transport = transport  # the socket under the websocket: how much it holds unsent
+        self.grant = grant
+        self.feed = feed
+        self.robot = feed.robot
+        self.client: OperatorClient | None = None
+        self.video_ready = asyncio.Event()
+        self.video_on = True
+        self.closed = False
+        self._busy = False  # a control request is under way
+        self._sent_video = dict.fromkeys(VIDEO_STREAMS, -1)
+        self._pending: dict[int, int] = {}  # command seq → the page's message id
+        self._last_events: dict[str, Event | None] = {"watch": None, "client": None}
+        self._refused_at: dict[str, float] = {}
+        self.refused = 0
+
+    # ------------------------------------------------------------- from the page
+
+    async def on_text(self, data: str) -> None:
+        try:
+            msg = messages.parse(data)
+        except messages.PageError as exc:
+            return await self.refuse("malformed", f"message refused: {exc}")
+        if isinstance(msg, messages.Twist):
+            return await self.on_twist(msg)
+        if isinstance(msg, messages.Control) and msg.verb == "stop":
+            return await self.on_stop()
+        if isinstance(msg, messages.View):
+            self.video_on = msg.video
+            return None
+        if not self.grant.may_command(self.robot):
+            return await self.refuse("viewer", f"{self.grant.user} may watch {self.robot}, not command it")
+        if self._busy:
+            return await self.refuse("busy", "a control request is still under way")
+        self._busy = True
+        try:
+            await self.on_request(msg)
+        finally:
+            self._busy = False
+
+    async def on_twist(self, msg: messages.Twist) -> None:
+        if not self.grant.may_command(self.robot):
+            return await self.refuse("viewer", f"{self.grant.user} may watch {self.robot}, not move it")
+        client = self.client
+        if client is None:
+            return await self.refuse("not_controlling", "take control before moving the robot")
+        newest = self.feed.watch.robot_state
+        # The page can say it showed an older state, never a newer one than this server had.
+        seen = min(msg.seen, newest.t) if newest is not None else 0
+        cmd = client.send_now(msg.linear, msg.angular, msg.deadman, seen)
+        if cmd is not None:
+            self._pending[cmd.seq] = msg.id
+            while len(self._pending) > 512:
+                self._pending.pop(next(iter(self._pending)))
+
+    async def on_stop(self) -> None:
+        if not self.grant.may_command(self.robot):
+            return await self.refuse("viewer", f"{self.grant.user} may watch {self.robot}, not stop it: ask its operator")
+        reason = f"e-stop from {self.grant.user}'s web console"
+        if self.client is not None:
+            self.client.emergency_stop(reason)
+        else:
+            self.bridge.stop_robot(self.robot, self.grant.user, reason)
+        await self.send({"type": "reply", "to": "stop", "ok": True, "reason": "stop sent"})
+
+    async def on_request(self, msg: messages.PageMessage) -> None:
+        loop = asyncio.get_running_loop()
+        if isinstance(msg, messages.Control) and msg.verb == "acquire":
+            ok, reason = await loop.run_in_executor(None, self._acquire, msg.profile)
+            return await self.send({"type": "reply", "to": "acquire", "ok": ok, "reason": reason})
+        client = self.client
+        if client is None:
+            return await self.refuse("not_controlling", "take control first")
+        if isinstance(msg, messages.Control) and msg.verb == "release":
+            await loop.run_in_executor(None, self._release)
+            return await self.send({"type": "reply", "to": "release", "ok": True, "reason": "control released"})
+        try:
+            if isinstance(msg, messages.Control) and msg.verb == "poses":
+                poses = await loop.run_in_executor(None, client.list_poses)
+                return await self.send({"type": "poses", "poses": [p.get("name", "") for p in poses]})
+            if isinstance(msg, messages.Pose):
+                fn = client.preview_pose if msg.verb == "preview" else client.goto_pose
+                args = (msg.name,) if msg.verb == "preview" else (msg.name, msg.token)
+                reply = await loop.run_in_executor(None, fn, *args)
+                detail = _json_object(reply.detail)
+                return await self.send({"type": "reply", "to": msg.verb, "name": msg.name, "ok": reply.ok,
+                                        "reason": reply.reason, "token": str(detail.get("token", ""))})
+            if isinstance(msg, messages.Camera):
+                if msg.pan or msg.tilt:
+                    client.step_servo(msg.pan, msg.tilt)
+                if msg.torch is not None:
+                    client.set_torch(msg.torch)
+                return None
+        except (ControlRefused, RuntimeError) as exc:
+            return await self.send({"type": "reply", "to": getattr(msg, "verb", "camera"), "ok": False,
+                                    "reason": str(exc)})
+        return None
+
+    def _acquire(self, profile: str) -> tuple[bool, str]:
+        """Take control of the robot for this page (a blocking query: off the event loop)."""
+        holder = self.bridge.controllers.get(self.robot)
+        if holder is self and self.client is not None:
+            try:  # already ours: a profile change
+                return True, self.client.switch_profile(profile).reason
+            except ControlRefused as exc:
+                return False, str(exc)
+        if holder is not None and not holder.closed:
+            return False, f"{self.robot} is controlled by {holder.grant.user} from another page of this console"
+        self.bridge.controllers[self.robot] = self
+        assert self.bridge.session is not None
+        client = OperatorClient(self.bridge.session, self.robot, self.grant.user, external_sender=True,
+                                bind_keys=self.bridge.config.bind_operator_keys,
+                                release_tail=self.bridge.config.release_tail)
+        client.echo_listener = self._on_echo
+        try:
+            reply = client.acquire(profile)
+        except (ControlRefused, RuntimeError) as exc:
+            client.close()
+            self.bridge.controllers.pop(self.robot, None)
+            return False, str(exc)
+        client.start()  # the lease renewal; the page's messages are the command stream
+        self.client = client
+        log.info("%s controls %s from a web page", self.grant.user, self.robot)
+        return True, reply.reason
+
+    def _release(self) -> None:
+        client, self.client = self.client, None
+        if self.bridge.controllers.get(self.robot) is self:
+            del self.bridge.controllers[self.robot]
+        if client is not None:
+            client.close()  # releases control (the robot halts) and the user's liveliness token
+            log.info("%s released %s", self.grant.user, self.robot)
+
+    def _on_echo(self, echo: Echo, _msg: Any) -> None:
+        """A command of ours came back from the edge (a Zenoh thread): tell the page, for its round trip."""
+        page_id = self._pending.pop(echo.seq, None)
+        if page_id is not None and self.bridge.loop is not None:
+            reply = {"type": "echo", "id": page_id, "accepted": echo.accepted, "status": echo.status}
+            self.bridge.loop.call_soon_threadsafe(lambda: asyncio.ensure_future(self.send(reply)))
+
+    async def refuse(self, kind: str, reason: str) -> None:
+        """Count a refusal and say it on the page (a repeated one at most once a second)."""
+        self.refused += 1
+        self.bridge.refusals.add(kind, f"{self.grant.user} on {self.robot}: {reason}")
+        now = time.monotonic()
+        if now - self._refused_at.get(reason, -math.inf) >= 1.0:
+            self._refused_at[reason] = now
+            await self.send({"type": "refused", "kind": kind, "reason": reason})
+
+    # ------------------------------------------------------------- to the page
+
+    async def send(self, obj: dict[str, Any]) -> None:
+        if self.closed or self.ws.closed:
+            return
+        with contextlib.suppress(ConnectionError, RuntimeError):
+            await self.ws.send_str(json.dumps(obj, allow_nan=False, default=_json_default))
+
+    async def push(self) -> None:
+        """State at ``state_hz``; each video stream's newest frame as soon as the socket has room."""
+        period = 1.0 / self.bridge.config.state_hz
+        next_state = time.monotonic()
+        while not self.closed and not self.ws.closed:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self.video_ready.wait(), max(0.0, next_state - time.monotonic()))
+            self.video_ready.clear()
+            if time.monotonic() >= next_state:
+                next_state = time.monotonic() + period
+                if self.client is not None and not self.client.owner and not self._busy:
+                    # The lease was lost (a dead link, the edge restarted): the client said why in its events;
+                    # the page takes control again on purpose, with a fresh press of the deadman.
+                    await self.send({"type": "refused", "kind": "control_lost", "reason": "control lost: take it again"})
+                    await asyncio.get_running_loop().run_in_executor(None, self._release)
+                await self.send(self.state())
+            await self._push_video()
+
+    async def _push_video(self) -> None:
+        transport = self.transport
+        if not self.video_on:
+            return
+        for index, name in enumerate(VIDEO_STREAMS):
+            frame = self.feed.frames[name]
+            if frame is None or frame.seq == self._sent_video[name]:
+                continue
+            if not isinstance(transport, asyncio.WriteTransport) or transport.is_closing() or \
+                    transport.get_write_buffer_size() > VIDEO_BACKLOG_BYTES:
+                return  # the page is behind: this frame is skipped, a newer one will go when it has drained
+            self._sent_video[name] = frame.seq
+            header = struct.pack(">BQI", index, frame.t, frame.seq & 0xFFFFFFFF)
+            with contextlib.suppress(ConnectionError, RuntimeError):
+                await self.ws.send_bytes(header + (frame.data if not frame.failure else b""))
+
+    def state(self) -> dict[str, Any]:
+        """What the page shows now (the console's model, as JSON)."""
+        w = self.feed.watch
+        now = time.monotonic()
+        st, sf = w.robot_state, w.safety
+        out: dict[str, Any] = {"type": "state", "robot": self.robot, "online": bool(w.edge_alive),
+                               "user": self.grant.user, "role": str(self.grant.role), "refused": self.refused}
+        if st is not None:
+            out["t"] = st.t
+            out["age"] = round(now - w.robot_state_at, 3)
+            out["tcp"] = [round(v, 5) for v in st.tcp_pose]
+            out["commanded"] = [round(v, 5) for v in st.commanded]
+            out["fault"] = st.fault
+            out["arm"] = self.feed.arm_points()
+        if sf is not None:
+            out["safety"] = {"armed": sf.armed, "owner": sf.owner, "status": sf.status, "reason": sf.reason,
+                             "profile": sf.profile, "deadman": sf.deadman, "linear_limit": sf.linear_limit,
+                             "angular_limit": sf.angular_limit, "limits_hit": sf.limits_hit}
+        fv = force_view(w.force_level, w.force_level_at, now, 0.5)
+        force: dict[str, Any] = {"colour": fv.colour.replace("grey50", "grey"), "label": fv.label, "detail": fv.detail}
+        if w.force is not None and st is not None and now - w.force_at < 0.5:
+            force["vector"] = [round(v, 3) for v in geometry.rotate(st.tcp_pose[3:], w.force.force)]
+        out["force"] = force
+        if w.markers is not None and now - w.markers_at < 1.0:
+            out["markers"] = [{"id": m.id, "pose": [round(v, 4) for v in m.pose]} for m in w.markers.markers]
+        if w.servo is not None:
+            out["servo"] = {"pan": w.servo.pan, "tilt": w.servo.tilt}
+        if w.torch is not None:
+            out["torch"] = w.torch.on
+        holder = self.bridge.controllers.get(self.robot)
+        out["control"] = {"mine": self.client is not None and self.client.owner, "here": holder.grant.user if holder else ""}
+        events = self._new_events("watch", w.events)
+        if self.client is not None:
+            q = self.client.link_quality()
+            grades = q.grades(LinkThresholds())
+            out["link"] = {"rtt_p50": _finite(q.rtt_p50_ms), "rtt_p95": _finite(q.rtt_p95_ms),
+                           "loss_up": _finite(q.uplink_loss), "loss_down": _finite(q.downlink_loss),
+                           "colour": GRADE_COLOURS[max(grades.values(), key=_grade_rank)]}
+            events += self._new_events("client", self.client.events)
+        if events:
+            out["events"] = [{"t": e.t, "kind": e.kind, "status": str(e.status), "reason": e.reason} for e in events]
+        return out
+
+    def _new_events(self, source: str, events: deque[Event]) -> list[Event]:
+        """The events of ``source`` this page has not been sent yet (oldest first)."""
+        last = self._last_events[source]
+        items = list(events)
+        if last is not None and any(e is last for e in items):
+            i = max(i for i, e in enumerate(items) if e is last)
+            items = items[i + 1:]
+        elif last is None:
+            items = items[-20:]  # a page that just opened: the latest ones
+        if items:
+            self._last_events[source] = items[-1]
+        return items
+
+    def close(self) -> None:
+        self.closed = True
+        self.feed.pages.discard(self)
+        self._release()
+
+
+def _grade_rank(grade: str) -> int:
+    return {"none": 0, "good": 1, "warn": 2, "bad": 3}[grade]
+
+
+def _finite(v: float) -> float | None:
+    return round(v, 3) if math.isfinite(v) else None
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+def _json_object(text: str) -> dict[str, Any]:
+    try:
+        obj = json.loads(text) if text else {}
+    except ValueError:
+        return {}
+    return obj if isinstance(obj, dict) else {}
+
+
+# ----------------------------------------------------------------------------------------------- the HTTP side
+
+
+def make_app(bridge: Bridge) -> web.Application:
+    app = web.Application(client_max_size=16 * 1024, middlewares=[_headers])
+    app["bridge"] = bridge
+    app.add_routes([
+        web.get("/", _index),
+        web.get("/login", _login_page),
+        web.post("/api/login", _login),
+        web.post("/api/logout", _logout),
+        web.get("/api/me", _me),
+        web.get("/api/stats", _stats),
+        web.get("/ws", _websocket),
+        web.static("/static", STATIC, show_index=False),
+    ])
+    app.on_startup.append(_on_startup)
+    app.on_shutdown.append(_on_shutdown)
+    return app
+
+
+@web.middleware
+async def _headers(request: web.Request, handler: Callable[[web.Request], Any]) -> web.StreamResponse:
+    response = await handler(request)
+    if not response.prepared:
+        response.headers.update(SECURITY_HEADERS)
+        if request.path.startswith("/api/") or request.path == "/":
+            response.headers["Cache-Control"] = "no-store"
+    return response
+
+
+async def _on_startup(app: web.Application) -> None:
+    bridge: Bridge = app["bridge"]
+    loop = asyncio.get_running_loop()
+    await loop.run_in_executor(None, bridge.start, loop)
+    app["pages"] = set()
+
+
+async def _on_shutdown(app: web.Application) -> None:
+    for ws in list(app["pages"]):
+        await ws.close(code=1001, message=b"server shutting down")
+    await asyncio.get_running_loop().run_in_executor(None, app["bridge"].close)
+
+
+async def _index(request: web.Request) -> web.StreamResponse:
+    if request.app["bridge"].user_of(request) is None:
+        raise web.HTTPSeeOther("/login")
+    return web.FileResponse(STATIC / "index.html")
+
+
+async def _login_page(_request: web.Request) -> web.StreamResponse:
+    return web.FileResponse(STATIC / "login.html")
+
+
+async def _login(request: web.Request) -> web.StreamResponse:
+    bridge: Bridge = request.app["bridge"]
+    if not bridge.origin_ok(request):
+        bridge.refusals.add("cross_origin", request.headers.get("Origin", "(none)"))
+        return web.json_response({"ok": False, "reason": "log-in from another site refused"}, status=403)
+    try:
+        body = await request.json()
+        user, password = str(body["user"])[:64], str(body["password"])[:256]
+    except (ValueError, KeyError, TypeError):
+        return web.json_response({"ok": False, "reason": "send a user name and a password"}, status=400)
+    token, why = await asyncio.get_running_loop().run_in_executor(
+        None, bridge.log_in, user, password, request.remote or "?")
+    if not token:
+        return web.json_response({"ok": False, "reason": why}, status=401)
+    response = web.json_response({"ok": True, "user": user})
+    response.set_cookie(COOKIE, token, httponly=True, samesite="Strict", secure=request.secure, path="/",
+                        max_age=int(3600 * bridge.config.session_hours))
+    return response
+
+
+async def _logout(request: web.Request) -> web.StreamResponse:
+    bridge: Bridge = request.app["bridge"]
+    if bridge.origin_ok(request):
+        bridge.logins.pop(request.cookies.get(COOKIE, ""), None)
+    response = web.json_response({"ok": True})
+    response.del_cookie(COOKIE, path="/")
+    return response
+
+
+async def _me(request: web.Request) -> web.StreamResponse:
+    grant = request.app["bridge"].user_of(request)
+    if grant is None:
+        return web.json_response({"ok": False, "reason": "not logged in"}, status=401)
+    return web.json_response({"ok": True, "user": grant.user, "role": str(grant.role), "robots": list(grant.robots)})
+
+
+async def _stats(request: web.Request) -> web.StreamResponse:
+    bridge: Bridge = request.app["bridge"]
+    if bridge.user_of(request) is None:
+        return web.json_response({"ok": False, "reason": "not logged in"}, status=401)
+    pages = [{"user": p.grant.user, "robot": p.robot, "controlling": p.client is not None}
+             for f in bridge.feeds.values() for p in f.pages]
+    return web.json_response({"ok": True, "refused": dict(bridge.refusals.counts), "pages": pages,
+                              "controllers": {r: p.grant.user for r, p in bridge.controllers.items()}})
+
+
+async def _websocket(request: web.Request) -> web.StreamResponse:
+    bridge: Bridge = request.app["bridge"]
+    # Refused before the upgrade, with the reason as the HTTP answer (a browser's page sees the socket fail).
+    if not bridge.origin_ok(request):
+        bridge.refusals.add("cross_origin", request.headers.get("Origin", "(none)"))
+        raise web.HTTPForbidden(text="websocket from another origin refused")
+    grant = bridge.user_of(request)
+    if grant is None:
+        bridge.refusals.add("not_logged_in", request.remote or "?")
+        raise web.HTTPUnauthorized(text="not logged in")
+    robot = request.query.get("robot", "") or (grant.robots[0] if grant.robots else "")
+    if not grant.may_watch(robot):
+        bridge.refusals.add("robot_not_granted", f"{grant.user} asked for {robot[:40]!r}")
+        raise web.HTTPForbidden(text=f"{grant.user} is not granted robot {robot[:40]!r}")
+    ws = web.WebSocketResponse(max_msg_size=WS_MAX_BYTES, heartbeat=5.0)
+    await ws.prepare(request)
+    request.app["pages"].add(ws)
+    feed = bridge.feed(robot)
+    page = Page(bridge, ws, grant, feed, request.transport)
+    feed.pages.add(page)
+    await page.send({"type": "hello", "user": grant.user, "role": str(grant.role), "robot": robot,
+                     "robots": list(grant.robots), "may_command": grant.may_command(robot)})
+    pusher = asyncio.create_task(page.push())
+    try:
+        async for msg in ws:
+            if msg.type == WSMsgType.TEXT:
+                await page.on_text(msg.data)
+            elif msg.type == WSMsgType.BINARY:
+                await page.refuse("malformed", "binary messages are not accepted")
+            elif msg.type == WSMsgType.ERROR:
+                bridge.refusals.add("socket_error", str(ws.exception()))
+                break
+    finally:
+        pusher.cancel()
+        request.app["pages"].discard(ws)
+        # Releasing control is a blocking query: off the event loop. The robot already stops on its own: this
+        # page's stream ended, and the edge's deadman timeout sees that.
+        await asyncio.get_running_loop().run_in_executor(None, page.close)
+    return ws
+
+
+def load_bridge(config: WebConfig) -> Bridge:
+    """The deployment and the users file, checked (ConfigError / ValueError naming the file)."""
+    deployment = config_from_dict(read_yaml(config.deployment), Deployment, source=str(config.deployment),
+                                  base_dir=config.deployment.parent)
+    try:
+        text = config.users_file.read_text()
+    except FileNotFoundError:
+        raise ValueError(f"{config.users_file}: no web users yet: add one with `iorthand web password NAME`") from None
+    hashes = users.parse_users(text, str(config.users_file))
+    unknown = sorted(set(hashes) - set(users.grants(deployment)))
+    for name in unknown:
+        log.warning("%s: user %r is neither an operator nor a viewer of %s: cannot log in", config.users_file, name,
+                    config.deployment)
+    return Bridge(config, deployment, hashes)
+
+
+def serve(config: WebConfig, ready: Callable[[str], None] | None = None) -> None:
+    """Run the console until SIGINT/SIGTERM."""
+    config.check()
+    bridge = load_bridge(config)
+    host, port = config.host_port()
+    context = None
+    if config.tls is not None:
+        context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        context.load_cert_chain(config.tls.certificate, config.tls.private_key)
+    url = f"{'https' if context else 'http'}://{host}:{port}/"
+
+    async def announce(_app: web.Application) -> None:
+        log.info("web console ready: %s", url)
+        if ready is not None:
+            ready(url)
+
+    app = make_app(bridge)
+    app.on_startup.append(announce)
+    web.run_app(app, host=host, port=port, ssl_context=context, print=None, access_log=None,
+                handle_signals=True, shutdown_timeout=3.0)
+
+
+__all__ = ["Bridge", "Feed", "Page", "load_bridge", "make_app", "serve"]

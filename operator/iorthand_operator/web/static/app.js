@@ -1,0 +1,371 @@
+// The iorthand console in a browser. The deadman, end to end:
+// - a timer sends one twist 60 times a second while this page holds control, deadman held or not; the server
+//   forwards each one at once and never repeats one, so if this page stops (closed, frozen, offline) the edge's
+//   own timeout stops the robot;
+// - the deadman is held only while a finger (or the mouse, Space, a gamepad shoulder button) is on it: lifting
+//   it, a touchcancel, the page hidden, the window losing focus or the socket closing all release it.
+// Velocities: left stick right = +x, up = +y; right stick up = +z, sideways = turn about z (base frame), scaled
+// to the speed profile's limits that the edge reports (it clips them anyway).
+import { createViewer } from "/static/viewer.js";
+
+const RATE_HZ = 60;
+const STATE_STALE_MS = 500; // no state for this long: the force light and the status go grey
+const DEADZONE = 0.08;
+const $ = (id) => document.getElementById(id);
+
+const ui = {
+  robot: $("robot"), link: $("link"), who: $("who"), force: $("force"), forceLabel: $("force-label"),
+  forceDetail: $("force-detail"), status: $("status"), reason: $("reason"), control: $("control"),
+  profile: $("profile"), estop: $("estop"), deadman: $("deadman"), events: $("events"), camera: $("camera"),
+  ultrasound: $("ultrasound"), poseList: $("pose-list"), verdict: $("pose-verdict"), goto: $("goto"),
+};
+
+// What tests and benchmarks read (window.iorthand): the page's own view of its round trips and video delays.
+const stats = { sent: 0, echoes: [], video: { camera: [], ultrasound: [] }, videoBytes: 0, refused: [],
+  socket: "connecting" };
+window.iorthand = stats;
+
+let ws = null;
+let hello = null;
+let lastState = null;
+let lastStateAt = 0;
+let mine = false;
+let seq = 0;
+const sentAt = new Map();
+let posesToken = "";
+
+// ---------------------------------------------------------------------------------------------- inputs
+
+const input = { deadman: { pointer: false, key: false, pad: false }, left: [0, 0], right: [0, 0], keys: new Set() };
+
+function deadmanHeld() {
+  return input.deadman.pointer || input.deadman.key || input.deadman.pad;
+}
+
+function releaseAll(why) {
+  const was = deadmanHeld();
+  input.deadman.pointer = input.deadman.key = input.deadman.pad = false;
+  input.left = [0, 0];
+  input.right = [0, 0];
+  input.keys.clear();
+  for (const s of sticks) s.centre();
+  ui.deadman.classList.remove("held");
+  if (was && why) logEvent({ kind: "input", status: "deadman_released", reason: `deadman released: ${why}` });
+}
+
+class Stick {
+  constructor(el, onMove) {
+    this.el = el;
+    this.knob = el.querySelector(".knob");
+    this.onMove = onMove;
+    this.pointer = null;
+    el.addEventListener("pointerdown", (e) => this.start(e));
+    el.addEventListener("pointermove", (e) => this.move(e));
+    for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) el.addEventListener(type, (e) => this.end(e));
+  }
+  start(e) {
+    if (this.pointer !== null) return;
+    this.pointer = e.pointerId;
+    this.el.setPointerCapture(e.pointerId);
+    this.move(e);
+    e.preventDefault();
+  }
+  move(e) {
+    if (e.pointerId !== this.pointer) return;
+    const r = this.el.getBoundingClientRect();
+    const radius = r.width / 2;
+    let x = (e.clientX - (r.left + radius)) / radius;
+    let y = -(e.clientY - (r.top + r.height / 2)) / radius; // screen up = +
+    const n = Math.hypot(x, y);
+    if (n > 1) { x /= n; y /= n; }
+    this.knob.style.transform = `translate(${x * radius * 0.6}px, ${-y * radius * 0.6}px)`;
+    this.onMove(Math.abs(x) < DEADZONE ? 0 : x, Math.abs(y) < DEADZONE ? 0 : y);
+  }
+  end(e) {
+    if (e.pointerId !== this.pointer) return;
+    this.pointer = null;
+    this.centre();
+  }
+  centre() {
+    this.pointer = null;
+    this.knob.style.transform = "";
+    this.onMove(0, 0);
+  }
+}
+
+const sticks = [
+  new Stick($("stick-left"), (x, y) => { input.left = [x, y]; }),
+  new Stick($("stick-right"), (x, y) => { input.right = [x, y]; }),
+];
+
+let deadmanPointer = null;
+ui.deadman.addEventListener("pointerdown", (e) => {
+  deadmanPointer = e.pointerId;
+  ui.deadman.setPointerCapture(e.pointerId);
+  input.deadman.pointer = true;
+  ui.deadman.classList.add("held");
+  e.preventDefault();
+});
+for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) {
+  ui.deadman.addEventListener(type, (e) => {
+    if (e.pointerId !== deadmanPointer) return;
+    deadmanPointer = null;
+    input.deadman.pointer = false;
+    ui.deadman.classList.remove("held");
+  });
+}
+// A touch the browser cancels (a system gesture, a call) ends every hold, whichever element it was on.
+window.addEventListener("touchcancel", () => releaseAll("touch cancelled"), { capture: true });
+document.addEventListener("visibilitychange", () => { if (document.hidden) releaseAll("page hidden"); });
+window.addEventListener("pagehide", () => releaseAll("page closed"));
+window.addEventListener("blur", () => releaseAll("window lost focus"));
+document.addEventListener("contextmenu", (e) => e.preventDefault()); // a long press is not a menu
+
+const KEYS = { KeyD: [0, 1], KeyA: [0, -1], KeyW: [1, 1], KeyS: [1, -1], KeyR: [2, 1], KeyF: [2, -1], KeyQ: [5, 1], KeyE: [5, -1] };
+window.addEventListener("keydown", (e) => {
+  if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
+  if (e.code === "Space") { input.deadman.key = true; e.preventDefault(); }
+  else if (e.code === "KeyX") { estop(); }
+  else if (KEYS[e.code]) input.keys.add(e.code);
+});
+window.addEventListener("keyup", (e) => {
+  if (e.code === "Space") input.deadman.key = false;
+  input.keys.delete(e.code);
+});
+window.addEventListener("gamepaddisconnected", () => releaseAll("gamepad disconnected"));
+
+function readGamepad() {
+  const pads = navigator.getGamepads ? [...navigator.getGamepads()].filter(Boolean) : [];
+  if (!pads.length) { input.deadman.pad = false; return null; }
+  const p = pads[0];
+  const dz = (v) => (Math.abs(v) < 0.12 ? 0 : v);
+  input.deadman.pad = !!(p.buttons[4]?.pressed || p.buttons[5]?.pressed); // a shoulder button, held
+  return { lx: dz(p.axes[0] || 0), ly: -dz(p.axes[1] || 0), rx: dz(p.axes[2] || 0), ry: -dz(p.axes[3] || 0) };
+}
+
+function twistNow() {
+  const pad = readGamepad();
+  const safety = lastState?.safety;
+  const lin = safety?.linear_limit || 0.008;
+  const ang = safety?.angular_limit || 0.1;
+  const v = [0, 0, 0, 0, 0, 0];
+  v[0] = input.left[0] + (pad?.lx || 0);
+  v[1] = input.left[1] + (pad?.ly || 0);
+  v[2] = input.right[1] + (pad?.ry || 0);
+  v[5] = -input.right[0] - (pad?.rx || 0);
+  for (const code of input.keys) { const [axis, sign] = KEYS[code]; v[axis] += sign; }
+  const clamp = (x) => Math.max(-1, Math.min(1, x));
+  return {
+    linear: [clamp(v[0]) * lin, clamp(v[1]) * lin, clamp(v[2]) * lin],
+    angular: [clamp(v[3]) * ang, clamp(v[4]) * ang, clamp(v[5]) * ang],
+  };
+}
+
+// The fixed-rate stream: a timer, never input events.
+setInterval(() => {
+  const held = deadmanHeld() && !document.hidden;
+  ui.deadman.classList.toggle("held", held);
+  if (!ws || ws.readyState !== WebSocket.OPEN || !mine) return;
+  const t = held ? twistNow() : { linear: [0, 0, 0], angular: [0, 0, 0] };
+  const round = (a) => a.map((x) => Math.round(x * 1e6) / 1e6);
+  seq += 1;
+  sentAt.set(seq, performance.now());
+  if (sentAt.size > 600) sentAt.delete(sentAt.keys().next().value);
+  ws.send(JSON.stringify({ type: "twist", id: seq, linear: round(t.linear), angular: round(t.angular), deadman: held,
+    seen: lastState?.t || 0 }));
+  stats.sent += 1;
+}, 1000 / RATE_HZ);
+
+// ---------------------------------------------------------------------------------------------- the socket
+
+function connect() {
+  const robot = new URLSearchParams(location.search).get("robot") || "";
+  ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${robot ? `?robot=${encodeURIComponent(robot)}` : ""}`);
+  ws.binaryType = "arraybuffer";
+  ws.onopen = () => {
+    stats.socket = "open";
+    ws.send(JSON.stringify({ type: "view", video: $("want-video").checked }));
+  };
+  ws.onmessage = (e) => (typeof e.data === "string" ? onMessage(JSON.parse(e.data)) : onVideo(e.data));
+  ws.onclose = (e) => {
+    stats.socket = "closed";
+    mine = false;
+    releaseAll("connection to the console's server lost");
+    setStatus("disconnected", `connection closed (${e.code}${e.reason ? `: ${e.reason}` : ""}): reconnecting…`, "grey");
+    fetch("/api/me").then((r) => { if (r.status === 401) location.assign("/login"); else setTimeout(connect, 1000); })
+      .catch(() => setTimeout(connect, 2000));
+  };
+}
+
+function onMessage(m) {
+  switch (m.type) {
+    case "hello":
+      hello = m;
+      ui.robot.textContent = m.robot;
+      ui.who.textContent = `${m.user} (${m.role})`;
+      document.body.classList.toggle("viewer", !m.may_command);
+      $("viewer-note").hidden = m.may_command;
+      break;
+    case "state": onState(m); break;
+    case "echo": {
+      const t0 = sentAt.get(m.id);
+      if (t0 !== undefined) {
+        sentAt.delete(m.id);
+        stats.echoes.push([m.id, performance.now() - t0, m.accepted]);
+        if (stats.echoes.length > 20000) stats.echoes.splice(0, 10000);
+      }
+      break;
+    }
+    case "refused":
+      stats.refused.push(m);
+      logEvent({ kind: "refused", status: m.kind, reason: m.reason });
+      break;
+    case "reply":
+      logEvent({ kind: m.ok ? "info" : "refused", status: m.to, reason: m.reason });
+      if (m.to === "preview") {
+        ui.verdict.textContent = `${m.name}: ${m.reason}`;
+        ui.verdict.className = `verdict ${m.ok ? "ok" : "bad"}`;
+        posesToken = m.ok ? m.token : "";
+        ui.goto.disabled = !posesToken;
+      }
+      break;
+    case "poses":
+      ui.poseList.replaceChildren(...m.poses.map((p) => new Option(p, p)));
+      break;
+    default: break;
+  }
+}
+
+const VIDEO_NAMES = ["camera", "ultrasound"];
+const objectUrls = {};
+function onVideo(buffer) {
+  const view = new DataView(buffer);
+  const name = VIDEO_NAMES[view.getUint8(0)];
+  const tNs = view.getBigUint64(1);
+  const delayMs = Date.now() - Number(tNs / 1000000n);
+  const list = stats.video[name];
+  list.push(delayMs);
+  stats.videoBytes += buffer.byteLength;
+  if (list.length > 5000) list.splice(0, 2500);
+  $(`${name}-age`).textContent = `${Math.max(0, delayMs).toFixed(0)} ms`;
+  const jpeg = buffer.slice(13);
+  if (!jpeg.byteLength) { ui[name].removeAttribute("src"); ui[name].alt = `${name}: no picture`; return; }
+  const url = URL.createObjectURL(new Blob([jpeg], { type: "image/jpeg" }));
+  const old = objectUrls[name];
+  objectUrls[name] = url;
+  ui[name].src = url;
+  if (old) URL.revokeObjectURL(old);
+}
+
+// ---------------------------------------------------------------------------------------------- drawing
+
+let viewer = null;
+try { viewer = createViewer($("view3d")); } catch (e) { $("view3d").replaceWith(`3D view unavailable: ${e.message}`); }
+
+function setStatus(code, reason, colour) {
+  ui.status.textContent = code;
+  ui.status.className = `status-code ${colour || ""}`;
+  ui.reason.textContent = reason || "";
+}
+
+function onState(s) {
+  lastState = s;
+  lastStateAt = performance.now();
+  mine = !!s.control?.mine;
+  const sf = s.safety;
+  if (!s.online) setStatus("edge offline", "the robot's edge agent is not connected", "grey");
+  else if (sf) {
+    const c = s.commanded || [0, 0, 0];
+    const speed = Math.hypot(c[0], c[1], c[2]) * 1000;
+    const moving = speed > 0.05 ? `moving at ${speed.toFixed(1)} mm/s (limit ${(sf.linear_limit * 1000).toFixed(0)} mm/s, ${sf.profile})` : "";
+    setStatus(sf.status, sf.reason || moving || (sf.armed ? "" : "not armed"),
+      HALTS.has(sf.status) ? "red" : sf.status === "ok" ? "green" : "");
+  }
+  const f = s.force || {};
+  ui.force.className = `force ${f.colour || "grey"}`;
+  ui.forceLabel.textContent = f.label || "NO DATA";
+  ui.forceDetail.textContent = f.detail || "";
+  if (s.link) {
+    const fmt = (v) => (v == null ? "—" : v.toFixed(1));
+    ui.link.textContent = `RTT ${fmt(s.link.rtt_p50)}/${fmt(s.link.rtt_p95)} ms · loss ${((s.link.loss_up || 0) * 100).toFixed(1)} %`;
+    ui.link.className = `pill ${s.link.colour}`;
+  }
+  const owner = sf?.owner || "";
+  ui.control.textContent = mine ? "Release control" : owner ? `controlled by ${owner}` : "Take control";
+  ui.control.classList.toggle("mine", mine);
+  if (sf?.profile && document.activeElement !== ui.profile) ui.profile.value = sf.profile;
+  ui.deadman.disabled = !mine;
+  for (const e of s.events || []) logEvent(e);
+  if (viewer && want3d.checked) viewer.update(s);
+}
+
+const HALTS = new Set(["disarmed", "command_timeout", "force_danger", "force_stale", "stopped", "fault", "owner_lost", "link_gap", "stale_view"]);
+
+// Never green without fresh data: with no state for STATE_STALE_MS the light and the status go grey.
+setInterval(() => {
+  if (lastStateAt && performance.now() - lastStateAt > STATE_STALE_MS) {
+    ui.force.className = "force grey";
+    ui.forceLabel.textContent = "STALE";
+    ui.forceDetail.textContent = `no data for ${((performance.now() - lastStateAt) / 1000).toFixed(1)} s`;
+    if (ui.status.classList.contains("green")) setStatus("no data", "no state from the robot", "grey");
+  }
+}, 100);
+
+function logEvent(e) {
+  const li = document.createElement("li");
+  li.className = e.kind;
+  const t = e.t ? new Date(e.t * 1000) : new Date();
+  li.textContent = `${t.toLocaleTimeString()} ${e.status}: ${e.reason}`;
+  ui.events.prepend(li);
+  while (ui.events.children.length > 60) ui.events.lastChild.remove();
+}
+
+// ---------------------------------------------------------------------------------------------- buttons
+
+function send(obj) {
+  if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj));
+}
+
+function estop() {
+  releaseAll("");
+  send({ type: "stop" });
+  logEvent({ kind: "stop", status: "stopped", reason: "e-stop sent" });
+}
+
+ui.estop.addEventListener("click", estop);
+ui.control.addEventListener("click", () => {
+  if (mine) { releaseAll(""); send({ type: "release" }); } else send({ type: "acquire", profile: ui.profile.value });
+});
+ui.profile.addEventListener("change", () => { if (mine) send({ type: "acquire", profile: ui.profile.value }); });
+for (const b of document.querySelectorAll("[data-pan],[data-tilt]")) {
+  b.addEventListener("click", () => send({ type: "camera", pan: (Number(b.dataset.pan || 0) * Math.PI) / 180,
+    tilt: (Number(b.dataset.tilt || 0) * Math.PI) / 180 }));
+}
+$("torch").addEventListener("click", () => send({ type: "camera", torch: !(lastState?.torch) }));
+$("poses").addEventListener("click", () => send({ type: "poses" }));
+$("preview").addEventListener("click", () => { if (ui.poseList.value) send({ type: "preview", name: ui.poseList.value }); });
+ui.goto.addEventListener("click", () => {
+  send({ type: "goto", name: ui.poseList.value, token: posesToken });
+  ui.goto.disabled = true;
+  posesToken = "";
+});
+// What to draw: a slow link or a tired phone can do without video or the 3D view (remembered on this device).
+const want3d = $("want-3d");
+for (const [box, key] of [[$("want-video"), "iorthand.video"], [want3d, "iorthand.3d"]]) {
+  box.checked = localStorage.getItem(key) !== "off";
+  box.addEventListener("change", () => {
+    localStorage.setItem(key, box.checked ? "on" : "off");
+    send({ type: "view", video: $("want-video").checked });
+    $("view3d").closest("figure").hidden = !want3d.checked;
+    for (const name of VIDEO_NAMES) ui[name].closest("figure").hidden = !$("want-video").checked;
+  });
+  box.dispatchEvent(new Event("change"));
+}
+
+$("logout").addEventListener("click", async () => {
+  releaseAll("");
+  await fetch("/api/logout", { method: "POST" });
+  location.assign("/login");
+});
+
+connect();

@@ -1,0 +1,565 @@
+"""The web console (``iorthand web``) in Debian's Chromium driven by Playwright, on a phone's touch screen.
+
+A real router, a real edge agent (``iorthand edge``, the demo's simulated robot with video and perception) and
+the real web server, each in its own process; the page is driven with real touch input (Chromium's
+``Input.dispatchTouchEvent``, several fingers at once) on a 390×844 mobile viewport. What the robot did is read
+on Zenoh: ``state/robot`` (where the tool is, what the edge commands) and ``state/applied`` (each command's
+verdict). Skipped, with the reason, where Chromium or Playwright is missing (``make test`` installs Chromium).
+
+The stop bound is the edge's: ``command_timeout`` (150 ms) + one control period (8 ms) after the page's last
+command, measured on the edge's own clock (the echo's receive time, the state's source time).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+import zenoh
+
+from iorthand import keys
+from iorthand.protocol import AppliedCommand, RobotState, SafetyStatus
+from iorthand.transport import client_config, free_port, open_session, router_json5
+from iorthand_operator.web import users
+from tests.conftest import ROOT, iorthand_cmd, stop_process
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+SCREENSHOTS = ROOT / "docs" / "images"
+ROBOT = "sim1"
+TIMEOUT_S, PERIOD_S = 0.150, 0.008
+STOP_BOUND_S = TIMEOUT_S + PERIOD_S
+PASSWORDS = {"physician": "physician-pw-1", "student": "student-pw-1"}
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+        "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+
+pytestmark = pytest.mark.slow
+
+
+def _require_browser() -> Any:
+    if not Path(CHROMIUM).exists():
+        pytest.skip("Debian's chromium is not installed (apt-get install -y chromium); make test installs it")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.skip("the playwright Python package is not installed (pip install playwright; no browser download)")
+    return sync_playwright
+
+
+@dataclass
+class Watch:
+    """What the robot did, from Zenoh: every robot state and every command echo, with their arrival."""
+
+    states: list[RobotState] = field(default_factory=list)
+    applied: list[AppliedCommand] = field(default_factory=list)
+    safety: list[SafetyStatus] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_state(self, sample: zenoh.Sample) -> None:
+        with self.lock:
+            self.states.append(RobotState.decode(sample.payload.to_bytes()))
+
+    def on_applied(self, sample: zenoh.Sample) -> None:
+        with self.lock:
+            self.applied.append(AppliedCommand.decode(sample.payload.to_bytes()))
+
+    def on_safety(self, sample: zenoh.Sample) -> None:
+        with self.lock:
+            self.safety.append(SafetyStatus.decode(sample.payload.to_bytes()))
+
+    def pose(self) -> list[float]:
+        with self.lock:
+            return list(self.states[-1].tcp_pose)
+
+    def moving_echoes(self, since_ns: int) -> list[AppliedCommand]:
+        with self.lock:
+            return [a for a in self.applied if a.recv_t >= since_ns and a.accepted and any(a.applied)]
+
+    def wait(self, predicate, timeout: float, what: str) -> Any:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            got = predicate()
+            if got:
+                return got
+            time.sleep(0.01)
+        raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+    def stop_after(self, since_ns: int) -> tuple[float, str]:
+        """Once the robot has stopped: (s from the page's last moving command, as the edge received it, to the
+        first robot state commanding zero; how it stopped)."""
+        def stopped() -> tuple[AppliedCommand, RobotState] | None:
+            with self.lock:
+                moving = [a for a in self.applied if a.recv_t >= since_ns and a.accepted and any(a.applied)]
+                if not moving:
+                    return None
+                last = moving[-1]
+                zero = [s for s in self.states if s.t > last.recv_t and not any(s.commanded)]
+                return (last, zero[0]) if zero else None
+
+        last, zero = self.wait(stopped, 3.0, "the robot to stop")
+        with self.lock:
+            after = [a for a in self.applied if a.recv_t > last.recv_t]
+        how = f"echo {after[0].status}" if after and after[0].recv_t <= zero.t else "no further command: a release or the timeout"
+        return (zero.t - last.recv_t) / 1e9, how
+
+
+class Relay:
+    """A TCP relay between the browser and the server that the test can cut (a link that goes silent: no FIN,
+    no RST, as when a phone leaves coverage)."""
+
+    def __init__(self, target_port: int) -> None:
+        self.port = free_port()
+        self.target = target_port
+        self.cut = threading.Event()
+        self._server = socket.create_server(("127.0.0.1", self.port))
+        self._server.settimeout(0.2)
+        self._stop = threading.Event()
+        self._sockets: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                a, _ = self._server.accept()
+            except (TimeoutError, OSError):
+                continue
+            b = socket.create_connection(("127.0.0.1", self.target))
+            self._sockets += [a, b]
+            for src, dst in ((a, b), (b, a)):
+                threading.Thread(target=self._pump, args=(src, dst), daemon=True).start()
+
+    def _pump(self, src: socket.socket, dst: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while not self._stop.is_set():
+                data = src.recv(65536)
+                if not data:
+                    break
+                if not self.cut.is_set():
+                    dst.sendall(data)
+
+    def close(self) -> None:
+        self._stop.set()
+        for s in [self._server, *self._sockets]:
+            with contextlib.suppress(OSError):
+                s.close()
+
+
+class Stack:
+    """Router, edge and web console, each a process of its own; a Zenoh session watching the robot."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.router = zenoh.open(zenoh.Config.from_json5(router_json5(self.endpoint)))
+        self.procs: list[subprocess.Popen[bytes]] = []
+        edge = yaml.safe_load((ROOT / "configs" / "edge-sim.yaml").read_text())
+        edge["zenoh"]["connect"] = [self.endpoint]
+        edge["video"]["camera"]["fps"] = 10  # software rendering: keep the machine for the command path
+        edge["video"]["ultrasound"]["fps"] = 5
+        edge["perception"]["camera"]["fps"] = 10.0
+        (tmp / "edge.yaml").write_text(yaml.safe_dump(edge))
+        (tmp / "deployment.yaml").write_text(yaml.safe_dump(
+            {"robots": [ROBOT], "operators": {"physician": [ROBOT]}, "viewers": ["student"]}))
+        (tmp / "web-users.txt").write_text(users.format_users(
+            {name: users.hash_password(pw) for name, pw in PASSWORDS.items()}))
+        self.port = free_port()
+        (tmp / "web.yaml").write_text(yaml.safe_dump({
+            "deployment": "deployment.yaml", "users_file": "web-users.txt", "listen": f"127.0.0.1:{self.port}",
+            "zenoh": {"mode": "client", "connect": [self.endpoint]}}))
+        self.start("edge", iorthand_cmd("edge", "--config", str(tmp / "edge.yaml")), "media process")
+        self.start("web", iorthand_cmd("web", "--config", str(tmp / "web.yaml")), "web console ready")
+        self.session = open_session(client_config(self.endpoint))
+        self.watch = Watch()
+        k = keys.RobotKeys(ROBOT)
+        self.subs = [self.session.declare_subscriber(k.key(keys.STATE_ROBOT), self.watch.on_state),
+                     self.session.declare_subscriber(k.key(keys.STATE_APPLIED), self.watch.on_applied),
+                     self.session.declare_subscriber(k.key(keys.STATE_SAFETY), self.watch.on_safety)]
+        self.watch.wait(lambda: self.watch.states, 20.0, "the robot's state")
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def start(self, name: str, argv: list[str], ready: str) -> None:
+        log = (self.tmp / f"{name}.log").open("wb")
+        proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT)
+        self.procs.append(proc)
+        deadline = time.monotonic() + 60
+        while ready not in (self.tmp / f"{name}.log").read_text(errors="replace"):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"{name} did not start: {(self.tmp / f'{name}.log').read_text()[-2000:]}")
+            time.sleep(0.05)
+
+    def stats(self, cookie: str) -> dict[str, Any]:
+        req = urllib.request.Request(f"{self.url}/api/stats", headers={"Cookie": f"iorthand_session={cookie}"})
+        with urllib.request.urlopen(req, timeout=5) as r:
+            return json.loads(r.read())
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+        for proc in reversed(self.procs):
+            stop_process(proc)
+        self.router.close()
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory) -> Any:
+    s = Stack(tmp_path_factory.mktemp("web"))
+    yield s
+    s.close()
+
+
+@pytest.fixture(scope="module")
+def browser(stack) -> Any:
+    sync_playwright = _require_browser()
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        yield b
+        b.close()
+
+
+def phone(browser, url: str) -> Any:
+    """A page on a phone's viewport with a touch screen, not yet logged in. The test's own probes
+    (``wait_for_function``) are evaluated scripts, which the console's Content-Security-Policy forbids: the context
+    lets Playwright past it (``test_the_console_is_served_with_its_security_headers`` checks the policy itself)."""
+    ctx = browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True,
+                              device_scale_factor=2, bypass_csp=True)
+    page = ctx.new_page()
+    page.goto(url + "/")
+    return page
+
+
+def log_in(page, user: str, password: str) -> None:
+    page.fill("#user", user)
+    page.fill("#password", password)
+    page.click("#login-button")
+
+
+def open_console(browser, url: str, user: str = "physician", control: bool = True) -> Any:
+    page = phone(browser, url)
+    log_in(page, user, PASSWORDS[user])
+    page.wait_for_url(url + "/")
+    page.wait_for_function("window.iorthand && window.iorthand.socket === 'open'")
+    if control:
+        page.click("#control")
+        page.wait_for_function("document.getElementById('control').textContent === 'Release control'", timeout=10_000)
+    return page
+
+
+class Fingers:
+    """Touches on the page through Chromium's input pipeline (the events a touch screen makes)."""
+
+    def __init__(self, page) -> None:
+        self.page = page
+        self.cdp = page.context.new_cdp_session(page)
+        self.down: dict[int, tuple[float, float]] = {}
+
+    def centre(self, selector: str) -> tuple[float, float]:
+        box = self.page.locator(selector).bounding_box()
+        assert box is not None, selector
+        return box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+
+    def _send(self, kind: str) -> None:
+        points = [{"x": x, "y": y, "id": i, "radiusX": 4, "radiusY": 4, "force": 1} for i, (x, y) in self.down.items()]
+        self.cdp.send("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points})
+
+    def press(self, finger: int, x: float, y: float) -> None:
+        self.down[finger] = (x, y)
+        self._send("touchStart")
+
+    def move(self, finger: int, x: float, y: float, steps: int = 5) -> None:
+        x0, y0 = self.down[finger]
+        for i in range(1, steps + 1):
+            self.down[finger] = (x0 + (x - x0) * i / steps, y0 + (y - y0) * i / steps)
+            self._send("touchMove")
+            time.sleep(0.01)
+
+    def lift(self, finger: int) -> None:
+        """That finger only (Chromium lifts the points a touchEnd lists; the others stay down)."""
+        x, y = self.down.pop(finger)
+        self.cdp.send("Input.dispatchTouchEvent", {"type": "touchEnd", "touchPoints": [
+            {"x": x, "y": y, "id": finger, "radiusX": 4, "radiusY": 4, "force": 1}]})
+
+    def cancel(self) -> None:
+        self.down.clear()
+        self.cdp.send("Input.dispatchTouchEvent", {"type": "touchCancel", "touchPoints": []})
+
+
+def drive(page, fingers: Fingers, dx: float, dy: float) -> None:
+    """Deadman held with one finger, the left stick pushed by (dx, dy) of its radius with another."""
+    fingers.press(0, *fingers.centre("#deadman"))
+    x, y = fingers.centre("#stick-left")
+    radius = page.locator("#stick-left").bounding_box()["width"] / 2
+    fingers.press(1, x, y)
+    fingers.move(1, x + dx * radius, y - dy * radius)
+
+
+def in_thread(coro_fn) -> Any:
+    """Run an aiohttp client coroutine to completion (Playwright's sync API holds this thread's event loop)."""
+    out: list[Any] = []
+    t = threading.Thread(target=lambda: out.append(asyncio.run(coro_fn())))
+    t.start()
+    t.join(30)
+    assert out, "the client did not finish"
+    return out[0]
+
+
+# ------------------------------------------------------------------------------------------------ tests
+
+
+def test_the_console_is_served_with_its_security_headers(stack) -> None:
+    with urllib.request.urlopen(f"{stack.url}/login", timeout=5) as r:
+        headers = r.headers
+    assert "script-src 'self'" in headers["Content-Security-Policy"]
+    assert "frame-ancestors 'none'" in headers["Content-Security-Policy"]
+    assert headers["X-Content-Type-Options"] == "nosniff"
+
+
+def test_a_wrong_password_gets_a_clear_message(stack, browser) -> None:
+    page = phone(browser, stack.url)
+    assert page.url.endswith("/login")  # not logged in: the console sends the browser to the log-in
+    log_in(page, "physician", "not-the-password")
+    page.wait_for_selector("#login-error:not([hidden])")
+    assert page.text_content("#login-error") == "wrong user name or password"
+    log_in(page, "nobody", "whatever")  # an unknown user gets the same answer: no user-name oracle
+    page.wait_for_function("document.getElementById('login-error').textContent === 'wrong user name or password'")
+    assert page.url.endswith("/login")
+    page.context.close()
+
+
+def test_holding_the_deadman_and_dragging_a_stick_moves_the_robot_that_way(stack, browser) -> None:
+    page = open_console(browser, stack.url)
+    fingers = Fingers(page)
+    w = stack.watch
+    for dx, dy, axis in ((1.0, 0.0, 0), (0.0, 1.0, 1), (-1.0, 0.0, 0)):
+        start = w.pose()
+        since = time.time_ns()
+        drive(page, fingers, dx, dy)
+        w.wait(lambda since=since: len(w.moving_echoes(since)) > 40, 5.0, "commands moving the robot")
+        moved = [b - a for a, b in zip(start, w.pose(), strict=False)]
+        fingers.lift(1)
+        fingers.lift(0)
+        sign = 1 if (dx or dy) > 0 else -1
+        other = 1 - axis
+        assert sign * moved[axis] > 0.002, f"dragged along {'xy'[axis]} {sign:+d}: moved {moved[:3]}"
+        assert abs(moved[other]) < 0.3 * abs(moved[axis]), f"moved off the dragged direction: {moved[:3]}"
+        assert abs(moved[2]) < 0.3 * abs(moved[axis])
+        w.wait(lambda: not any(w.states[-1].commanded), 2.0, "the robot to stand still")
+    page.context.close()
+
+
+def _hide(page) -> None:
+    # Headless Chromium never hides a page (no window to cover): the test makes the page report what a hidden
+    # page reports and fires the event the browser fires when a phone switches app or locks.
+    page.evaluate("""() => {
+        Object.defineProperty(document, 'visibilityState', {configurable: true, get: () => 'hidden'});
+        Object.defineProperty(document, 'hidden', {configurable: true, get: () => true});
+        document.dispatchEvent(new Event('visibilitychange'));
+    }""")
+
+
+@pytest.mark.parametrize("how", ["lift", "touchcancel", "hidden", "close", "cut"])
+def test_every_way_a_page_lets_go_stops_the_robot_within_the_timeout(stack, browser, how) -> None:
+    relay = Relay(stack.port) if how == "cut" else None
+    url = f"http://127.0.0.1:{relay.port}" if relay else stack.url
+    try:
+        page = open_console(browser, url)
+        fingers = Fingers(page)
+        w = stack.watch
+        since = time.time_ns()
+        drive(page, fingers, 0.0, 1.0 if how in ("lift", "close") else -1.0)
+        w.wait(lambda: len(w.moving_echoes(since)) > 20, 5.0, "the robot moving")
+        if how == "lift":
+            fingers.lift(0)  # the deadman's finger; the stick stays pushed
+        elif how == "touchcancel":
+            fingers.cancel()
+        elif how == "hidden":
+            _hide(page)
+        elif how == "close":
+            page.close()
+        else:
+            assert relay is not None
+            relay.cut.set()
+        elapsed, stopped_by = w.stop_after(since)
+        print(f"{how}: stopped {1000 * elapsed:.1f} ms after the last moving command ({stopped_by})")
+        assert elapsed <= STOP_BOUND_S, f"{how}: stopped {1000 * elapsed:.1f} ms after the last command ({stopped_by})"
+        if how in ("lift", "touchcancel", "hidden"):
+            # The page itself released the deadman: the edge stopped on a released command, before any timeout.
+            assert stopped_by == "echo deadman_released", stopped_by
+        with contextlib.suppress(Exception):
+            page.context.close()
+    finally:
+        if relay is not None:
+            relay.close()
+    # Nothing resumes by itself: the robot stays still afterwards.
+    time.sleep(0.3)
+    assert not any(stack.watch.states[-1].commanded)
+
+
+def test_a_viewer_sees_the_robot_and_cannot_move_it(stack, browser) -> None:
+    page = open_console(browser, stack.url, "student", control=False)
+    page.wait_for_function("document.body.classList.contains('viewer')")
+    assert not page.locator("#deadman").is_visible() and not page.locator("#estop").is_visible()
+    page.wait_for_function("window.iorthand.video.camera.length > 0")  # it sees the camera...
+    received = stack.watch.safety[-1].received
+    start = stack.watch.pose()
+    # ...and a page script that sends the commands the operator's page would is refused by the server.
+    page.evaluate("""() => new Promise((resolve) => {
+        const ws = new WebSocket(`ws://${location.host}/ws`);
+        const got = [];
+        ws.onmessage = (e) => { if (typeof e.data === 'string') got.push(JSON.parse(e.data)); };
+        ws.onopen = () => {
+            ws.send(JSON.stringify({type: 'acquire', profile: ''}));
+            for (let i = 1; i <= 30; i++) ws.send(JSON.stringify({type: 'twist', id: i, linear: [0.008, 0, 0],
+                angular: [0, 0, 0], deadman: true, seen: 0}));
+            setTimeout(() => { window.viewerGot = got; resolve(); }, 800);
+        };
+    })""")
+    got = page.evaluate("window.viewerGot")
+    refusals = [m for m in got if m["type"] == "refused"]
+    assert refusals and all(m["kind"] == "viewer" for m in refusals)
+    assert "may watch sim1, not" in refusals[0]["reason"]
+    time.sleep(0.3)
+    assert stack.watch.safety[-1].received == received  # nothing reached the edge
+    assert max(abs(a - b) for a, b in zip(start, stack.watch.pose(), strict=False)) < 1e-6
+    cookie = next(c["value"] for c in page.context.cookies() if c["name"] == "iorthand_session")
+    assert stack.stats(cookie)["refused"]["viewer"] >= 31
+    page.context.close()
+
+
+def test_a_websocket_from_another_origin_is_refused(stack, browser, tmp_path) -> None:
+    """Cross-site websocket hijacking: a page of another origin (another port of the same host: the same site,
+    so the browser sends the session cookie along) opens the console's websocket. The server refuses it by its
+    origin; so does it a client that forges the header."""
+    page = open_console(browser, stack.url, control=False)
+    cookie = next(c["value"] for c in page.context.cookies() if c["name"] == "iorthand_session")
+    before = stack.stats(cookie)["refused"].get("cross_origin", 0)
+    (tmp_path / "evil.html").write_text("<!doctype html><title>evil</title>")
+    evil_port = free_port()
+    evil = subprocess.Popen([sys.executable, "-m", "http.server", str(evil_port), "--bind", "127.0.0.1"],
+                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        evil_page = page.context.new_page()
+        for _ in range(100):
+            with contextlib.suppress(Exception):
+                evil_page.goto(f"http://127.0.0.1:{evil_port}/evil.html")
+                break
+            time.sleep(0.05)
+        outcome = evil_page.evaluate("""(port) => new Promise((resolve) => {
+            const ws = new WebSocket(`ws://127.0.0.1:${port}/ws`);
+            ws.onopen = () => resolve('open');
+            ws.onerror = () => resolve('refused');
+        })""", stack.port)
+        assert outcome == "refused"
+    finally:
+        stop_process(evil)
+
+    async def forged() -> int:
+        import aiohttp
+
+        async with aiohttp.ClientSession() as s:
+            try:
+                async with s.ws_connect(f"{stack.url}/ws", headers={"Origin": "https://evil.example",
+                                                                     "Cookie": f"iorthand_session={cookie}"}):
+                    return 101
+            except aiohttp.WSServerHandshakeError as exc:
+                return exc.status
+
+    assert in_thread(forged) == 403
+    assert stack.stats(cookie)["refused"]["cross_origin"] >= before + 2
+    page.context.close()
+
+
+def test_oversize_malformed_and_ungranted_messages_are_refused_with_a_reason(stack, browser) -> None:
+    page = open_console(browser, stack.url, control=False)
+    cookie = next(c["value"] for c in page.context.cookies() if c["name"] == "iorthand_session")
+    received = stack.watch.safety[-1].received
+
+    async def talk() -> tuple[list[dict], int, int]:
+        import aiohttp
+
+        headers = {"Origin": stack.url, "Cookie": f"iorthand_session={cookie}"}
+        async with aiohttp.ClientSession() as s:
+            async with s.ws_connect(f"{stack.url}/ws", headers=headers) as ws:
+                for bad in ["{not json", json.dumps({"type": "twist", "id": 1, "linear": [float("1e9"), 0, 0],
+                                                      "angular": [0, 0, 0], "deadman": True, "seen": 0}),
+                            json.dumps({"type": "launch"}), json.dumps({"type": "twist", "id": 2}),
+                            "x" * 5000, json.dumps({"type": "twist", "id": 3, "linear": [0.001, 0, 0],
+                                                    "angular": [0, 0, 0], "deadman": True, "seen": 0})]:
+                    await ws.send_str(bad)
+                got: list[dict] = []
+                with contextlib.suppress(TimeoutError):
+                    while len([m for m in got if m.get("type") == "refused"]) < 6:
+                        msg = await ws.receive(timeout=2.0)
+                        if msg.type == aiohttp.WSMsgType.TEXT:
+                            got.append(json.loads(msg.data))
+            # A robot this user is not granted: refused before the upgrade.
+            try:
+                async with s.ws_connect(f"{stack.url}/ws?robot=other", headers=headers):
+                    ungranted = 101
+            except aiohttp.WSServerHandshakeError as exc:
+                ungranted = exc.status
+            try:  # and without a session at all
+                async with s.ws_connect(f"{stack.url}/ws", headers={"Origin": stack.url}):
+                    anonymous = 101
+            except aiohttp.WSServerHandshakeError as exc:
+                anonymous = exc.status
+        return got, ungranted, anonymous
+
+    got, ungranted, anonymous = in_thread(talk)
+    reasons = [m["reason"] for m in got if m.get("type") == "refused"]
+    assert any("not JSON" in r for r in reasons), reasons
+    assert any(r.startswith("message refused: linear: expected a finite number within ±1") for r in reasons), reasons
+    assert any("unknown message type 'launch'" in r for r in reasons), reasons
+    assert any("id: expected a whole number" in r or "linear: expected 3 numbers" in r for r in reasons), reasons
+    assert any("exceeds 2048" in r for r in reasons), reasons
+    assert any("take control before moving the robot" in r for r in reasons), reasons
+    assert (ungranted, anonymous) == (403, 401)
+    stats = stack.stats(cookie)["refused"]
+    assert stats["malformed"] >= 5 and stats["robot_not_granted"] >= 1 and stats["not_logged_in"] >= 1
+    assert stack.watch.safety[-1].received == received  # nothing of it reached the edge
+    page.context.close()
+
+
+def test_screenshots_of_the_console_on_a_phone_and_a_desktop(stack, browser) -> None:
+    """The README shows these (docs/images/web-console-*.png), taken while the operator drives."""
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    page = open_console(browser, stack.url)
+    page.wait_for_function("window.iorthand.video.camera.length > 2 && window.iorthand.video.ultrasound.length > 2")
+    fingers = Fingers(page)
+    drive(page, fingers, 0.6, 0.5)
+    time.sleep(1.0)
+    page.screenshot(path=str(SCREENSHOTS / "web-console-phone.png"))
+    fingers.lift(1)
+    fingers.lift(0)
+    page.click("#control")  # release
+    page.wait_for_function("document.getElementById('control').textContent === 'Take control'")
+    page.context.close()
+    desktop = browser.new_context(viewport={"width": 1280, "height": 800}, bypass_csp=True)
+    page = desktop.new_page()
+    page.goto(stack.url + "/")
+    log_in(page, "physician", PASSWORDS["physician"])
+    page.wait_for_url(stack.url + "/")
+    page.wait_for_function("window.iorthand.video.camera.length > 2")
+    page.click("#control")
+    page.wait_for_function("document.getElementById('control').textContent === 'Release control'")
+    page.keyboard.down("Space")
+    page.keyboard.down("KeyW")  # +y, held: no key repeat needed
+    time.sleep(1.0)
+    page.screenshot(path=str(SCREENSHOTS / "web-console-desktop.png"))
+    page.keyboard.up("KeyW")
+    page.keyboard.up("Space")
+    desktop.close()
+    for name in ("phone", "desktop"):
+        assert (SCREENSHOTS / f"web-console-{name}.png").stat().st_size > 20_000

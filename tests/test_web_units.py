@@ -1,0 +1,101 @@
+"""The web console's pure parts: who may log in and do what, and what a page may send."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from iorthand.security.acl import Deployment
+from iorthand_operator.web import messages, users
+from iorthand_operator.web.config import WebConfig
+
+
+def test_grants_follow_the_deployment_as_the_routers_acl_does() -> None:
+    dep = Deployment(robots=["r1", "r2"], operators={"alice": ["r1"]}, viewers=["sam"])
+    g = users.grants(dep)
+    assert g["alice"].may_command("r1") and not g["alice"].may_command("r2") and not g["alice"].may_watch("r2")
+    assert g["sam"].may_watch("r1") and g["sam"].may_watch("r2")
+    assert not g["sam"].may_command("r1")  # a viewer moves nothing
+    assert "mallory" not in g
+
+
+def test_passwords_are_stored_as_scrypt_hashes_and_checked_in_constant_time() -> None:
+    stored = users.hash_password("correct horse")
+    assert stored.startswith("scrypt$") and "correct horse" not in stored
+    assert users.check_password("correct horse", stored)
+    assert not users.check_password("correct hors", stored)
+    assert not users.check_password("x", "scrypt$bad")  # a damaged entry matches nothing
+    assert users.hash_password("pw", b"\0" * 16) == users.hash_password("pw", b"\0" * 16)
+    with pytest.raises(ValueError):
+        users.hash_password("")
+
+
+def test_the_users_file_round_trips_and_names_a_bad_line() -> None:
+    text = users.format_users({"alice": users.hash_password("a-long-pw")})
+    assert list(users.parse_users(text)) == ["alice"]
+    with pytest.raises(ValueError, match="line 2"):
+        users.parse_users("# comment\nalice:plaintext\n")
+    with pytest.raises(ValueError):
+        users.parse_users("Bad Name:scrypt$1$1$1$AA==$AA==\n")
+
+
+def test_log_ins_from_an_address_are_refused_after_repeated_failures() -> None:
+    guard = users.LoginGuard(max_failures=3, window=60.0)
+    for i in range(3):
+        assert guard.blocked("1.2.3.4", 100.0 + i) == 0
+        guard.failed("1.2.3.4", 100.0 + i)
+    assert guard.blocked("1.2.3.4", 103.0) == pytest.approx(57.0)
+    assert guard.blocked("5.6.7.8", 103.0) == 0  # another address is not punished
+    assert guard.blocked("1.2.3.4", 161.0) == 0  # the window passed
+
+
+def twist(**changes: object) -> str:
+    data = {"type": "twist", "id": 7, "linear": [0.001, 0, 0], "angular": [0, 0, 0.05], "deadman": True, "seen": 5}
+    data.update(changes)
+    return json.dumps(data)
+
+
+def test_a_twist_message_parses_to_si_velocities() -> None:
+    m = messages.parse(twist())
+    assert m == messages.Twist(7, (0.001, 0.0, 0.0), (0.0, 0.0, 0.05), True, 5)
+
+
+@pytest.mark.parametrize(("data", "problem"), [
+    ("{", "not JSON"),
+    ("[1, 2]", "expected a JSON object"),
+    (json.dumps({"type": "fly"}), "unknown message type 'fly'"),
+    (twist(linear=[0, 0]), "linear: expected 3 numbers"),
+    (twist(linear=[2.0, 0, 0]), "linear: expected a finite number within ±1"),
+    (twist(angular=[0, "x", 0]), "angular: expected a finite number"),
+    (twist(deadman=1), "deadman: expected true or false"),
+    (twist(id=-1), "id: expected a whole number"),
+    (twist(id=True), "id: expected a whole number"),
+    (twist(extra=1), "extra: unknown field of a twist message"),
+    (json.dumps({"type": "preview", "name": ""}), "name: must not be empty"),
+    (json.dumps({"type": "goto", "name": "home", "token": "t" * 200}), "token: expected text of at most 128"),
+    (json.dumps({"type": "camera", "pan": 3.0}), "pan: expected a finite number within ±1.5708"),
+    (json.dumps({"type": "camera", "torch": "on"}), "torch: expected true, false or nothing"),
+    ("x" * (messages.MAX_MESSAGE_BYTES + 1), "exceeds 2048"),
+])
+def test_bad_page_messages_are_refused_by_name(data: str, problem: str) -> None:
+    with pytest.raises(messages.PageError, match=re.escape(problem)):
+        messages.parse(data)
+
+
+def test_nan_and_infinity_never_pass() -> None:
+    for bad in ("NaN", "Infinity", "-Infinity"):
+        with pytest.raises(messages.PageError, match="finite"):
+            messages.parse(twist().replace("[0.001, 0, 0]", f"[{bad}, 0, 0]"))
+
+
+def test_a_console_reachable_from_the_network_needs_tls() -> None:
+    WebConfig(listen="127.0.0.1:8443").check()
+    WebConfig(listen="[::1]:8443").check()
+    with pytest.raises(ValueError, match="needs tls"):
+        WebConfig(listen="0.0.0.0:8443").check()
+    with pytest.raises(ValueError, match="HOST:PORT"):
+        WebConfig(listen="8443").check()
+    with pytest.raises(ValueError, match="is not an origin"):
+        WebConfig(allowed_origins=["https://proxy.example/"]).check()
