@@ -11,7 +11,7 @@ import pytest
 from textual import events
 
 from iorthand import keys
-from iorthand.protocol import ForceLevelState, TwistCommand
+from iorthand.protocol import ForceLevelState, StopCommand, TwistCommand
 from iorthand.transport import publisher
 from iorthand_operator.console.app import OperatorConsole
 from iorthand_operator.console.controller import ConsoleController
@@ -253,4 +253,64 @@ def test_gamepad_unplugged_mid_session_stops_motion(edge_factory, operator_facto
     assert any(e.kind == "input" and e.status == "input_lost" for e in client.events)
     wait_until(lambda: not np.any(client.robot_state.commanded), 2.0, message="motion to stop")
     wait_until(lambda: client.safety is not None and not client.safety.deadman, 2.0, message="deadman off")
+    ctrl.stop()
+
+
+def test_the_console_never_starts_latched_and_names_the_key_after_every_halt(edge_factory, operator_factory) -> None:
+    """A previous operator vanished (its session killed: the edge latched owner_lost). A console that starts
+    shows no latch once it holds control, and after each halt it says which key moves the robot again; one
+    press of that key does (an e-stop needed SPACE twice before, without the screen saying so)."""
+    edge = edge_factory()
+    ghost = operator_factory("sim1", "op1")
+    ghost.wait_for_state()
+    ghost.acquire()
+    with edge.lock:  # its session is gone as a killed console's is
+        edge.supervisor.owner_lost("op1", "owner 'op1' disappeared (liveliness lost)")
+    client, ctrl, app = _console(operator_factory)
+    client.wait_for_state()
+    client.start()  # as the console does: the sender first, then control
+    client.acquire()
+    ctrl.start()
+
+    async def run() -> None:
+        async with app.run_test(size=(160, 50)) as pilot:
+            # Holding control, the robot waits for a press: no latch on the screen, the key named.
+            await _wait(lambda: app.view_model.we_own and app.view_model.edge_status == "deadman_released", 5.0,
+                        "control held, no latch")
+            assert app.view_model.edge_status not in ("owner_lost", "stopped")
+            await _wait(lambda: app.view_model.hint.startswith("press SPACE to move"), 3.0, "the deadman key named")
+            x0 = client.robot_state.tcp_pose[0]
+
+            async def drive(what: str) -> None:
+                await _key(app, "space")  # one press
+                for _ in range(20):
+                    await _key(app, "w", 0.05)
+                await _wait(lambda: client.robot_state.tcp_pose[0] > x0 + 0.001, 3.0, f"motion after {what}")
+
+            await drive("the start")
+            await _key(app, "x")  # e-stop
+            await _wait(lambda: edge.supervisor.counters.stops >= 1 and not np.any(client.robot_state.commanded),
+                        3.0, "the robot stopped")
+            await _wait(lambda: app.view_model.hint.startswith("press SPACE to move"), 5.0, "the hint")
+            await pilot.pause(0.3)
+            assert not app.view_model.deadman  # the toggle was forgotten: nothing moves by itself
+            assert not np.any(client.robot_state.commanded)
+            x0 = client.robot_state.tcp_pose[0]
+            await drive("the e-stop")  # a single SPACE
+            # A stop from someone else while this operator drives: the edge latches, the console forgets its
+            # toggle and names the key; one press moves again.
+            other = client.session.declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP))
+            other.put(StopCommand(operator="nurse", reason="patient moved").stamp(1).encode())
+            await _wait(lambda: "patient moved" in " ".join(app.view_model.events), 3.0, "the stop logged")
+            await _wait(lambda: not app.view_model.deadman and app.view_model.hint.startswith("press SPACE to move"),
+                        5.0, "the hint after someone else's stop")
+            x0 = client.robot_state.tcp_pose[0]
+            await drive("someone else's stop")
+            other.undeclare()
+            # The footer names the keys, the one that quits among them.
+            shown = {k.key: k.description for k in app.screen.query("FooterKey")}
+            assert shown.get("q") == "quit" and "ctrl+c" not in shown, shown
+            assert shown.get("x") == "e-stop" and shown.get("space") == "deadman", shown
+
+    asyncio.run(run())
     ctrl.stop()

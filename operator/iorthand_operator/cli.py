@@ -104,12 +104,12 @@ def _console(args: argparse.Namespace) -> int:
     client = connect(config)
     controller = ConsoleController(client, device, config.console, router=", ".join(config.zenoh.connect))
     try:
+        client.start()  # the sender before control: the lease starts when the first command can go
         try:
             client.acquire(config.profile)
         except ControlRefused as exc:
             # Stay up and show why (the log line is in the console); "e" asks again.
             log.warning("control refused: %s", exc)
-        client.start()
         controller.start()
         return OperatorConsole(controller).run() or 0
     finally:
@@ -132,12 +132,14 @@ def _run_with_control(args: argparse.Namespace, action) -> int:
     client = connect(config)
     try:
         client.wait_for_state(timeout=10.0)
+        # The sender first (its process can take seconds to start on a loaded machine), then control: the lease
+        # starts when the first command is ready to go, never before.
+        client.start()
         try:
             client.acquire(config.profile)
         except ControlRefused as exc:
             print(f"iorthand operator: control refused: {exc}", file=sys.stderr)
             return 3
-        client.start()
         result = action(client)
         print(json.dumps(json_safe(result), indent=2))
         return 0
@@ -148,7 +150,7 @@ def _run_with_control(args: argparse.Namespace, action) -> int:
 
 def _move(args: argparse.Namespace) -> int:
     linear = np.array([args.vx, args.vy, args.vz])
-    return _run_with_control(args, lambda c: move(c, linear, np.zeros(3), args.seconds))
+    return _run_with_control(args, lambda c: move(c, linear, np.zeros(3), args.seconds, args.patience))
 
 
 def _stop(args: argparse.Namespace) -> int:
@@ -198,7 +200,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--vx", type=cli_number(float, lo=-1.0, hi=1.0), default=0.0, help="m/s")
     m.add_argument("--vy", type=cli_number(float, lo=-1.0, hi=1.0), default=0.0, help="m/s")
     m.add_argument("--vz", type=cli_number(float, lo=-1.0, hi=1.0), default=0.0, help="m/s")
-    m.add_argument("--seconds", type=cli_number(float, lo=0.1, hi=600.0), default=1.0)
+    m.add_argument("--seconds", type=cli_number(float, lo=0.1, hi=600.0), default=1.0,
+                   help="s of motion (a halt on the way is recovered from and does not count)")
+    m.add_argument("--patience", type=cli_number(float, lo=0.0, hi=3600.0), default=30.0,
+                   help="s the move may take beyond --seconds to recover from halts (a lost lease, a dead link)")
     m.add_argument("--profile", help="speed profile to ask for (local, remote)", default=argparse.SUPPRESS)
     m.set_defaults(func=_move)
 

@@ -56,6 +56,7 @@ from iorthand.protocol import (
 )
 from iorthand.security import auth
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
+from iorthand_operator import recovery
 from iorthand_operator.link import LinkQuality, LinkWindow
 from iorthand_operator.sender import CommandStream, ProcessSender, run_fixed_rate
 
@@ -130,6 +131,9 @@ class OperatorClient:
         self._key_gen = 0
         self._key_at = 0.0  # monotonic time the key arrived; a deadman press from before it starts nothing
         self._pressed_at = 0.0  # monotonic time the deadman was last pressed
+        # Monotonic time the edge entered its latest halt that waits for a fresh press or a new grant
+        # (recovery.REPRESS, recovery.REACQUIRE): a press after it is fresh intent (CommandStream).
+        self._halted_at = -math.inf
         self._acquire_lock = threading.Lock()
         self._heartbeat = time.monotonic()  # the UI is alive (see CommandStream): beaten by the link thread
         self._state_t = 0  # source time (ns) of the newest robot state: each command states its age
@@ -398,7 +402,8 @@ class OperatorClient:
             with self._lock:
                 self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at,
                                         muted=self._muted, pressed_at=self._pressed_at, key=self._key,
-                                        key_gen=self._key_gen, key_at=self._key_at, state_t=self._state_t)
+                                        key_gen=self._key_gen, key_at=self._key_at, state_t=self._state_t,
+                                        halted_at=self._halted_at)
             self._proc_sender.start()
             self.sender_priority = f"{self._proc_sender.priority} (process {self._proc_sender.proc.pid})"
         elif not self.external_sender:
@@ -435,7 +440,7 @@ class OperatorClient:
         with self._lock:
             out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
                                     self._muted, self._heartbeat, self._state_t if state_t is None else state_t,
-                                    self._key_gen, self._key, self._pressed_at, self._key_at)
+                                    self._key_gen, self._key, self._pressed_at, self._key_at, self._halted_at)
         if out is None:
             return None
         cmd, payload = out
@@ -530,6 +535,11 @@ class OperatorClient:
         msg = self._decode(SafetyStatus, sample)
         if msg is not None:
             self.safety = msg
+            if msg.status != self._last_safety_status and msg.status in recovery.REPRESS | recovery.REACQUIRE:
+                with self._lock:
+                    self._halted_at = time.monotonic()
+                    if self._proc_sender is not None:
+                        self._proc_sender.write(halted_at=self._halted_at)
             if msg.status != self._last_safety_status:
                 self._last_safety_status = msg.status
                 if msg.status in STOP_STATUSES:
@@ -595,7 +605,7 @@ class OperatorClient:
         if sent is not None:
             self.link.echoed(msg.cmd_seq, sent, now)
             if self.echo_listener is not None:
-                self.echo_listener(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status), msg)
+                self.echo_listener(self.echoes[-1], msg)
         if not msg.accepted:
             self.last_refusal = msg
             # One log line per distinct refusal, not one per command at 60 Hz.
@@ -604,6 +614,44 @@ class OperatorClient:
                 self.log_event("refused", msg.status, msg.reason)
         else:
             self._last_refusal_key = None
+
+    # ------------------------------------------------------------------ what stands between us and motion
+
+    @property
+    def halted_at(self) -> float:
+        """Monotonic time the edge entered its latest halt that waits for a fresh press or a new grant."""
+        return self._halted_at
+
+    def next_step(self) -> recovery.NextStep:
+        """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`)."""
+        fresh = self._deadman and self._pressed_at > max(self._halted_at, self._key_at)
+        return recovery.next_step(self.operator_id, self.owner, self.safety, fresh)
+
+    def recover(self) -> recovery.NextStep:
+        """For a client whose intent is its command (a headless move, a script): take the step itself. It
+        acquires control again, or presses the deadman afresh (the stream sends the release the edge waits for
+        first). Returns the step that was needed, ``Step.NONE`` when nothing was."""
+        step = self.next_step()
+        if step.step is recovery.Step.ACQUIRE:
+            try:
+                self.acquire()
+                self.log_event("control", "recovered", f"control taken again ({step.why})")
+            except ControlRefused as exc:
+                return recovery.NextStep(recovery.Step.WAIT, f"control refused: {exc}")
+        elif step.step is recovery.Step.PRESS and self._deadman:
+            with self._lock:
+                self._pressed_at = time.monotonic()
+                if self._proc_sender is not None:
+                    self._proc_sender.write(pressed_at=self._pressed_at)
+            self.log_event("control", "recovered", f"deadman pressed afresh ({step.why})")
+        return step
+
+    def driving(self, within: float = 0.1) -> bool:
+        """The edge accepted a command of ours with the deadman held within the last ``within`` s (its limits may
+        have clipped the twist, even to zero at a force or workspace limit: that is driving, not a halt)."""
+        echo = self.echoes[-1] if self.echoes else None
+        return (echo is not None and echo.accepted and echo.status != Status.NO_DEADMAN
+                and time.time_ns() - echo.echoed_ns <= within * 1e9)
 
     def wait_for_echoes(self, timeout: float = 0.5) -> None:
         """Wait until every command sent so far has its echo (or ``timeout``): counts of sends and echoes taken

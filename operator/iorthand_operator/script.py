@@ -14,7 +14,9 @@ A script file::
       - {action: stop, reason: end of scan}
 
 Steps run on the same client and fixed-rate sender as the console; the summary reports per step what was
-sent, echoed, accepted or refused (with the distinct refusal reasons) and how far the tool moved.
+sent, echoed, accepted or refused (with the distinct refusal reasons) and how far the tool moved. A motion step
+(a twist with the deadman held) lasts until the robot has moved for its duration: a lost lease, a dead link or
+a halt on the way is recovered from by the script itself (its intent is clear), within ``patience`` s.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import numpy as np
 from iorthand import stats
 from iorthand.config import setting
 from iorthand_operator.client import ControlRefused, OperatorClient
+from iorthand_operator.scripted import drive_for
 
 STEP_ACTIONS = ("stop", "torch", "servo", "profile", "silence")
 
@@ -65,6 +68,8 @@ class Script:
     name: str = "script"
     profile: str = ""
     settle: float = setting(0.5, lo=0.0, hi=30.0, help="s to wait for echoes and rest after the last step")
+    patience: float = setting(30.0, lo=0.0, hi=3600.0,
+                              help="s a motion step may take beyond its duration to recover from halts")
     steps: list[ScriptStep] = field(default_factory=list)
 
     def check(self) -> None:
@@ -81,15 +86,19 @@ def _mm(p: np.ndarray | None) -> list[float] | None:
     return None if p is None else (1000 * p).round(2).tolist()
 
 
-def run_step(client: OperatorClient, step: ScriptStep) -> dict[str, Any]:
+def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -> dict[str, Any]:
     start, sent0, echo0, ev0 = _pos(client), client.sent_count, len(client.echoes), len(client.events)
     t0 = time.monotonic()
     zero = np.zeros(3)
     stop_ms: float | None = None
+    recoveries: list[str] = []
     if step.twist is not None:
         tw = np.asarray(step.twist, float)
         client.set_twist(tw[:3], tw[3:], deadman=step.deadman)
-        time.sleep(step.duration)
+        if step.deadman and np.any(tw):  # a motion: it goes on through halts until done (drive_for)
+            _, recoveries = drive_for(client, step.duration, patience)
+        else:
+            time.sleep(step.duration)
     elif step.wait is not None:
         client.set_twist(zero, zero, deadman=False)
         time.sleep(step.wait)
@@ -126,6 +135,7 @@ def run_step(client: OperatorClient, step: ScriptStep) -> dict[str, Any]:
         "accepted": sum(e.accepted for e in echoes),
         "refused": sum(not e.accepted for e in echoes),
         "events": [f"{e.kind} {e.status}: {e.reason}" for e in list(client.events)[ev0:]],
+        **({"recoveries": recoveries} if recoveries else {}),
         **({"deadman_stop_ms": stop_ms} if step.action == "silence" else {}),
     }
 
@@ -152,7 +162,7 @@ def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
     """Play ``script`` on a started client that holds control; return the JSON-able summary."""
     client.wait_for_echoes()  # the grant's release, sent as the client started, is not the script's
     start, sent0, echo0 = _pos(client), client.sent_count, len(client.echoes)
-    steps = [run_step(client, step) for step in script.steps]
+    steps = [run_step(client, step, script.patience) for step in script.steps]
     client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
     time.sleep(script.settle)
     end = _pos(client)

@@ -1,4 +1,5 @@
-"""``iorthand operator move``: one constant-velocity motion and a JSON-able summary of it."""
+"""``iorthand operator move``: one constant-velocity motion and a JSON-able summary of it; the motion of the
+headless clients goes on through lost leases, dead links and halts (:func:`drive_for`)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import time
 import numpy as np
 
 from iorthand import stats
+from iorthand_operator import recovery
 from iorthand_operator.client import OperatorClient
 
 
@@ -23,12 +25,44 @@ def _wait_still(client: OperatorClient, timeout: float = 2.0) -> None:
         time.sleep(0.01)
 
 
-def move(client: OperatorClient, linear: np.ndarray, angular: np.ndarray, seconds: float) -> dict:
-    """Hold the deadman and command a constant twist for ``seconds``, release, wait for rest."""
+# A headless client recovers when the edge has not driven the robot for this long (shorter: a command on its way).
+STALL_S = 0.25
+
+
+def drive_for(client: OperatorClient, seconds: float, patience: float) -> tuple[float, list[str]]:
+    """Hold the deadman with the client's twist until the edge has driven the robot for ``seconds`` in all
+    (accepted the commands: its limits may clip them, a force or workspace limit even to zero).
+
+    The intent is clear (the caller asked for this motion), so whatever halts it on the way — a lost lease, a
+    dead link, a stop that waits for a fresh press — the client takes the step itself (:meth:`recover`) and
+    the motion goes on. Gives up ``patience`` s after it would have finished. Returns (s moved, what it did)."""
+    moved, actions = 0.0, []
+    last = time.monotonic()
+    still_since = last
+    give_up = last + seconds + patience
+    while moved < seconds and time.monotonic() < give_up:
+        time.sleep(0.01)
+        now = time.monotonic()
+        if client.driving():
+            moved += now - last
+            still_since = now
+        elif now - still_since > STALL_S:
+            step = client.recover()
+            if step.step is not recovery.Step.NONE and (not actions or actions[-1] != f"{step.step.value}: {step.why}"):
+                actions.append(f"{step.step.value}: {step.why}")
+            still_since = now  # give what it did time to take effect
+        last = now
+    return moved, actions
+
+
+def move(client: OperatorClient, linear: np.ndarray, angular: np.ndarray, seconds: float,
+         patience: float = 30.0) -> dict:
+    """Hold the deadman and command a constant twist until the robot has moved for ``seconds`` (recovering from
+    halts on the way, :func:`drive_for`), release, wait for rest."""
     start = _position(client)
     first_echo = len(client.echoes)
     client.set_twist(linear, angular, deadman=True)
-    time.sleep(seconds)
+    moved_s, recoveries = drive_for(client, seconds, patience)
     client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
     _wait_still(client)
     end = _position(client)
@@ -45,4 +79,7 @@ def move(client: OperatorClient, linear: np.ndarray, angular: np.ndarray, second
         "refused": sum(not e.accepted for e in echoes),
         "last_refusal": client.last_refusal.reason if client.last_refusal else "",
         "rtt_ms": {k: round(v, 3) for k, v in stats.summary([e.rtt_ms for e in echoes]).items()},
+        "moved_s": round(moved_s, 3),
+        "completed": moved_s >= seconds,
+        "recoveries": recoveries,
     }

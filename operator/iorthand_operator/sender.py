@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import multiprocessing as mp
 import os
 import struct
@@ -45,11 +46,11 @@ from iorthand.transport import raise_priority
 log = logging.getLogger("iorthand.operator.sender")
 
 # Shared array layout (doubles). The grant's key (bytes) is in a second array, written under the same seqlock.
-_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN, _PRESSED, _KEY_AT = (
-    0, 1, 7, 8, 9, 10, 11, 12, 13, 14, 15)
-_SIZE = 16
+_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN, _PRESSED, _KEY_AT, _HALTED = (
+    0, 1, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16)
+_SIZE = 17
 _FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT, "stop": _STOP,
-           "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "key_at": _KEY_AT}
+           "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "key_at": _KEY_AT, "halted_at": _HALTED}
 _RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
 
 
@@ -80,7 +81,9 @@ class CommandStream:
     key (a new grant of control) restarts the sequence at 1, as the edge expects, and its first command is a
     release: the edge moves nothing under a grant before it has seen the deadman released and pressed. A press
     that began before the grant (``pressed_at`` < ``key_at``: the client re-acquired by itself, after an edge
-    restart or a lost lease) counts as released until the operator releases and presses again."""
+    restart or a lost lease) counts as released until the operator releases and presses again. A press that
+    begins after the edge halted in a state that waits for a fresh press (``halted_at``: a stop, a long gap) is
+    that fresh intent: if no release has gone out since the halt, this tick sends one, and the press the next."""
 
     def __init__(self, robot: str, operator_id: str, release_tail: float, ui_timeout: float) -> None:
         self.operator_id = operator_id
@@ -91,10 +94,11 @@ class CommandStream:
         self._key_gen = -1.0
         self._release_first = False
         self._stale_since: float | None = None
+        self._release_sent_at = -math.inf  # monotonic time of the last command with the deadman released
 
     def next(self, now: float, twist: Any, deadman: bool, released_at: float, muted: bool, heartbeat: float,
              state_t: float, key_gen: float, key: bytes, pressed_at: float = 0.0,
-             key_at: float = 0.0) -> tuple[TwistCommand, bytes] | None:
+             key_at: float = 0.0, halted_at: float = -math.inf) -> tuple[TwistCommand, bytes] | None:
         if now - heartbeat > self.ui_timeout:  # the UI is frozen (or gone): release the deadman
             if self._stale_since is None:
                 self._stale_since = now
@@ -111,8 +115,12 @@ class CommandStream:
             return None
         if self._release_first:
             self._release_first, deadman = False, False
+        elif deadman and pressed_at > halted_at > self._release_sent_at:
+            deadman = False  # a fresh press after a halt: the release the edge waits for goes first
         elif not deadman and now - released_at > self.release_tail:
             return None  # quiet
+        if not deadman:
+            self._release_sent_at = now
         self.seq += 1
         t = time.time_ns()
         # The age of the newest robot state this operator has, on the edge's clock as the state was stamped
@@ -353,7 +361,7 @@ def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandS
                 return False
             out = stream.next(time.monotonic(), vals[_TWIST:_TWIST + 6], bool(vals[_DEADMAN]), vals[_RELEASED],
                               bool(vals[_MUTED]), vals[_HEARTBEAT], vals[_STATE_T], vals[_KEY_GEN],
-                              k if any(k) else b"", vals[_PRESSED], vals[_KEY_AT])
+                              k if any(k) else b"", vals[_PRESSED], vals[_KEY_AT], vals[_HALTED])
             if out is not None:
                 cmd, payload = out
                 conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic()))

@@ -151,7 +151,14 @@ class OperatorConsole(App[int]):
     #force { border: round $primary; padding: 0 1; }
     #events { border: round $primary; height: 1fr; min-height: 6; }
     """
-    BINDINGS: ClassVar = [Binding("ctrl+c", "quit_console", "quit", priority=True)]
+    # The footer names the keys of the default keymap; ctrl+c also quits but is not the key to show.
+    BINDINGS: ClassVar = [
+        Binding("ctrl+c", "quit_console", "quit", priority=True, show=False),
+        Binding("q", "quit_console", "quit"),
+        Binding("x", "keymap('estop')", "e-stop"),
+        Binding("e", "keymap('acquire')", "take control"),
+        Binding("space", "keymap('deadman')", "deadman"),
+    ]
 
     def __init__(self, controller: ConsoleController) -> None:
         super().__init__()
@@ -214,6 +221,9 @@ class OperatorConsole(App[int]):
     def action_quit_console(self) -> None:
         self.exit(0)
 
+    def action_keymap(self, binding: str) -> None:
+        """Footer entries for keys the keymap handles (on_key, before any binding): nothing more to do here."""
+
     # ------------------------------------------------------------------ rendering
 
     def refresh_view(self) -> None:
@@ -253,6 +263,8 @@ class OperatorConsole(App[int]):
         t.add_row("owner", Text(v.owner or "nobody", style="bold green" if v.we_own else "bold yellow"))
         t.add_row("deadman", Text.assemble("sent ", _yes(v.deadman, "ON", "off"), "  edge ", _yes(v.edge_deadman, "ON", "off")))
         t.add_row("status", Text(f"{v.edge_status} {v.edge_reason}".strip() or "—", style="red" if v.edge_reason and v.edge_status not in ("ok", "idle") else ""))
+        if v.hint:
+            t.add_row("next", Text(v.hint, style="bold yellow"))
         return t
 
     def _force(self, v: ConsoleView) -> Table:

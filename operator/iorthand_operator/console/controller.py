@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from iorthand_operator import recovery
 from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.console.model import ForceView, LinkRow, force_view, link_rows, next_profile, sparkline
 from iorthand_operator.console.settings import ConsoleSettings
@@ -46,6 +47,7 @@ class ConsoleView:
     deadman: bool = False  # what we send
     edge_status: str = ""
     edge_reason: str = ""
+    hint: str = ""  # what to do before the robot moves again, with the key that does it ("" when nothing)
     force: ForceView = field(default_factory=lambda: force_view(None, 0.0, 0.0, 1.0))
     wrench: list[float] = field(default_factory=list)
     spark: str = ""
@@ -87,6 +89,7 @@ class ConsoleController:
         self.on_ui_action = on_ui_action  # "poses", "quit": the UI's business
         self.sample = InputSample()
         self._input_was_connected = True
+        self._halted_at = client.halted_at
         self._stop = threading.Event()
         self._actions: queue.Queue[str] = queue.Queue(maxsize=64)
         self._threads: list[threading.Thread] = []
@@ -122,6 +125,11 @@ class ConsoleController:
             self._stop.wait(period)
 
     def poll_once(self, now: float) -> InputSample:
+        if self.client.halted_at != self._halted_at:
+            # The edge halted (a stop, a long gap, a lost grant): a toggled deadman from before is no intent to
+            # move now. The operator's next press is, and the hint says which key it is.
+            self._halted_at = self.client.halted_at
+            self.device.release_deadman()
         sample = self.device.poll(now)
         if not sample.connected:
             sample.twist, sample.deadman = np.zeros(6), False
@@ -137,7 +145,9 @@ class ConsoleController:
 
     def dispatch(self, action: str) -> None:
         if action == "estop":
-            # At once, on this thread: a stop must not wait behind a slow query.
+            # At once, on this thread: a stop must not wait behind a slow query. A toggled deadman is forgotten
+            # first, so the next poll cannot press it again.
+            self.device.release_deadman()
             self.client.emergency_stop("operator e-stop key")
         elif action in ("poses", "quit"):
             if self.on_ui_action is not None:
@@ -212,6 +222,8 @@ class ConsoleController:
             v.limits_hit = list(safety.limits_hit)
             v.edge_judged, v.edge_superseded = safety.received, safety.superseded
         v.deadman = self.sample.deadman
+        d = self.device
+        v.hint = recovery.hint(c.next_step(), d.control_name("acquire"), d.control_name("deadman"), d.deadman_toggles)
         v.force = force_view(c.force_level, c.force_level_at, now, s.force_stale_after)
         if c.force is not None and now - c.force_at <= s.force_stale_after:
             v.wrench = [*c.force.force, *c.force.torque]

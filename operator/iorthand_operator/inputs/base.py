@@ -53,6 +53,17 @@ class InputDevice(ABC):
     def close(self) -> None:  # noqa: B027 (optional hook)
         """Release the device."""
 
+    # Whether the deadman stays on by itself once pressed (a toggle key) rather than only while held.
+    deadman_toggles: bool = False
+
+    def release_deadman(self) -> None:  # noqa: B027 (a held control has nothing to forget)
+        """Forget a deadman the device keeps on by itself (a toggle): after an e-stop or a halt, only a new
+        press may count as the operator's intent. A held button or key needs no forgetting: it is let go."""
+
+    def control_name(self, binding: str) -> str:
+        """What the operator presses for ``binding`` ("deadman", "acquire", ...), as the screen names it."""
+        return binding
+
     @staticmethod
     def idle(status: str, connected: bool = True, actions: list[str] | None = None) -> InputSample:
         """No motion, no deadman: what a device returns whenever it cannot vouch for the operator."""

@@ -111,6 +111,12 @@ class GamepadInput(InputDevice):
             if action:
                 self._actions.append(action)
 
+    def control_name(self, binding: str) -> str:
+        if binding == "deadman":
+            return f"button {self.config.enable_button}"
+        button = self.config.buttons.get(binding)
+        return f"button {button}" if button is not None else binding
+
     def poll(self, now: float) -> InputSample:
         with self._lock:
             if not self._initialised:

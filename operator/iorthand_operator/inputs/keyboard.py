@@ -128,6 +128,20 @@ class KeyboardInput(InputDevice):
                 self._actions.append(binding)
         return True
 
+    @property
+    def deadman_toggles(self) -> bool:  # type: ignore[override]
+        return self.config.deadman_mode == "toggle"
+
+    def release_deadman(self) -> None:
+        with self._lock:
+            self._deadman_on = False
+
+    def control_name(self, binding: str) -> str:
+        if binding == "deadman" and self.config.deadman_mode == "motion":
+            return "a move key"
+        key = next((k for k, b in self.config.keys.items() if b == binding), None)
+        return key.upper() if key else binding
+
     def release_all(self) -> None:
         """Forget every held key and the deadman (focus lost, screen changed)."""
         with self._lock:

@@ -44,6 +44,7 @@ from iorthand.config import read_yaml
 from iorthand.protocol import DecodeError, Sequencer, StopCommand, VideoFrame
 from iorthand.security.acl import Deployment
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
+from iorthand_operator import recovery
 from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient
 from iorthand_operator.console.model import force_view
 from iorthand_operator.link import GRADE_COLOURS, LinkThresholds
@@ -467,6 +468,11 @@ class Page:
             out["torch"] = w.torch.on
         holder = self.bridge.controllers.get(self.robot)
         out["control"] = {"mine": self.client is not None and self.client.owner, "here": holder.grant.user if holder else ""}
+        if self.grant.may_command(self.robot):
+            # What stands between this page and motion, with the page's own controls named.
+            step = self.client.next_step() if self.client is not None else recovery.NextStep(
+                recovery.Step.ACQUIRE, "this page does not hold control")
+            out["hint"] = recovery.hint(step, "Take control", "HOLD", toggle=False)
         events = self._new_events("watch", w.events)
         if self.client is not None:
             q = self.client.link_quality()

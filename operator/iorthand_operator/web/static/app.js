@@ -278,7 +278,7 @@ function onState(s) {
     const c = s.commanded || [0, 0, 0];
     const speed = Math.hypot(c[0], c[1], c[2]) * 1000;
     const moving = speed > 0.05 ? `moving at ${speed.toFixed(1)} mm/s (limit ${(sf.linear_limit * 1000).toFixed(0)} mm/s, ${sf.profile})` : "";
-    setStatus(sf.status, sf.reason || moving || (sf.armed ? "" : "not armed"),
+    setStatus(sf.status, s.hint || sf.reason || moving || (sf.armed ? "" : "not armed"),
       HALTS.has(sf.status) ? "red" : sf.status === "ok" ? "green" : "");
   }
   const f = s.force || {};

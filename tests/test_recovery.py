@@ -1,0 +1,133 @@
+"""Clients that recover (issue 24): what an operator must do before the robot moves again, and headless clients
+(``move``, ``script``) that do it themselves and complete their motion after a dead link or a lost lease."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from iorthand.protocol import SafetyStatus, Status
+from iorthand.transport import ZenohConfig, open_session
+from iorthand_operator import recovery
+from iorthand_operator.bench.linkemu import LinkEmulator, LinkProfile
+from iorthand_operator.client import OperatorClient
+from iorthand_operator.script import Script, ScriptStep, run_script
+from iorthand_operator.scripted import move
+
+
+def status(code: Status, owner: str = "me", armed: bool = True, reason: str = "") -> SafetyStatus:
+    return SafetyStatus(armed=armed, owner=owner, status=code, reason=reason)
+
+
+@pytest.mark.parametrize(("safety", "owner_held", "fresh", "step"), [
+    (None, True, True, recovery.Step.WAIT),
+    (status(Status.OK), True, True, recovery.Step.NONE),
+    (status(Status.OK, armed=False), True, True, recovery.Step.WAIT),
+    (status(Status.OK, owner="alice"), False, False, recovery.Step.WAIT),
+    (status(Status.IDLE, owner=""), False, False, recovery.Step.ACQUIRE),
+    (status(Status.OWNER_LOST, owner=""), True, True, recovery.Step.ACQUIRE),  # the client does not know yet
+    (status(Status.FAULT), True, True, recovery.Step.ACQUIRE),
+    (status(Status.STOPPED), True, False, recovery.Step.PRESS),  # a press held through the stop: not fresh
+    (status(Status.STOPPED), True, True, recovery.Step.NONE),  # pressed afresh: on its way
+    (status(Status.LINK_GAP), True, False, recovery.Step.PRESS),
+    (status(Status.NO_DEADMAN), True, False, recovery.Step.PRESS),
+])
+def test_the_next_step_follows_what_the_edge_says(safety, owner_held, fresh, step) -> None:
+    assert recovery.next_step("me", owner_held, safety, fresh).step is step
+
+
+def test_the_hint_names_the_key() -> None:
+    press = recovery.NextStep(recovery.Step.PRESS, "stop from nurse")
+    assert recovery.hint(press, "E", "SPACE", toggle=True) == "press SPACE to move again (stop from nurse)"
+    assert recovery.hint(press, "E", "button 4", toggle=False).startswith("release button 4 and press it again")
+    acquire = recovery.NextStep(recovery.Step.ACQUIRE, "lease of 'me' expired")
+    assert recovery.hint(acquire, "E", "SPACE", toggle=True) == "press E to take control (lease of 'me' expired)"
+    assert recovery.hint(recovery.NextStep(recovery.Step.NONE, ""), "E", "SPACE", True) == ""
+
+
+@pytest.fixture
+def relayed_client(router_endpoint, edge_factory):
+    """The edge on the router directly; the operator through a relay that can black the link out."""
+    edge = edge_factory("sim1")
+    host, port = router_endpoint.split("/", 1)[1].rsplit(":", 1)
+    emu = LinkEmulator(("127.0.0.1", 0), (host, int(port)), LinkProfile(0.0, 0.0)).start()
+    session = open_session(ZenohConfig(mode="client", connect=[f"tcp/127.0.0.1:{emu.port}"], lease_ms=2000,
+                                       shared_memory=False))
+    client = OperatorClient(session, "sim1", "op1")
+    client.wait_for_state()
+    yield edge, emu, client
+    client.close()
+    session.close()
+    emu.close()
+
+
+def _blackout_after(emu: LinkEmulator, client: OperatorClient, moved_s: float, seconds: float) -> threading.Thread:
+    """Black the link out for ``seconds`` once the robot has moved for about ``moved_s``."""
+    def run() -> None:
+        deadline = time.monotonic() + 20
+        while sum(e.accepted and e.status != Status.NO_DEADMAN for e in client.echoes) < 60 * moved_s and \
+                time.monotonic() < deadline:
+            time.sleep(0.01)
+        emu.blackout(True)
+        time.sleep(seconds)
+        emu.blackout(False)
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t
+
+
+@pytest.mark.slow
+def test_move_completes_its_motion_after_a_3_s_blackout(relayed_client) -> None:
+    edge, emu, client = relayed_client
+    client.start()
+    client.acquire()
+    x0 = client.robot_state.tcp_pose[0]
+    blackout = _blackout_after(emu, client, 0.5, 3.0)
+    result = move(client, np.array([0.005, 0.0, 0.0]), np.zeros(3), 2.0, patience=20.0)
+    blackout.join()
+    assert result["completed"], result
+    assert any(r.startswith("acquire") for r in result["recoveries"]), result["recoveries"]
+    # 2 s at 5 mm/s: the distance the operator asked for, dead link or not (the edge stopped during it).
+    assert client.robot_state.tcp_pose[0] - x0 == pytest.approx(0.010, abs=0.002)
+    assert edge.supervisor.counters.stops >= 1  # the edge did stop the robot while the link was dead
+
+
+@pytest.mark.slow
+def test_move_completes_its_motion_after_a_lease_lost_on_a_slow_start(router_endpoint, edge_factory,
+                                                                        operator_factory) -> None:
+    """The client acquired, then took longer than the lease to send its first command (a loaded machine): the
+    edge took control back; the move acquires again and completes."""
+    edge = edge_factory("sim1")
+    client = operator_factory("sim1", "op1")
+    client.wait_for_state()
+    client.acquire()
+    time.sleep(edge.config.safety.lease + 1.0)  # no renewal, no command: the lease runs out
+    assert edge.supervisor.owner == ""
+    grants = client._key_gen
+    client.start()
+    x0 = client.robot_state.tcp_pose[0]
+    result = move(client, np.array([0.005, 0.0, 0.0]), np.zeros(3), 1.0, patience=10.0)
+    assert result["completed"], result
+    assert client._key_gen > grants  # control was granted anew (by the renewal or the move's own acquire)...
+    assert result["recoveries"], result  # ...and the move pressed afresh under it
+    assert client.robot_state.tcp_pose[0] - x0 == pytest.approx(0.005, abs=0.0015)
+
+
+@pytest.mark.slow
+def test_a_script_completes_its_motion_after_a_3_s_blackout(relayed_client) -> None:
+    _edge, emu, client = relayed_client
+    client.start()
+    client.acquire()
+    y0 = client.robot_state.tcp_pose[1]
+    script = Script(name="scan", steps=[ScriptStep(twist=[0.0, 0.005, 0.0, 0.0, 0.0, 0.0], duration=2.0),
+                                        ScriptStep(wait=0.3)], patience=20.0)
+    blackout = _blackout_after(emu, client, 0.5, 3.0)
+    result = run_script(client, script)
+    blackout.join()
+    step = result["steps"][0]
+    assert any(r.startswith("acquire") for r in step["recoveries"]), step
+    assert client.robot_state.tcp_pose[1] - y0 == pytest.approx(0.010, abs=0.002), result
