@@ -289,3 +289,69 @@ def test_export_shows_why_a_video_stopped_instead_of_its_last_picture(monkeypatc
              if isinstance(item, rr.TextLog)]
     assert texts == [("WARN", "camera video has no frames: no frame from video device '0' for 2 s (the edge retries)"),
                      ("INFO", "camera video back: frames flow again")]
+
+
+def test_report_repairs_a_session_whose_recorder_was_killed_without_restarting_it(
+        router_endpoint, session_factory, tmp_path: Path) -> None:
+    """``iorthand report`` on the folder of a recorder killed with SIGKILL: no recorder restart, the report
+    repairs the session itself (the writer's lock died with it) and loses at most the last second."""
+    cfg = tmp_path / "recorder.yaml"
+    out = tmp_path / "rec"
+    cfg.write_text(yaml.safe_dump({"zenoh": {"mode": "client", "connect": [router_endpoint]},
+                                   "output_dir": str(out), "flush_interval": 0.5}))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "iorthand.cli", "recorder", "--config", str(cfg), "--start-now", "--session", "k"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    )
+    try:
+        s = session_factory()
+        wait_until(lambda: (out / "k" / mf.MANIFEST).exists(), timeout=20, message="recorder started")
+        assert mf.writer_alive(out / "k")  # recording: a reader leaves it alone
+        sim = SyntheticSession(s, "sim1", 30.0, rates={keys.VIDEO_CAMERA: 0.0, keys.MARKERS: 0.0})
+        sim.start()
+        time.sleep(3.0)
+        kill_ns = time.time_ns()
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(5)
+        sim.stop()
+        sim.join(2)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    folder = out / "k"
+    assert not has_footer(folder / "telemetry-0001.mcap") and not mf.writer_alive(folder)
+    done = subprocess.run([sys.executable, "-m", "iorthand.cli", "report", str(folder)], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    report = json.loads((folder / "report" / "report.json").read_text())
+    assert report["recording"]["repair"].startswith("the recorder stopped without closing this session: repaired")
+    assert report["status"] == mf.RECOVERED and report["duration_s"] >= 2.0
+    assert has_footer(folder / "telemetry-0001.mcap")
+    last = max(r.log_time for r in iter_records(folder))
+    assert kill_ns - last <= 1_000_000_000, f"lost {(kill_ns - last) / 1e9:.3f} s"
+
+
+def test_a_report_of_a_session_still_recording_reads_it_and_touches_nothing(router_endpoint, session_factory,
+                                                                           tmp_path: Path) -> None:
+    svc = RecorderService(recorder_config(router_endpoint, tmp_path / "rec"))
+    svc.start()
+    s = session_factory()
+    sim = SyntheticSession(s, "sim1", 30.0, rates={keys.VIDEO_CAMERA: 0.0, keys.MARKERS: 0.0})
+    time.sleep(0.3)
+    assert client.start(s, session_id="live").ok
+    sim.start()
+    try:
+        time.sleep(2.0)
+        folder = svc.config.output_dir / "live"
+        before = {p.name: p.stat().st_size for p in folder.glob("*.mcap")}
+        data = build_report(folder, ReportConfig(plots=False), tmp_path / "report")
+        assert data["recording"]["repair"] == "still being recorded: read as far as it is written"
+        assert data["robots"]["sim1"]["index"]["t_t"] > 0.5  # it read what is written so far
+        assert mf.Manifest.read(folder).status == mf.RECORDING
+        assert all(folder.joinpath(n).stat().st_size >= size for n, size in before.items())  # nothing rewritten
+    finally:
+        sim.stop()
+        sim.join(2)
+        assert client.stop(s).ok
+        svc.shutdown()

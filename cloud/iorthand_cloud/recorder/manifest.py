@@ -2,6 +2,12 @@
 
 :class:`KeyStats` is pure logic (counting messages, bytes, malformed payloads and sequence gaps); the manifest
 is written atomically (temporary file + rename) so a crash leaves either the previous or the new version.
+
+The process that writes a manifest saying ``recording`` holds the session's writer lock (an advisory ``flock`` on
+``.writer.lock`` in its folder) until it writes another status: :func:`writer_alive` tells a reader (``iorthand
+report``, ``export``, a recorder starting up) whether the session is still being written or its recorder died
+(the kernel releases a killed process's locks at once), so a crashed session is repaired by whoever reads it
+first and a live one is never touched.
 """
 
 from __future__ import annotations
@@ -10,12 +16,19 @@ import functools
 import json
 import os
 import platform
+import time
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: no writer locks; readers judge by the files' age (writer_alive)
+    fcntl = None  # type: ignore[assignment]
+
 MANIFEST = "manifest.json"
+WRITER_LOCK = ".writer.lock"
 FORMAT_VERSION = 1
 
 # Session status values.
@@ -129,6 +142,8 @@ class Manifest:
         return cls(keys=keys, segments=segs, **known)
 
     def write(self, folder: Path, fsync: bool = True) -> None:
+        if self.status == RECORDING:
+            _hold_writer_lock(folder)
         path = folder / MANIFEST
         tmp = folder / (MANIFEST + ".tmp")
         with tmp.open("w", encoding="utf-8") as f:
@@ -137,6 +152,8 @@ class Manifest:
             if fsync:
                 os.fsync(f.fileno())
         os.replace(tmp, path)
+        if self.status != RECORDING:
+            _release_writer_lock(folder)
 
     @classmethod
     def read(cls, folder: Path) -> Manifest:
@@ -145,6 +162,52 @@ class Manifest:
                 return cls.from_dict(json.load(f))
         except FileNotFoundError:
             raise FileNotFoundError(f"{folder} is not a recorded session: it has no {MANIFEST}") from None
+
+
+# The writer locks this process holds: session folder → the lock file's descriptor (kept open: closing it would
+# release the lock).
+_writer_locks: dict[Path, int] = {}
+
+
+def _hold_writer_lock(folder: Path) -> None:
+    key = Path(folder).resolve()
+    if key in _writer_locks:
+        return
+    if fcntl is None:
+        return
+    fd = os.open(key / WRITER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise RuntimeError(f"{folder}: another process is recording this session") from None
+    _writer_locks[key] = fd
+
+
+def _release_writer_lock(folder: Path) -> None:
+    fd = _writer_locks.pop(Path(folder).resolve(), None)
+    if fd is not None:
+        os.close(fd)  # closing the descriptor releases the flock
+
+
+def writer_alive(folder: Path, quiet_for: float = 10.0) -> bool:
+    """Whether a live process is still writing this session. By its lock where the session has one; a session
+    written before locks existed counts as live while its files changed within ``quiet_for`` s."""
+    folder = Path(folder)
+    if Path(folder).resolve() in _writer_locks:
+        return True
+    lock = folder / WRITER_LOCK
+    if lock.exists() and fcntl is not None:
+        fd = os.open(lock, os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        finally:
+            os.close(fd)  # releases the probe's lock, if it got it
+        return False
+    newest = max((p.stat().st_mtime for p in folder.iterdir() if p.is_file()), default=0.0)
+    return time.time() - newest < quiet_for
 
 
 def iso(ns: int | None) -> str:

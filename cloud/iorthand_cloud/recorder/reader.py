@@ -10,6 +10,8 @@ from typing import Any
 
 import msgpack
 from mcap.reader import make_reader
+from mcap.records import Channel, Message
+from mcap.stream_reader import StreamReader
 
 from iorthand_cloud.recorder.manifest import Manifest
 from iorthand_cloud.recorder.segments import MALFORMED_META
@@ -39,13 +41,40 @@ def segment_files(folder: Path) -> list[Path]:
 def _iter_file(path: Path, start: int | None, end: int | None) -> Iterator[Record]:
     stream = path.name.rsplit("-", 1)[0]
     with path.open("rb") as f:
-        reader = make_reader(f)
+        try:
+            reader = make_reader(f)
+            reader.get_summary()
+        except Exception:  # no footer yet (a segment being written) or a torn one: its complete records
+            f.seek(0)
+            yield from _iter_unfinished(f, stream, start, end)
+            return
         for _schema, channel, message in reader.iter_messages(starting_at=start, ending_before=end, log_time_order=True):
             yield Record(
                 key=channel.topic, log_time=message.log_time, publish_time=message.publish_time,
                 sequence=message.sequence, data=message.data,
                 malformed=channel.metadata.get(MALFORMED_META) == "true", stream=stream,
             )
+
+
+def _iter_unfinished(f: Any, stream: str, start: int | None, end: int | None) -> Iterator[Record]:
+    """The complete records of a segment without a footer, in receive-time order (the torn tail is left out)."""
+    channels: dict[int, Channel] = {}
+    out: list[Record] = []
+    try:
+        for record in StreamReader(f, skip_magic=False).records:
+            if isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message) and record.channel_id in channels:
+                if (start is not None and record.log_time < start) or (end is not None and record.log_time >= end):
+                    continue
+                ch = channels[record.channel_id]
+                out.append(Record(key=ch.topic, log_time=record.log_time, publish_time=record.publish_time,
+                                  sequence=record.sequence, data=record.data,
+                                  malformed=ch.metadata.get(MALFORMED_META) == "true", stream=stream))
+    except Exception:  # the torn tail: everything before it was taken
+        pass
+    out.sort(key=lambda r: r.log_time)
+    yield from out
 
 
 def iter_records(folder: str | Path, start: int | None = None, end: int | None = None) -> Iterator[Record]:

@@ -147,6 +147,34 @@ def repair_session(folder: Path) -> list[RepairResult]:
     return results
 
 
+def repair_if_crashed(folder: Path) -> str:
+    """Make a session readable before reading it (``iorthand report``, ``export``): one its recorder left
+    unfinished (killed, crashed: no live writer) is repaired here and now; one still being recorded is left
+    alone (readers take its segments as far as they are written). Returns what was done, for the user ("" when
+    the session was whole)."""
+    folder = Path(folder)
+    files = segment_files(folder)
+    try:
+        status = mf.Manifest.read(folder).status
+    except FileNotFoundError:
+        if not files:
+            raise  # "... is not a recorded session": nothing to repair either
+        status = None
+    except (OSError, ValueError):
+        status = None  # an unreadable manifest: rebuilt from the segments
+    torn = [p for p in files if not has_footer(p)]
+    if status in (mf.COMPLETE, mf.RECOVERED) and not torn:
+        return ""
+    if status == mf.RECORDING and mf.writer_alive(folder):
+        return "still being recorded: read as far as it is written"
+    if not torn and status is not None and status != mf.RECORDING:
+        return ""
+    results = repair_session(folder)
+    kept = sum(r.messages for r in results)
+    return (f"the recorder stopped without closing this session: repaired {len(results)} segment(s), "
+            f"{kept} messages kept, {sum(r.lost_bytes for r in results)} bytes of torn tail dropped")
+
+
 def repair_all(root: Path) -> dict[str, list[RepairResult]]:
     """Repair every unfinished session under ``root`` (sessions left ``recording`` or ``failed``)."""
     out: dict[str, list[RepairResult]] = {}
@@ -165,6 +193,9 @@ def repair_all(root: Path) -> dict[str, list[RepairResult]]:
         if status in (mf.COMPLETE, mf.RECOVERED):
             continue
         if status == mf.FAILED and all(has_footer(p) for p in segment_files(folder)):
+            continue
+        if status == mf.RECORDING and mf.writer_alive(folder, quiet_for=0.0):
+            log.warning("%s is being recorded by another live process: not repaired", folder)
             continue
         out[folder.name] = repair_session(folder)
     return out

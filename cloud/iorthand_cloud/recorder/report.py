@@ -30,6 +30,7 @@ from iorthand_cloud.recorder import metrics
 from iorthand_cloud.recorder.config import ReportConfig
 from iorthand_cloud.recorder.manifest import Manifest, totals
 from iorthand_cloud.recorder.reader import iter_records, session_dir
+from iorthand_cloud.recorder.repair import repair_if_crashed
 
 DEADMAN_STATES = {Status.COMMAND_TIMEOUT, Status.NO_DEADMAN}
 
@@ -176,6 +177,7 @@ def build_report(session: str | Path, cfg: ReportConfig | None = None, out_dir: 
     """Compute the report of a session, write ``report.md``, ``report.json`` and the plots; return the data."""
     cfg = cfg or ReportConfig()
     folder = session_dir(session)
+    repaired = repair_if_crashed(folder)  # a session whose recorder died is repaired by its first reader
     manifest = Manifest.read(folder)
     out = out_dir or folder / "report"
     out.mkdir(parents=True, exist_ok=True)
@@ -186,7 +188,7 @@ def build_report(session: str | Path, cfg: ReportConfig | None = None, out_dir: 
         "session": manifest.session_id, "status": manifest.status, "operator": manifest.operator,
         "start": manifest.start_iso, "stop": manifest.stop_iso, "duration_s": round(stop - start, 3),
         "recording": {**totals(manifest.keys), "dropped": manifest.dropped, "repaired": manifest.repaired,
-                      "error": manifest.error,
+                      "error": manifest.error, "repair": repaired,
                       "missing_by_key": {k: st.missing for k, st in sorted(manifest.keys.items()) if st.missing}},
         "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
         "robots": {}, "annotations": annotations, "plots": [],
