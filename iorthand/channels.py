@@ -39,6 +39,9 @@ class Role(StrEnum):
     EDGE = "edge"  # edge-<robot>: the robot's own agent, on its robot only
     OPERATOR = "operator"  # operator-<name>: on the robots the deployment grants it
     REPLAY = "replay"  # `iorthand replay`: only under the ids reserved for replays (<robot>-replay)
+    # `iorthand bridge mqtt`: readings of sensors outside the robot (a patient's vital signs) brought in from an
+    # MQTT broker. Its own role so that the ACL and the bridge's own checks confine it to the rows naming it.
+    BRIDGE = "bridge"
 
 
 class Qos(StrEnum):
@@ -106,6 +109,9 @@ CMD_TWIST = _command("cmd/twist", "TwistCommand", Qos.COMMAND)
 CMD_SERVO = _command("cmd/servo", "ServoCommand", Qos.CONTROL)
 CMD_TORCH = _command("cmd/torch", "TorchCommand", Qos.CONTROL)
 CMD_STOP = _command("cmd/stop", "StopCommand", Qos.CONTROL, shared=True)
+# A viewer's report on a video stream (keyframe requests, loss, delay): operator → edge like a command, so a replay
+# never republishes it; it moves nothing.
+CMD_VIDEO_FEEDBACK = _command("cmd/video_feedback", "VideoFeedback", Qos.DATA)
 # Robot → everyone.
 STATE_ROBOT = _robot("state/robot", "RobotState", Qos.STATE)
 STATE_SAFETY = _robot("state/safety", "SafetyStatus", Qos.SAFETY)
@@ -118,6 +124,9 @@ STATE_TORCH = _robot("state/torch", "TorchState", Qos.DATA)
 MARKERS = _robot("markers", "Markers", Qos.DATA)
 VIDEO_CAMERA = _robot("video/camera", "VideoFrame", Qos.VIDEO)
 VIDEO_ULTRASOUND = _robot("video/ultrasound", "VideoFrame", Qos.VIDEO)
+# External sensors (MQTT → Zenoh through `iorthand bridge mqtt`): a family of its own, so that granting the bridge
+# sensor/** grants nothing of the robot's own state/**; a replay republishes it as it does the robot's streams.
+SENSOR_VITAL = Channel("sensor/vital", Kind.PUT, "SensorReading", Qos.DATA, frozenset({Role.BRIDGE, Role.REPLAY}))
 # The edge's queryables.
 CONTROL_ACQUIRE = _control("control/acquire")
 CONTROL_RELEASE = _control("control/release")
@@ -131,9 +140,9 @@ ALIVE_EDGE = Channel("alive/edge", Kind.TOKEN, writers=_EDGE)
 ALIVE_OPERATOR = Channel("alive/operator", Kind.TOKEN, writers=_OPERATOR, operator_key=OperatorKey.ALWAYS)
 
 TABLE: tuple[Channel, ...] = (
-    CMD_TWIST, CMD_SERVO, CMD_TORCH, CMD_STOP,
+    CMD_TWIST, CMD_SERVO, CMD_TORCH, CMD_STOP, CMD_VIDEO_FEEDBACK,
     STATE_ROBOT, STATE_SAFETY, STATE_APPLIED, STATE_FORCE, STATE_FORCE_LEVEL, STATE_SERVO, STATE_TORCH,
-    MARKERS, VIDEO_CAMERA, VIDEO_ULTRASOUND,
+    MARKERS, VIDEO_CAMERA, VIDEO_ULTRASOUND, SENSOR_VITAL,
     CONTROL_ACQUIRE, CONTROL_RELEASE, CONTROL_ARM, CONTROL_POSES, CONTROL_GOTO, CONTROL_FORCE_ZERO, CONTROL_PREVIEW,
     ALIVE_EDGE, ALIVE_OPERATOR,
 )

@@ -35,6 +35,7 @@ ROLE_CONFIGS: dict[str, tuple[str, str]] = {
     "recorder": ("iorthand_cloud.recorder.config", "RecorderConfig"),
     "deployment": ("iorthand.security.acl", "Deployment"),
     "web": ("iorthand_operator.web.config", "WebConfig"),
+    "bridge": ("iorthand_cloud.bridge.config", "BridgeConfig"),
 }
 
 # What an edge or operator with bind_operator_keys off meets behind a router generated with it (the default).
@@ -77,12 +78,14 @@ def guess_role(path: Path, data: Any) -> str:
             return "deployment"
         if "users_file" in data and "deployment" in data:
             return "web"
+        if "mappings" in data:
+            return "bridge"
         name = path.name.lower()
         # A replay identity's file is a recorder configuration (``iorthand replay --config``).
         for word, role in (("twin", "twin"), ("recorder", "recorder"), ("replay", "recorder")):
             if word in name:
                 return role
-    raise ConfigError(str(path), "", "cannot tell the role of this file: pass --role edge|operator|twin|recorder|router|deployment|web")
+    raise ConfigError(str(path), "", "cannot tell the role of this file: pass --role edge|operator|twin|recorder|router|deployment|web|bridge")
 
 
 def _zenoh_sections(obj: Any, where: str = "") -> list[tuple[str, ZenohConfig]]:

@@ -710,8 +710,26 @@ class VideoFrame(Message):
     # Empty in an image. Otherwise why the source gives no frames: the edge then sends this (with no data, the
     # configured size) at every attempt to reopen it, so a frozen picture never reads as a live one.
     failure: str = spec("", max_len=256)
+    # encoding h264: one access unit (Annex B) per frame; a keyframe (IDR, with SPS/PPS) is where a viewer that
+    # joins or lost a frame starts decoding. Always true for a JPEG picture's meaning, unused there.
+    keyframe: bool = False
 
-    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"failure"})
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"failure", "keyframe"})
+
+
+@dataclass(kw_only=True)
+class VideoFeedback(Message):
+    """Viewer → edge, about once a second per stream and at once when it needs a keyframe: how the frames reach
+    it. The edge lowers the bitrate for the worst viewer (iorthand_edge.video.bitrate) and sends a keyframe on
+    request (a viewer that joined, or lost a frame of an H.264 stream)."""
+
+    KEY: ClassVar[str] = keys.CMD_VIDEO_FEEDBACK
+    operator: str = spec("", max_len=64)  # who reports (with bound keys, the name in the key)
+    stream: str = spec("camera", max_len=32)
+    keyframe: bool = False
+    received: int = spec(0, lo=0, hi=100_000)  # frames since the previous report
+    lost: int = spec(0, lo=0, hi=100_000)  # frames missing by sequence since the previous report
+    delay_p90: float = spec(-1.0, lo=-1.0, hi=3600.0)  # s from capture to arrival; -1: unknown
 
 
 def source_news(what: str, before: str, now: str) -> str | None:
@@ -855,6 +873,19 @@ class TwinSnapshot(Message):
     images: list[ImageInfo] = spec(default_factory=list, max_len=8)
     streams: list[StreamInfo] = spec(default_factory=list, max_len=32)
     events: list[str] = spec(default_factory=list, max_len=200)  # latest safety events, newest last (≤ 200 chars each)
+
+
+@dataclass(kw_only=True)
+class SensorReading(Message):
+    """A sensor outside the robot (a patient's heart rate, SpO2, temperature), brought in from MQTT by
+    ``iorthand bridge mqtt``. ``t`` is the sensor's time when it sent one, else when the bridge received it.
+    The bounds are sanity limits only: a plausible range per sensor is the bridge mapping's (``bounds``)."""
+
+    KEY: ClassVar[str] = keys.SENSOR_VITAL
+    name: str = spec("", max_len=64)  # what is measured, e.g. "heart_rate"
+    value: float = spec(0.0, lo=-1e9, hi=1e9)
+    unit: str = spec("", max_len=16)  # e.g. "bpm", "%", "degC"
+    source: str = spec("", max_len=64)  # the device (or bridge mapping) it came from
 
 
 def message_class(name: str) -> type[Message]:

@@ -27,6 +27,9 @@ enough. Which role may write or query which key of a robot is a column of the ta
 - ``replay`` (``iorthand replay``): publishes ``state/**``, ``markers`` and ``video/**`` only under the ids
   reserved for replays (``<robot>-replay``, :data:`iorthand.keys.REPLAY_SUFFIX`), so a replayed recording can
   never pass for a robot; it receives traffic of those ids only.
+- ``bridge`` (``iorthand bridge mqtt``, with ``bridge: true``): publishes only the rows of the table whose writers
+  name :attr:`Role.BRIDGE` (``sensor/**``: readings from an MQTT broker) of the deployment's robots, and watches
+  those robots to mirror their state out; it may not command, query ``control/**`` or hold a token.
 
 Default permission is deny. A session whose identity matches no subject can connect but nothing it sends is
 routed (Zenoh drops denied messages silently): that is why the edge also checks on its own (see
@@ -54,6 +57,7 @@ SUBSCRIBE = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_
 SERVICES = ("twin", "recorder")
 REPLAY = Role.REPLAY.value  # the identity of `iorthand replay`
 WEB = "web"  # the identity of `iorthand web`
+BRIDGE = Role.BRIDGE.value  # the identity of `iorthand bridge mqtt`
 
 
 @dataclass
@@ -76,6 +80,8 @@ class Deployment:
     replay: bool = setting(True, help="let the replay identity publish recordings under <robot>-replay ids")
     web: bool = setting(False, help="a web console (certificate web) may send for every operator, as that operator "
                                     "would, and watch every robot (iorthand web)")
+    bridge: bool = setting(False, help="an MQTT bridge (certificate bridge) may publish sensor readings (sensor/**) "
+                                       "of the robots and watch them (iorthand bridge mqtt)")
 
     def check(self) -> None:
         for r in self.robots:
@@ -85,6 +91,8 @@ class Deployment:
             for r in robots:
                 if r not in self.robots:
                     raise ValueError(f"operator {op!r} is granted robot {r!r}, which is not in robots {self.robots}")
+        if self.bridge and not self.robots:
+            raise ValueError("bridge: true needs robots: the bridge publishes sensor readings of the deployment's robots")
         for s in self.services:
             if s not in SERVICES:
                 raise ValueError(f"service {s!r} is not one of {list(SERVICES)}")
@@ -213,6 +221,17 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
             own = _service_space(name)
             rl.append(_rule(f"{name}-serve", ["put", "delete", "declare_queryable", "reply", "liveliness_token"], ["ingress"], [own]))
         add(name, rl)
+
+    if dep.bridge:
+        # Writes exactly the rows naming its role (sensor readings), of the deployment's robots only: whatever an
+        # MQTT broker lets through, nothing it sends reaches cmd/, control/, state/ or a liveliness token.
+        bridged = [keys.RobotKeys(r) for r in dep.robots]
+        add(BRIDGE, [
+            _rule(f"{BRIDGE}-publish", ["put"], ["ingress"],
+                  [k.key(s) for k in bridged for s in _grants(table, Role.BRIDGE, Kind.PUT)]),
+            _rule(f"{BRIDGE}-subscribe", SUBSCRIBE, ["ingress"], [k.all for k in bridged]),
+            _rule(f"{BRIDGE}-receive", ALL_MESSAGES, ["egress"], [k.all for k in bridged]),
+        ])
 
     if dep.replay:
         add(REPLAY, [

@@ -2,7 +2,8 @@
 
 Roles and their certificate common names (the router's ACL matches on them, see :mod:`iorthand.security.acl`):
 
-``router`` · ``edge-<robot>`` · ``operator-<name>`` · ``twin`` · ``recorder`` · ``replay`` · ``web`` · ``viewer-<name>``
+``router`` · ``edge-<robot>`` · ``operator-<name>`` · ``twin`` · ``recorder`` · ``replay`` · ``web`` · ``bridge`` ·
+``viewer-<name>``
 
 Keys are ECDSA P-256 (small, fast handshakes on a Pi, supported by rustls), written PKCS#8 with mode 0600 in
 a 0700 directory; certificates are 0644. The CA lives 10 years, role certificates 1 year by default (short
@@ -27,7 +28,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 CA_DAYS = 3650
 LEAF_DAYS = 365
-ROLE_PATTERN = re.compile(r"^(router|twin|recorder|replay|web|(edge|operator|viewer)-[A-Za-z0-9_.@-]{1,64})$")
+# ``bridge``: `iorthand bridge mqtt` (the ACL lets it write only the rows of the channel table naming Role.BRIDGE).
+ROLE_PATTERN = re.compile(r"^(router|twin|recorder|replay|web|bridge|(edge|operator|viewer)-[A-Za-z0-9_.@-]{1,64})$")
 ORGANIZATION = "iorthand"
 
 
@@ -116,7 +118,7 @@ def check_name(name: str) -> None:
     """A certificate's name, which is also its router user name: one of the roles, or CertError."""
     if not ROLE_PATTERN.match(name):
         raise CertError(
-            f"certificate name {name!r} is not a role: expected router, twin, recorder, replay, web, edge-<robot>, "
+            f"certificate name {name!r} is not a role: expected router, twin, recorder, replay, web, bridge, edge-<robot>, "
             "operator-<name> or viewer-<name>"
         )
 

@@ -1,0 +1,361 @@
+"""The adapter of ``iorthand bridge mqtt``: one Zenoh session, one paho-mqtt client, the routes of
+:mod:`iorthand_cloud.bridge.mapping` between them.
+
+- out: a Zenoh callback only queues the raw sample (:class:`iorthand.transport.Inbox`); a worker thread keeps the
+  newest per robot (:class:`LatestThrottle`), decodes what goes out and publishes its JSON. A 125 Hz robot state
+  is decoded at ``max_hz``, not at 125 Hz.
+- in: paho's network thread checks each message (:meth:`InRoute.reading`), drops what exceeds ``max_hz``, and
+  publishes on Zenoh through :meth:`MqttBridge._put`, which checks the key once more
+  (:func:`check_bridge_key`): even a bug in the mapping code cannot put on a key the bridge's role does not write.
+  Refusals are counted per mapping and logged with their reason (at most one line per mapping every few
+  seconds under a flood), and nothing refused reaches Zenoh.
+
+paho reconnects on its own (1 s doubling to 30 s) and re-subscribes at every connection; a broker that refuses
+the bridge (bad password, certificate) is logged with its reason and retried, like a router that is not up yet.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import logging
+import ssl
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import paho.mqtt.client as mqtt
+import zenoh
+
+from iorthand.config import ConfigError
+from iorthand.protocol import DecodeError, Message, Sequencer
+from iorthand.transport import Inbox, open_session, publisher
+from iorthand_cloud.bridge.config import BridgeConfig, MqttConfig
+from iorthand_cloud.bridge.mapping import (
+    InRoute,
+    LatestThrottle,
+    MappingError,
+    OutRoute,
+    RateLimiter,
+    Refused,
+    check_bridge_key,
+    to_json,
+)
+
+log = logging.getLogger("iorthand.bridge")
+LOG_EVERY_S = 5.0  # at most one refusal line per mapping this often: a flooding sensor must not fill the disk
+MAX_KEYS = 256  # per-key state (publishers, throttles) kept; MQTT topics choose robots, so bound what they create
+OUT_INBOX = 1024  # Zenoh samples queued for the worker (the newest are kept)
+
+
+def read_password(path: Path) -> str:
+    """The password in ``path`` (one line; a trailing newline is not part of it)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError("mqtt", "password_file", f"cannot read {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    password = text.rstrip("\r\n")
+    if not password:
+        raise ConfigError("mqtt", "password_file", f"{path} is empty")
+    return password
+
+
+def make_client(cfg: MqttConfig, password: str | None = None) -> mqtt.Client:
+    """A paho client with the broker settings of ``cfg``: protocol, client id, user and password, TLS."""
+    protocol = mqtt.MQTTv5 if cfg.protocol == "5" else mqtt.MQTTv311
+    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=cfg.client_id, protocol=protocol)
+    if cfg.username:
+        client.username_pw_set(cfg.username, password)
+    if cfg.tls is not None:
+        tls = cfg.tls
+        for name, path in (("ca", tls.ca), ("certificate", tls.certificate), ("private_key", tls.private_key)):
+            if path is not None and not Path(path).is_file():
+                raise ConfigError("mqtt", f"tls.{name}", f"no such file {path}")
+        try:
+            client.tls_set(ca_certs=str(tls.ca), certfile=str(tls.certificate) if tls.certificate else None,
+                           keyfile=str(tls.private_key) if tls.private_key else None,
+                           cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)
+        except (ssl.SSLError, OSError) as exc:
+            raise ConfigError("mqtt", "tls", f"the certificate files do not load: {exc}") from None
+        if not tls.verify_name:
+            client.tls_insecure_set(True)
+    client.reconnect_delay_set(min_delay=1, max_delay=30)
+    client.max_queued_messages_set(cfg.queue)
+    return client
+
+
+@dataclasses.dataclass
+class MappingStats:
+    forwarded: int = 0  # crossed the bridge
+    refused: int = 0  # invalid (in: bad JSON, shape, bounds, age; out: undecodable), or a robot not bridged
+    rate_limited: int = 0  # in: over max_hz, dropped; out: replaced by a newer sample while waiting its turn
+    dropped: int = 0  # could not be sent (the broker away at QoS 0, the Zenoh session closing)
+    last_refusal: str = ""
+
+
+class _Bounded(OrderedDict[Any, Any]):
+    """Per-key state, the least recently used dropped beyond ``MAX_KEYS`` (``on_drop`` releases it)."""
+
+    def __init__(self, on_drop: Callable[[Any], None] | None = None) -> None:
+        super().__init__()
+        self._on_drop = on_drop
+
+    def get_or_make(self, key: Any, make: Callable[[], Any]) -> Any:
+        if key in self:
+            self.move_to_end(key)
+            return self[key]
+        value = self[key] = make()
+        while len(self) > MAX_KEYS:
+            _, old = self.popitem(last=False)
+            if self._on_drop is not None:
+                self._on_drop(old)
+        return value
+
+
+class MqttBridge:
+    """The running bridge. ``session``: an open Zenoh session to use (tests); otherwise one is opened from the
+    configuration and closed at :meth:`shutdown`."""
+
+    def __init__(self, cfg: BridgeConfig, session: zenoh.Session | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.cfg = cfg
+        self.routes = cfg.routes()  # checked again: a config built in code did not pass through the loader
+        self.session = session
+        self._own_session = session is None
+        self._clock = clock
+        self.stats = {r.name: MappingStats() for r in self.routes}
+        self.blocked = 0  # puts refused by the run-time key check: a bug if ever non-zero
+        self.unrouted = 0  # MQTT messages no mapping takes (a topic that is not UTF-8)
+        self.connected = threading.Event()
+        self.last_error = ""  # why the broker refused or dropped the bridge, last time
+        self.stop_event = threading.Event()
+        self.client: mqtt.Client | None = None
+        self._lock = threading.Lock()  # stats and per-key state: paho's thread and the worker share them
+        self._inbox = Inbox(maxlen=OUT_INBOX, keep="newest")
+        self._throttles: _Bounded = _Bounded()
+        self._limiters: _Bounded = _Bounded()
+        self._publishers: _Bounded = _Bounded(lambda p: p.undeclare())
+        self._sequencers: _Bounded = _Bounded()
+        self._last_log: dict[str, tuple[float, int]] = {}
+        self._declared: list[Any] = []
+        self._worker: threading.Thread | None = None
+
+    # ------------------------------------------------------------------------------------------------ life
+
+    def start(self) -> None:
+        for key, problem in self.cfg.mqtt.warnings():
+            log.warning("%s: %s", key, problem)
+        mq = self.cfg.mqtt
+        password = read_password(mq.password_file) if mq.password_file is not None else None
+        client = make_client(mq, password)
+        client.on_connect = self._on_connect
+        client.on_disconnect = self._on_disconnect
+        client.on_connect_fail = self._on_connect_fail
+        client.on_message = self._on_unrouted
+        for route in self.routes:
+            if isinstance(route, InRoute):
+                client.message_callback_add(route.topic.subscription, functools.partial(self._on_mqtt, route))
+        self.client = client
+        if self.session is None:
+            self.session = open_session(self.cfg.zenoh, self.stop_event)
+        for index, route in enumerate(self.routes):
+            if isinstance(route, OutRoute):
+                on_sample = functools.partial(self._on_sample, index, route.message.MAX_BYTES)
+                self._declared += [self.session.declare_subscriber(e, on_sample) for e in route.exprs]
+        self._worker = threading.Thread(target=self._pump, name="bridge-out", daemon=True)
+        self._worker.start()
+        client.connect_async(mq.host, mq.port, mq.keepalive)
+        client.loop_start()
+        log.info("bridge: %d mappings, broker %s:%d%s", len(self.routes), mq.host, mq.port,
+                 " (TLS)" if mq.tls else "")
+        for r in self.routes:
+            arrow = f"{', '.join(r.exprs)} → {r.topic.text}" if isinstance(r, OutRoute) else f"{r.topic.subscription} → {r.key.text}"
+            log.info("  %s %s: %s (QoS %d, %g Hz)", r.name, "out" if isinstance(r, OutRoute) else "in", arrow, r.qos,
+                     r.max_hz)
+
+    def wait_connected(self, timeout: float) -> bool:
+        return self.connected.wait(timeout)
+
+    def shutdown(self) -> None:
+        self.stop_event.set()
+        self._inbox.close()
+        if self.client is not None:
+            self.client.disconnect()
+            self.client.loop_stop()
+        if self._worker is not None:
+            self._worker.join(timeout=5.0)
+        with self._lock:
+            for d in [*self._declared, *self._publishers.values()]:
+                with contextlib.suppress(zenoh.ZError):
+                    d.undeclare()
+            self._declared.clear()
+            self._publishers.clear()
+        if self.session is not None and self._own_session:
+            self.session.close()
+            self.session = None
+        log.info("bridge stopped: %s", self.summary())
+
+    def run_forever(self) -> None:
+        self.start()
+        try:
+            while not self.stop_event.wait(self.cfg.stats_interval_s):
+                log.info("bridge: %s", self.summary())
+        finally:
+            self.shutdown()
+
+    def summary(self) -> str:
+        with self._lock:
+            parts = [f"{name} {s.forwarded} sent, {s.refused} refused, {s.rate_limited} rate-limited, {s.dropped} dropped"
+                     for name, s in self.stats.items()]
+        if self.blocked:
+            parts.append(f"{self.blocked} puts blocked by the key check")
+        return "; ".join(parts)
+
+    # ------------------------------------------------------------------------------------------------ MQTT
+
+    def _on_connect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+        if reason.is_failure:
+            self._broker_problem(f"the broker refused the connection: {reason}")
+            return
+        subscriptions = [(r.topic.subscription, r.qos) for r in self.routes if isinstance(r, InRoute)]
+        if subscriptions:  # at every connection: a broker without a persistent session forgot them
+            client.subscribe(subscriptions)
+        self.last_error = ""
+        self.connected.set()
+        log.info("connected to the MQTT broker %s:%d", self.cfg.mqtt.host, self.cfg.mqtt.port)
+
+    def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
+        was = self.connected.is_set()
+        self.connected.clear()
+        if not self.stop_event.is_set() and was:
+            self._broker_problem(f"disconnected from the broker: {reason}")
+
+    def _on_connect_fail(self, client: mqtt.Client, userdata: Any) -> None:
+        self._broker_problem(f"cannot reach the broker at {self.cfg.mqtt.host}:{self.cfg.mqtt.port}")
+
+    def _broker_problem(self, why: str) -> None:
+        if why != self.last_error:  # paho retries every few seconds: say it once per cause
+            log.warning("%s (paho retries)", why)
+        self.last_error = why
+
+    def _on_unrouted(self, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
+        with self._lock:
+            self.unrouted += 1
+        log.debug("an MQTT message no mapping takes (topic not UTF-8?)")
+
+    def _on_mqtt(self, route: InRoute, client: mqtt.Client, userdata: Any, message: mqtt.MQTTMessage) -> None:
+        try:
+            self._take(route, message)
+        except Exception:  # a bug here must not stop paho's network thread (and with it every mapping)
+            log.exception("mapping %r: error handling a message", route.name)
+            self._refuse(route, "internal error (see the log)")
+
+    def _take(self, route: InRoute, message: mqtt.MQTTMessage) -> None:
+        try:
+            key = route.key_for(message.topic)
+            reading = route.reading(message.payload, time.time_ns(), bool(message.retain))
+        except Refused as exc:
+            self._refuse(route, f"{message.topic}: {exc}")
+            return
+        with self._lock:
+            limiter = self._limiters.get_or_make((route.name, key), lambda: RateLimiter(route.max_hz))
+            if not limiter.allow(self._clock()):
+                self.stats[route.name].rate_limited += 1
+                return
+        self._put(route, key, reading)
+
+    def _put(self, route: InRoute, key: str, msg: Message) -> None:
+        """Publish ``msg`` on ``key`` — only if the bridge's role may write it (defence in depth: the mapping
+        was checked at configuration time, and this is checked again for every message)."""
+        try:
+            check_bridge_key(key)
+        except MappingError as exc:
+            with self._lock:
+                self.blocked += 1
+            log.error("mapping %r: refused to publish on %s: %s", route.name, key, exc)
+            return
+        assert self.session is not None
+        with self._lock:
+            pub = self._publishers.get_or_make(key, lambda: publisher(self.session, key))
+            seq = self._sequencers.get_or_make(key, Sequencer).next()  # per key: the recorder counts gaps by it
+        try:
+            pub.put(msg.stamp(seq, msg.t).encode())
+        except (zenoh.ZError, ValueError) as exc:
+            with self._lock:
+                self.stats[route.name].dropped += 1
+            log.warning("mapping %r: not published on %s: %s", route.name, key, exc)
+            return
+        with self._lock:
+            self.stats[route.name].forwarded += 1
+
+    # ------------------------------------------------------------------------------------------------ Zenoh → MQTT
+
+    def _on_sample(self, index: int, max_bytes: int, sample: zenoh.Sample) -> None:
+        size = len(sample.payload)
+        if size > max_bytes:  # refused before it is copied out of Zenoh's buffers
+            self._refuse(self.routes[index], f"{sample.key_expr}: payload of {size} bytes exceeds {max_bytes}")
+            return
+        self._inbox.put((index, str(sample.key_expr), sample.payload.to_bytes()), size)
+
+    def _pump(self) -> None:
+        while not self.stop_event.is_set():
+            with self._lock:
+                dues = [d for t in self._throttles.values() if (d := t.due()) is not None]
+            wait = 0.5 if not dues else max(0.0, min(dues) - self._clock())
+            item = self._inbox.get(timeout=min(wait, 0.5))
+            ready: list[tuple[int, str, bytes]] = []
+            now = self._clock()
+            with self._lock:
+                if item is not None:
+                    index, key, payload = item
+                    route = self.routes[index]
+                    throttle = self._throttles.get_or_make((index, key), functools.partial(LatestThrottle, route.max_hz))
+                    before = throttle.superseded
+                    if throttle.offer(payload, now) is not None:
+                        ready.append(item)
+                    self.stats[route.name].rate_limited += throttle.superseded - before
+                for (index, key), throttle in self._throttles.items():
+                    if (payload := throttle.poll(now)) is not None:
+                        ready.append((index, key, payload))
+            for index, key, payload in ready:
+                route = self.routes[index]
+                assert isinstance(route, OutRoute)  # only out routes subscribe (start)
+                self._send(route, key, payload)
+
+    def _send(self, route: OutRoute, key: str, payload: bytes) -> None:
+        try:
+            topic = route.topic_for(key)
+            data = to_json(route.message.decode(payload))
+        except (Refused, DecodeError, TypeError, ValueError) as exc:
+            self._refuse(route, f"{key}: {exc}")
+            return
+        assert self.client is not None
+        info = self.client.publish(topic, data, qos=route.qos, retain=route.retain)
+        with self._lock:
+            if info.rc == mqtt.MQTT_ERR_SUCCESS:
+                self.stats[route.name].forwarded += 1
+            else:
+                self.stats[route.name].dropped += 1
+
+    # ------------------------------------------------------------------------------------------------ refusals
+
+    def _refuse(self, route: OutRoute | InRoute, reason: str) -> None:
+        now = self._clock()
+        with self._lock:
+            stats = self.stats[route.name]
+            stats.refused += 1
+            stats.last_refusal = reason
+            last, count_then = self._last_log.get(route.name, (-LOG_EVERY_S, 0))
+            if now - last < LOG_EVERY_S:
+                return
+            self._last_log[route.name] = (now, stats.refused)
+            unlogged = stats.refused - count_then - 1
+        log.warning("mapping %r refused %s%s", route.name, reason,
+                    f" ({unlogged} more refused since the last line)" if unlogged > 0 else "")
+
+
+__all__ = ["MappingStats", "MqttBridge", "make_client", "read_password"]
