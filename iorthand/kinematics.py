@@ -209,10 +209,10 @@ def solve_near(m: URModel, pose: ArrayLike, reference: ArrayLike | None = None,
 
 __all__ = [
     "HOME_Q",
-    "ArmTracker",
     "MODELS",
     "UR3E",
     "UR5E",
+    "ArmTracker",
     "URModel",
     "forward",
     "inverse",

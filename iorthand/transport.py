@@ -44,7 +44,9 @@ CONTROL = QosProfile(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, ex
 STATE = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP)
 SAFETY = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.BLOCK)
 DATA = QosProfile(zenoh.Priority.DATA, zenoh.CongestionControl.DROP)
-VIDEO = QosProfile(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP)
+# BLOCK: a full uplink makes the edge's put wait (it then skips frames at the source and lowers the H.264 bitrate)
+# instead of losing fragments in transit, which spoils an H.264 stream until its next keyframe.
+VIDEO = QosProfile(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.BLOCK)
 
 # What each QoS profile named by the table of channels is on the wire.
 QOS_PROFILES: dict[channels.Qos, QosProfile] = {

@@ -1,5 +1,6 @@
-"""Video: the simulated ultrasound responds to contact, JPEG frames carry capture time and sequence, the
-sender drops frames instead of queueing, and both streams flow through a router on the video session."""
+"""Video: the simulated ultrasound responds to contact, JPEG and H.264 frames carry capture time and sequence, the
+sender drops frames instead of queueing, the H.264 bitrate follows the link, and both streams flow through a
+router on the video session."""
 
 from __future__ import annotations
 
@@ -24,6 +25,8 @@ from iorthand_edge.video import (
     make_source,
     render_ultrasound,
 )
+from iorthand_edge.video.bitrate import BitrateController, BitrateSettings
+from iorthand_edge.video.h264 import H264Decoder, H264Encoder
 from iorthand_edge.video.stream import Captured, encode_frame
 from tests.conftest import wait_until
 
@@ -43,7 +46,7 @@ def test_ultrasound_image_changes_with_contact() -> None:
 
 
 def test_frames_round_trip_with_capture_time_and_sequence() -> None:
-    config = StreamConfig(width=160, height=120, quality=70)
+    config = StreamConfig(width=160, height=120, quality=70, codec="jpeg")
     image = make_source(config, lambda: 0.0).grab()
     frame = encode_frame("camera", Captured(7, 1_700_000_000_123_456_789, image), config)
     back = VideoFrame.decode(frame.encode())
@@ -144,7 +147,7 @@ def _run_stream(source: FrameSource, config: StreamConfig, until) -> tuple[Video
 
 
 def test_a_camera_that_cannot_be_opened_is_retried_and_every_attempt_says_why() -> None:
-    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.3)
+    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.3, codec="jpeg")
     source = FlakySource(fail_opens=2, frames_per_open=1_000_000)
     stream, pub = _run_stream(source, config, lambda frames: sum(f.failure == "" for f in frames) >= 3)
     failures = [f for f in pub.frames if f.failure]
@@ -162,7 +165,7 @@ def test_a_camera_that_cannot_be_opened_is_retried_and_every_attempt_says_why() 
 
 
 def test_a_camera_that_stops_giving_frames_is_reopened() -> None:
-    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.3, stall_timeout=0.2)
+    config = StreamConfig(width=32, height=24, fps=50, retry_interval=0.3, stall_timeout=0.2, codec="jpeg")
     source = FlakySource(fail_opens=0, frames_per_open=5)
     _, pub = _run_stream(source, config, lambda frames: sum(bool(f.failure) for f in frames) >= 2
                          and frames[-1].failure == "")
@@ -176,16 +179,18 @@ def test_a_camera_that_stops_giving_frames_is_reopened() -> None:
     assert pub.frames[first].t - pub.frames[first - 1].t >= 0.2e9
 
 
-def test_video_qos_is_low_priority_and_dropping() -> None:
+def test_video_qos_is_low_priority_and_blocks_at_the_sender() -> None:
+    """BLOCK: a full uplink shows as a slow put at the edge (which then skips frames at the source and lowers the
+    bitrate), not as frames lost on the way (a lost H.264 frame spoils the ones after it)."""
     import zenoh
 
-    assert VIDEO.priority == zenoh.Priority.DATA_LOW and VIDEO.congestion == zenoh.CongestionControl.DROP
+    assert VIDEO.priority == zenoh.Priority.DATA_LOW and VIDEO.congestion == zenoh.CongestionControl.BLOCK
 
 
 def test_streams_through_the_router_on_their_own_session(edge_factory, session_factory) -> None:
     video = {
-        "camera": {"source": "pattern", "width": 160, "height": 120, "fps": 10, "quality": 60},
-        "ultrasound": {"source": "ultrasound_sim", "width": 128, "height": 96, "fps": 10},
+        "camera": {"source": "pattern", "width": 160, "height": 120, "fps": 10, "codec": "h264"},
+        "ultrasound": {"source": "ultrasound_sim", "width": 128, "height": 96, "fps": 10, "codec": "jpeg"},
     }
     agent = edge_factory(video=video, phantom={"surface_z": 0.199})
     received: dict[str, list[tuple[VideoFrame, int]]] = {"camera": [], "ultrasound": []}
@@ -199,12 +204,19 @@ def test_streams_through_the_router_on_their_own_session(edge_factory, session_f
     # Published by the media process, on its own session: not one video thread in the agent's process.
     assert agent.media is not None and agent.media.pid not in (None, os.getpid())
     assert not [t.name for t in threading.enumerate() if "video" in t.name]
+    decoder = H264Decoder()
     for name, (w, h) in (("camera", (160, 120)), ("ultrasound", (128, 96))):
         frames = received[name]
         assert [f.seq for f, _ in frames] == sorted(f.seq for f, _ in frames)
         for f, recv_ns in frames:
             assert f.source == name and (f.width, f.height) == (w, h) and f.t <= recv_ns
-            assert decode_frame(f).shape[:2] == (h, w)
+            if name == "camera":  # H.264: the first keyframe starts the picture, then every frame decodes
+                assert f.encoding == "h264"
+                images = decoder.decode(f.data, f.keyframe)
+                assert all(i.shape[:2] == (h, w) for i in images)
+            else:
+                assert decode_frame(f).shape[:2] == (h, w)
+    assert received["camera"][0][0].keyframe  # a stream starts with one
 
 
 def test_missing_camera_does_not_take_the_agent_down_and_its_failure_reaches_the_subscribers(
@@ -232,3 +244,49 @@ def test_bad_video_config_fails_with_the_key(bad: dict) -> None:
 
     with pytest.raises(ConfigError, match="video"):
         edge_config("tcp/127.0.0.1:1", video=bad)
+
+
+def test_h264_frames_decode_in_order_and_start_at_a_keyframe() -> None:
+    config = StreamConfig(width=160, height=120, fps=30, codec="h264", bitrate_kbps=300, min_bitrate_kbps=100)
+    enc = H264Encoder(160, 120, 30, 300_000, keyframe_interval=1.0)
+    source = make_source(config, lambda: 0.0)
+    frames = [encode_frame("camera", Captured(i, 1_700_000_000_000_000_000 + i * 33_000_000, source.grab()), config, enc)
+              for i in range(1, 46)]
+    assert all(f is not None and f.encoding == "h264" for f in frames)
+    keys_at = [f.seq for f in frames if f.keyframe]
+    assert keys_at[:2] == [1, 31]  # the first frame, then one a second (30 frames at 30 fps)
+    back = [VideoFrame.decode(f.encode()) for f in frames]
+    dec = H264Decoder()
+    assert all(dec.decode(f.data, f.keyframe)[0].shape == (120, 160, 3) for f in back)
+    # A viewer that joins in the middle decodes nothing until a keyframe, then everything.
+    late = H264Decoder()
+    got = [bool(late.decode(f.data, f.keyframe)) for f in back[10:]]
+    assert not any(got[:20]) and all(got[20:])  # seq 11…30 wait; the keyframe at seq 31 starts the picture
+    # On request (a viewer's feedback), the next frame is a keyframe; so is the first at a new bitrate.
+    enc.request_keyframe()
+    assert encode_frame("camera", Captured(99, 1, source.grab()), config, enc).keyframe
+    assert not encode_frame("camera", Captured(100, 2, source.grab()), config, enc).keyframe
+    enc.set_bitrate(150_000)
+    assert encode_frame("camera", Captured(101, 3, source.grab()), config, enc).keyframe
+
+
+def test_the_bitrate_falls_at_once_on_congestion_and_climbs_back_slowly() -> None:
+    s = BitrateSettings(start=1_000_000, min=200_000, max=2_000_000, hold=2.0)
+    c = BitrateController(s, frame_period=1 / 30)
+    assert c.decide(0.0) == pytest.approx(1_100_000)  # no congestion: +10 % per hold
+    c.on_put(0.030)  # a put of 30 ms at 30 fps: the uplink queue was full
+    assert c.decide(1.0) == pytest.approx(1_100_000)  # within the hold: one cut per burst, not per frame
+    assert c.decide(2.0) == pytest.approx(770_000) and "a put took 30 ms" in c.reason
+    for _ in range(30):
+        c.on_capture(skipped=1)  # the slot replaced every frame: the sender is behind
+    assert c.decide(4.0) == pytest.approx(539_000)
+    c.on_feedback(received=90, lost=10, delay_p90=0.05)  # a viewer lost 10 %
+    assert c.decide(6.0) == pytest.approx(377_300)
+    c.on_feedback(received=30, lost=0, delay_p90=0.8)  # frames arriving late: queueing on the way
+    for t in (8.0, 10.0, 12.0):
+        c.decide(t)
+        c.on_feedback(received=30, lost=0, delay_p90=0.8)
+    assert c.target == s.min  # never below the floor
+    for t in range(14, 80, 2):  # ×1.1 every 2 s: the floor to the ceiling (×10) in about 50 s
+        c.decide(float(t))
+    assert c.target == s.max  # climbs back, never past the ceiling

@@ -50,6 +50,7 @@ from iorthand.protocol import (
     RejectCounter,
     RobotState,
     ServoState,
+    VideoFeedback,
     VideoFrame,
 )
 from iorthand.transport import Worker, open_session, publisher
@@ -203,6 +204,16 @@ class MediaService:
             return float(np.linalg.norm(contact_wrench(self.config.phantom, robot.tcp_pose, robot.tcp_speed)[:3]))
         return 0.0
 
+    def _on_feedback(self, sample: zenoh.Sample) -> None:
+        """A viewer's report (a Zenoh callback: decoded, handed to its stream, which only notes it)."""
+        try:
+            msg = VideoFeedback.decode(sample.payload.to_bytes())
+        except DecodeError:
+            return  # a report moves nothing: a garbled one is simply not taken into account
+        for stream in self.video:
+            if stream.name == msg.stream:
+                stream.on_feedback(msg)
+
     def _publish_markers(self, msg: Markers) -> None:
         if self._pub_markers is not None:
             self._pub_markers.put(msg.encode())
@@ -213,6 +224,7 @@ class MediaService:
         """Until the parent sets ``stop_flag`` or dies."""
         zenoh_config = (self.config.video.zenoh if self.config.video is not None else None) or self.config.zenoh
         session = open_session(zenoh_config, stop=self.stop)
+        feedback: zenoh.Subscriber | None = None
         try:
             if self.perception is not None:
                 self._pub_markers = publisher(session, self.keys.key(keys.MARKERS))
@@ -223,6 +235,12 @@ class MediaService:
                 self.perception.start()
             for stream in self.video:
                 stream.start(session, self.keys, self.stop)
+            if any(stream.h264 is not None for stream in self.video):
+                # The viewers' reports on the H.264 streams (keyframe requests, loss, delay); with bound keys on
+                # each operator's own key.
+                bound = "/*" if self.config.bind_operator_keys else ""
+                feedback = session.declare_subscriber(self.keys.key(keys.CMD_VIDEO_FEEDBACK) + bound,
+                                                      self._on_feedback)
             conn.send(("up", os.getpid()))
             while not self.stop.wait(_PARENT_CHECK_S):
                 if stop_flag.value:
@@ -232,6 +250,8 @@ class MediaService:
                     os._exit(0)
         finally:
             self.stop.set()
+            if feedback is not None:
+                feedback.undeclare()
             if self.perception is not None:
                 self.perception.stop()
             for stream in self.video:

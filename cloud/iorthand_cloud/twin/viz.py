@@ -150,7 +150,8 @@ class VizFeeder:
                 if batch is not None:
                     self.queue.put(VizItem("force", robot, msg.t, batch))
             elif suffix in (keys.VIDEO_CAMERA, keys.VIDEO_ULTRASOUND):
-                if self._image.due((robot, suffix), now):
+                # JPEG pictures are thinned to image_fps; an H.264 frame needs the ones before it: every one goes.
+                if getattr(msg, "encoding", "") == "h264" or self._image.due((robot, suffix), now):
                     self.queue.put(VizItem("image", robot, msg.t, (suffix, msg)))
             elif suffix == keys.MARKERS:
                 if self._markers.due(robot, now):
@@ -228,6 +229,7 @@ class Visualizer:
         self.feeder = VizFeeder(config, self.queue)
         self.on_drawn = on_drawn
         self._arm_gate = RateGate(config.viewer.arm_hz)
+        self._video_paths: set[str] = set()  # entities whose H.264 codec was logged
         self._robots: dict[str, _Drawn] = {}
         self._stop = threading.Event()
         self._worker: Worker | None = None
@@ -425,6 +427,13 @@ class Visualizer:
         path = f"robots/{robot}/tcp/camera/image" if suffix == keys.VIDEO_CAMERA else f"robots/{robot}/ultrasound"
         if frame.failure:  # no picture rather than a frozen one that reads as live; the event log says why
             self.rec.log(path, rr.Clear(recursive=False))
+            return
+        if frame.encoding == "h264":
+            # A video stream: its codec once, then each access unit as a sample (rerun decodes in the viewer).
+            if path not in self._video_paths:
+                self.rec.log(path, rr.VideoStream(codec=rr.VideoCodec.H264), static=True)
+                self._video_paths.add(path)
+            self.rec.log(path, rr.VideoStream.from_fields(sample=frame.data, is_keyframe=frame.keyframe))
             return
         media = "image/jpeg" if frame.encoding.lower() in ("jpeg", "jpg") else "image/png"
         self.rec.log(path, rr.EncodedImage(contents=frame.data, media_type=media))

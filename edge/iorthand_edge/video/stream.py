@@ -1,10 +1,15 @@
-"""Video streams: capture at a fixed rate, encode JPEG, publish on the video session with DATA_LOW priority.
+"""Video streams: capture at a fixed rate, encode (H.264 or JPEG), publish on the video session (DATA_LOW, BLOCK).
 
 Two named threads per stream. The capture thread grabs frames on schedule and stamps each with its capture
 time and a sequence number; it hands them over through a one-frame slot. The sender takes the newest frame,
 encodes it and ``put()``s it. When encoding or the network is slower than the camera, the frame waiting in
 the slot is replaced — dropped before it costs any encoding — so nothing queues and latency stays one
 frame; the gaps in ``seq`` tell the receiver how many were dropped.
+
+H.264 (:mod:`iorthand_edge.video.h264`) follows the link: video is published with ``CongestionControl.BLOCK`` so
+that a full uplink shows as a slow ``put`` (and frames the slot replaced) rather than as frames lost in transit —
+a lost H.264 frame spoils the ones after it until the next keyframe — and the bitrate follows those signals and
+the viewers' reports (:mod:`iorthand_edge.video.bitrate`). JPEG frames are independent pictures: the fallback.
 
 A source that cannot be opened, fails, or gives no frame for ``stall_timeout`` s is closed and reopened every
 ``retry_interval`` s (a USB camera that enumerates after the edge starts, or is unplugged and plugged back).
@@ -26,9 +31,11 @@ import numpy as np
 import zenoh
 
 from iorthand import keys
-from iorthand.protocol import VideoFrame
+from iorthand.protocol import VideoFeedback, VideoFrame
 from iorthand.transport import Worker, publisher
+from iorthand_edge.video.bitrate import BitrateController, BitrateSettings
 from iorthand_edge.video.config import StreamConfig
+from iorthand_edge.video.h264 import H264Encoder
 from iorthand_edge.video.sources import FrameSource, Image, VideoError
 
 log = logging.getLogger("iorthand.edge.video")
@@ -72,17 +79,31 @@ def encode_jpeg(image: Image, quality: int) -> bytes:
     return buf.tobytes()
 
 
-def encode_frame(source: str, item: Captured, config: StreamConfig) -> VideoFrame:
+def encode_frame(source: str, item: Captured, config: StreamConfig, h264: H264Encoder | None = None) -> VideoFrame | None:
+    """The frame to publish for ``item``: a failure notice, a JPEG, or an H.264 access unit (None while the
+    encoder holds it back, which ``zerolatency`` never does)."""
     if item.image is None:
-        frame = VideoFrame(source=source, width=config.width, height=config.height, failure=item.failure)
-    else:
-        h, w = item.image.shape[:2]
+        frame = VideoFrame(source=source, width=config.width, height=config.height, encoding=config.codec,
+                           failure=item.failure)
+        if h264 is not None:
+            h264.request_keyframe()  # whoever watches starts again when the source is back
+        return frame.stamp(item.seq, item.t_ns)
+    h, w = item.image.shape[:2]
+    if h264 is None:
         frame = VideoFrame(source=source, width=w, height=h, data=encode_jpeg(item.image, config.quality))
+        return frame.stamp(item.seq, item.t_ns)
+    units = h264.encode(item.image, item.t_ns // 1_000_000)
+    if not units:
+        return None
+    frame = VideoFrame(source=source, width=w, height=h, encoding="h264", data=b"".join(d for d, _ in units),
+                       keyframe=any(k for _, k in units))
     return frame.stamp(item.seq, item.t_ns)
 
 
 def decode_frame(frame: VideoFrame) -> Image:
-    """The image of a frame (receivers, tests)."""
+    """The image of a JPEG frame (receivers, tests; H.264 needs the stream: :class:`H264Decoder`)."""
+    if frame.encoding == "h264":
+        raise VideoError(f"frame {frame.seq} from {frame.source} is H.264: decode the stream with H264Decoder")
     image = cv2.imdecode(np.frombuffer(frame.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise VideoError(f"frame {frame.seq} from {frame.source} is not a valid JPEG")
@@ -102,9 +123,27 @@ class VideoStream:
         self.sent = 0
         self.bytes_sent = 0
         self.encode_s = 0.0
+        self.put_s = 0.0
         self.error = ""
         self._pub: Any = None
         self._workers: list[Worker] = []
+        self.h264: H264Encoder | None = None
+        self.bitrate: BitrateController | None = None
+        if config.codec == "h264":
+            self.h264 = H264Encoder(config.width, config.height, config.fps, 1000 * config.bitrate_kbps,
+                                    config.keyframe_interval)
+            if config.adaptive:
+                self.bitrate = BitrateController(BitrateSettings(
+                    1000 * config.bitrate_kbps, 1000 * config.min_bitrate_kbps, 1000 * config.max_bitrate_kbps,
+                ), 1.0 / config.fps)
+
+    def on_feedback(self, feedback: VideoFeedback) -> None:
+        """A viewer's report (the media process's subscription): a keyframe it waits for, and how the frames
+        reach it (the bitrate follows the worst viewer)."""
+        if self.h264 is not None and feedback.keyframe:
+            self.h264.request_keyframe()
+        if self.bitrate is not None:
+            self.bitrate.on_feedback(feedback.received, feedback.lost, feedback.delay_p90)
 
     @property
     def dropped(self) -> int:
@@ -162,7 +201,10 @@ class VideoStream:
             if image is not None:
                 last_frame = time.monotonic()
                 self.captured += 1
+                skipped = self.slot.dropped
                 self.slot.put(Captured(self._next_seq(), t_ns, image))
+                if self.bitrate is not None:
+                    self.bitrate.on_capture(self.slot.dropped - skipped)
                 if self.error:
                     log.info("video %s: %s delivers frames again", self.name, self.source.description)
                     self.error = ""
@@ -191,9 +233,22 @@ class VideoStream:
             item = self.slot.take(timeout=0.2)
             if item is None or self._pub is None:
                 continue
+            if self.h264 is not None and self.bitrate is not None:
+                self.h264.set_bitrate(self.bitrate.decide(time.monotonic()))
+                if self.bitrate.reason:
+                    log.info("video %s: %s", self.name, self.bitrate.reason)
+                    self.bitrate.reason = ""
             t0 = time.perf_counter()
-            payload = encode_frame(self.name, item, self.config).encode()
-            self.encode_s += time.perf_counter() - t0
-            self._pub.put(payload)
+            frame = encode_frame(self.name, item, self.config, self.h264)
+            if frame is None:
+                continue
+            payload = frame.encode()
+            t1 = time.perf_counter()
+            self.encode_s += t1 - t0
+            self._pub.put(payload)  # BLOCK: a full uplink shows here
+            put = time.perf_counter() - t1
+            self.put_s += put
+            if self.bitrate is not None:
+                self.bitrate.on_put(put)
             self.sent += 1
             self.bytes_sent += len(payload)

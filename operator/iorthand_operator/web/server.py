@@ -12,8 +12,10 @@ Who may do what comes from the deployment (:mod:`iorthand_operator.web.users`): 
 cookie (HttpOnly, SameSite=Strict, Secure under HTTPS), and on the websocket the origin, the session and the
 robot's grant. Every refusal is counted (``/api/stats``) and said on the page; nothing refused reaches Zenoh.
 
-Video: the newest JPEG of each stream is sent when the page's socket has room (newest frame wins, never a queue):
-``benchmarks/bench_web.py`` measured this against the Python client (figures in benchmarks/README.md).
+Video: JPEG pictures go newest first when the page's socket has room (never a queue); H.264 frames go in order
+from a keyframe, and a page that falls behind skips to the next keyframe and asks the edge for one; the page
+decodes them with the browser's WebCodecs. ``benchmarks/bench_web.py`` measured this against the Python client
+(figures in benchmarks/README.md).
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from aiohttp import WSMsgType, web
 from iorthand import geometry, keys, kinematics
 from iorthand.config import from_dict as config_from_dict
 from iorthand.config import read_yaml
-from iorthand.protocol import DecodeError, Sequencer, StopCommand, VideoFrame
+from iorthand.protocol import DecodeError, Sequencer, StopCommand, VideoFeedback, VideoFrame
 from iorthand.security.acl import Deployment
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
 from iorthand_operator import recovery
@@ -78,12 +80,25 @@ class Login:
 
 @dataclass
 class Frame:
-    """The newest frame of one video stream: its header for the page, and the JPEG."""
+    """One frame of a video stream as the page gets it: JPEG or an H.264 access unit."""
 
     seq: int
     t: int  # capture time, ns since the epoch
     data: bytes
     failure: str = ""
+    h264: bool = False
+    keyframe: bool = False
+
+    def wire(self, stream_index: int) -> bytes:
+        """The binary websocket message: stream, capture time, sequence, flags (bit 0 H.264, bit 1 keyframe)."""
+        flags = (1 if self.h264 else 0) | (2 if self.keyframe else 0)
+        header = struct.pack(">BQIB", stream_index, self.t, self.seq & 0xFFFFFFFF, flags)
+        return header + (self.data if not self.failure else b"")
+
+
+# Frames of an H.264 stream kept for pages that are a few frames behind: a page further behind skips to the next
+# keyframe (a JPEG stream needs only the newest frame, and its pages get only that).
+H264_BACKLOG = 45
 
 
 class Feed:
@@ -94,7 +109,7 @@ class Feed:
         self.loop = loop
         self.watch = OperatorClient(session, robot, WATCHER_ID, announce=False, external_sender=True)
         self.arm = kinematics.ArmTracker(arm_model)
-        self.frames: dict[str, Frame | None] = dict.fromkeys(VIDEO_STREAMS)
+        self.frames: dict[str, deque[Frame]] = {name: deque(maxlen=H264_BACKLOG) for name in VIDEO_STREAMS}
         self.pages: set[Page] = set()
         self._arm_seq = -1
         self._arm_points: list[list[float]] | None = None
@@ -109,7 +124,11 @@ class Feed:
             except DecodeError as exc:
                 self.watch.rejects.add(str(sample.key_expr), str(exc))
                 return
-            self.frames[name] = Frame(msg.seq, msg.t, msg.data, msg.failure)
+            frame = Frame(msg.seq, msg.t, msg.data, msg.failure, msg.encoding == "h264", msg.keyframe)
+            frames = self.frames[name]
+            if not frame.h264:
+                frames.clear()  # newest wins
+            frames.append(frame)
             self.loop.call_soon_threadsafe(self._notify)
 
         return on_sample
@@ -167,6 +186,8 @@ class Bridge:
         self.feeds: dict[str, Feed] = {}
         self.controllers: dict[str, Page] = {}  # robot → the page of this server that holds its control
         self._stops: dict[tuple[str, str], tuple[zenoh.Publisher, Sequencer]] = {}
+        self._feedback: dict[tuple[str, str], tuple[zenoh.Publisher, Sequencer]] = {}
+        self._keyframe_asked: dict[tuple[str, str], float] = {}
 
     # ------------------------------------------------------------- log-in
 
@@ -233,6 +254,29 @@ class Bridge:
         pub, seq = self._stops[key]
         pub.put(StopCommand(operator=user, reason=reason).stamp(seq.next()).encode())
 
+    def video_feedback(self, robot: str, grant: users.Grant, stream: str, keyframe: bool, received: int,
+                       lost: int) -> None:
+        """A page's report on a video stream, to the edge. With bound keys only an operator's own key is open to
+        this server (a viewer's page relies on the stream's periodic keyframes); a keyframe request at most
+        twice a second per robot and stream."""
+        assert self.session is not None
+        bind = self.config.bind_operator_keys
+        if bind and not grant.may_command(robot):
+            return
+        now = time.monotonic()
+        if keyframe and now - self._keyframe_asked.get((robot, stream), -math.inf) < 0.5:
+            return
+        if keyframe:
+            self._keyframe_asked[(robot, stream)] = now
+        name = grant.user if bind else WATCHER_ID
+        key = (robot, name)
+        if key not in self._feedback:
+            suffix = keys.CMD_VIDEO_FEEDBACK + (f"/{name}" if bind else "")
+            self._feedback[key] = (publisher(self.session, keys.RobotKeys(robot).key(suffix)), Sequencer())
+        pub, seq = self._feedback[key]
+        pub.put(VideoFeedback(operator=name, stream=stream, keyframe=keyframe, received=received,
+                              lost=lost).stamp(seq.next()).encode())
+
     def close(self) -> None:
         for feed in self.feeds.values():
             feed.close()
@@ -256,7 +300,9 @@ class Page:
         self.video_on = True
         self.closed = False
         self._busy = False  # a control request is under way
-        self._sent_video = dict.fromkeys(VIDEO_STREAMS, -1)
+        self._sent_video = dict.fromkeys(VIDEO_STREAMS, -1)  # seq of the last frame sent, per stream
+        self._video_stats = {name: [0, 0] for name in VIDEO_STREAMS}  # frames sent, skipped since the last report
+        self._feedback_at = dict.fromkeys(VIDEO_STREAMS, 0.0)
         self._pending: dict[int, int] = {}  # command seq → the page's message id
         self._last_events: dict[str, Event | None] = {"watch": None, "client": None}
         self._refused_at: dict[str, float] = {}
@@ -422,20 +468,39 @@ class Page:
             await self._push_video()
 
     async def _push_video(self) -> None:
+        """Each stream's frames the page has not had, while its socket has room. JPEG: the newest only. H.264: in
+        order from where the page is; a page too far behind (the frames it needs are gone, or its socket is
+        full) skips to the next keyframe and asks the edge for one."""
         transport = self.transport
         if not self.video_on:
             return
         for index, name in enumerate(VIDEO_STREAMS):
-            frame = self.feed.frames[name]
-            if frame is None or frame.seq == self._sent_video[name]:
-                continue
-            if not isinstance(transport, asyncio.WriteTransport) or transport.is_closing() or \
-                    transport.get_write_buffer_size() > VIDEO_BACKLOG_BYTES:
-                return  # the page is behind: this frame is skipped, a newer one will go when it has drained
-            self._sent_video[name] = frame.seq
-            header = struct.pack(">BQI", index, frame.t, frame.seq & 0xFFFFFFFF)
-            with contextlib.suppress(ConnectionError, RuntimeError):
-                await self.ws.send_bytes(header + (frame.data if not frame.failure else b""))
+            for frame in list(self.feed.frames[name]):
+                last = self._sent_video[name]
+                if frame.seq <= last:
+                    continue
+                stats = self._video_stats[name]
+                if frame.h264 and not frame.failure and (last < 0 or frame.seq > last + 1) and not frame.keyframe:
+                    stats[1] += 1  # the frame before it never reached this page: wait for a keyframe
+                    self._feedback(name, keyframe=True)
+                    continue
+                if not isinstance(transport, asyncio.WriteTransport) or transport.is_closing() or \
+                        transport.get_write_buffer_size() > VIDEO_BACKLOG_BYTES:
+                    return  # the page is behind: it gets what comes once it has drained
+                self._sent_video[name] = frame.seq
+                stats[0] += 1
+                with contextlib.suppress(ConnectionError, RuntimeError):
+                    await self.ws.send_bytes(frame.wire(index))
+            if time.monotonic() - self._feedback_at[name] > 1.0:
+                self._feedback(name, keyframe=False)
+
+    def _feedback(self, stream: str, keyframe: bool) -> None:
+        """Tell the edge how this page gets a stream (its H.264 bitrate follows the worst viewer)."""
+        sent, skipped = self._video_stats[stream]
+        if keyframe or sent or skipped:
+            self.bridge.video_feedback(self.robot, self.grant, stream, keyframe, sent, skipped)
+        self._video_stats[stream] = [0, 0]
+        self._feedback_at[stream] = time.monotonic()
 
     def state(self) -> dict[str, Any]:
         """What the page shows now (the console's model, as JSON)."""

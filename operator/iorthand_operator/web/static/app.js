@@ -237,23 +237,82 @@ function onMessage(m) {
 }
 
 const VIDEO_NAMES = ["camera", "ultrasound"];
+const HEADER_BYTES = 14; // stream u8, capture time u64 (ns), sequence u32, flags u8 (1: H.264, 2: keyframe)
 const objectUrls = {};
+const decoders = {}; // per stream: the WebCodecs H.264 decoder and the capture times of the frames in it
+
+function recordDelay(name, captureMs, bytes) {
+  const delayMs = Date.now() - captureMs;
+  const list = stats.video[name];
+  list.push(delayMs);
+  stats.videoBytes += bytes;
+  if (list.length > 5000) list.splice(0, 2500);
+  $(`${name}-age`).textContent = `${Math.max(0, delayMs).toFixed(0)} ms`;
+}
+
+function h264Decoder(name) {
+  if (decoders[name]) return decoders[name];
+  const canvas = $(`${name}-video`);
+  const entry = { captured: new Map(), ready: false, failed: "" };
+  entry.decoder = new VideoDecoder({
+    output: (frame) => {
+      const capture = entry.captured.get(frame.timestamp);
+      entry.captured.delete(frame.timestamp);
+      if (canvas.width !== frame.displayWidth) { canvas.width = frame.displayWidth; canvas.height = frame.displayHeight; }
+      canvas.getContext("2d").drawImage(frame, 0, 0);
+      frame.close();
+      if (capture) recordDelay(name, capture.ms, capture.bytes);
+    },
+    error: (e) => { entry.failed = e.message; entry.ready = false; delete decoders[name]; },
+  });
+  // Annex B (no description): the stream carries its SPS/PPS at every keyframe.
+  entry.decoder.configure({ codec: "avc1.42E01E", optimizeForLatency: true });
+  decoders[name] = entry;
+  return entry;
+}
+
 function onVideo(buffer) {
   const view = new DataView(buffer);
   const name = VIDEO_NAMES[view.getUint8(0)];
   const tNs = view.getBigUint64(1);
-  const delayMs = Date.now() - Number(tNs / 1000000n);
-  const list = stats.video[name];
-  list.push(delayMs);
-  stats.videoBytes += buffer.byteLength;
-  if (list.length > 5000) list.splice(0, 2500);
-  $(`${name}-age`).textContent = `${Math.max(0, delayMs).toFixed(0)} ms`;
-  const jpeg = buffer.slice(13);
-  if (!jpeg.byteLength) { ui[name].removeAttribute("src"); ui[name].alt = `${name}: no picture`; return; }
-  const url = URL.createObjectURL(new Blob([jpeg], { type: "image/jpeg" }));
+  const flags = view.getUint8(13);
+  const data = buffer.slice(HEADER_BYTES);
+  const img = ui[name];
+  const canvas = $(`${name}-video`);
+  if (!data.byteLength) { // the edge says why there is no picture (the event log has the reason)
+    img.removeAttribute("src");
+    img.hidden = false;
+    canvas.hidden = true;
+    img.alt = `${name}: no picture`;
+    return;
+  }
+  const captureMs = Number(tNs / 1000000n);
+  if (flags & 1) { // H.264: decoded by the browser, drawn on the canvas
+    if (typeof VideoDecoder === "undefined") {
+      img.hidden = false;
+      canvas.hidden = true;
+      img.alt = `${name}: this browser cannot decode H.264 video (WebCodecs)`;
+      return;
+    }
+    const entry = h264Decoder(name);
+    const key = (flags & 2) !== 0;
+    if (!entry.ready && !key) return; // a decoder starts at a keyframe
+    entry.ready = true;
+    img.hidden = true;
+    canvas.hidden = false;
+    const timestamp = Number(tNs / 1000n); // µs
+    entry.captured.set(timestamp, { ms: captureMs, bytes: buffer.byteLength });
+    if (entry.captured.size > 120) entry.captured.delete(entry.captured.keys().next().value);
+    entry.decoder.decode(new EncodedVideoChunk({ type: key ? "key" : "delta", timestamp, data }));
+    return;
+  }
+  recordDelay(name, captureMs, buffer.byteLength); // JPEG: a picture of its own
+  img.hidden = false;
+  canvas.hidden = true;
+  const url = URL.createObjectURL(new Blob([data], { type: "image/jpeg" }));
   const old = objectUrls[name];
   objectUrls[name] = url;
-  ui[name].src = url;
+  img.src = url;
   if (old) URL.revokeObjectURL(old);
 }
 
@@ -358,6 +417,7 @@ for (const [box, key] of [[$("want-video"), "iorthand.video"], [want3d, "iorthan
     send({ type: "view", video: $("want-video").checked });
     $("view3d").closest("figure").hidden = !want3d.checked;
     for (const name of VIDEO_NAMES) ui[name].closest("figure").hidden = !$("want-video").checked;
+    if (!$("want-video").checked) for (const name of VIDEO_NAMES) delete decoders[name]; // restart at a keyframe
   });
   box.dispatchEvent(new Event("change"));
 }

@@ -1,0 +1,116 @@
+"""H.264 for the camera and the ultrasound: a few hundred kbit/s where JPEG needs several Mbit/s (issue 24).
+
+libx264 through PyAV, tuned for latency: ``ultrafast`` + ``zerolatency`` (no lookahead, no B-frames: each frame
+is encoded and sent as it is captured), a bounded VBV buffer (no frame much bigger than the rate allows, so the
+uplink never queues seconds of video), SPS/PPS repeated at every keyframe (a viewer can start at any of them), a
+keyframe every ``keyframe_interval`` s (a viewer that joins or lost a frame waits at most that) and on request
+(:meth:`H264Encoder.request_keyframe`: a viewer's feedback). Each access unit travels in one ``VideoFrame``
+(Annex B, ``encoding: h264``, ``keyframe`` set on IDR frames).
+
+The bitrate is a target that :mod:`iorthand_edge.video.bitrate` moves with the link; libx264 cannot change it
+on the fly through PyAV, so a new target opens a new encoder, whose first frame is a keyframe.
+"""
+
+from __future__ import annotations
+
+import fractions
+import logging
+
+import av
+import numpy as np
+
+from iorthand_edge.video.sources import Image, VideoError
+
+log = logging.getLogger("iorthand.edge.video")
+
+# The part of a second of video the decoder's buffer holds (VBV): smaller bounds each frame's size (and so the
+# delay a keyframe adds on a thin link) at some cost in quality.
+VBV_SECONDS = 0.5
+
+
+class H264Encoder:
+    """Encodes images of one stream (fixed size) into H.264 access units."""
+
+    def __init__(self, width: int, height: int, fps: float, bitrate: float, keyframe_interval: float) -> None:
+        # x264 wants even dimensions in 4:2:0.
+        if width % 2 or height % 2:
+            raise VideoError(f"H.264 needs an even width and height, got {width}×{height}")
+        self.width, self.height, self.fps = width, height, fps
+        self.keyframe_interval = keyframe_interval
+        self.bitrate = bitrate
+        self._codec: av.VideoCodecContext | None = None
+        self._pts = 0
+        self._want_key = True
+        self.reopened = 0
+
+    def _open(self) -> av.VideoCodecContext:
+        kbps = max(16, int(self.bitrate / 1000))
+        keyint = max(1, round(self.fps * self.keyframe_interval))
+        codec = av.CodecContext.create("libx264", "w")
+        codec.width, codec.height, codec.pix_fmt = self.width, self.height, "yuv420p"
+        codec.time_base = fractions.Fraction(1, 1000)
+        codec.framerate = fractions.Fraction(round(self.fps * 1000), 1000)
+        codec.bit_rate = int(self.bitrate)
+        codec.options = {
+            "preset": "ultrafast", "tune": "zerolatency", "forced-idr": "1",
+            "x264-params": (f"keyint={keyint}:min-keyint={keyint}:scenecut=0:bframes=0:repeat-headers=1:"
+                            f"vbv-maxrate={kbps}:vbv-bufsize={max(8, int(kbps * VBV_SECONDS))}:nal-hrd=none"),
+        }
+        codec.open()
+        self.reopened += 1
+        return codec
+
+    def set_bitrate(self, bitrate: float) -> None:
+        """A new target (bit/s): the next frame starts a new encoder with it (a keyframe)."""
+        if abs(bitrate - self.bitrate) > 1.0:
+            self.bitrate = bitrate
+            self._codec = None
+
+    def request_keyframe(self) -> None:
+        self._want_key = True
+
+    def encode(self, image: Image, t_ms: int) -> list[tuple[bytes, bool]]:
+        """The access units for ``image`` (usually one; none while the encoder fills up), with keyframe flags."""
+        if image.shape[0] != self.height or image.shape[1] != self.width:
+            raise VideoError(f"frame of {image.shape[1]}×{image.shape[0]} for a {self.width}×{self.height} H.264 stream")
+        if self._codec is None:
+            self._codec = self._open()
+            self._want_key = True
+        fmt = "gray" if image.ndim == 2 else "bgr24"
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(image), format=fmt)
+        frame.pts = max(self._pts + 1, t_ms)  # strictly increasing, in ms
+        self._pts = frame.pts
+        if self._want_key:
+            frame.pict_type = av.video.frame.PictureType.I
+            self._want_key = False
+        try:
+            packets = self._codec.encode(frame)
+        except av.error.FFmpegError as exc:
+            self._codec = None
+            raise VideoError(f"H.264 encoding failed: {exc}") from exc
+        return [(bytes(p), bool(p.is_keyframe)) for p in packets]
+
+
+class H264Decoder:
+    """Access units back to images (receivers that draw them, tests). Waits for a keyframe after a gap."""
+
+    def __init__(self) -> None:
+        self._codec = av.CodecContext.create("h264", "r")
+        self._synced = False
+
+    def decode(self, data: bytes, keyframe: bool, gap: bool = False) -> list[np.ndarray]:
+        """BGR images of one access unit; none before the first keyframe, or after a lost frame until the next."""
+        if gap:
+            self._synced = False
+        if not self._synced and not keyframe:
+            return []
+        self._synced = True
+        try:
+            frames = self._codec.decode(av.Packet(data))
+        except av.error.FFmpegError:
+            self._synced = False
+            return []
+        return [f.to_ndarray(format="bgr24") for f in frames]
+
+
+__all__ = ["H264Decoder", "H264Encoder"]
