@@ -21,9 +21,10 @@ class StreamConfig:
     codec: str = setting("h264", choices=("h264", "jpeg"), help="h264: a few hundred kbit/s, adapted to the link; "
                          "jpeg: independent pictures, several Mbit/s (the fallback)")
     quality: int = setting(80, lo=10, hi=100, help="JPEG quality")
-    bitrate_kbps: float = setting(1500.0, lo=50.0, hi=50_000.0, help="h264: the bitrate to start with")
+    bitrate_kbps: float = setting(1200.0, lo=50.0, hi=50_000.0, help="h264: the bitrate to start with")
     min_bitrate_kbps: float = setting(200.0, lo=20.0, hi=50_000.0, help="h264: the link's congestion never takes it lower")
-    max_bitrate_kbps: float = setting(3000.0, lo=50.0, hi=100_000.0, help="h264: nor higher than this")
+    max_bitrate_kbps: float = setting(2000.0, lo=50.0, hi=100_000.0, help="h264: nor higher than this (640×480 at "
+                                      "30 fps looks clean at 1–2 Mbit/s; more only queues on a thin uplink)")
     adaptive: bool = setting(True, help="h264: follow the link (congestion at the sender, the viewers' reports)")
     keyframe_interval: float = setting(1.0, lo=0.1, hi=10.0, help="h264: s between keyframes (a viewer that joins or "
                                        "lost a frame starts again at the next one)")

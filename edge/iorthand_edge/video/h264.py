@@ -24,8 +24,9 @@ from iorthand_edge.video.sources import Image, VideoError
 log = logging.getLogger("iorthand.edge.video")
 
 # The part of a second of video the decoder's buffer holds (VBV): smaller bounds each frame's size (and so the
-# delay a keyframe adds on a thin link) at some cost in quality.
-VBV_SECONDS = 0.5
+# delay a keyframe adds on a thin link) at some cost in quality. 0.3 s: a keyframe crosses a link of twice the
+# bitrate in about a frame period more than a plain frame.
+VBV_SECONDS = 0.3
 
 
 class H264Encoder:

@@ -41,7 +41,9 @@ class FrameSource(ABC):
 
 
 class PatternSource(FrameSource):
-    """Colour bars drifting over a fixed noise texture, with a frame counter: JPEG sizes like a real scene."""
+    """Colour bars drifting over a fixed noise texture, with a frame counter and a camera's sensor noise (a few
+    grey levels, different in every frame): JPEG and H.264 sizes like a real scene (an encoder that could
+    predict every frame from the last would make any link look wide enough)."""
 
     description = "the test pattern"
 
@@ -54,6 +56,8 @@ class PatternSource(FrameSource):
         for i, c in enumerate(colours):
             bars[:, i * width // 7 : (i + 1) * width // 7] = c
         self._base = cv2.add(bars // 2, np.repeat(noise, 3, axis=2))
+        # Sensor noise: a few fields drawn once and taken in turn (drawing one per frame costs more than the frame).
+        self._grain = [rng.integers(0, 5, (height, width, 3), dtype=np.uint8) for _ in range(7)]
         self._n = 0
 
     def open(self) -> None:
@@ -61,7 +65,7 @@ class PatternSource(FrameSource):
 
     def grab(self) -> Image:
         self._n += 1
-        frame = np.roll(self._base, (self._n * 4) % self.size[0], axis=1)
+        frame = cv2.add(np.roll(self._base, (self._n * 4) % self.size[0], axis=1), self._grain[self._n % 7])
         cv2.putText(frame, f"{self._n}", (20, 40), cv2.FONT_HERSHEY_SIMPLEX, 1.2, (255, 255, 255), 2)
         return frame
 

@@ -23,7 +23,7 @@ from iorthand.config import cli_number
 from iorthand.cpu_latency import CpuLatencyHold
 from iorthand_operator.bench import linkemu, report
 from iorthand_operator.bench.procs import Unavailable, run_cleanups, set_nice
-from iorthand_operator.bench.wan import EMULATORS, PROFILES
+from iorthand_operator.bench.wan import EMULATORS, PROFILES, VIDEOS
 
 log = logging.getLogger("iorthand.bench")
 
@@ -117,13 +117,22 @@ def run_wan_part(args: argparse.Namespace) -> dict[str, Any]:
     from iorthand_operator.bench.wan import run_wan
 
     res = run_wan(_workdir(args), args.profiles, args.duration, args.trials, args.blackout_s, args.links, args.loopback,
-                  tuple(args.long_blackout_s), args.emulator)
+                  tuple(args.long_blackout_s), args.emulator, tuple(getattr(args, "video", None) or ["none"]))
     profs = res["profiles"]
     print(f"\nWAN profiles ({res['isolation']}, {res['emulator']}: {res['why']}; profile on the {res['links']} link(s))")
     rows = report.latency_rows(profs)
     for row, p in zip(rows, profs.values(), strict=True):
         row.append(p["deadman_stops_while_driving"])
     print(report.table([*report.LATENCY_HEADERS, "deadman stops"], rows))
+    vids = {n: p for n, p in profs.items() if "video" in p}
+    if vids:
+        print("\nVideo across the link (640×480, 30 fps captured)")
+        print(report.table(["profile+codec", "fps delivered", "delay p50 ms", "delay p99 ms", "p99 over link ms",
+                            "kbit/s", "command p99 ÷ no video"],
+                           [[n, p["video"]["fps_delivered"], p["video"].get("delay_ms", {}).get("p50"),
+                             p["video"].get("delay_ms", {}).get("p99"), p["video"].get("delay_over_link_p99_ms"),
+                             p["video"].get("bitrate_kbit_s"), p.get("command_p99_ratio_to_no_video")]
+                            for n, p in vids.items()]))
     pngs = [plots.cdf_plot(profs, args.out / "wan-cdf.png", "what the operator experiences, per WAN profile")]
     if "blackout" in profs:
         b = profs["blackout"]["blackout_summary"]
@@ -286,6 +295,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(netem where the kernel has it)")
     w.add_argument("--long-blackout-s", type=cli_number(float, lo=0.2), nargs="*", default=[5.0],
                    help="extra blackouts longer than the Zenoh lease (sessions drop and must recover)")
+    w.add_argument("--video", nargs="+", default=["none"], choices=list(VIDEOS),
+                   help="each profile once per choice: the edge streaming nothing, or its camera (640×480 30 fps) "
+                        "as JPEG or H.264, watched from the operator's side")
 
     s = bsub.add_parser("scale", help="N robots and N operators through one router / a mesh of three")
     common(s, 15.0)

@@ -303,6 +303,59 @@ def video_sub(args: argparse.Namespace) -> int:
     return 0
 
 
+def video_probe(args: argparse.Namespace) -> int:
+    """A viewer of the camera stream across the emulated link, as the twin or a console is: every frame's
+    sequence, capture time, arrival, size and keyframe flag; H.264 decoded (a frame counts as delivered only if it
+    decodes: after a lost frame nothing does until the next keyframe). It reports to the edge once a second and
+    asks for a keyframe when it needs one (VideoFeedback), as the web console does."""
+    from iorthand.protocol import VideoFeedback
+    from iorthand_edge.video.h264 import H264Decoder  # the benchmark runs where the edge's packages are
+
+    stop = _stop_event(args.max_seconds)
+    session = _zenoh(args)
+    k = keys.RobotKeys(args.robot)
+    sub = session.declare_subscriber(k.key(keys.VIDEO_CAMERA), zenoh.handlers.FifoChannel(256))
+    feedback = publisher(session, k.key(keys.CMD_VIDEO_FEEDBACK))
+    seq = Sequencer()
+    decoder = H264Decoder()
+    frames: list[list[Any]] = []  # seq, capture t, arrival t, bytes, keyframe, decoded
+    last_seq, received, lost, asked = 0, 0, 0, 0.0
+    report_at = time.monotonic() + 1.0
+    print("video-probe ready", flush=True)
+    end = time.monotonic() + args.duration
+    while not stop.is_set() and time.monotonic() < end:
+        sample = sub.try_recv()
+        now = time.monotonic()
+        if now >= report_at:
+            recent = sorted(f[2] - f[1] for f in frames[-received:]) if received else []
+            p90 = recent[int(0.9 * (len(recent) - 1))] / 1e9 if recent else -1.0
+            feedback.put(VideoFeedback(operator=args.operator_id, received=received, lost=lost,
+                                       delay_p90=min(3600.0, max(0.0, p90)) if recent else -1.0).stamp(seq.next()).encode())
+            received, lost, report_at = 0, 0, now + 1.0
+        if sample is None:
+            stop.wait(0.002)
+            continue
+        arrival = time.time_ns()
+        frame = VideoFrame.decode(sample.payload.to_bytes())
+        if frame.failure:
+            continue
+        gap = bool(last_seq) and frame.seq > last_seq + 1
+        lost += frame.seq - last_seq - 1 if gap else 0
+        received += 1
+        last_seq = frame.seq
+        decoded = True
+        if frame.encoding == "h264":
+            decoded = bool(decoder.decode(frame.data, frame.keyframe, gap=gap))
+            if not decoded and now - asked > 0.5:
+                feedback.put(VideoFeedback(operator=args.operator_id, keyframe=True).stamp(seq.next()).encode())
+                asked = now
+        frames.append([frame.seq, frame.t, arrival, len(sample.payload), frame.keyframe, decoded])
+    if args.out:
+        _write(args.out, {"frames": frames, "encoding": frame.encoding if frames else ""})
+    session.close()
+    return 0
+
+
 def state_pub(args: argparse.Namespace) -> int:
     """The edge's other streams that the agent does not publish yet: force at 100 Hz, markers at 30 Hz."""
     stop = _stop_event(args.max_seconds)
@@ -680,6 +733,7 @@ ROLES = {
     "state-pub": state_pub,
     "operator-probe": operator_probe,
     "state-monitor": state_monitor,
+    "video-probe": video_probe,
 }
 
 

@@ -227,10 +227,14 @@ def edge_config(robot: str, connect: list[str], **safety: Any) -> dict[str, Any]
     }
 
 
-def start_edge(group: Group, robot: str, connect: list[str], netns: str | None = None, name: str = "edge") -> Any:
+def start_edge(group: Group, robot: str, connect: list[str], netns: str | None = None, name: str = "edge",
+               video: dict[str, Any] | None = None) -> Any:
     cfg = group.workdir / f"{name}.yaml"
     cfg.parent.mkdir(parents=True, exist_ok=True)
-    cfg.write_text(yaml.safe_dump(edge_config(robot, connect), sort_keys=False))
+    config = edge_config(robot, connect)
+    if video is not None:
+        config["video"] = video
+    cfg.write_text(yaml.safe_dump(config, sort_keys=False))
     return group.start(name, iorthand_argv("edge", "--config", str(cfg)), netns=netns, ready="edge agent", timeout=60.0)
 
 

@@ -65,12 +65,19 @@ PROFILES: dict[str, WanProfile] = {
                      note="40 ± 15 ms one-way, 1 % of chunks stall 200 ms (loss + retransmission), 20 Mbit/s"),
     "poor": WanProfile("poor", LinkProfile(150.0, 80.0, 0.02, 300.0), "2mbit",
                        note="150 ± 80 ms one-way, 2 % stall 300 ms, 2 Mbit/s"),
+    # A field site's 4G uplink: what the edge's video must fit in (issue 24).
+    "4g-5mbit": WanProfile("4g-5mbit", LinkProfile(40.0, 15.0, 0.01, 200.0), "5mbit",
+                           note="4g's delay and stalls, the edge's link shaped to 5 Mbit/s"),
     "blackout": WanProfile("blackout", LinkProfile(0.5, 0.2), blackout=True,
                            note="LAN link with repeated blackouts: nothing passes for N s"),
 }
 
 
 EMULATORS = ("auto", "netem", "relay")
+# What the edge streams during a profile (``--video``): nothing, or 640×480 at 30 fps of the camera's test pattern
+# (with sensor noise) in one of its codecs. The probe in the operator's namespace watches it across the link.
+VIDEOS = ("none", "jpeg", "h264")
+VIDEO_CAMERA = {"source": "pattern", "width": 640, "height": 480, "fps": 30.0}
 # netem sends a packet no earlier than the one queued before it only while it paces a rate; without one, jitter
 # would reorder packets, which no wired or radio link does to a TCP stream. This rate limits nothing here.
 NETEM_UNLIMITED_RATE = "10gbit"
@@ -210,11 +217,14 @@ class Plan:
 
 
 def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespaces | None, links: str = "edge",
-                robot: str = "wan", netem: bool = False) -> dict[str, Any]:
-    """One profile: ``netem`` (needs ``netns``) shapes the veth links in the kernel, else relays carry them."""
+                robot: str = "wan", netem: bool = False, video: str = "none") -> dict[str, Any]:
+    """One profile: ``netem`` (needs ``netns``) shapes the veth links in the kernel, else relays carry them.
+    ``video``: what the edge streams meanwhile (:data:`VIDEOS`), watched by a probe on the operator's side."""
     if netem and netns is None:
         raise ValueError("netem emulation needs the network namespaces")
-    name = f"wan-{profile.name}"
+    if video not in VIDEOS:
+        raise ValueError(f"unknown video {video!r} (known: {', '.join(VIDEOS)})")
+    name = f"wan-{profile.name}" + (f"-{video}" if video != "none" else "")
     schedule = [plan.blackout_s] * plan.trials + list(plan.long_blackouts) if profile.blackout else []
     total = plan.duration if not profile.blackout else sum(
         plan.settle_s + b + (plan.recover_s if b < 2.0 else plan.long_recover_s) for b in schedule) + 1.0
@@ -248,7 +258,13 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
             relay_edge = g.start("relay-edge", _relay_argv(edge_dial, f"127.0.0.1:{cloud_port}", profile.link, 12,
                                                            max_s), netns=ns_cloud, ready="linkemu ready")
         start_router(g, "router-edge", edge_port, [f"tcp/{edge_dial}"], netns=ns_edge)
-        start_edge(g, robot, [ep(edge_port)], netns=ns_edge)
+        start_edge(g, robot, [ep(edge_port)], netns=ns_edge,
+                   video=None if video == "none" else {"camera": {**VIDEO_CAMERA, "codec": video}})
+        video_out = workdir / f"{name}-video.json"
+        if video != "none":
+            g.start("video", python_argv(ROLES, "video-probe", "--connect", f"tcp/{op_dial}", "--robot", robot,
+                                         "--duration", str(total), "--out", str(video_out), "--max-seconds", str(max_s)),
+                    netns=ns_op, ready="video-probe ready", timeout=120.0)
         g.start("monitor", python_argv(ROLES, "state-monitor", "--connect", ep(edge_port), "--robot", robot,
                                        "--duration", str(total + 60), "--out", str(mon_out), "--max-seconds", str(max_s)),
                 netns=ns_edge, ready="monitor ready")
@@ -280,11 +296,40 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
     result.update(profile=profile.name, note=profile.note, link=asdict(profile.link), rate=profile.rate,
                   links=links, emulator="netem" if netem else "relay", events=probe_data.get("events", []))
     result["deadman_stops_while_driving"] = _spurious_stops(states, blackouts)
+    if video != "none":
+        deadline = time.monotonic() + 20
+        while not video_out.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        frames = json.loads(video_out.read_text())["frames"] if video_out.exists() else []
+        result["video"] = video_figures(frames, profile.link.delay_ms, video)
     if profile.blackout:
         result["trials"] = blackout_trials(states, rd["records"], blackouts)
         result["blackout_s"] = plan.blackout_s
         result["blackout_times_ns"] = blackouts
     return result
+
+
+def video_figures(frames: list[list[Any]], link_delay_ms: float, codec: str, warmup_s: float = 2.0) -> dict[str, Any]:
+    """What a viewer got (frames as the video probe writes them: seq, capture ns, arrival ns, bytes, keyframe,
+    decoded), after ``warmup_s`` (the encoder's first keyframe, the bitrate finding the link): frames per second
+    delivered and decodable, delay from capture to arrival, and over the link's own one-way delay, bitrate."""
+    if not frames:
+        return {"codec": codec, "frames": 0, "fps_delivered": 0.0}
+    t0 = frames[0][2] + warmup_s * 1e9
+    kept = [f for f in frames if f[2] >= t0]
+    span = max(1e-9, (kept[-1][2] - t0) / 1e9) if kept else 1e-9
+    decoded = [f for f in kept if f[5]]
+    delays = [(f[2] - f[1]) / 1e6 for f in decoded]
+    summary = stats.latency_summary(delays)
+    return {
+        "codec": codec, "frames": len(kept), "decoded": len(decoded),
+        "fps_delivered": round(len(decoded) / span, 2),
+        "delay_ms": summary,
+        "delay_over_link_p99_ms": round(summary["p99"] - link_delay_ms, 2) if delays else None,
+        "bitrate_kbit_s": round(8 * sum(f[3] for f in kept) / span / 1e3, 1),
+        "keyframes": sum(1 for f in kept if f[4]),
+        "lost_by_sequence": sum(b[0] - a[0] - 1 for a, b in itertools.pairwise(kept) if b[0] > a[0] + 1),
+    }
 
 
 def _blackout(netns: Namespaces | None, relay: Any, on: bool) -> None:
@@ -382,7 +427,8 @@ def choose_emulator(emulator: str, force_loopback: bool) -> tuple[bool, bool, st
 
 
 def run_wan(workdir: Path, profiles: list[str], duration: float, trials: int, blackout_s: float, links: str = "edge",
-            force_loopback: bool = False, long_blackouts: tuple[float, ...] = (), emulator: str = "auto") -> dict[str, Any]:
+            force_loopback: bool = False, long_blackouts: tuple[float, ...] = (), emulator: str = "auto",
+            videos: tuple[str, ...] = ("none",)) -> dict[str, Any]:
     unknown = [name for name in profiles if name not in PROFILES]
     if unknown:
         raise ValueError(f"unknown WAN profile {unknown[0]!r} (known: {', '.join(PROFILES)})")
@@ -392,11 +438,18 @@ def run_wan(workdir: Path, profiles: list[str], duration: float, trials: int, bl
                                "why": why, "links": links, "profiles": {}}
     try:
         for name in profiles:
-            plan = Plan(duration=duration, trials=trials, blackout_s=blackout_s, long_blackouts=tuple(long_blackouts))
-            r = run_profile(workdir, PROFILES[name], plan, netns, links, netem=netem)
-            if "trials" in r:
-                r["blackout_summary"] = summarize_trials(r["trials"])
-            results["profiles"][name] = r
+            for video in videos:
+                plan = Plan(duration=duration, trials=trials, blackout_s=blackout_s, long_blackouts=tuple(long_blackouts))
+                r = run_profile(workdir, PROFILES[name], plan, netns, links, netem=netem, video=video)
+                if "trials" in r:
+                    r["blackout_summary"] = summarize_trials(r["trials"])
+                results["profiles"][name if video == "none" else f"{name}+{video}"] = r
+        for name in profiles:  # the command path with video against the same profile without, in this run
+            base = results["profiles"].get(name)
+            for video in videos:
+                r = results["profiles"].get(f"{name}+{video}")
+                if base is not None and r is not None and base["rtt_ms"].get("p99"):
+                    r["command_p99_ratio_to_no_video"] = round(r["rtt_ms"]["p99"] / base["rtt_ms"]["p99"], 3)
     finally:
         if netns is not None:
             netns.destroy()
