@@ -96,6 +96,8 @@ class ViewerConfig:
     web_port: int = setting(9090, lo=0, hi=65535)
     memory_limit: str = setting("256MiB", help="the gRPC server's buffer; older data is dropped first")
     save: Path | None = setting(None, help=".rrd file written with the same data")
+    save_max_mb: float = setting(500.0, lo=1.0, hi=1e6, help="the .rrd stops growing at this size (the recorder's "
+                                 "files hold whole sessions; a twin is live for hours)")
     relay_start_timeout: float = setting(20.0, lo=1.0, hi=120.0)
     queue: int = setting(1024, lo=16, hi=100_000, help="items between the Zenoh side and rerun (oldest dropped)")
     pose_hz: float = setting(30.0, lo=0.1, hi=500.0, help="robot drawing rate per robot")

@@ -22,6 +22,7 @@ import os
 import shutil
 import socket
 import subprocess
+import threading
 import time
 import urllib.parse
 from pathlib import Path
@@ -85,6 +86,11 @@ class ViewerServer:
         self.url = ""
         self.grpc_url = ""
         self._rec: rr.RecordingStream | None = None
+        self._stopped = threading.Event()
+        self._live_sinks: list[object] = []
+        self._blueprint: object | None = None
+        self._watch: threading.Thread | None = None
+        self.save_stopped = False
 
     def start(self, rec: rr.RecordingStream, default_blueprint: object | None = None) -> None:
         self._rec = rec
@@ -112,11 +118,35 @@ class ViewerServer:
         if self.save is not None:
             Path(self.save).parent.mkdir(parents=True, exist_ok=True)
             sinks.append(rr.FileSink(str(self.save)))
-            log.info("saving the twin's rerun data to %s", self.save)
+            log.info("saving the twin's rerun data to %s (at most %g MB)", self.save, c.save_max_mb)
+            self._live_sinks = [s for s in sinks if not isinstance(s, rr.FileSink)]
+            self._blueprint = default_blueprint
+            self._watch = threading.Thread(target=self._bound_save, name="twin-save-bound", daemon=True)
+            self._watch.start()
         if sinks:
             rec.set_sinks(*sinks, default_blueprint=default_blueprint)  # type: ignore[arg-type]
 
+    def _bound_save(self) -> None:
+        """Stop the .rrd file at ``save_max_mb``: a twin runs for a clinic day, its file would grow without end
+        (the recorder's MCAP files hold whole sessions; ``iorthand export`` makes an .rrd of any part of one)."""
+        limit = self.config.save_max_mb * 1e6
+        while not self._stopped.wait(5.0):
+            try:
+                size = Path(self.save).stat().st_size  # type: ignore[arg-type]
+            except OSError:
+                continue
+            if size >= limit and self._rec is not None:
+                if self._live_sinks:
+                    self._rec.set_sinks(*self._live_sinks, default_blueprint=self._blueprint)  # type: ignore[arg-type]
+                else:
+                    self._rec.disconnect()
+                self.save_stopped = True
+                log.warning("%s reached %.0f MB: the twin stops saving it (the viewer stays live; the recorder's "
+                            "files hold the whole session)", self.save, size / 1e6)
+                return
+
     def stop(self) -> None:
+        self._stopped.set()
         if self._rec is not None:
             # Flush and drop the sinks before the relay goes: a stream left pointing at a dead relay reports
             # "connection severed" errors when the process exits.

@@ -174,7 +174,8 @@ class VizFeeder:
 
 
 def blueprint(robots: list[str]) -> rrb.Blueprint:
-    """3D view | force plot, images (tabs), events. Panels collapsed: the viewer is also used on phones."""
+    """3D view | force plot, images (tabs), events; time following the newest data. Panels collapsed: the viewer
+    is also used on phones."""
     images: list[rrb.View] = []
     for r in robots:
         images.append(rrb.Spatial2DView(name=f"{r} camera", origin=f"/robots/{r}/tcp/camera"))
@@ -189,6 +190,8 @@ def blueprint(robots: list[str]) -> rrb.Blueprint:
             rrb.Vertical(*right, row_shares=[2, 2, 1] if images else [2, 1]),
             column_shares=[3, 2],
         ),
+        # A browser that opens the viewer lands on now and stays there (not at the start of what the relay holds).
+        rrb.TimePanel(timeline=TIMELINE, play_state="following"),
         collapse_panels=True,
     )
 
