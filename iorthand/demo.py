@@ -145,7 +145,13 @@ def run_demo(args: argparse.Namespace) -> int:
     recordings = workdir / "recordings"
     rec_cfg.write_text(yaml.safe_dump({"zenoh": {"mode": "client", "connect": [endpoint]}, "output_dir": str(recordings)}))
     session = f"demo-{time.strftime('%Y%m%d-%H%M%S')}"
-    twin_argv = ["twin", "--config", str(CONFIGS / "twin.yaml"), "--connect", endpoint, "--save", str(workdir / "twin.rrd"),
+    twin_cfg = CONFIGS / "twin.yaml"
+    if args.view:  # the Foxglove app can connect live too
+        twin = yaml.safe_load(twin_cfg.read_text())
+        twin["foxglove"] = {**twin.get("foxglove", {}), "enabled": True, "port": free_port()}
+        twin_cfg = workdir / "twin.yaml"
+        twin_cfg.write_text(yaml.safe_dump(twin, sort_keys=False))
+    twin_argv = ["twin", "--config", str(twin_cfg), "--connect", endpoint, "--save", str(workdir / "twin.rrd"),
                  "--log-dir", str(workdir)]
     twin_argv += ["--web-port", str(free_port()), "--grpc-port", str(free_port())] if args.view else ["--no-serve"]
     children = {
@@ -188,7 +194,11 @@ def run_demo(args: argparse.Namespace) -> int:
         if args.view:
             web_url = next((line.split("web console ready: ", 1)[1] for line in
                             (workdir / "web.log").read_text().splitlines() if "web console ready: " in line), "")
+            foxglove = next((line.split("twin foxglove: ", 1)[1] for line in
+                             (workdir / "twin.log").read_text().splitlines() if "twin foxglove: " in line), "")
             print(f"\nthe twin is live at {twin_url}", flush=True)
+            if foxglove:
+                print(f"the Foxglove app connects live at {foxglove} (Open connection → Foxglove WebSocket)", flush=True)
             print(f"the operator console (phone or desktop browser) is at {web_url}", flush=True)
             for user, password in logins:
                 print(f"  log in as {user:<10} password {password}", flush=True)

@@ -29,6 +29,15 @@ class ReportConfig:
 
 
 @dataclass
+class FoxgloveRecording:
+    """Channels with Foxglove's schemas written beside the raw ones (:mod:`iorthand_cloud.foxglove_channels`),
+    so the Foxglove app opens a session as it is: ``<session>/foxglove/foxglove-NNNN.mcap``."""
+
+    enabled: bool = setting(True, help="write the Foxglove channels (tf, markers, images, logs, force plots)")
+    video: bool = setting(True, help="with the camera and ultrasound pictures (a second copy: twice the video's disk)")
+
+
+@dataclass
 class RecorderConfig:
     zenoh: ZenohConfig = field(default_factory=lambda: ZenohConfig(mode="peer"))
     output_dir: Path = Path("recordings")
@@ -53,6 +62,7 @@ class RecorderConfig:
     start_on_launch: bool = setting(False, help="start a recording as soon as the service is up")
     session_prefix: str = "session"
     report: ReportConfig = field(default_factory=ReportConfig)
+    foxglove: FoxgloveRecording = field(default_factory=FoxgloveRecording)
 
     def check(self) -> None:
         for expr in [*self.key_exprs, *self.video_key_exprs, *self.exclude_key_exprs]:

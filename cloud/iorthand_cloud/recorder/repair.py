@@ -134,6 +134,10 @@ def repair_session(folder: Path) -> list[RepairResult]:
             by_file[path.name] = seg
         seg.status, seg.recovered_messages, seg.lost_bytes = "repaired", res.messages, res.lost_bytes
         seg.messages, seg.bytes = res.messages, path.stat().st_size
+    # The Foxglove copy of the session (iorthand_cloud.foxglove_channels), in its own subfolder: made whole too.
+    for path in sorted((folder / "foxglove").glob("*.mcap")):
+        if not has_footer(path):
+            repair_segment(path)
     stats, annotations, last = recompute_stats(folder)
     # The dropped counter is the recorder's own and cannot be rebuilt from the files: keep the last one written.
     manifest.keys, manifest.annotations = stats, annotations

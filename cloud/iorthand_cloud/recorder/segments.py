@@ -28,7 +28,8 @@ MALFORMED_META = "iorthand.malformed"
 @dataclass(frozen=True)
 class ChannelSpec:
     """A channel: the key plus how its bytes are encoded; malformed payloads of a key get their own channel
-    (same topic, metadata ``iorthand.malformed``) so a reader decoding the normal one never meets garbage."""
+    (same topic, metadata ``iorthand.malformed``) so a reader decoding the normal one never meets garbage.
+    ``extra_metadata``: more channel metadata (a Foxglove channel names the raw key it is made from)."""
 
     topic: str
     encoding: str
@@ -36,10 +37,14 @@ class ChannelSpec:
     schema_encoding: str = ""
     schema_data: bytes = b""
     malformed: bool = False
+    extra_metadata: tuple[tuple[str, str], ...] = ()
 
     @property
     def metadata(self) -> dict[str, str]:
-        return {MALFORMED_META: "true"} if self.malformed else {}
+        meta = dict(self.extra_metadata)
+        if self.malformed:
+            meta[MALFORMED_META] = "true"
+        return meta
 
 
 @dataclass(frozen=True)
@@ -108,7 +113,9 @@ class Segment:
 
 @dataclass
 class Stream:
-    """A sequence of segments ``<name>-0001.mcap``, ``<name>-0002.mcap``… in ``folder``."""
+    """A sequence of segments ``<name>-0001.mcap``, ``<name>-0002.mcap``… in ``folder``. ``make_folder``: create
+    ``folder`` when the first segment opens (a subfolder written only if data comes); the session folder itself
+    is never re-created, so one removed under a recording stops it with an error."""
 
     name: str
     folder: Path
@@ -124,8 +131,11 @@ class Stream:
     index: int = 0
     dirty: bool = False
     closed: list[Path] = field(default_factory=list)
+    make_folder: bool = False
 
     def open_next(self) -> Segment:
+        if self.make_folder and self.index == 0:
+            self.folder.mkdir(exist_ok=True)
         self.index += 1
         seg = Segment(self.folder / f"{self.name}-{self.index:04d}.mcap", self.compression, self.chunk_size,
                       self.attachments, self.opener)

@@ -9,6 +9,16 @@ answered from the callback with bytes the writer thread prepared (answering must
 
 A write error (full disk, folder gone) stops the recording and is published on ``iorthand/_recorder/status``
 with the reason; the files written so far are kept (the next start-up repairs a segment left without footer).
+
+Foxglove channels (``foxglove.enabled``): the writer thread also converts each decoded message with
+:class:`~iorthand_cloud.foxglove_channels.FoxgloveConverter` and writes the result into its own stream,
+``<session>/foxglove/foxglove-NNNN.mcap`` (topics and frames: :mod:`iorthand_cloud.foxglove_channels`). The raw
+msgpack segments stay the source of truth and are written first; the Foxglove files sit in a subfolder that
+every reader of the raw segments (report, replay, export, repair) ignores, and the manifest counts only raw
+messages. A conversion that fails is counted and logged, never allowed to stop the raw recording. The
+conversion runs here, never in a Zenoh callback: the receive path only queues, as before. And it yields to the
+raw recording: while the writer is behind (a tenth of ``inbox_max`` queued), messages are recorded raw only,
+counted in ``foxglove_skipped``, so that the queue never fills and refuses raw samples because of it.
 """
 
 from __future__ import annotations
@@ -36,15 +46,17 @@ from iorthand.config import to_dict
 from iorthand.protocol import (
     Annotation,
     DecodeError,
+    Message,
     RecorderRequest,
     RecorderStatus,
     Sequencer,
     message_type_for,
 )
 from iorthand.transport import Inbox, Worker, open_session
+from iorthand_cloud.foxglove_channels import FoxgloveChannel, FoxgloveConverter
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig
-from iorthand_cloud.recorder.repair import repair_all
+from iorthand_cloud.recorder.repair import has_footer, repair_all, repair_segment
 from iorthand_cloud.recorder.schemas import MESSAGE_ENCODING, RAW_ENCODING, SCHEMA_ENCODING, schema_bytes
 from iorthand_cloud.recorder.segments import Attachment, ChannelSpec, Segment, Stream
 
@@ -52,6 +64,7 @@ log = logging.getLogger("iorthand.recorder")
 
 SESSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 TELEMETRY, VIDEO, SKIP = "telemetry", "video", "skip"
+FOXGLOVE = "foxglove"  # the stream of Foxglove channels, and the subfolder of a session it is written into
 
 
 def recorder_key(name: str) -> str:
@@ -75,6 +88,7 @@ class _Recording:
     first_message_t: int = 0
     seg_info: dict[str, mf.SegmentInfo] = field(default_factory=dict)
     last_manifest: float = 0.0
+    foxglove: FoxgloveConverter | None = None  # one per recording: its "on change" state starts afresh
 
 
 class RecorderError(RuntimeError):
@@ -111,6 +125,10 @@ class RecorderService:
         self._worker: Worker | None = None
         self._declared: list[object] = []
         self.repaired: dict[str, list] = {}
+        self._fox_specs: dict[FoxgloveChannel, ChannelSpec] = {}
+        self.foxglove_errors = 0  # messages whose conversion failed (their raw copy was recorded)
+        self.foxglove_skipped = 0  # messages recorded raw only, while the writer was behind
+        self._fox_behind_at = max(1, config.inbox_max // 10)
         self.last_session: Path | None = None
         self.launch_session = ""
         mf.software_versions()  # warm the cache: the first lookup is slow  # the session id of start_on_launch ("" = a generated one)
@@ -126,6 +144,7 @@ class RecorderService:
         for name, results in self.repaired.items():
             log.warning("session %s was not closed: repaired %d segment(s), %d messages recovered", name,
                         len(results), sum(r.messages for r in results))
+        self._repair_foxglove(root)
         if self.session is None:
             self.session = open_session(self.config.zenoh, stop=self.stop_event)
         s = self.session
@@ -142,6 +161,29 @@ class RecorderService:
             self._inbox.put(_Control(keys.RECORDER_START, None, payload, time.time_ns()))
         log.info("recorder up: recording %s into %s (start/stop on %s)", ", ".join(self.config.key_exprs),
                  root, recorder_key("{start,stop,annotate,status}"))
+
+    def _repair_foxglove(self, root: Path) -> None:
+        """Foxglove segments of unfinished sessions (a killed recorder, a full disk) get their footer back too:
+        :func:`repair_all` repairs the session folder's own segments only. Until then the Foxglove app reads
+        a footer-less file all the same, unindexed."""
+        try:
+            folders = [p.parent for p in root.glob(f"*/{FOXGLOVE}")] if root.is_dir() else []
+        except OSError:
+            return
+        for folder in sorted(folders):
+            try:
+                status = mf.Manifest.read(folder).status
+            except (OSError, ValueError):
+                status = None
+            if status == mf.COMPLETE or (status == mf.RECORDING and mf.writer_alive(folder, quiet_for=0.0)):
+                continue  # closed cleanly, or another live process is writing it: never touched
+            for path in sorted((folder / FOXGLOVE).glob("*.mcap")):
+                try:
+                    if not has_footer(path):
+                        res = repair_segment(path)
+                        log.warning("repaired %s: %d messages recovered", path, res.messages)
+                except OSError as exc:
+                    log.error("%s: cannot repair (%s)", path, exc)
 
     def run_forever(self) -> None:
         self.start()
@@ -286,6 +328,9 @@ class RecorderService:
                 TELEMETRY: self._stream(rec, TELEMETRY, CompressionType.ZSTD, self.config.segment_max_mb, attachments),
                 VIDEO: self._stream(rec, VIDEO, CompressionType.NONE, self.config.video_segment_max_mb, []),
             }
+            if self.config.foxglove.enabled:
+                rec.streams[FOXGLOVE] = self._foxglove_stream(rec, attachments)
+                rec.foxglove = FoxgloveConverter(video=self.config.foxglove.video)
             rec.streams[TELEMETRY].open_next()  # starting only opens a file
         except OSError as exc:
             self._accepting = False
@@ -331,6 +376,19 @@ class RecorderService:
             name=name, folder=rec.folder, compression=compression, max_bytes=int(max_mb * 1024 * 1024),
             max_seconds=self.config.segment_max_s, chunk_size=self.config.chunk_kb * 1024,
             attachments=attachments, on_open=on_open, on_close=on_close, opener=self._opener,
+        )
+
+    def _foxglove_stream(self, rec: _Recording, attachments: list[Attachment]) -> Stream:
+        """One file for all the Foxglove channels, so the app shows a session from one file. Uncompressed when
+        it holds the pictures: zstd does not shrink JPEG or H.264 and took 1.5 ms of CPU per 150 kB frame here
+        (the raw video files are uncompressed for the same reason); the telemetry it then leaves uncompressed
+        is a few per cent of the video's bytes. Its segments are not listed in the manifest, which describes
+        the raw recording only."""
+        compression = CompressionType.NONE if self.config.foxglove.video else CompressionType.ZSTD
+        return Stream(
+            name=FOXGLOVE, folder=rec.folder / FOXGLOVE, compression=compression,
+            max_bytes=int(self.config.video_segment_max_mb * 1024 * 1024), max_seconds=self.config.segment_max_s,
+            chunk_size=self.config.chunk_kb * 1024, attachments=attachments, opener=self._opener, make_folder=True,
         )
 
     def _calibration_attachments(self) -> tuple[list[Attachment], list[str]]:
@@ -446,6 +504,7 @@ class RecorderService:
         seq: int | None = None
         t = recv_ns
         malformed = False
+        msg = None
         if cls is not None:
             try:
                 msg = cls.decode(payload)
@@ -471,8 +530,41 @@ class RecorderService:
                 # The first message goes to disk at once: "start" is complete when data is in the file.
                 stream.flush(fsync=False)
                 rec.first_message_t = time.time_ns()
+            if msg is not None and rec.foxglove is not None:
+                if len(self._inbox) >= self._fox_behind_at:  # behind: the raw recording first
+                    self._skip_foxglove(key)
+                else:
+                    stream = rec.streams[FOXGLOVE]  # (the error below then names this file)
+                    self._write_foxglove(rec.foxglove, stream, key, msg, recv_ns, seq or 0)
         except OSError as exc:
             self._fail(f"cannot write {stream.current.path if stream.current else rec.folder}: {_describe(exc)}")
+
+    def _skip_foxglove(self, key: str) -> None:
+        self.foxglove_skipped += 1
+        if self.foxglove_skipped == 1 or self.foxglove_skipped % 10_000 == 0:
+            log.warning("the writer is behind (%d queued): %d messages recorded raw only, without their Foxglove "
+                        "channels (latest on %s)", len(self._inbox), self.foxglove_skipped, key)
+
+    def _write_foxglove(self, conv: FoxgloveConverter, stream: Stream, key: str, msg: Message, recv_ns: int,
+                        seq: int) -> None:
+        """The Foxglove messages made from ``msg``, with the raw message's receive time and sequence (so each
+        lines up with its source in time and order). Write errors (OSError) are the caller's: same disk."""
+        try:
+            out = conv.convert(key, msg)
+        except Exception as exc:  # a conversion bug must never cost the raw recording, which is already written
+            self.foxglove_errors += 1
+            if self.foxglove_errors == 1 or self.foxglove_errors % 1000 == 0:
+                log.error("Foxglove conversion of %s failed (%d so far; raw copies kept): %r", key,
+                          self.foxglove_errors, exc)
+            return
+        for m in out:
+            spec = self._fox_specs.get(m.channel)
+            if spec is None:
+                ch = m.channel
+                spec = self._fox_specs[ch] = ChannelSpec(
+                    ch.topic, ch.message_encoding, ch.schema_name, ch.schema_encoding, ch.schema,
+                    extra_metadata=tuple(ch.metadata.items()))
+            stream.write(spec, recv_ns, m.t, seq, m.data)
 
     def _annotate(self, item: _Control) -> None:
         rec = self._rec
@@ -488,6 +580,8 @@ class RecorderService:
         try:
             rec.streams[TELEMETRY].write(self._spec(key, False), item.recv_ns, ann.t or item.recv_ns, ann.seq,
                                          item.payload)
+            if rec.foxglove is not None:
+                self._write_foxglove(rec.foxglove, rec.streams[FOXGLOVE], key, ann, item.recv_ns, ann.seq)
         except OSError as exc:
             self._fail(f"cannot write an annotation: {_describe(exc)}")
             self._refuse(item.query, self._last_error)

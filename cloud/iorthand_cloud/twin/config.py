@@ -117,6 +117,32 @@ class ViewerConfig:
 
 
 @dataclass
+class FoxgloveLiveConfig:
+    """The live view in the Foxglove app (:mod:`iorthand_cloud.twin.foxglove`): the same channels the recorder
+    writes for Foxglove, served over the Foxglove WebSocket protocol. Read-only: a client can subscribe, never
+    publish or call anything. Served beyond this machine, it needs a certificate (patient images)."""
+
+    enabled: bool = setting(False, help="serve the Foxglove WebSocket protocol (the app connects to ws://host:port)")
+    host: str = setting("127.0.0.1", help="address to listen on; loopback by default (this machine only)")
+    port: int = setting(8765, lo=0, hi=65535, help="0: any free port (printed at start)")
+    video: bool = setting(True, help="serve the camera and ultrasound pictures too")
+    tls_cert: Path | None = setting(None, help="PEM certificate (chain): wss://, required off loopback")
+    tls_key: Path | None = setting(None, help="PEM private key of tls_cert")
+    queue: int = setting(4096, lo=16, hi=100_000, help="state messages between Zenoh and the server (oldest dropped)")
+
+    def check(self) -> None:
+        try:
+            address = ipaddress.ip_address(self.host)
+        except ValueError:
+            raise ValueError(f"host {self.host!r} must be an IP address such as 127.0.0.1 or 0.0.0.0") from None
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together")
+        if self.enabled and not address.is_loopback and self.tls_cert is None:
+            raise ValueError(f"host {self.host} is reachable from other machines: serving patient images and poses "
+                             "there in clear text is refused; set tls_cert and tls_key, or listen on 127.0.0.1")
+
+
+@dataclass
 class TwinConfig:
     zenoh: ZenohConfig
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
@@ -126,6 +152,7 @@ class TwinConfig:
     state_timeout: float = setting(1.0, lo=0.05, hi=60.0, help="s without state/robot: shown as stale")
     preview_timeout: float = setting(3.0, lo=0.1, hi=60.0, help="s to wait for the edge's preview answer")
     snapshot_images: bool = setting(False, help="include the latest JPEGs in snapshots (also: ?images=1)")
+    foxglove: FoxgloveLiveConfig = field(default_factory=FoxgloveLiveConfig)
 
     def check(self) -> None:
         for robot in self.robots:
@@ -143,4 +170,7 @@ def load_twin_config(path: str | Path) -> TwinConfig:
     return load(path, TwinConfig)
 
 
-__all__ = ["CameraView", "ConfigError", "RobotView", "SceneObject", "TwinConfig", "ViewerConfig", "load_twin_config"]
+__all__ = [
+    "CameraView", "ConfigError", "FoxgloveLiveConfig", "RobotView", "SceneObject", "TwinConfig", "ViewerConfig",
+    "load_twin_config",
+]

@@ -10,6 +10,8 @@ Threads (all named; Zenoh callbacks only queue):
   (the edge is the safety authority and plans), drawing the returned path as a ghost and returning the edge's
   verdict unchanged. Separate from snapshots: a preview may wait seconds for the edge.
 - ``twin-viz``: every rerun call (see viz.py).
+- ``twin-foxglove``, ``twin-foxglove-video`` (with ``foxglove.enabled``): the live view in the Foxglove app
+  (see foxglove.py), on subscribers of its own.
 
 Offline detection: a liveliness subscriber on ``iorthand/*/alive/edge`` (with history, so edges already up are
 seen at start). A killed edge's token vanishes within milliseconds; a frozen or cut-off one after the Zenoh
@@ -26,7 +28,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import rerun as rr
 import zenoh
@@ -39,6 +41,9 @@ from .config import TwinConfig
 from .server import ViewerServer
 from .state import TwinStore
 from .viz import Visualizer
+
+if TYPE_CHECKING:
+    from .foxglove import FoxgloveLive
 
 log = logging.getLogger("iorthand.twin")
 
@@ -82,6 +87,7 @@ class TwinService:
             self.rec = rr.RecordingStream("iorthand-twin", recording_id=uuid.uuid4())
             self.server = ViewerServer(v, save=save, log_dir=log_dir)
             self.viz = Visualizer(config, self.rec, on_drawn=self.store.set_q_drawn)
+        self.foxglove: FoxgloveLive | None = None  # with foxglove.enabled (foxglove-sdk is imported only then)
         self.ingested = 0
         self.previews = 0
         self.snapshots = 0
@@ -114,6 +120,11 @@ class TwinService:
         self._declared.append(s.declare_queryable(keys.service_key(keys.TWIN, "*", keys.TWIN_SNAPSHOT), self._snap_inbox.put))
         self._declared.append(s.declare_queryable(keys.service_key(keys.TWIN, "*", keys.TWIN_PREVIEW), self._preview_inbox.put))
         self._declared.append(s.liveliness().declare_subscriber(keys.all_robots(keys.ALIVE_EDGE), self._on_alive, history=True))
+        if self.config.foxglove.enabled:
+            from .foxglove import FoxgloveLive
+
+            self.foxglove = FoxgloveLive(self.config.foxglove)
+            self.foxglove.start(s)
         for name, fn in (
             ("ingest", lambda stop: self._ingest_loop(stop, self._state_inbox)),
             ("video", lambda stop: self._ingest_loop(stop, self._video_inbox)),
@@ -132,6 +143,8 @@ class TwinService:
             signal.signal(sig, lambda *_: self.stop_event.set())
         if self.url:
             print(f"twin viewer: {self.url}", flush=True)
+        if self.foxglove is not None:
+            print(f"twin foxglove: {self.foxglove.url}", flush=True)
         print("twin ready", flush=True)
         self.stop_event.wait()
         self.shutdown()
@@ -142,6 +155,8 @@ class TwinService:
             inbox.close()
         for w in self._workers:
             w.join(timeout=3.0)
+        if self.foxglove is not None:
+            self.foxglove.stop()
         if self.session is not None:
             for d in self._declared:
                 with contextlib.suppress(zenoh.ZError):
