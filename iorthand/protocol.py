@@ -499,6 +499,7 @@ class Status(StrEnum):
     FAULT = "fault", "a robot fault: the robot stopped", True
     OWNER_LOST = "owner_lost", "the owner's session was lost: acquire control again", True
     NOT_ALLOWED = "operator_not_allowed", "this operator may not command this robot"
+    BAD_COMMAND = "bad_command", "the command asks for something this edge does not do (a frame, a mode)"
     LINK_GAP = "link_gap", "commands resumed after a long gap: release the deadman and press it again", True
     STALE_VIEW = "stale_view", "the operator's picture of the robot is too old to act on", True
 
@@ -524,14 +525,20 @@ class TwistCommand(Message):
     """Operator → edge at a fixed rate: tool velocity in the base frame, with the deadman flag."""
 
     KEY: ClassVar[str] = keys.CMD_TWIST
-    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"state_age", "mac"})
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"state_age", "frame", "mac"})
     operator: str = spec("", max_len=64)
     linear: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # m/s
     angular: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # rad/s
     deadman: bool = False
     # Age (s) of the newest robot state the operator's screen showed when this was sent; -1: none seen yet.
     state_age: float = spec(-1.0, lo=-1.0, hi=1e9)
+    # The frame of linear and angular: "base" (the robot's base frame) or "tool" (the probe's frame, about its tip:
+    # forward, sideways and along the probe; tilt, rock and turn about the tip). One of TWIST_FRAMES.
+    frame: str = spec("base", max_len=8)
     mac: bytes = spec(b"", max_len=MAC_MAX)  # iorthand.security.auth: signed with the key of the acquire
+
+
+TWIST_FRAMES = ("base", "tool")
 
 
 @dataclass(kw_only=True)

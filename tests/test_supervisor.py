@@ -207,3 +207,30 @@ def test_stale_force_stops_then_refuses_contact_motion() -> None:
     assert not np.any(sv.step(c.mono, POSE).twist)
     d = sv.on_command(c.cmd(vx=0.0, vz=-0.005), c.wall, c.mono, POSE)
     assert d.twist[2] == pytest.approx(0.0, abs=1e-6) and d.status == Status.FORCE_STALE
+
+
+def test_a_twist_in_the_probe_frame_moves_about_the_probe_tip() -> None:
+    """frame "tool": the probe's own axes (the tool frame about its tip) — along the probe is, with the tool
+    pointing down, down in the base frame; a turn about the probe axis is a turn about -z of the base. The
+    limits apply to the converted twist, and an unknown frame is refused with its reason."""
+    sv, c = armed()
+    c.mono += 0.02
+    along = c.cmd(vx=0.0, vz=0.004)
+    along.frame = "tool"
+    d = sv.on_command(c.sign(sv, "op1", along), c.wall, c.mono, POSE)
+    assert d.accepted and d.twist[2] == pytest.approx(-0.004, abs=1e-5) and abs(d.twist[0]) < 1e-5, d.twist
+    c.mono += 0.02
+    turn = c.cmd(vx=0.0, wz=0.05)
+    turn.frame = "tool"
+    d = sv.on_command(c.sign(sv, "op1", turn), c.wall, c.mono, POSE)
+    assert d.accepted and d.twist[5] == pytest.approx(-0.05, abs=1e-4)
+    c.mono += 0.02
+    fast = c.cmd(vx=0.5)  # 500 mm/s along the probe's x: clipped to the profile like any twist
+    fast.frame = "tool"
+    d = sv.on_command(c.sign(sv, "op1", fast), c.wall, c.mono, POSE)
+    assert np.linalg.norm(d.twist[:3]) == pytest.approx(sv.limits.linear, rel=1e-3)
+    c.mono += 0.02
+    odd = c.cmd()
+    odd.frame = "world"
+    d = sv.on_command(c.sign(sv, "op1", odd), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.BAD_COMMAND and "unknown twist frame 'world'" in d.reason

@@ -47,7 +47,7 @@ import numpy as np
 from iorthand import keys
 from iorthand.config import setting
 from iorthand.geometry import rotate
-from iorthand.protocol import ControlRequest, ForceLevel, Message, Status, TwistCommand
+from iorthand.protocol import TWIST_FRAMES, ControlRequest, ForceLevel, Message, Status, TwistCommand
 from iorthand.security import auth
 from iorthand_edge.robots.base import Vector
 
@@ -441,6 +441,8 @@ class Supervisor:
             self.counters.rejected += 1
             return self._decide([0.0] * 6, False, self._latched, self._latch_reason)
         manual = [float(v) for v in (*cmd.linear, *cmd.angular)]
+        if cmd.frame == "tool":  # the probe's frame about its tip → the base frame, where every limit applies
+            manual = [*rotate(tcp_pose[3:], manual[:3]), *rotate(tcp_pose[3:], manual[3:])]
         took_over = goto_twist is not None and any(manual)
         self._target = [float(v) for v in goto_twist] if goto_twist is not None and not took_over else manual
         decision = self._limit(self._target, tcp_pose, now)
@@ -499,6 +501,8 @@ class Supervisor:
                 return Status.OUT_OF_ORDER, out_of_order
             if not cmd.deadman and self._latched == Status.NO_DEADMAN:
                 self._latched = None  # the grant's release: counts even while disarmed or in a fault
+        if cmd.frame not in TWIST_FRAMES:
+            return Status.BAD_COMMAND, f"unknown twist frame {cmd.frame!r} (known: {', '.join(TWIST_FRAMES)})"
         if self.fault:
             return Status.FAULT, self.fault
         if not self.armed:

@@ -33,6 +33,7 @@ import zenoh
 
 from iorthand import keys
 from iorthand.protocol import (
+    TWIST_FRAMES,
     AppliedCommand,
     ControlReply,
     ControlRequest,
@@ -123,6 +124,7 @@ class OperatorClient:
         self.rejects = RejectCounter()
         self._lock = threading.Lock()
         self._twist = np.zeros(6)
+        self._frame = "base"  # of the twist: "base" or "tool" (the probe's frame about its tip)
         self._deadman = False
         self._released_at = 0.0
         # The grant of control: the key the edge's acquire reply carried (signs every command of ours) and a
@@ -378,9 +380,16 @@ class OperatorClient:
         """The sender's ``multiprocessing.Process`` (None with the thread sender or before ``start``)."""
         return self._proc_sender.proc if self._proc_sender is not None else None
 
-    def set_twist(self, linear, angular, deadman: bool) -> None:
-        """What the sender sends from its next tick on (linear m/s, angular rad/s, base frame)."""
+    def set_twist(self, linear, angular, deadman: bool, frame: str | None = None) -> None:
+        """What the sender sends from its next tick on (linear m/s, angular rad/s) in ``frame`` ("base", "tool":
+        the probe's frame about its tip; None keeps the current one)."""
         with self._lock:
+            if frame is not None:
+                if frame not in TWIST_FRAMES:
+                    raise ValueError(f"frame {frame!r}: expected one of {TWIST_FRAMES}")
+                self._frame = frame
+                if self._proc_sender is not None:
+                    self._proc_sender.write(frame=TWIST_FRAMES.index(frame))
             if self._deadman and not deadman:
                 self._released_at = time.monotonic()
             elif deadman and not self._deadman:
@@ -403,7 +412,7 @@ class OperatorClient:
                 self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at,
                                         muted=self._muted, pressed_at=self._pressed_at, key=self._key,
                                         key_gen=self._key_gen, key_at=self._key_at, state_t=self._state_t,
-                                        halted_at=self._halted_at)
+                                        halted_at=self._halted_at, frame=TWIST_FRAMES.index(self._frame))
             self._proc_sender.start()
             self.sender_priority = f"{self._proc_sender.priority} (process {self._proc_sender.proc.pid})"
         elif not self.external_sender:
@@ -440,7 +449,8 @@ class OperatorClient:
         with self._lock:
             out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
                                     self._muted, self._heartbeat, self._state_t if state_t is None else state_t,
-                                    self._key_gen, self._key, self._pressed_at, self._key_at, self._halted_at)
+                                    self._key_gen, self._key, self._pressed_at, self._key_at, self._halted_at,
+                                    self._frame)
         if out is None:
             return None
         cmd, payload = out
@@ -449,7 +459,19 @@ class OperatorClient:
         self._pub_twist.put(payload)
         return cmd
 
-    def send_now(self, linear: Any, angular: Any, deadman: bool, state_t: int | None = None) -> TwistCommand | None:
+    @property
+    def frame(self) -> str:
+        return self._frame
+
+    def set_frame(self, frame: str) -> None:
+        """The frame of the twists from now on ("base", or "tool": the probe's frame about its tip)."""
+        with self._lock:
+            deadman = self._deadman
+            twist = self._twist.copy()
+        self.set_twist(twist[:3], twist[3:], deadman, frame)
+
+    def send_now(self, linear: Any, angular: Any, deadman: bool, state_t: int | None = None,
+                 frame: str | None = None) -> TwistCommand | None:
         """Send one command at once (``external_sender``): the caller's own fixed-rate stream, one message one
         command, never repeated. ``state_t``: the source time (ns) of the newest robot state the operator's screen
         showed (default: the newest this client has). Returns what was sent: None when the stream is quiet (no
@@ -457,7 +479,7 @@ class OperatorClient:
         (:class:`CommandStream`)."""
         if not self.external_sender:
             raise RuntimeError("send_now is for a client made with external_sender=True")
-        self.set_twist(linear, angular, deadman)
+        self.set_twist(linear, angular, deadman, frame)
         self.beat()  # the caller's message is the sign of life
         return self._send(state_t)
 

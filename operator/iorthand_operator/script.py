@@ -6,6 +6,7 @@ A script file::
     profile: local            # optional: speed profile asked for on acquire
     steps:
       - {twist: [0.01, 0, 0, 0, 0, 0], duration: 1.0}   # m/s, rad/s, deadman held
+      - {twist: [0, 0, 0, 0.1, 0, 0], duration: 1.0, frame: tool}  # rock the probe about its tip
       - {wait: 0.5}                                     # deadman released (zero twists, then quiet)
       - {action: torch, torch_on: true}          # ("on" would be a YAML 1.1 boolean key)
       - {action: servo, pan_deg: 10, tilt_deg: -5}
@@ -38,6 +39,7 @@ STEP_ACTIONS = ("stop", "torch", "servo", "profile", "silence")
 @dataclass
 class ScriptStep:
     twist: list[float] | None = setting(None, length=6, lo=-10.0, hi=10.0)
+    frame: str = setting("base", choices=("base", "tool"), help="of the twist: base, or the probe's frame")
     duration: float = setting(0.0, lo=0.0, hi=3600.0)
     deadman: bool = True
     wait: float | None = setting(None, lo=0.0, hi=3600.0)
@@ -94,7 +96,7 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
     recoveries: list[str] = []
     if step.twist is not None:
         tw = np.asarray(step.twist, float)
-        client.set_twist(tw[:3], tw[3:], deadman=step.deadman)
+        client.set_twist(tw[:3], tw[3:], deadman=step.deadman, frame=step.frame)
         if step.deadman and np.any(tw):  # a motion: it goes on through halts until done (drive_for)
             _, recoveries = drive_for(client, step.duration, patience)
         else:

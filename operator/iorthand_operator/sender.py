@@ -39,18 +39,19 @@ from typing import Any
 
 from iorthand import keys
 from iorthand.process import enter_child
-from iorthand.protocol import TwistCommand
+from iorthand.protocol import TWIST_FRAMES, TwistCommand
 from iorthand.security import auth
 from iorthand.transport import raise_priority
 
 log = logging.getLogger("iorthand.operator.sender")
 
 # Shared array layout (doubles). The grant's key (bytes) is in a second array, written under the same seqlock.
-_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN, _PRESSED, _KEY_AT, _HALTED = (
-    0, 1, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16)
-_SIZE = 17
+_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN, _PRESSED, _KEY_AT, _HALTED, _FRAME = (
+    0, 1, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17)
+_SIZE = 18
 _FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT, "stop": _STOP,
-           "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "key_at": _KEY_AT, "halted_at": _HALTED}
+           "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "key_at": _KEY_AT, "halted_at": _HALTED,
+           "frame": _FRAME}
 _RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
 
 
@@ -98,7 +99,8 @@ class CommandStream:
 
     def next(self, now: float, twist: Any, deadman: bool, released_at: float, muted: bool, heartbeat: float,
              state_t: float, key_gen: float, key: bytes, pressed_at: float = 0.0,
-             key_at: float = 0.0, halted_at: float = -math.inf) -> tuple[TwistCommand, bytes] | None:
+             key_at: float = 0.0, halted_at: float = -math.inf,
+             frame: str = "base") -> tuple[TwistCommand, bytes] | None:
         if now - heartbeat > self.ui_timeout:  # the UI is frozen (or gone): release the deadman
             if self._stale_since is None:
                 self._stale_since = now
@@ -127,7 +129,8 @@ class CommandStream:
         # (-1: none yet, and the edge refuses motion).
         state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
         lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
-        cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age)
+        cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age,
+                           frame=frame)
         return cmd, auth.seal(key, self.ctx, cmd.stamp(self.seq, t))
 
 
@@ -361,7 +364,8 @@ def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandS
                 return False
             out = stream.next(time.monotonic(), vals[_TWIST:_TWIST + 6], bool(vals[_DEADMAN]), vals[_RELEASED],
                               bool(vals[_MUTED]), vals[_HEARTBEAT], vals[_STATE_T], vals[_KEY_GEN],
-                              k if any(k) else b"", vals[_PRESSED], vals[_KEY_AT], vals[_HALTED])
+                              k if any(k) else b"", vals[_PRESSED], vals[_KEY_AT], vals[_HALTED],
+                              TWIST_FRAMES[int(vals[_FRAME])])
             if out is not None:
                 cmd, payload = out
                 conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic()))

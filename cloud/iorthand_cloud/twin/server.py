@@ -101,6 +101,7 @@ class ViewerServer:
             argv = [
                 rerun_executable(), "--serve-web", "--bind", c.bind, "--port", str(c.grpc_port),
                 "--web-viewer-port", str(c.web_port), "--server-memory-limit", c.memory_limit,
+                "--newest-first",  # a browser that opens the viewer gets now first, then what came before
             ]
             out = subprocess.DEVNULL
             if self.log_dir is not None:

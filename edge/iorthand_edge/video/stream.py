@@ -4,7 +4,9 @@ Two named threads per stream. The capture thread grabs frames on schedule and st
 time and a sequence number; it hands them over through a one-frame slot. The sender takes the newest frame,
 encodes it and ``put()``s it. When encoding or the network is slower than the camera, the frame waiting in
 the slot is replaced — dropped before it costs any encoding — so nothing queues and latency stays one
-frame; the gaps in ``seq`` tell the receiver how many were dropped.
+frame. ``seq`` numbers the frames *sent*: a gap at a receiver is a frame lost on the way (an H.264 decoder then
+waits for a keyframe, a recorder counts it missing); a frame skipped at the source was never encoded, so the
+stream stays whole, and the stream counts it (``dropped``).
 
 H.264 (:mod:`iorthand_edge.video.h264`) follows the link: video is published with ``CongestionControl.BLOCK`` so
 that a full uplink shows as a slow ``put`` (and frames the slot replaced) rather than as frames lost in transit —
@@ -242,6 +244,7 @@ class VideoStream:
             frame = encode_frame(self.name, item, self.config, self.h264)
             if frame is None:
                 continue
+            frame.seq = self.sent + 1  # frames sent, not captured: see the module's docstring
             payload = frame.encode()
             t1 = time.perf_counter()
             self.encode_s += t1 - t0

@@ -54,6 +54,7 @@ class ConsoleView:
     tcp_pose_mm_deg: list[float] = field(default_factory=list)
     tcp_speed_mm_s: float = math.nan
     profile: str = ""
+    frame: str = "base"  # of our twists: base, or tool (the probe's frame about its tip)
     linear_limit_mm_s: float = math.nan
     angular_limit_deg_s: float = math.nan
     limits_hit: list[str] = field(default_factory=list)
@@ -198,6 +199,10 @@ class ConsoleController:
         elif action == "torch":
             on = c.toggle_torch()
             c.log_event("action", "torch", f"torch {'on' if on else 'off'}")
+        elif action == "frame_toggle":
+            c.set_frame("tool" if c.frame == "base" else "base")
+            c.log_event("action", "frame", "moving in the probe's frame (about its tip)" if c.frame == "tool"
+                        else "moving in the robot's base frame")
 
     # ------------------------------------------------------------------ what the screen shows
 
@@ -222,6 +227,7 @@ class ConsoleController:
             v.limits_hit = list(safety.limits_hit)
             v.edge_judged, v.edge_superseded = safety.received, safety.superseded
         v.deadman = self.sample.deadman
+        v.frame = c.frame
         d = self.device
         v.hint = recovery.hint(c.next_step(), d.control_name("acquire"), d.control_name("deadman"), d.deadman_toggles)
         v.force = force_view(c.force_level, c.force_level_at, now, s.force_stale_after)

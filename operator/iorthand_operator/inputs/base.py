@@ -27,6 +27,7 @@ ACTIONS = (
     "tilt_down",
     "camera_center",
     "torch",  # toggle
+    "frame_toggle",  # twists in the base frame ⇄ in the probe's frame about its tip
     "poses",  # open the safety-pose list
     "quit",
 )

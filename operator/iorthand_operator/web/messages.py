@@ -16,6 +16,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from iorthand.protocol import TWIST_FRAMES
+
 # A twist is ~150 bytes; the largest legitimate message is a goto with its token.
 MAX_MESSAGE_BYTES = 2048
 MAX_SPEED = 1.0  # m/s or rad/s: anything faster is not a joystick (the edge's limits are far below)
@@ -33,6 +35,7 @@ class Twist:
     angular: tuple[float, float, float]
     deadman: bool
     seen: int  # ns: the newest robot state drawn (0: none)
+    frame: str = "base"  # or "tool": the probe's frame about its tip
 
 
 @dataclass(frozen=True)
@@ -83,9 +86,12 @@ def parse(data: str | bytes) -> PageMessage:
         raise PageError(f"expected a JSON object, got {type(obj).__name__}")
     kind = obj.get("type")
     if kind == "twist":
-        _only(obj, {"type", "id", "linear", "angular", "deadman", "seen"})
+        _only(obj, {"type", "id", "linear", "angular", "deadman", "seen", "frame"})
+        frame = obj.get("frame", "base")
+        if frame not in TWIST_FRAMES:
+            raise PageError(f"frame: expected one of {', '.join(TWIST_FRAMES)}, got {str(frame)[:20]!r}")
         return Twist(_int(obj, "id"), _vec3(obj, "linear"), _vec3(obj, "angular"), _bool(obj, "deadman"),
-                     _int(obj, "seen"))
+                     _int(obj, "seen"), frame)
     if kind in CONTROL_VERBS:
         _only(obj, {"type", "profile"})
         return Control(kind, _name(obj, "profile", required=False))

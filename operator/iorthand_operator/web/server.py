@@ -341,7 +341,7 @@ class Page:
         newest = self.feed.watch.robot_state
         # The page can say it showed an older state, never a newer one than this server had.
         seen = min(msg.seen, newest.t) if newest is not None else 0
-        cmd = client.send_now(msg.linear, msg.angular, msg.deadman, seen)
+        cmd = client.send_now(msg.linear, msg.angular, msg.deadman, seen, msg.frame)
         if cmd is not None:
             self._pending[cmd.seq] = msg.id
             while len(self._pending) > 512:

@@ -33,6 +33,7 @@ let mine = false;
 let seq = 0;
 const sentAt = new Map();
 let posesToken = "";
+let frame = "base"; // of the twists: the robot's base frame, or the probe's ("tool": about its tip)
 
 // ---------------------------------------------------------------------------------------------- inputs
 
@@ -126,6 +127,7 @@ window.addEventListener("keydown", (e) => {
   if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
   if (e.code === "Space") { input.deadman.key = true; e.preventDefault(); }
   else if (e.code === "KeyX") { estop(); }
+  else if (e.code === "KeyB" && !e.repeat) { toggleFrame(); }
   else if (KEYS[e.code]) input.keys.add(e.code);
 });
 window.addEventListener("keyup", (e) => {
@@ -172,7 +174,7 @@ setInterval(() => {
   sentAt.set(seq, performance.now());
   if (sentAt.size > 600) sentAt.delete(sentAt.keys().next().value);
   ws.send(JSON.stringify({ type: "twist", id: seq, linear: round(t.linear), angular: round(t.angular), deadman: held,
-    seen: lastState?.t || 0 }));
+    seen: lastState?.t || 0, frame }));
   stats.sent += 1;
 }, 1000 / RATE_HZ);
 
@@ -392,6 +394,14 @@ function estop() {
 }
 
 ui.estop.addEventListener("click", estop);
+function toggleFrame() {
+  frame = frame === "base" ? "tool" : "base";
+  $("frame").textContent = frame === "tool" ? "probe" : "base";
+  $("frame").classList.toggle("tool", frame === "tool");
+  logEvent({ kind: "info", status: "frame", reason: frame === "tool" ? "moving in the probe's frame (about its tip)"
+    : "moving in the robot's base frame" });
+}
+$("frame").addEventListener("click", toggleFrame);
 ui.control.addEventListener("click", () => {
   if (mine) { releaseAll(""); send({ type: "release" }); } else send({ type: "acquire", profile: ui.profile.value });
 });

@@ -1,0 +1,216 @@
+"""A clinic day in small: the demo's full load for hours (issue 24). Not a CI test.
+
+Starts, as `iorthand demo` does, a router, the recorder, the twin (serving its web viewer, saving its .rrd), the
+simulated edge of configs/edge-sim.yaml (robot, force, servos, torch, camera + ultrasound video in H.264,
+perception) and one scripted operator that plays configs/demo-script.yaml over and over for ``--minutes``
+(one process, one recording: a session, not a series of starts). Every ``--sample-s`` it samples the resident
+memory of each service (with its children: the edge's media process, the twin's rerun relay). At the end it opens
+the twin's viewer in Debian's Chromium (Playwright) and reads how far its time cursor is behind live
+(:mod:`iorthand_cloud.twin.viewer_state`), stops the recording and reads what it holds.
+
+Targets: every service's RSS flat after the first 10 minutes (growth ≤ 50 MB), the viewer ≤ 1 s behind live,
+0 messages missing in the recording. Writes benchmarks/results/soak.json and soak.png (RSS over time).
+
+    .venv/bin/python benchmarks/bench_soak.py [--minutes 120] [--sample-s 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import psutil
+import yaml
+
+from iorthand.transport import free_port
+from iorthand_cloud.recorder import manifest as mf
+from iorthand_cloud.twin import viewer_state
+from iorthand_operator.bench import report
+from iorthand_operator.bench.procs import Group, iorthand_argv
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = Path(__file__).resolve().parent / "results"
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+SERVICES = ("router", "recorder", "twin", "edge", "operator")
+TARGET_GROWTH_MB = 50.0
+TARGET_LAG_S = 1.0
+SETTLE_MIN = 10.0
+
+
+def rss_mb(pid: int, children: bool = True) -> float:
+    """Resident memory of a process and (``children``) its children (MB)."""
+    try:
+        p = psutil.Process(pid)
+        procs = [p, *(p.children(recursive=True) if children else [])]
+    except psutil.NoSuchProcess:
+        return float("nan")
+    total = 0
+    for q in procs:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            total += q.memory_info().rss
+    return total / 1e6
+
+
+def long_script(path: Path, minutes: float) -> None:
+    """configs/demo-script.yaml's steps, repeated for about ``minutes`` (one session)."""
+    demo = yaml.safe_load((ROOT / "configs" / "demo-script.yaml").read_text())
+    steps = demo["steps"]
+    one = sum(s.get("duration", 0.0) or s.get("wait", 0.0) or 0.0 for s in steps) + 1.0
+    repeats = max(1, int(minutes * 60 / one) + 1)
+    script = {**demo, "name": "soak", "steps": steps * repeats, "patience": 30.0}
+    path.write_text(yaml.safe_dump(script, sort_keys=False))
+
+
+def viewer_lag(url: str, seconds: float = 60.0) -> dict[str, Any]:
+    """Open the twin's viewer in Chromium; once it follows live data, how far its cursor is behind now (s)."""
+    from playwright.sync_api import sync_playwright
+
+    lags: list[float] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=[
+            "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader"])
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        page.route("**/*", lambda r: r.continue_() if "127.0.0.1" in r.request.url else r.abort())
+        opened = time.monotonic()
+        page.goto(url, wait_until="domcontentloaded", timeout=60_000)
+        deadline = opened + seconds
+        while time.monotonic() < deadline:
+            page.wait_for_timeout(1000)
+            try:
+                state = bytes(page.evaluate("window._handle ? Array.from(window._handle.viewer_state()) : []"))
+                lag = viewer_state.lag_seconds(state, "time", time.time_ns()) if state else None
+            except Exception:  # the viewer is still starting
+                lag = None
+            if lag is not None:
+                lags.append(lag)
+        browser.close()
+    last = lags[-10:]
+    return {"samples": [round(x, 3) for x in lags],
+            "lag_s_end_median": round(sorted(last)[len(last) // 2], 3) if last else None}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--minutes", type=float, default=120.0)
+    p.add_argument("--sample-s", type=float, default=10.0)
+    p.add_argument("--out", default=str(RESULTS / "soak.json"))
+    args = p.parse_args(argv)
+    work = Path(tempfile.mkdtemp(prefix="iorthand-soak-"))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    edge = yaml.safe_load((ROOT / "configs" / "edge-sim.yaml").read_text())
+    edge["zenoh"]["connect"] = [endpoint]
+    (work / "edge.yaml").write_text(yaml.safe_dump(edge))
+    (work / "recorder.yaml").write_text(yaml.safe_dump({"zenoh": {"mode": "client", "connect": [endpoint]},
+                                                        "output_dir": str(work / "recordings")}))
+    long_script(work / "script.yaml", args.minutes)
+    web_port, grpc_port = free_port(), free_port()
+    samples: list[dict[str, Any]] = []
+    stop = threading.Event()
+    cpu0 = report.cpu_times()
+    started = time.time()
+    with Group(work) as g:
+        procs = {
+            "router": g.start("router", iorthand_argv("router", "--listen", endpoint), ready="router ready"),
+            "recorder": g.start("recorder", iorthand_argv("recorder", "--config", str(work / "recorder.yaml")),
+                                ready="recorder ready"),
+            "twin": g.start("twin", iorthand_argv("twin", "--config", str(ROOT / "configs" / "twin.yaml"), "--connect",
+                                                  endpoint, "--save", str(work / "twin.rrd"), "--log-dir", str(work),
+                                                  "--web-port", str(web_port), "--grpc-port", str(grpc_port)),
+                            ready="twin ready", timeout=60.0),
+            "edge": g.start("edge", iorthand_argv("edge", "--config", str(work / "edge.yaml")), ready="edge agent",
+                            timeout=60.0),
+        }
+        subprocess.run(iorthand_argv("recorder", "start", "--connect", endpoint, "--session", "soak", "--robot",
+                                     "sim1", "--operator", "soak-operator", "--note", "soak benchmark"),
+                       check=True, capture_output=True, timeout=60)
+        procs["operator"] = g.start("operator", iorthand_argv("operator", "script", str(work / "script.yaml"),
+                                                              "--robot", "sim1", "--operator-id", "soak-operator",
+                                                              "--connect", endpoint))
+
+        def sample() -> None:
+            t0 = time.monotonic()
+            while not stop.wait(0 if not samples else args.sample_s):
+                samples.append({"t_s": round(time.monotonic() - t0, 1),
+                                **{name: round(rss_mb(c.proc.pid), 1) for name, c in procs.items()},
+                                # The parts: the twin's Python process (its rerun relay is a child), the edge's
+                                # control process (its media process is a child).
+                                "twin_own": round(rss_mb(procs["twin"].proc.pid, children=False), 1),
+                                "edge_own": round(rss_mb(procs["edge"].proc.pid, children=False), 1)})
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        end = time.monotonic() + 60 * args.minutes
+        while time.monotonic() < end:
+            time.sleep(5)
+            print(f"  soak: {samples[-1] if samples else '…'}", flush=True)
+        twin_log = (work / "twin.log").read_text() if (work / "twin.log").exists() else ""
+        url = next((line.split(": ", 1)[1] for line in twin_log.splitlines() if line.startswith("twin viewer: ")), "")
+        if not url:
+            url = f"http://127.0.0.1:{web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}%2Fproxy"
+        lag = viewer_lag(url)
+        stop.set()
+        sampler.join(5)
+        subprocess.run(iorthand_argv("recorder", "stop", "--connect", endpoint), capture_output=True, timeout=60)
+    manifest = mf.Manifest.read(work / "recordings" / "soak")
+    totals = mf.totals(manifest.keys)
+    growth: dict[str, Any] = {}
+    for name in SERVICES:
+        series = [(s["t_s"], s[name]) for s in samples if s.get(name) == s.get(name)]  # NaN-free
+        after = [v for t, v in series if t >= 60 * SETTLE_MIN]
+        at_settle = after[0] if after else None
+        growth[name] = {"start_mb": series[0][1] if series else None, "at_10_min_mb": at_settle,
+                        "end_mb": series[-1][1] if series else None,
+                        "growth_after_10_min_mb": round(max(after) - at_settle, 1) if after else None}
+    data = {
+        "benchmark": "soak", "machine": report.machine(),
+        "config": {"minutes": args.minutes, "sample_s": args.sample_s, "workdir": str(work), "started": started},
+        "host_cpu": report.cpu_share_since(cpu0),
+        "rss_mb": samples, "growth": growth, "viewer": lag,
+        "recording": {"messages": totals.get("messages"), "missing": totals.get("missing"),
+                      "malformed": totals.get("malformed"), "dropped": manifest.dropped},
+        "targets": {
+            "rss_growth_mb": {"limit": TARGET_GROWTH_MB, "pass": all(
+                g["growth_after_10_min_mb"] is not None and g["growth_after_10_min_mb"] <= TARGET_GROWTH_MB
+                for g in growth.values())},
+            "viewer_lag_s": {"limit": TARGET_LAG_S, "value": lag["lag_s_end_median"],
+                             "pass": lag["lag_s_end_median"] is not None and lag["lag_s_end_median"] <= TARGET_LAG_S},
+            "missing": {"value": totals.get("missing"), "pass": totals.get("missing") == 0},
+        },
+    }
+    report.write_json(Path(args.out), data)
+    _plot(samples, Path(args.out).with_suffix(".png"))
+    print(json.dumps({k: data[k] for k in ("growth", "recording", "targets")}, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _plot(samples: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for name in SERVICES:
+        ax.plot([s["t_s"] / 60 for s in samples], [s[name] for s in samples], label=name)
+    ax.axvline(SETTLE_MIN, color="grey", linestyle=":", label="10 min")
+    ax.set_xlabel("minutes")
+    ax.set_ylabel("RSS with children (MB)")
+    ax.set_title("soak: resident memory of each service")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
