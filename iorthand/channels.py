@@ -135,6 +135,7 @@ CONTROL_POSES = _control("control/poses")
 CONTROL_GOTO = _control("control/goto")
 CONTROL_FORCE_ZERO = _control("control/force_zero")
 CONTROL_PREVIEW = _control("control/preview")  # plan a named pose, answer the verdict and a token
+CONTROL_CONTACT = _control("control/contact")  # contact mode on (name "on", the force in params) or off
 # Liveliness: an operator's token carries its id always, so nobody can look like another operator to the edge.
 ALIVE_EDGE = Channel("alive/edge", Kind.TOKEN, writers=_EDGE)
 ALIVE_OPERATOR = Channel("alive/operator", Kind.TOKEN, writers=_OPERATOR, operator_key=OperatorKey.ALWAYS)
@@ -144,6 +145,7 @@ TABLE: tuple[Channel, ...] = (
     STATE_ROBOT, STATE_SAFETY, STATE_APPLIED, STATE_FORCE, STATE_FORCE_LEVEL, STATE_SERVO, STATE_TORCH,
     MARKERS, VIDEO_CAMERA, VIDEO_ULTRASOUND, SENSOR_VITAL,
     CONTROL_ACQUIRE, CONTROL_RELEASE, CONTROL_ARM, CONTROL_POSES, CONTROL_GOTO, CONTROL_FORCE_ZERO, CONTROL_PREVIEW,
+    CONTROL_CONTACT,
     ALIVE_EDGE, ALIVE_OPERATOR,
 )
 

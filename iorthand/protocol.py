@@ -500,6 +500,7 @@ class Status(StrEnum):
     OWNER_LOST = "owner_lost", "the owner's session was lost: acquire control again", True
     NOT_ALLOWED = "operator_not_allowed", "this operator may not command this robot"
     BAD_COMMAND = "bad_command", "the command asks for something this edge does not do (a frame, a mode)"
+    CONTACT = "contact", "contact mode: the edge holds the force along the probe; the operator steers along the surface"
     LINK_GAP = "link_gap", "commands resumed after a long gap: release the deadman and press it again", True
     STALE_VIEW = "stale_view", "the operator's picture of the robot is too old to act on", True
 
@@ -607,7 +608,7 @@ class SafetyStatus(Message):
     """Edge → all at 20 Hz and on change: the supervisor's state and why it is what it is."""
 
     KEY: ClassVar[str] = keys.STATE_SAFETY
-    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"forged"})
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"forged", "contact_target", "task"})
     armed: bool = False
     arm_requested: bool = False
     owner: str = spec("", max_len=64)
@@ -628,6 +629,8 @@ class SafetyStatus(Message):
     superseded: int = spec(0, lo=0)  # twists dropped unread: newer ones queued behind them while the edge was busy
     stops: int = spec(0, lo=0)
     forged: int = spec(0, lo=0)  # commands in the owner's name without the owner's signature, refused unanswered
+    contact_target: float = spec(-1.0, lo=-1.0, hi=1000.0)  # N held along the probe in contact mode; -1: off
+    task: str = spec("", max_len=200)  # a motion primitive under way and its progress ("" when none)
 
 
 def superseded_news(before: int, now: int) -> str | None:
@@ -754,11 +757,13 @@ class ControlRequest(Message):
     """Payload of a ``control/*`` query. The owner's requests (renewing, releasing, moving to a pose, zeroing the
     force sensor) are signed with the key its acquire returned (``mac``); a first acquire is not."""
 
-    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac"})
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac", "params"})
     operator: str = spec("", max_len=64)
     profile: str = spec("", max_len=32)  # acquire: the speed profile asked for ("" = the edge's default)
-    name: str = spec("", max_len=64)  # goto/preview: the named pose
+    name: str = spec("", max_len=64)  # goto/preview: the named pose or primitive; contact: "on" or "off"
     token: str = spec("", max_len=128)  # goto: the preview token
+    # preview of a primitive: its parameters; contact: the force to hold ({"force": 4.0}). A JSON object.
+    params: str = spec("", max_len=1024)
     mac: bytes = spec(b"", max_len=MAC_MAX)
 
 

@@ -115,6 +115,10 @@ class EdgeAgent:
         self.period = self.robot.control_period
         self.supervisor = Supervisor(config.safety, period=self.period, force_required=config.force is not None,
                                      robot=config.robot_id)
+        if config.force is not None:  # contact mode holds a force below the caution level, never at it
+            self.supervisor.contact_ceiling = config.force.levels.caution
+        axis = np.asarray(config.safety.force.contact_axis, dtype=float)
+        self._contact_axis = (axis / max(float(np.linalg.norm(axis)), 1e-9)).tolist()  # pressing, tool frame
         self.lock = threading.RLock()
         self.stop_event = threading.Event()
         self.rejects = RejectCounter()
@@ -189,6 +193,7 @@ class EdgeAgent:
             s.declare_queryable(k.key(keys.CONTROL_PREVIEW) + bound, lambda q: self._control.put(("preview", q))),
             s.declare_queryable(k.key(keys.CONTROL_GOTO) + bound, lambda q: self._control.put(("goto", q))),
             s.declare_queryable(k.key(keys.CONTROL_POSES) + bound, lambda q: self._control.put(("poses", q))),
+            s.declare_queryable(k.key(keys.CONTROL_CONTACT) + bound, lambda q: self._control.put(("contact", q))),
             s.liveliness().declare_subscriber(k.alive_operators, self._on_operator_liveliness, history=True),
         ]
         self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
@@ -355,6 +360,7 @@ class EdgeAgent:
         with self.lock:
             reading = self.robot.read_state()
             self.reading = reading
+            self._feed_contact_force()
             before = self.supervisor.fault
             fault = self.supervisor.on_reading(reading.fault, reading.connected)
             if fault and fault != before:
@@ -374,6 +380,15 @@ class EdgeAgent:
             hook(reading)
         self._pub_robot.put(state.encode())
         self._publish_safety()
+
+    def _feed_contact_force(self) -> None:
+        """Contact mode: the newest force along the probe's axis (pressing positive) to the supervisor (caller
+        holds the lock)."""
+        if self.force is None or self.supervisor.contact_target is None:
+            return
+        w, a = self.force.last_wrench, self._contact_axis
+        # The sensor measures the surface's reaction on the tool: pressing along the axis reads as force against it.
+        self.supervisor.update_contact_force(-(w[0] * a[0] + w[1] * a[1] + w[2] * a[2]), self.force.state.last_sample)
 
     def _wake(self) -> None:
         """Another thread changed the supervisor's state: the control loop drives the consequence now."""
@@ -442,7 +457,7 @@ class EdgeAgent:
             age = sv.command_age(time.monotonic())
             fields = (
                 sv.armed, sv.arm_requested, sv.owner, sv.deadman, sv.profile, sv.status, sv.reason,
-                tuple(sv.limits_hit), int(sv.force_level), sv.force_stale,
+                tuple(sv.limits_hit), int(sv.force_level), sv.force_stale, sv.contact_target,
             )
             now = time.monotonic()
             if not force and fields == self._last_safety and now - self._last_safety_pub < 1.0 / self.config.safety_rate_hz:
@@ -455,6 +470,8 @@ class EdgeAgent:
                 force_level=int(sv.force_level), force_stale=sv.force_stale,
                 received=c.received, applied=c.applied, rejected=c.rejected,
                 malformed=self.rejects.total, superseded=self.twists_superseded, stops=c.stops, forged=c.forged,
+                contact_target=-1.0 if sv.contact_target is None else sv.contact_target,
+                task=self.goto.reason[:200] if self.goto.active else "",
             ).stamp(self._seq["safety"].next())
             # Put under the lock: two threads publishing at once must not reorder the sequence numbers.
             self._pub_safety.put(msg.encode())
@@ -489,6 +506,7 @@ class EdgeAgent:
             ).stamp(self._seq["applied"].next())
         with self.lock:
             pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
+            self._feed_contact_force()
             now = time.monotonic()
             # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
             received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
@@ -581,6 +599,7 @@ class EdgeAgent:
             "preview": self._on_preview,
             "goto": self._on_goto,
             "poses": self._on_poses,
+            "contact": self._on_contact,
         }
         by_suffix = {keys.CMD_SERVO: self._on_servo, keys.CMD_TORCH: self._on_torch, keys.CMD_STOP: self._on_stop}
         while not stop.is_set():
@@ -718,6 +737,35 @@ class EdgeAgent:
             unit.reject(f"refused: {refusal}")
             return
         apply(cmd)
+
+    def _on_contact(self, query: zenoh.Query) -> None:
+        """Contact mode on (name "on", params {"force": N}, default the configured target) or off (name "off"):
+        the owner's signed request; shown in state/safety (contact_target) and logged."""
+        req = self._request(query, keys.CONTROL_CONTACT)
+        if req is None:
+            return
+        force: float | None = None
+        try:
+            params = json.loads(req.params) if req.params else {}
+            if not isinstance(params, dict):
+                raise ValueError("not a JSON object")
+            if "force" in params:
+                force = float(params["force"])
+                if not math.isfinite(force):
+                    raise ValueError("force is not a finite number")
+        except (ValueError, TypeError) as exc:
+            self._reply(query, False, f"contact: params must be a JSON object like {{\"force\": 4.0}} ({exc})")
+            return
+        if req.name not in ("on", "off"):
+            self._reply(query, False, f"contact: name must be 'on' or 'off', got {req.name[:20]!r}")
+            return
+        with self.lock:
+            ok, reason = self.supervisor.set_contact(req, req.name == "on", force)
+            self._log_interventions()
+        self._wake()
+        (log.info if ok else log.warning)("contact by %r: %s", req.operator, reason)
+        self._reply(query, ok, reason)
+        self._publish_safety(force=True)
 
     def _on_force_zero(self, query: zenoh.Query) -> None:
         req = self._request(query, keys.CONTROL_FORCE_ZERO)

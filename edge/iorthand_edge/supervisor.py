@@ -97,6 +97,18 @@ class ForceReaction:
 
 
 @dataclass
+class ContactConfig:
+    """Contact mode: the operator steers along the surface and orients the probe; the edge holds the force along
+    the probe's axis at a target by an admittance at the control rate (the force levels stay the outer envelope)."""
+
+    target: float = setting(4.0, lo=0.5, hi=50.0, help="N along the probe axis, held (below the caution level)")
+    gain: float = setting(0.0015, lo=1e-5, hi=0.05, help="m/s of axial speed per N of force error (admittance)")
+    max_speed: float = setting(0.005, lo=0.0005, hi=0.05, help="m/s along the probe axis at most")
+    deadband: float = setting(0.1, lo=0.0, hi=5.0, help="N: a smaller error moves nothing along the axis")
+    max_force_age: float = setting(0.05, lo=0.005, hi=1.0, help="s: an older force reading moves nothing along the axis")
+
+
+@dataclass
 class SafetyConfig:
     auto_arm: bool = setting(False, help="arm at start without local confirmation (simulated robots only)")
     command_timeout: float = setting(0.15, lo=0.01, hi=2.0, help="s without a fresh command → stop")
@@ -114,6 +126,7 @@ class SafetyConfig:
     workspace: WorkspaceBox = field(default_factory=WorkspaceBox)
     allowed_operators: list[str] = setting(default_factory=list, help="empty: any operator may acquire")
     force: ForceReaction = field(default_factory=ForceReaction)
+    contact: ContactConfig = field(default_factory=ContactConfig)
     resume_gap: float = setting(
         0.5, lo=0.05, hi=10.0, help="s; after a longer gap in the commands motion needs a fresh deadman press",
     )
@@ -199,6 +212,13 @@ class Supervisor:
         self._now = 0.0  # the latest monotonic time given to on_command/step
         self._retreat_until = -math.inf  # monotonic time until which the tool backs off from contact
         self._force_active: Status | None = None  # the force intervention in effect (edge-triggers ``interventions``)
+        # Contact mode (set_contact): the force held along the probe's axis (None: off), the newest reading of that
+        # force (N, pressing positive) and the monotonic time it was taken. ``contact_ceiling``: the caution level
+        # (a target at or above it is refused); set by the agent from the force configuration.
+        self.contact_target: float | None = None
+        self.contact_ceiling = math.inf
+        self._contact_force = 0.0
+        self._contact_force_at = -math.inf
         self.interventions: list[tuple[Status, str]] = []  # (status, reason), drained by the agent to log
         self.status = Status.DISARMED if not self.armed else Status.IDLE
         self.reason = "" if self.armed else "not armed: confirm arming on the robot side"
@@ -372,6 +392,36 @@ class Supervisor:
             self._set(Status.FORCE_DANGER, reason)
             self._intervene(Status.FORCE_DANGER, reason)
 
+    def set_contact(self, req: ControlRequest, on: bool, target: float | None = None) -> tuple[bool, str]:
+        """Contact mode on (holding ``target`` N, default the configured one) or off, by the owner (a signed
+        request). Entering is refused without a fresh force sensor, or at a target at or above the caution level."""
+        refusal = self.owner_refusal(req, keys.CONTROL_CONTACT)
+        if refusal:
+            return False, refusal
+        if not on:
+            self._contact_off("left by the operator")
+            return True, "contact mode off"
+        if not (self.force_required and self.config.force.enabled):
+            return False, "contact mode needs a force sensor and the force reaction on"
+        if self.force_stale:
+            return False, "contact mode refused: the force sensor is stale"
+        force = self.config.contact.target if target is None else float(target)
+        if not 0.0 < force < self.contact_ceiling:
+            return False, f"contact force {force:g} N refused: it must lie above 0 and below the caution level " \
+                          f"({self.contact_ceiling:g} N)"
+        self.contact_target = force
+        self.interventions.append((Status.CONTACT, f"contact mode on: holding {force:g} N along the probe"))
+        return True, f"contact mode on: holding {force:g} N along the probe"
+
+    def _contact_off(self, why: str) -> None:
+        if self.contact_target is not None:
+            self.contact_target = None
+            self.interventions.append((Status.CONTACT, f"contact mode off: {why}"))
+
+    def update_contact_force(self, force: float, at: float) -> None:
+        """The newest force along the probe's axis (N, pressing positive), read at monotonic ``at``."""
+        self._contact_force, self._contact_force_at = float(force), at
+
     def force_zero_refusal(self) -> str:
         """Why the force sensor may not be zeroed now ("" if it may): zeroing in contact would hide the contact
         force from every threshold afterwards."""
@@ -525,6 +575,8 @@ class Supervisor:
         self.status, self.reason = status, reason
 
     def _halt(self, status: Status, reason: str, latch: bool = False) -> None:
+        if latch:  # a stop, a fault, a lost owner, a long gap: contact mode is entered again on purpose only
+            self._contact_off(reason)
         was_moving = self.moving or any(self._target)
         self._deadman = False
         self._target = [0.0] * 6
@@ -568,6 +620,8 @@ class Supervisor:
         hit: list[str] = []
         status: Status = Status.OK
         reason = ""
+        if self.contact_target is not None:  # the axial motion is the admittance's, then every limit applies
+            status, reason = Status.CONTACT, self._hold_contact(twist, _floats(tcp_pose), now)
         lin_speed = math.hypot(*twist[:3])
         if lin_speed > limits.linear:
             scale = limits.linear / lin_speed
@@ -596,6 +650,23 @@ class Supervisor:
         self.moving = any(abs(v) > 1e-9 for v in twist)
         self._set(status, reason)
         return self._decide(twist, True, status, reason, hit)
+
+    def _hold_contact(self, twist: list[float], pose: list[float], now: float) -> str:
+        """Contact mode: replace the twist's component along the probe's axis (in place) by the admittance toward
+        the target force; the operator keeps the tangential motion and the rotation. Returns the status line."""
+        c = self.config.contact
+        n = self._contact_direction(pose)  # pressing direction in the base frame
+        along = twist[0] * n[0] + twist[1] * n[1] + twist[2] * n[2]
+        assert self.contact_target is not None
+        error = self.contact_target - self._contact_force
+        fresh = now - self._contact_force_at <= c.max_force_age
+        speed = 0.0
+        if fresh and abs(error) > c.deadband:
+            speed = max(-c.max_speed, min(c.max_speed, c.gain * error))
+        _add_along(twist, speed - along, n)
+        if not fresh:
+            return f"contact mode: no fresh force reading for {1000 * (now - self._contact_force_at):.0f} ms: holding"
+        return f"contact mode: {self._contact_force:.1f} N of {self.contact_target:g} N"
 
     def _clip_workspace(self, twist: list[float], pose: list[float]) -> bool:
         """Remove velocity components that would carry the tool out of the box: the allowed speed toward a

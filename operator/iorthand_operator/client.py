@@ -353,6 +353,13 @@ class OperatorClient:
         finally:
             self._set_key(b"")
 
+    def set_contact(self, on: bool, force: float | None = None) -> ControlReply:
+        """Contact mode on (holding ``force`` N along the probe, default the edge's) or off; the edge decides."""
+        params = json.dumps({"force": force}) if on and force is not None else ""
+        reply = self._control(keys.CONTROL_CONTACT, name="on" if on else "off", params=params)
+        self.log_event("action" if reply.ok else "refused", "contact", reply.reason)
+        return reply
+
     def request_arm(self) -> ControlReply:
         return self._control(keys.CONTROL_ARM)
 

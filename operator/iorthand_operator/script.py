@@ -12,6 +12,7 @@ A script file::
       - {action: servo, pan_deg: 10, tilt_deg: -5}
       - {action: profile, profile: remote}
       - {action: silence, duration: 0.5}                # sender muted with the deadman held: a dead link
+      - {action: contact, contact_on: true, contact_force: 4.0}  # the edge holds 4 N along the probe
       - {action: stop, reason: end of scan}
 
 Steps run on the same client and fixed-rate sender as the console; the summary reports per step what was
@@ -33,7 +34,7 @@ from iorthand.config import setting
 from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.scripted import drive_for
 
-STEP_ACTIONS = ("stop", "torch", "servo", "profile", "silence")
+STEP_ACTIONS = ("stop", "torch", "servo", "profile", "silence", "contact")
 
 
 @dataclass
@@ -50,6 +51,8 @@ class ScriptStep:
     pan_deg: float | None = setting(None, lo=-180.0, hi=180.0)
     tilt_deg: float | None = setting(None, lo=-180.0, hi=180.0)
     profile: str = ""
+    contact_on: bool = True  # action contact: on (holding contact_force) or off
+    contact_force: float | None = setting(None, lo=0.5, hi=50.0, help="N; default: the edge's contact.target")
 
     def check(self) -> None:
         given = [k for k in ("twist", "wait", "action") if getattr(self, k) is not None]
@@ -121,6 +124,12 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
             client.switch_profile(step.profile)
         except ControlRefused as exc:
             client.log_event("refused", "profile", f"profile {step.profile!r} refused: {exc}")
+        time.sleep(step.duration)
+    elif step.action == "contact":
+        try:
+            client.set_contact(step.contact_on, step.contact_force)
+        except ControlRefused as exc:
+            client.log_event("refused", "contact", f"contact mode: {exc}")
         time.sleep(step.duration)
     elif step.action == "silence":
         stop_ms = _silence(client, step.duration)

@@ -306,6 +306,9 @@ class OperatorConsole(App[int]):
         t = self._table()
         t.add_row("profile", Text(v.profile or "—", style="bold cyan"))
         t.add_row("frame", Text("probe (tool)" if v.frame == "tool" else "base", style="bold" if v.frame == "tool" else ""))
+        t.add_row("contact", Text(v.contact or "off", style="bold magenta" if v.contact else ""))
+        if v.task:
+            t.add_row("task", Text(v.task, style="bold"))
         t.add_row("linear", "—" if math.isnan(v.linear_limit_mm_s) else f"{v.linear_limit_mm_s:.1f} mm/s")
         t.add_row("angular", "—" if math.isnan(v.angular_limit_deg_s) else f"{v.angular_limit_deg_s:.1f} °/s")
         t.add_row("limits hit", Text(", ".join(v.limits_hit) or "none", style="yellow" if v.limits_hit else ""))

@@ -55,6 +55,8 @@ class ConsoleView:
     tcp_speed_mm_s: float = math.nan
     profile: str = ""
     frame: str = "base"  # of our twists: base, or tool (the probe's frame about its tip)
+    contact: str = ""  # contact mode: "holding 4 N" ("" when off)
+    task: str = ""  # a motion primitive under way and its progress
     linear_limit_mm_s: float = math.nan
     angular_limit_deg_s: float = math.nan
     limits_hit: list[str] = field(default_factory=list)
@@ -199,6 +201,8 @@ class ConsoleController:
         elif action == "torch":
             on = c.toggle_torch()
             c.log_event("action", "torch", f"torch {'on' if on else 'off'}")
+        elif action == "contact_toggle":
+            c.set_contact(not (c.safety is not None and c.safety.contact_target >= 0))
         elif action == "frame_toggle":
             c.set_frame("tool" if c.frame == "base" else "base")
             c.log_event("action", "frame", "moving in the probe's frame (about its tip)" if c.frame == "tool"
@@ -228,6 +232,9 @@ class ConsoleController:
             v.edge_judged, v.edge_superseded = safety.received, safety.superseded
         v.deadman = self.sample.deadman
         v.frame = c.frame
+        if safety is not None:
+            v.contact = f"holding {safety.contact_target:g} N" if safety.contact_target >= 0 else ""
+            v.task = safety.task
         d = self.device
         v.hint = recovery.hint(c.next_step(), d.control_name("acquire"), d.control_name("deadman"), d.deadman_toggles)
         v.force = force_view(c.force_level, c.force_level_at, now, s.force_stale_after)

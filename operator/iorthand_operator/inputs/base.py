@@ -28,6 +28,7 @@ ACTIONS = (
     "camera_center",
     "torch",  # toggle
     "frame_toggle",  # twists in the base frame ⇄ in the probe's frame about its tip
+    "contact_toggle",  # contact mode on (the edge holds the force along the probe) ⇄ off
     "poses",  # open the safety-pose list
     "quit",
 )

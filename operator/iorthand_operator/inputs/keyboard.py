@@ -52,7 +52,7 @@ DEFAULT_KEYS = {
     "w": "+linear_x", "s": "-linear_x", "a": "+linear_y", "d": "-linear_y", "r": "+linear_z", "f": "-linear_z",
     "i": "+angular_x", "k": "-angular_x", "j": "+angular_y", "l": "-angular_y", "u": "+angular_z",
     "o": "-angular_z",
-    "space": "deadman", "x": "estop", "escape": "estop", "e": "acquire", "p": "profile_next", "t": "torch", "b": "frame_toggle", "g": "poses", "c": "camera_center",
+    "space": "deadman", "x": "estop", "escape": "estop", "e": "acquire", "p": "profile_next", "t": "torch", "b": "frame_toggle", "h": "contact_toggle", "g": "poses", "c": "camera_center",
     "left": "pan_left", "right": "pan_right", "up": "tilt_up", "down": "tilt_down", "q": "quit",
 }
 

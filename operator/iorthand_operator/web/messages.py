@@ -72,7 +72,7 @@ class View:
 
 
 PageMessage = Twist | Control | Pose | Camera | View
-CONTROL_VERBS = ("acquire", "release", "stop", "poses")
+CONTROL_VERBS = ("acquire", "release", "stop", "poses", "contact_on", "contact_off")
 
 
 def parse(data: str | bytes) -> PageMessage:

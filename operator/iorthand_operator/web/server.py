@@ -369,6 +369,9 @@ class Page:
             await loop.run_in_executor(None, self._release)
             return await self.send({"type": "reply", "to": "release", "ok": True, "reason": "control released"})
         try:
+            if isinstance(msg, messages.Control) and msg.verb in ("contact_on", "contact_off"):
+                reply = await loop.run_in_executor(None, client.set_contact, msg.verb == "contact_on", None)
+                return await self.send({"type": "reply", "to": "contact", "ok": reply.ok, "reason": reply.reason})
             if isinstance(msg, messages.Control) and msg.verb == "poses":
                 poses = await loop.run_in_executor(None, client.list_poses)
                 return await self.send({"type": "poses", "poses": [p.get("name", "") for p in poses]})
@@ -519,7 +522,8 @@ class Page:
         if sf is not None:
             out["safety"] = {"armed": sf.armed, "owner": sf.owner, "status": sf.status, "reason": sf.reason,
                              "profile": sf.profile, "deadman": sf.deadman, "linear_limit": sf.linear_limit,
-                             "angular_limit": sf.angular_limit, "limits_hit": sf.limits_hit}
+                             "angular_limit": sf.angular_limit, "limits_hit": sf.limits_hit,
+                             "contact": sf.contact_target, "task": sf.task}
         fv = force_view(w.force_level, w.force_level_at, now, 0.5)
         force: dict[str, Any] = {"colour": fv.colour.replace("grey50", "grey"), "label": fv.label, "detail": fv.detail}
         if w.force is not None and st is not None and now - w.force_at < 0.5:

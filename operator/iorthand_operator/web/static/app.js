@@ -128,6 +128,7 @@ window.addEventListener("keydown", (e) => {
   if (e.code === "Space") { input.deadman.key = true; e.preventDefault(); }
   else if (e.code === "KeyX") { estop(); }
   else if (e.code === "KeyB" && !e.repeat) { toggleFrame(); }
+  else if (e.code === "KeyH" && !e.repeat) { toggleContact(); }
   else if (KEYS[e.code]) input.keys.add(e.code);
 });
 window.addEventListener("keyup", (e) => {
@@ -356,6 +357,10 @@ function onState(s) {
   ui.control.classList.toggle("mine", mine);
   if (sf?.profile && document.activeElement !== ui.profile) ui.profile.value = sf.profile;
   ui.deadman.disabled = !mine;
+  const contact = sf?.contact ?? -1;
+  $("contact").textContent = contact >= 0 ? `contact ${contact} N` : "contact";
+  $("contact").classList.toggle("on", contact >= 0);
+  if (sf?.task) ui.reason.textContent = sf.task;
   for (const e of s.events || []) logEvent(e);
   if (viewer && want3d.checked) viewer.update(s);
 }
@@ -402,6 +407,11 @@ function toggleFrame() {
     : "moving in the robot's base frame" });
 }
 $("frame").addEventListener("click", toggleFrame);
+function toggleContact() {
+  const on = (lastState?.safety?.contact ?? -1) >= 0;
+  send({ type: on ? "contact_off" : "contact_on" });
+}
+$("contact").addEventListener("click", toggleContact);
 ui.control.addEventListener("click", () => {
   if (mine) { releaseAll(""); send({ type: "release" }); } else send({ type: "acquire", profile: ui.profile.value });
 });
