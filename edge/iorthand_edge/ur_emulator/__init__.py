@@ -8,18 +8,25 @@ It serves, on one loopback address, what ur_rtde talks to:
 * Dashboard (29999): PolyScope 5 answers (version, serial number, remote control, robot/safety mode, program
   state, play/stop/pause, power, brake release, unlock protective stop with PolyScope's 5 s refusal, popups).
 * Script (30003, also 30002): receives the uploaded control script and runs an interpreter of its register
-  protocol (:mod:`.control_script`): speedL, speedStop, stopL/J, moveL (sync/async), movePath, jog, setWatchdog
-  (+ kickWatchdog), zeroFtSensor, triggerProtectiveStop, stopScript, getters (FK, poseTrans, isSteady, ...).
-* A Cartesian tool model (:mod:`.kinematics`): ramps with the commanded accelerations, straight-line moveL.
-  ``actual_q`` is the fixed :data:`.kinematics.HOME_Q` (no inverse kinematics).
+  protocol (:mod:`.control_script`): speedL/J, speedStop, stopL/J, moveL/J (sync/async, _IK/_FK), movePath,
+  servoL/J, forceMode, jog, setTcp, setWatchdog (+ kickWatchdog), zeroFtSensor, triggerProtectiveStop,
+  stopScript, getters (forward/inverse kinematics, poseTrans, isSteady, safety limits, ...).
+* An arm with joints (:mod:`.arm`, UR3e or UR5e): Cartesian commands move the TCP (:mod:`.kinematics`: ramps
+  with the commanded accelerations, straight-line moveL) and the joints follow by inverse kinematics
+  (:mod:`iorthand.kinematics`, the solution nearest the previous joints); joint commands move the joints and the
+  TCP follows. A target out of reach fails the program (runtime error, the arm does not move); a joint limit
+  or a singularity met during a motion is a protective stop.
+* A force/torque sensor: the injected wrench plus the contact with a phantom
+  (:mod:`iorthand_edge.force.contact`) at the TCP; force mode regulates it by a simple admittance.
 * Fault injection (:class:`UREmulator` methods, or the JSON-lines control socket, default port 30101, used by
   :class:`ControlClient` and ``--inject``): link drop, frozen output stream, protective/emergency stop, TCP
-  force, hung controller.
+  force, hung controller; placing the arm (pose, joints) and the phantom.
 
 ur_rtde 1.6.5 hard-codes its ports, so emulators coexist on different loopback addresses (127.0.0.2, ...),
 which ur_rtde accepts as hostnames. Run it with :func:`main` / ``python -m iorthand_edge.ur_emulator``.
 """
 
+from .arm import ArmModel, ForceMode, Unreachable
 from .cli import main
 from .controller import Controller, ControllerConfig, RobotMode, RuntimeState, SafetyMode
 from .emulator import DEFAULT_CONTROL_PORT, EmulatorConfig, UREmulator
@@ -31,13 +38,16 @@ __all__ = [
     "HOME_POSE",
     "HOME_Q",
     "OPS",
+    "ArmModel",
     "ControlClient",
     "Controller",
     "ControllerConfig",
     "EmulatorConfig",
+    "ForceMode",
     "RobotMode",
     "RuntimeState",
     "SafetyMode",
     "UREmulator",
+    "Unreachable",
     "main",
 ]

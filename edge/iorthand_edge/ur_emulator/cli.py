@@ -5,12 +5,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import signal
 import sys
 import threading
+from typing import Any
 
-from iorthand.config import cli_number
+from iorthand.config import ConfigError, cli_number, from_dict, read_yaml, to_dict
+from iorthand_edge.force.contact import PhantomConfig
 
+from .arm import MAX_JOINT_SPEED
 from .controller import ControllerConfig
 from .emulator import DEFAULT_CONTROL_PORT, EmulatorConfig, UREmulator
 from .faults import OPS, ControlClient
@@ -45,14 +49,31 @@ def build_parser() -> argparse.ArgumentParser:
                     help="seconds after a protective stop during which unlocking is refused (PolyScope: 5)")
     ap.add_argument("--shared-inputs", action="store_true",
                     help="let several RTDE clients claim the same input registers (a real controller refuses)")
+    ap.add_argument("--arm", choices=sorted(MAX_JOINT_SPEED), default="ur3e",
+                    help="the arm's kinematics, joint speeds and limits (default %(default)s)")
+    ap.add_argument("--joint-limits-deg", type=float, nargs=12, metavar="DEG",
+                    help="min max of each joint, base first (default: the arm's, ±360°, UR3e wrist 3 unlimited; "
+                         "inf for none)")
+    ap.add_argument("--phantom", metavar="FILE",
+                    help="YAML phantom for the F/T sensor and force mode: a PhantomConfig, or a file with a "
+                         "phantom: section (configs/edge-sim.yaml); also for --inject set_phantom")
     ap.add_argument("--inject", choices=OPS, metavar="OP",
                     help=f"send OP to a running emulator at --host/--control-port and exit; one of {', '.join(OPS)}")
     ap.add_argument("--duration", type=float, default=None, help="for --inject drop_link")
     ap.add_argument("--mode", default="stale", choices=("stale", "silent"), help="for --inject freeze")
     ap.add_argument("--wrench", type=float, nargs=6, metavar="F", help="for --inject set_force (N, N*m)")
     ap.add_argument("--pose", type=float, nargs=6, metavar="P", help="for --inject set_pose (m, rad)")
+    ap.add_argument("--joints", type=float, nargs=6, metavar="Q", help="for --inject set_joints (rad)")
     ap.add_argument("-v", "--verbose", action="store_true")
     return ap
+
+
+def load_phantom(path: str) -> PhantomConfig:
+    """A PhantomConfig from a YAML file: the file itself, or its ``phantom:`` section."""
+    data = read_yaml(path)
+    if isinstance(data, dict) and "phantom" in data:
+        data = data["phantom"]
+    return from_dict(data, PhantomConfig, source=path)
 
 
 def _inject(args: argparse.Namespace) -> int:
@@ -71,6 +92,17 @@ def _inject(args: argparse.Namespace) -> int:
             print("--inject set_pose needs --pose X Y Z RX RY RZ", file=sys.stderr)
             return 2
         extra["pose"] = args.pose
+    elif args.inject == "set_joints":
+        if args.joints is None:
+            print("--inject set_joints needs --joints Q1 Q2 Q3 Q4 Q5 Q6", file=sys.stderr)
+            return 2
+        extra["q"] = args.joints
+    elif args.inject == "set_phantom":  # without --phantom: remove it
+        try:
+            extra["phantom"] = to_dict(load_phantom(args.phantom)) if args.phantom else None
+        except ConfigError as exc:
+            print(f"ur-emulator: {exc}", file=sys.stderr)
+            return 2
     try:
         with ControlClient(args.host, args.control_port) as client:
             result = client.call(args.inject, **extra)
@@ -87,6 +119,15 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.inject:
         return _inject(args)
+    limits: Any = None
+    if args.joint_limits_deg is not None:
+        d = [math.radians(v) for v in args.joint_limits_deg]
+        limits = tuple((d[2 * i], d[2 * i + 1]) for i in range(6))
+    try:
+        phantom = load_phantom(args.phantom) if args.phantom else None
+    except ConfigError as exc:
+        print(f"ur-emulator: {exc}", file=sys.stderr)
+        return 2
     config = EmulatorConfig(
         host=args.host,
         rtde_port=args.rtde_port,
@@ -94,9 +135,15 @@ def main(argv: list[str] | None = None) -> int:
         script_ports=tuple(args.script_ports),
         control_port=None if args.control_port < 0 else args.control_port,
         controller=ControllerConfig(frequency=args.frequency, version=args.ur_version,
-                                    unlock_delay=args.unlock_delay, exclusive_inputs=not args.shared_inputs),
+                                    unlock_delay=args.unlock_delay, exclusive_inputs=not args.shared_inputs,
+                                    robot_model=args.arm[:3].upper(), arm=args.arm, joint_limits=limits,
+                                    phantom=phantom),
     )
-    emu = UREmulator(config)
+    try:
+        emu = UREmulator(config)
+    except ValueError as exc:  # joint limits that exclude the arm's starting posture
+        print(f"ur-emulator: {exc}", file=sys.stderr)
+        return 2
     try:
         emu.start()
     except OSError as exc:

@@ -1,8 +1,12 @@
 """The emulated controller: robot/safety/program state, RTDE registers, the 'real-time' tick.
 
 One :class:`Controller` is shared by every server (RTDE, dashboard, script, fault control). All state is
-guarded by one lock; the tick thread advances the kinematic model and the running program at the controller
-frequency and publishes an immutable :class:`Snapshot` that the RTDE streams encode.
+guarded by one lock; the tick thread advances the arm (:class:`.arm.ArmModel`: TCP and joints) and the running
+program at the controller frequency and publishes an immutable :class:`Snapshot` that the RTDE streams encode.
+
+The force/torque sensor measures the wrench injected by fault injection plus, with a ``phantom``
+(:class:`iorthand_edge.force.contact.PhantomConfig`), the contact with it at the current TCP pose and speed:
+``actual_TCP_force`` in the base frame at the TCP, as a UR reports it, ``ft_raw_wrench`` in the tool frame.
 """
 
 from __future__ import annotations
@@ -12,12 +16,18 @@ import math
 import re
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
-from .kinematics import HOME_Q, MotionMode, ToolModel
+import numpy as np
+
+from iorthand.geometry import rotvec_to_matrix
+from iorthand_edge.force.contact import PhantomConfig, contact_force, contact_wrench
+
+from .arm import ArmModel
+from .kinematics import MotionMode
 from .protocol import N_REGISTERS, register_type
 
 log = logging.getLogger("iorthand_edge.ur_emulator")
@@ -90,6 +100,10 @@ class ControllerConfig:
     version: tuple[int, int, int, int] = (5, 15, 2, 0)
     serial_number: str = "20235500001"
     robot_model: str = "UR3"
+    arm: str = "ur3e"  # kinematics (iorthand.kinematics.MODELS) and joint speeds
+    joint_limits: tuple[tuple[float, float], ...] | None = None  # rad, 6 × (min, max); None: the arm's own
+    phantom: PhantomConfig | None = None  # a surface the TCP presses on, measured by the F/T sensor
+    force_gain: float = 0.005  # force mode admittance, m/s per N of force error
     unlock_delay: float = 5.0  # PolyScope refuses "unlock protective stop" this long after the stop
     stop_deceleration: float = 10.0  # m/s^2 used for protective stops and program stops
     exclusive_inputs: bool = True  # answer IN_USE when a second client claims input registers
@@ -157,7 +171,8 @@ class Controller:
     def __init__(self, config: ControllerConfig | None = None) -> None:
         self.config = config or ControllerConfig()
         self.lock = threading.RLock()
-        self.model = ToolModel()
+        self.phantom = self.config.phantom
+        self.model = ArmModel(self.config.arm, self.config.joint_limits, wrench=self.measured_wrench)
         self.t0 = time.monotonic()
         self._last_tick = self.t0
         self.in_int = [0] * N_REGISTERS
@@ -255,6 +270,10 @@ class Controller:
                 if program is not None and not program.step(self, now) and self.program is program:
                     self.stop_program(f"program {program.name} ended", decelerate=False)
             self.model.step(dt)
+            if self.model.fault is not None:
+                # The arm refused a step (out of reach, joint limit, singularity) and stopped where it was.
+                reason, self.model.fault = self.model.fault, None
+                self.protective_stop(reason)
             snap = self._build_snapshot(now)
             self.snapshot = snap
             if self.faults.freeze == "stale" and self.faults.frozen is not None:
@@ -267,7 +286,8 @@ class Controller:
 
     def _build_snapshot(self, now: float) -> Snapshot:
         m = self.model
-        force = [r - o for r, o in zip(self.raw_force, self.ft_offset, strict=True)]
+        force = self.measured_wrench(m.pose, m.twist)
+        raw_tool = self._wrench_in_tool(m.pose, m.twist)
         running = self.program is not None
         powered = self.robot_mode >= RobotMode.POWER_ON
         values: dict[str, object] = {
@@ -276,10 +296,12 @@ class Controller:
             "target_TCP_pose": tuple(m.pose),
             "target_TCP_speed": tuple(m.twist),
             "actual_TCP_force": tuple(force),
-            "ft_raw_wrench": tuple(self.raw_force),
+            "ft_raw_wrench": tuple(raw_tool),
             "tcp_force_scalar": math.sqrt(sum(f * f for f in force[:3])),
-            "actual_q": HOME_Q,
-            "target_q": HOME_Q,
+            "actual_q": tuple(m.q.tolist()),
+            "target_q": tuple(m.q.tolist()),
+            "actual_qd": tuple(m.qd.tolist()),
+            "target_qd": tuple(m.qd.tolist()),
             "robot_mode": int(self.robot_mode),
             "joint_mode": (253 if self.robot_mode == RobotMode.RUNNING else 251,) * 6,  # RUNNING / IDLE
             "safety_mode": int(self.safety_mode),
@@ -310,6 +332,27 @@ class Controller:
             in_double=tuple(self.in_double),
             in_bits=self.in_bits,
         )
+
+    # -- the force/torque sensor ----------------------------------------------------------------------
+
+    def contact(self, pose: Sequence[float], twist: Sequence[float]) -> list[float]:
+        """The phantom's wrench on the tool (base frame, at the TCP); zero without a phantom."""
+        if self.phantom is None:
+            return [0.0] * 6
+        return [*contact_force(self.phantom, pose, twist[:3]).tolist(), 0.0, 0.0, 0.0]
+
+    def measured_wrench(self, pose: Sequence[float], twist: Sequence[float]) -> list[float]:
+        """``actual_TCP_force``: contact + injected wrench, base frame at the TCP, minus zeroFtSensor's offset."""
+        contact = self.contact(pose, twist)
+        return [c + r - o for c, r, o in zip(contact, self.raw_force, self.ft_offset, strict=True)]
+
+    def _wrench_in_tool(self, pose: Sequence[float], twist: Sequence[float]) -> list[float]:
+        """``ft_raw_wrench``: the sensor's own reading, in the tool frame, not zeroed."""
+        rot_t = rotvec_to_matrix(pose[3:6]).T
+        injected = np.concatenate([rot_t @ np.asarray(self.raw_force[:3]), rot_t @ np.asarray(self.raw_force[3:])])
+        if self.phantom is not None:
+            injected += contact_wrench(self.phantom, pose, twist[:3])
+        return injected.tolist()
 
     # -- registers ------------------------------------------------------------------------------------
 
@@ -399,9 +442,20 @@ class Controller:
             self.runtime_state = RuntimeState.STOPPED
             # rtde_set_watchdog lives in the program: it disappears with it (a new script must set it again).
             self.watchdog = None
-            if decelerate or self.model.mode is MotionMode.SPEED:
-                # A stopped program stops the arm; nothing keeps a speedl alive.
+            self.model.end_force_mode()  # force_mode too
+            if decelerate or self.model.mode is not MotionMode.IDLE:
+                # A stopped program stops the arm; nothing keeps a speedl or a servoj alive.
                 self.model.stopl(self.config.stop_deceleration)
+
+    def runtime_exception(self, text: str) -> None:
+        """The program failed (e.g. an inverse kinematics without solution): it stops, and so does the arm, as
+        PolyScope stops a program on a runtime error. The safety mode stays NORMAL: ur_rtde sees the program stop
+        (``isProgramRunning()`` false, the pending command answers False)."""
+        with self.lock:
+            name = self.program.name if self.program is not None else "<none>"
+            self.event(f"runtime exception in program {name}: {text}")
+            self.count("runtime_exceptions")
+            self.stop_program(f"runtime exception: {text}", decelerate=True)
 
     # -- safety ---------------------------------------------------------------------------------------
 
@@ -467,7 +521,15 @@ class Controller:
                 "timestamp": self.snapshot.timestamp,
                 "pose": list(self.model.pose),
                 "twist": list(self.model.twist),
+                "q": self.model.q.tolist(),
+                "qd": self.model.qd.tolist(),
+                "tcp_offset": list(self.model.tcp_offset),
                 "motion": self.model.mode.value,
+                "force_mode": self.model.force is not None,
+                "contact": self.contact(self.model.pose, self.model.twist),
+                "arm": self.model.arm.name,
+                "joint_limits": [[lo, hi] for lo, hi in zip(self.model.lower.tolist(), self.model.upper.tolist(),
+                                                            strict=True)],
                 "runtime_state": self.runtime_state.name,
                 "program": self.program.name if self.program else None,
                 "robot_mode": self.robot_mode.name,

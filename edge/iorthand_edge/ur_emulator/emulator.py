@@ -7,6 +7,9 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any
 
+from iorthand.config import from_dict
+from iorthand_edge.force.contact import PhantomConfig
+
 from .controller import Controller, ControllerConfig
 from .dashboard import handle_dashboard
 from .faults import handle_control
@@ -203,11 +206,27 @@ class UREmulator:
         self.controller.stop_program("stopped by fault injection", decelerate=True)
 
     def set_pose(self, pose: list[float]) -> None:
+        """Put the arm at rest with its TCP at ``pose``, the joints by inverse kinematics nearest the current ones
+        (ValueError when out of reach or beyond the joint limits)."""
         if len(pose) != 6:
             raise ValueError("pose must have 6 values")
         with self.controller.lock:
-            self.controller.model.halt()
-            self.controller.model.pose = [float(v) for v in pose]
+            self.controller.model.place([float(v) for v in pose])
+
+    def set_joints(self, q: list[float]) -> None:
+        """Put the arm at rest at joints ``q`` (rad); ValueError beyond the joint limits."""
+        if len(q) != 6:
+            raise ValueError("q must have 6 values")
+        with self.controller.lock:
+            self.controller.model.place_joints([float(v) for v in q])
+
+    def set_phantom(self, phantom: dict[str, Any] | None = None) -> None:
+        """Place a phantom (the keys of :class:`iorthand_edge.force.contact.PhantomConfig`, checked like a
+        configuration file) for the F/T sensor and force mode to press on; None removes it."""
+        config = None if phantom is None else from_dict(phantom, PhantomConfig, source="set_phantom")
+        with self.controller.lock:
+            self.controller.phantom = config
+            self.controller.event(f"phantom {'removed' if config is None else f'set: {config}'}")
 
     def clear_faults(self) -> None:
         self.restore_link()

@@ -7,7 +7,8 @@ affected by the faults it injects (a link drop or a hang leaves it working), so 
 Operations (see :data:`OPS`): ``status``, ``drop_link`` (``duration`` s, or until ``restore_link``),
 ``restore_link``, ``freeze`` (``mode`` "stale" | "silent"), ``unfreeze``, ``protective_stop``,
 ``clear_protective_stop``, ``emergency_stop``, ``release_emergency_stop``, ``set_force`` (``wrench`` [6]),
-``hang``, ``unhang``, ``stop_program``, ``set_pose`` (``pose`` [6]), ``clear_faults``.
+``hang``, ``unhang``, ``stop_program``, ``set_pose`` (``pose`` [6]), ``set_joints`` (``q`` [6]),
+``set_phantom`` (``phantom``: the keys of a PhantomConfig, or null to remove it), ``clear_faults``.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ log = logging.getLogger("iorthand_edge.ur_emulator")
 OPS = (
     "status", "drop_link", "restore_link", "freeze", "unfreeze", "protective_stop", "clear_protective_stop",
     "emergency_stop", "release_emergency_stop", "set_force", "hang", "unhang", "stop_program", "set_pose",
-    "clear_faults",
+    "set_joints", "set_phantom", "clear_faults",
 )
 
 

@@ -1,6 +1,6 @@
-"""Kinematic tool model of the emulated arm: where the TCP is and how it moves.
+"""Cartesian tool model of the emulated arm: where the TCP is and how it moves in Cartesian commands.
 
-The model is purely Cartesian: a TCP pose ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in the base
+This model is purely Cartesian: a TCP pose ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in the base
 frame, UR's convention) and a TCP twist ``[vx, vy, vz, wx, wy, wz]`` (m/s, rad/s, base frame). It reproduces
 what the UR controller does with the motion commands the ur_rtde control script issues:
 
@@ -11,7 +11,8 @@ what the UR controller does with the motion commands the ur_rtde control script 
 * ``movel(pose, a, v)`` follows a straight line with a trapezoidal speed profile; the orientation is
   interpolated along the geodesic in the same proportion.
 
-Joint values are not modelled (no inverse kinematics): :data:`HOME_Q` is reported as ``actual_q``.
+The joints are :mod:`.arm`'s: it runs this model for the Cartesian commands and makes the joints follow by
+inverse kinematics, and moves the joints itself for the joint commands (movej, servoj, speedj).
 """
 
 from __future__ import annotations
@@ -21,15 +22,24 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
+from iorthand import kinematics as ur_kinematics
+
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, Vec3, Vec3]
 
-#: Fixed, plausible UR3e joint vector (rad) reported as actual_q/target_q: the arm "elbow up", tool pointing
-#: down. The emulator does not solve inverse kinematics, so this does not follow the tool pose.
-HOME_Q: tuple[float, ...] = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
-
 #: Initial TCP pose: 30 cm in front of a UR3e base, 20 cm up, tool pointing down (rotation of pi about x).
 HOME_POSE: tuple[float, ...] = (0.30, -0.10, 0.20, math.pi, 0.0, 0.0)
+
+
+def _home_q() -> tuple[float, ...]:
+    q = ur_kinematics.solve_near(ur_kinematics.UR3E, HOME_POSE)
+    assert q is not None  # well within a UR3e's reach
+    return tuple(float(v) for v in q)
+
+
+#: The UR3e's joints (rad) at :data:`HOME_POSE`, where the emulated arm starts: the inverse kinematics solution
+#: that looks like the usual "elbow up, tool down" posture turned toward the pose.
+HOME_Q: tuple[float, ...] = _home_q()
 
 
 def _norm(v: Vec3) -> float:
@@ -137,26 +147,33 @@ def _ramp(current: Sequence[float], target: Sequence[float], max_step: float) ->
 
 class MotionMode(Enum):
     IDLE = "idle"
-    SPEED = "speed"  # speedl: track a commanded twist
-    STOPPING = "stopping"  # stopl / program stop: decelerate to zero
+    SPEED = "speed"  # speedl / speedj: track a commanded twist or joint speed
+    STOPPING = "stopping"  # stopl / stopj / program stop: decelerate to zero
     MOVE = "move"  # movel: trapezoidal profile to a target pose
+    MOVE_JOINT = "movej"  # movej: trapezoidal profile to target joints
+    SERVO = "servo"  # servoj / servol: follow a target that the client updates every cycle
 
 
 @dataclass
-class _LinearMove:
-    start_p: Vec3
-    start_r: Mat3
-    direction: Vec3  # unit vector of the translation (zero when only rotating)
-    axis_angle: Vec3  # rotation vector from start to target orientation, in the base frame
-    length: float  # path length used for the profile (m, or rad for a pure rotation)
+class Trapezoid:
+    """A trapezoidal (or triangular, when ``v`` is never reached) speed profile over a path of ``length``."""
+
+    length: float
     v: float
     a: float
-    t_acc: float
-    t_total: float
-    elapsed: float = 0.0
+    t_acc: float = field(init=False, default=0.0)
+    t_total: float = field(init=False, default=0.0)
+
+    def __post_init__(self) -> None:
+        self.t_acc = self.v / self.a
+        if self.a * self.t_acc * self.t_acc >= self.length:  # triangular profile: never reaches v
+            self.t_acc = math.sqrt(self.length / self.a)
+            self.t_total = 2 * self.t_acc
+        else:
+            self.t_total = 2 * self.t_acc + (self.length - self.a * self.t_acc * self.t_acc) / self.v
 
     def s_at(self, t: float) -> tuple[float, float]:
-        """Distance along the path and speed at time ``t`` of the trapezoidal profile."""
+        """Distance along the path and speed at time ``t``."""
         if t >= self.t_total:
             return self.length, 0.0
         t_dec_start = self.t_total - self.t_acc
@@ -168,6 +185,16 @@ class _LinearMove:
             return s_acc + v_peak * (t - self.t_acc), v_peak
         td = self.t_total - t
         return self.length - 0.5 * self.a * td * td, self.a * td
+
+
+@dataclass
+class _LinearMove:
+    start_p: Vec3
+    start_r: Mat3
+    direction: Vec3  # unit vector of the translation (zero when only rotating)
+    axis_angle: Vec3  # rotation vector from start to target orientation, in the base frame
+    profile: Trapezoid  # over the path length (m, or rad for a pure rotation)
+    elapsed: float = 0.0
 
 
 @dataclass
@@ -221,13 +248,7 @@ class ToolModel:
             self.halt()
             return
         direction = (delta[0] / dist, delta[1] / dist, delta[2] / dist) if dist > 1e-6 else (0.0, 0.0, 0.0)
-        t_acc = v / a
-        if a * t_acc * t_acc >= length:  # triangular profile: never reaches v
-            t_acc = math.sqrt(length / a)
-            t_total = 2 * t_acc
-        else:
-            t_total = 2 * t_acc + (length - a * t_acc * t_acc) / v
-        self._move = _LinearMove(p0, r0, direction, rel, length, v, a, t_acc, t_total)
+        self._move = _LinearMove(p0, r0, direction, rel, Trapezoid(length, v, a))
         self.mode = MotionMode.MOVE
 
     # -- queries ----------------------------------------------------------------------------------------
@@ -268,17 +289,17 @@ class ToolModel:
         m = self._move
         assert m is not None
         m.elapsed += dt
-        s, speed = m.s_at(m.elapsed)
-        frac = s / m.length
+        s, speed = m.profile.s_at(m.elapsed)
+        frac = s / m.profile.length
         # direction is zero for a pure re-orientation, so the position then stays put.
         p = [m.start_p[i] + m.direction[i] * s for i in range(3)]
         rot = (m.axis_angle[0] * frac, m.axis_angle[1] * frac, m.axis_angle[2] * frac)
         r = matrix_to_rotvec(matmul(rotvec_to_matrix(rot), m.start_r))
         self.pose = [*p, *r]
-        k = speed / m.length  # d(frac)/dt
+        k = speed / m.profile.length  # d(frac)/dt
         self.twist = [m.direction[0] * speed, m.direction[1] * speed, m.direction[2] * speed,
                       m.axis_angle[0] * k, m.axis_angle[1] * k, m.axis_angle[2] * k]
-        if m.elapsed >= m.t_total:
+        if m.elapsed >= m.profile.t_total:
             self.twist = [0.0] * 6
             self._move = None
             self.mode = MotionMode.IDLE
