@@ -23,7 +23,11 @@ $(VENV)/.installed-test: $(VENV)/.installed
 
 install: $(VENV)/.installed
 
-install-test: $(VENV)/.installed-test
+# LeRobot (iorthand export --format lerobot) is heavy (torch): best effort, its tests skip and say why without it.
+$(VENV)/.installed-lerobot: $(VENV)/.installed-test
+	scripts/install-lerobot.sh $(BIN)/python && touch $@ || true
+
+install-test: $(VENV)/.installed-test $(VENV)/.installed-lerobot
 	scripts/install-test-deps.sh
 
 demo: install

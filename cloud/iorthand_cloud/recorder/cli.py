@@ -140,12 +140,42 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from iorthand_cloud.recorder.export import export_rrd
-
     if args.start is not None and args.end is not None and args.end <= args.start:
         raise ConfigError("command line", "--end", f"{args.end:g} s is not after --start {args.start:g} s")
-    path, n = export_rrd(args.session, args.out, args.start, args.end, args.video_fps)
-    print(f"exported {n} entries to {path}")
+    if args.format == "rrd":
+        from iorthand_cloud.recorder.export import export_rrd
+
+        path, n = export_rrd(args.session, args.out, args.start, args.end, args.video_fps)
+        print(f"exported {n} entries to {path}")
+        return 0
+    # The ROS 2 and LeRobot writers need packages of their own (rosbags; lerobot with torch): a missing one, or a
+    # session they cannot export as asked, is said in one line.
+    from iorthand_cloud.recorder.export_ros2 import ExportError
+
+    try:
+        if args.format == "ros2":
+            from iorthand_cloud.recorder.export_ros2 import export_ros2
+
+            bag = export_ros2(args.session, args.out, args.start, args.end, storage=args.storage)
+            print(f"exported {bag.messages} messages on {len(bag.counts)} topics to {bag.path}")
+        else:
+            from iorthand_cloud.recorder.export_lerobot import export_lerobot
+
+            ds = export_lerobot(args.session, args.out, args.start, args.end, fps=args.fps, robot=args.robot,
+                                task=args.task, vcodec=args.vcodec, image_scale=args.image_scale)
+            for warning in ds.warnings:
+                print(f"warning: {warning}", file=sys.stderr)
+            print(f"exported {ds.frames} frames in {len(ds.episodes)} episode(s) at {ds.fps} fps to {ds.path}")
+    except ModuleNotFoundError as exc:
+        from iorthand_cloud.recorder import export_lerobot, export_ros2
+
+        hint = (export_ros2 if args.format == "ros2" else export_lerobot).INSTALL
+        print(f"iorthand export: --format {args.format} needs the Python package {exc.name!r}, which is not "
+              f"installed: {hint}", file=sys.stderr)
+        return 1
+    except ExportError as exc:
+        print(f"iorthand export: {exc}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -194,12 +224,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", help="folder (default SESSION/report)")
     p.set_defaults(func=_cmd_report)
 
-    p = sub.add_parser("export", help="export a session (or a time range) to a rerun .rrd")
+    p = sub.add_parser("export", help="export a session (or a time range): a rerun .rrd (default), a ROS 2 bag or "
+                                      "a LeRobot dataset")
     p.add_argument("session")
-    p.add_argument("--out", help=".rrd path (default SESSION/<id>.rrd)")
+    # The choices below are export_ros2.STORAGES and export_lerobot's VCODECS, IMAGE_SCALES and DEFAULT_FPS (a test
+    # checks it): not imported, because every iorthand command builds this parser and they would add ~0.1 s.
+    p.add_argument("--format", choices=["rrd", "ros2", "lerobot"], default="rrd",
+                   help="rrd: rerun recording; ros2: ROS 2 bag (rosbags); lerobot: LeRobotDataset v3 (parquet + mp4)")
+    p.add_argument("--out", help="path (default SESSION/<id>.rrd, SESSION/<id>-ros2, SESSION/<id>-lerobot); a bag "
+                                 "or dataset folder must not exist yet")
     p.add_argument("--start", type=float, help="s from the session's first message")
     p.add_argument("--end", type=float)
-    p.add_argument("--video-fps", type=cli_number(float, lo=0.1), default=5.0)
+    p.add_argument("--video-fps", type=cli_number(float, lo=0.1), default=5.0, help="rrd: images per second kept")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap",
+                   help="ros2: the bag's storage (sqlite3 for ROS 2 Humble without the MCAP plugin)")
+    p.add_argument("--fps", type=cli_number(int, lo=1, hi=120), default=30,
+                   help="lerobot: frames per second of the dataset (state and images held at each frame time)")
+    p.add_argument("--robot", help="lerobot: the robot to export (needed when the session has several)")
+    p.add_argument("--task", help="lerobot: the task of every episode (default: from the annotations or the note)")
+    p.add_argument("--vcodec", choices=["h264", "libsvtav1"], default="h264",
+                   help="lerobot: video codec (h264 encodes faster; libsvtav1 is LeRobot's own default)")
+    p.add_argument("--image-scale", type=float, choices=[1.0, 0.5, 0.25], default=1.0,
+                   help="lerobot: picture size relative to the recorded frames (smaller: less to encode and store)")
     p.set_defaults(func=_cmd_export)
 
 

@@ -1,0 +1,450 @@
+"""``iorthand export SESSION --format ros2``: a session (or a time range of it) as a ROS 2 bag.
+
+Written with ``rosbags`` (pure Python: no ROS installation), ROS 2 Jazzy message definitions, MCAP storage by
+default (ROS 2's default since Iron; ``sqlite3`` for Humble without the MCAP plugin). The bag is a folder
+(``metadata.yaml`` + the storage file) that ``ros2 bag play``, Foxglove and rosbags read.
+
+Topics, each robot under its namespace ``/<ns>`` (the robot id with ``-`` turned into ``_``, a valid ROS name):
+
+==============================================  ===============================  ==================================
+topic                                           type                             from
+==============================================  ===============================  ==================================
+``/<ns>/joint_states``                          sensor_msgs/msg/JointState       ``state/robot`` ``q`` (UR joint
+                                                                                 names; no velocity nor effort)
+``/tf``                                         tf2_msgs/msg/TFMessage           ``state/robot`` ``tcp_pose``: base
+                                                                                 → tcp; ``markers``: base →
+                                                                                 marker_<id> (filtered poses)
+``/tf_static``                                  tf2_msgs/msg/TFMessage           base_link → base, once per robot
+``/<ns>/wrench``                                geometry_msgs/msg/WrenchStamped  ``state/force`` (frame tcp)
+``/<ns>/applied_twist``                         geometry_msgs/msg/TwistStamped   ``state/applied`` ``applied``
+                                                                                 (every echo, refused ones too)
+``/<ns>/camera/image/compressed``,              sensor_msgs/msg/CompressedImage  ``video/camera``,
+``/<ns>/ultrasound/image/compressed``                                            ``video/ultrasound`` (JPEG frames;
+                                                                                 failure notices are not images)
+``/rosout``                                     rcl_interfaces/msg/Log           safety status changes, refusals,
+                                                                                 video failures, annotations
+==============================================  ===============================  ==================================
+
+Frames (REP-103: metres, radians, right-handed, quaternions x-y-z-w; REP-105/ur_description names):
+
+- ``base``: the UR controller's base frame, the one ``getActualTCPPose`` reports in and the edge publishes every
+  pose in (z up). ROS's ``base_link`` is this frame turned by 180° about z (:mod:`iorthand.kinematics`); the
+  bag carries that static transform on ``/tf_static``, so a URDF of the arm hangs off ``base_link`` as usual.
+- ``tcp``: the controller's tool centre point (the probe tip when the TCP offset is set), not ``tool0`` (the
+  flange). The force sensor's frame is the tool frame (see ``iorthand_edge.force``): wrenches are in ``tcp``.
+- ``marker_<id>``: a patient marker's filtered pose, in ``base``.
+- ``camera_optical`` and ``ultrasound``: the images' frames; no transform is exported for them (the camera sits
+  on pan/tilt servos whose chain is not part of the recording).
+
+With more than one robot in the session, every frame and joint name is prefixed with the robot's namespace
+(``sim1/base``, ``sim1/tcp``…) so that the trees do not merge; with one robot they are plain.
+
+Times: each header stamp is the message's source time ``t`` (ns, the edge's clock); the bag's own timestamp is
+when the recorder received it (as ``ros2 bag record`` stores reception times). A refusal goes to ``/rosout``
+once when it starts (the first refused command of a run with the same status), not once per refused command:
+a released deadman refuses 60 commands a second, which ``applied_twist`` carries anyway.
+
+The conversion (:class:`Ros2Converter`) is pure: decoded messages in, ROS messages out; :func:`export_ros2`
+does the reading and writing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import re
+import shutil
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from iorthand import keys
+from iorthand.protocol import (
+    Annotation,
+    AppliedCommand,
+    DecodeError,
+    ForceSample,
+    Markers,
+    Message,
+    RobotState,
+    SafetyStatus,
+    Status,
+    VideoFrame,
+    message_type_for,
+    source_news,
+)
+from iorthand_cloud.recorder.reader import iter_records, read_manifest, session_dir
+
+# UR's joint names, as ur_description and the ROS driver name them (base to wrist).
+JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
+               "wrist_3_joint")
+BASE, BASE_LINK, TCP = "base", "base_link", "tcp"
+MARKER_FRAME = "marker_{id}"
+# Frame of each video key's images; a key not listed uses the last part of its suffix.
+VIDEO_FRAMES = {keys.VIDEO_CAMERA: "camera_optical", keys.VIDEO_ULTRASOUND: "ultrasound"}
+TF, TF_STATIC, ROSOUT = "/tf", "/tf_static", "/rosout"
+STORAGES = ("mcap", "sqlite3")
+INSTALL = "pip install rosbags==0.11.9"  # what this export needs beyond iorthand-cloud
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+WRENCH = "geometry_msgs/msg/WrenchStamped"
+TWIST = "geometry_msgs/msg/TwistStamped"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+LOG = "rcl_interfaces/msg/Log"
+
+ANNOTATIONS_KEY = keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)
+_ROS_NAME = re.compile(r"[^A-Za-z0-9_]")
+
+
+class ExportError(ValueError):
+    """A session that cannot be exported as asked; the message says what and why."""
+
+
+# --------------------------------------------------------------------------------------------------- reading
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """One recorded message, decoded with its protocol class. ``robot`` is "" for the recorder's annotations."""
+
+    key: str
+    robot: str
+    suffix: str
+    log_time: int  # the recorder's receive time, ns
+    msg: Message
+
+
+def time_window(folder: Path, start: float | None, end: float | None) -> tuple[int | None, int | None]:
+    """``start``/``end`` (s from the session's first message, as export_rrd takes them) → receive times, ns."""
+    if start is not None and end is not None and end <= start:
+        raise ExportError(f"--end {end:g} s is not after --start {start:g} s")
+    if start is None and end is None:
+        return None, None
+    first = next(iter_records(folder), None)
+    t0 = first.log_time if first else 0
+    return (t0 + int(start * 1e9) if start is not None else None, t0 + int(end * 1e9) if end is not None else None)
+
+
+def iter_decoded(folder: Path, lo: int | None = None, hi: int | None = None,
+                 suffixes: set[str] | None = None, skipped: dict[str, int] | None = None) -> Iterator[Decoded]:
+    """The session's messages in receive order, decoded; ``suffixes`` keeps only those robot keys (annotations
+    are always kept). Malformed payloads (stored raw by the recorder) and keys without a message type are left
+    out and counted in ``skipped``."""
+    for r in iter_records(folder, lo, hi):
+        if r.key == ANNOTATIONS_KEY:
+            cls: type[Message] | None = Annotation
+            robot, suffix = "", keys.RECORDER_ANNOTATIONS
+        else:
+            try:
+                robot, suffix = keys.split_key(r.key)
+            except keys.KeyExprError:
+                continue  # another service's traffic: not part of a robot's recording
+            if suffixes is not None and suffix not in suffixes:
+                continue
+            cls = message_type_for(r.key)
+        if r.malformed or cls is None:
+            if skipped is not None:
+                why = "malformed" if r.malformed else "no message type"
+                skipped[why] = skipped.get(why, 0) + 1
+            continue
+        try:
+            msg = cls.decode(r.data)
+        except DecodeError:
+            if skipped is not None:
+                skipped["undecodable"] = skipped.get("undecodable", 0) + 1
+            continue
+        yield Decoded(r.key, robot, suffix, r.log_time, msg)
+
+
+def session_robots(folder: Path) -> list[str]:
+    """The robots of a session: the manifest's list and those of its recorded keys."""
+    m = read_manifest(folder)
+    robots = set(m.robots)
+    for key in m.keys:
+        with contextlib.suppress(keys.KeyExprError):  # a service key (annotations): no robot
+            robots.add(keys.split_key(key)[0])
+    return sorted(robots)
+
+
+# --------------------------------------------------------------------------------------------------- maths
+
+
+def rotvec_quaternion(rv: Sequence[float]) -> tuple[float, float, float, float]:
+    """Rotation vector (UR's rx, ry, rz) → unit quaternion (x, y, z, w), as ROS orders it."""
+    rx, ry, rz = (float(c) for c in rv)
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if angle < 1e-12:
+        return 0.0, 0.0, 0.0, 1.0
+    s = math.sin(angle / 2.0) / angle
+    return rx * s, ry * s, rz * s, math.cos(angle / 2.0)
+
+
+def matrix_quaternion(m: Sequence[float]) -> tuple[float, float, float, float]:
+    """The rotation of a 4×4 row-major pose (16 numbers) → unit quaternion (x, y, z, w) with w ≥ 0.
+
+    Shepperd's method: the largest of the four candidates is divided by, so it is stable for every angle."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]
+    trace = r00 + r11 + r22
+    if trace > max(r00, r11, r22):
+        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
+        q = ((r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s, 0.25 * s)
+    elif r00 >= r11 and r00 >= r22:
+        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 1e-300))
+        q = (0.25 * s, (r01 + r10) / s, (r02 + r20) / s, (r21 - r12) / s)
+    elif r11 >= r22:
+        s = 2.0 * math.sqrt(max(1.0 + r11 - r00 - r22, 1e-300))
+        q = ((r01 + r10) / s, 0.25 * s, (r12 + r21) / s, (r02 - r20) / s)
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + r22 - r00 - r11, 1e-300))
+        q = ((r02 + r20) / s, (r12 + r21) / s, 0.25 * s, (r10 - r01) / s)
+    n = math.sqrt(sum(c * c for c in q)) or 1.0
+    sign = -1.0 if q[3] < 0 else 1.0  # q and -q are the same rotation: one canonical sign
+    return q[0] * sign / n, q[1] * sign / n, q[2] * sign / n, q[3] * sign / n
+
+
+def ros_namespaces(robots: Iterable[str]) -> dict[str, str]:
+    """Robot id → ROS namespace token: ``-`` (valid in our ids, not in ROS names) becomes ``_``, and a leading
+    digit (invalid in ROS) gets an ``r`` before it. Two ids that would share a namespace are refused."""
+    out: dict[str, str] = {}
+    for robot in robots:
+        ns = _ROS_NAME.sub("_", robot)
+        if ns[:1].isdigit():
+            ns = "r" + ns
+        clash = [r for r, n in out.items() if n == ns]
+        if clash:
+            raise ExportError(f"robots {clash[0]!r} and {robot!r} would share the ROS namespace /{ns}")
+        out[robot] = ns
+    return out
+
+
+# --------------------------------------------------------------------------------------------------- conversion
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    topic: str
+    msgtype: str
+    timestamp: int  # the bag's timestamp: the recorder's receive time, ns
+    msg: Any  # an instance of the typestore's class for msgtype
+
+
+@dataclass
+class Ros2Converter:
+    """Decoded session messages → ROS 2 messages (instances of ``typestore``'s classes). Pure apart from its
+    own memory of what changed (safety status, refusal runs, video failures) and which robots had their static
+    transform."""
+
+    robots: Sequence[str]
+    typestore: Any
+    namespaces: dict[str, str] = field(init=False)
+    _prefix: dict[str, str] = field(init=False)
+    _static_done: set[str] = field(default_factory=set, init=False)
+    _status: dict[str, str] = field(default_factory=dict, init=False)
+    _refusing: dict[str, str | None] = field(default_factory=dict, init=False)
+    _video_failure: dict[str, str] = field(default_factory=dict, init=False)
+
+    def __post_init__(self) -> None:
+        self.namespaces = ros_namespaces(self.robots)
+        several = len(self.namespaces) > 1
+        self._prefix = {r: f"{ns}/" if several else "" for r, ns in self.namespaces.items()}
+        t = self.typestore.types
+        self._Time, self._Header = t["builtin_interfaces/msg/Time"], t["std_msgs/msg/Header"]
+        self._Vector3, self._Quaternion = t["geometry_msgs/msg/Vector3"], t["geometry_msgs/msg/Quaternion"]
+        self._Transform = t["geometry_msgs/msg/Transform"]
+        self._TransformStamped = t["geometry_msgs/msg/TransformStamped"]
+        self._Wrench, self._Twist = t["geometry_msgs/msg/Wrench"], t["geometry_msgs/msg/Twist"]
+        self._types = {name: t[name] for name in (JOINT_STATE, TF_MESSAGE, WRENCH, TWIST, COMPRESSED_IMAGE, LOG)}
+        self._empty = np.zeros(0, dtype=np.float64)
+
+    # ---------------------------------------------------------------- names
+
+    def frame(self, robot: str, name: str) -> str:
+        return self._prefix[robot] + name
+
+    def topic(self, robot: str, name: str) -> str:
+        return f"/{self.namespaces[robot]}/{name}"
+
+    def video_topic(self, robot: str, suffix: str) -> str:
+        return self.topic(robot, f"{suffix.rsplit('/', 1)[-1]}/image/compressed")
+
+    # ---------------------------------------------------------------- building blocks
+
+    def _stamp(self, t: int) -> Any:
+        return self._Time(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000)
+
+    def _header(self, t: int, frame_id: str) -> Any:
+        return self._Header(stamp=self._stamp(t), frame_id=frame_id)
+
+    def _transform(self, t: int, parent: str, child: str, xyz: Sequence[float],
+                   quat: tuple[float, float, float, float]) -> Any:
+        return self._TransformStamped(
+            header=self._header(t, parent), child_frame_id=child,
+            transform=self._Transform(translation=self._Vector3(x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
+                                      rotation=self._Quaternion(x=quat[0], y=quat[1], z=quat[2], w=quat[3])))
+
+    def _tf(self, transforms: list[Any]) -> Any:
+        return self._types[TF_MESSAGE](transforms=transforms)
+
+    def _log(self, t: int, level: int, name: str, text: str) -> Any:
+        return self._types[LOG](stamp=self._stamp(t), level=level, name=name, msg=text, file="", function="", line=0)
+
+    def static_transforms(self, robot: str, t: int, log_time: int) -> BagMessage:
+        """base_link → base: UR's base is ROS's base_link turned by π about z (quaternion (0, 0, 1, 0))."""
+        tf = self._transform(t, self.frame(robot, BASE_LINK), self.frame(robot, BASE), (0.0, 0.0, 0.0),
+                             (0.0, 0.0, 1.0, 0.0))
+        return BagMessage(TF_STATIC, TF_MESSAGE, log_time, self._tf([tf]))
+
+    # ---------------------------------------------------------------- per message
+
+    def convert(self, d: Decoded) -> list[BagMessage]:
+        """The ROS messages of one decoded session message (none for what the bag does not carry)."""
+        msg = d.msg
+        if isinstance(msg, Annotation):
+            tags = f" [{', '.join(msg.tags)}]" if msg.tags else ""
+            score = f" score {msg.score:g}" if msg.score is not None else ""
+            text = f"{msg.author or 'annotation'}: {msg.text}{tags}{score}"
+            return [BagMessage(ROSOUT, LOG, d.log_time,
+                               self._log(msg.t or d.log_time, self._types[LOG].INFO, "iorthand.annotations", text))]
+        robot = d.robot
+        if robot not in self._prefix:
+            return []  # not one of the robots this converter was made for
+        out: list[BagMessage] = []
+        if robot not in self._static_done:
+            self._static_done.add(robot)
+            out.append(self.static_transforms(robot, msg.t or d.log_time, d.log_time))
+        t = msg.t
+        if isinstance(msg, RobotState):
+            js = self._types[JOINT_STATE](
+                header=self._header(t, ""), name=[self._prefix[robot] + n for n in JOINT_NAMES],
+                position=np.asarray(msg.q, dtype=np.float64), velocity=self._empty, effort=self._empty)
+            out.append(BagMessage(self.topic(robot, "joint_states"), JOINT_STATE, d.log_time, js))
+            p = msg.tcp_pose
+            tf = self._transform(t, self.frame(robot, BASE), self.frame(robot, TCP), p[:3], rotvec_quaternion(p[3:6]))
+            out.append(BagMessage(TF, TF_MESSAGE, d.log_time, self._tf([tf])))
+        elif isinstance(msg, Markers):
+            base = self.frame(robot, BASE)
+            tfs = [self._transform(t, base, self.frame(robot, MARKER_FRAME.format(id=m.id)),
+                                   (m.pose[3], m.pose[7], m.pose[11]), matrix_quaternion(m.pose))
+                   for m in msg.markers]
+            if tfs:
+                out.append(BagMessage(TF, TF_MESSAGE, d.log_time, self._tf(tfs)))
+        elif isinstance(msg, ForceSample):
+            f, tq = msg.force, msg.torque
+            w = self._types[WRENCH](header=self._header(t, self.frame(robot, TCP)), wrench=self._Wrench(
+                force=self._Vector3(x=f[0], y=f[1], z=f[2]), torque=self._Vector3(x=tq[0], y=tq[1], z=tq[2])))
+            out.append(BagMessage(self.topic(robot, "wrench"), WRENCH, d.log_time, w))
+        elif isinstance(msg, AppliedCommand):
+            a = msg.applied
+            tw = self._types[TWIST](header=self._header(t, self.frame(robot, BASE)), twist=self._Twist(
+                linear=self._Vector3(x=a[0], y=a[1], z=a[2]), angular=self._Vector3(x=a[3], y=a[4], z=a[5])))
+            out.append(BagMessage(self.topic(robot, "applied_twist"), TWIST, d.log_time, tw))
+            out.extend(self._refusal(robot, msg, d.log_time))
+        elif isinstance(msg, SafetyStatus):
+            if self._status.get(robot) != msg.status:
+                self._status[robot] = msg.status
+                level = self._types[LOG].INFO if msg.status in (Status.OK, Status.IDLE) else self._types[LOG].WARN
+                out.append(BagMessage(ROSOUT, LOG, d.log_time, self._log(
+                    t, level, f"iorthand.{self.namespaces[robot]}.safety", f"{msg.status}: {_meaning(msg)}")))
+        elif isinstance(msg, VideoFrame):
+            news = source_news(f"{msg.source} video", self._video_failure.get(d.key, ""), msg.failure)
+            self._video_failure[d.key] = msg.failure
+            if news:
+                level = self._types[LOG].WARN if msg.failure else self._types[LOG].INFO
+                out.append(BagMessage(ROSOUT, LOG, d.log_time, self._log(
+                    t, level, f"iorthand.{self.namespaces[robot]}.video", news)))
+            if not msg.failure and msg.encoding == "jpeg":  # a failure notice carries no picture
+                frame_id = self.frame(robot, VIDEO_FRAMES.get(d.suffix, d.suffix.rsplit("/", 1)[-1]))
+                img = self._types[COMPRESSED_IMAGE](header=self._header(t, frame_id), format="jpeg",
+                                                    data=np.frombuffer(msg.data, dtype=np.uint8))
+                out.append(BagMessage(self.video_topic(robot, d.suffix), COMPRESSED_IMAGE, d.log_time, img))
+        return out
+
+    def _refusal(self, robot: str, msg: AppliedCommand, log_time: int) -> list[BagMessage]:
+        if msg.accepted:
+            self._refusing[robot] = None
+            return []
+        if self._refusing.get(robot) == msg.status:
+            return []  # the same refusal goes on: said once, when it started
+        self._refusing[robot] = msg.status
+        text = f"command {msg.cmd_seq} from {msg.operator or '?'} refused: {msg.status}: {_meaning(msg)}"
+        return [BagMessage(ROSOUT, LOG, log_time, self._log(
+            msg.t, self._types[LOG].WARN, f"iorthand.{self.namespaces[robot]}.supervisor", text))]
+
+
+def _meaning(msg: SafetyStatus | AppliedCommand) -> str:
+    """The message's reason, or what its status code means when it gives none."""
+    if msg.reason:
+        return msg.reason
+    try:
+        return Status(msg.status).message
+    except ValueError:
+        return "(no reason given)"
+
+
+# --------------------------------------------------------------------------------------------------- writing
+
+
+@dataclass
+class Ros2Export:
+    path: Path
+    counts: dict[str, int]  # messages per topic
+    skipped: dict[str, int]  # recorded messages left out, by why
+
+    @property
+    def messages(self) -> int:
+        return sum(self.counts.values())
+
+
+def _static_qos() -> list[Any]:
+    """/tf_static is latched in ROS 2 (transient local, keep last 1): played back, late subscribers get it."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    unset = QosTime(0, 0)
+    return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL, unset, unset,
+                QosLiveliness.AUTOMATIC, unset, False)]
+
+
+def export_ros2(session: str | Path, out: str | Path | None = None, start: float | None = None,
+                end: float | None = None, storage: str = "mcap") -> Ros2Export:
+    """Write the bag folder (refusing one that exists); ``start``/``end`` are seconds from the session's first
+    message."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    if storage not in STORAGES:
+        raise ExportError(f"storage {storage!r} is not one of {', '.join(STORAGES)}")
+    folder = session_dir(session)
+    manifest = read_manifest(folder)
+    path = Path(out) if out else folder / f"{manifest.session_id}-ros2"
+    if path.exists():
+        raise FileExistsError(f"{path} exists already: remove it or choose another --out")
+    lo, hi = time_window(folder, start, end)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    conv = Ros2Converter(session_robots(folder), typestore)
+    counts: dict[str, int] = {}
+    skipped: dict[str, int] = {}
+    serialize = typestore.serialize_cdr
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    try:
+        with Writer(path, version=Writer.VERSION_LATEST, storage_plugin=plugin) as writer:
+            writer.set_custom_data("iorthand.session", manifest.session_id)
+            connections: dict[str, Any] = {}
+            for d in iter_decoded(folder, lo, hi, skipped=skipped):
+                for m in conv.convert(d):
+                    conn = connections.get(m.topic)
+                    if conn is None:
+                        qos = _static_qos() if m.topic == TF_STATIC else ()
+                        conn = connections[m.topic] = writer.add_connection(
+                            m.topic, m.msgtype, typestore=typestore, offered_qos_profiles=qos)
+                    writer.write(conn, m.timestamp, serialize(m.msg, m.msgtype))
+                    counts[m.topic] = counts.get(m.topic, 0) + 1
+        if not counts:
+            raise ExportError("the session has nothing a ROS 2 bag carries in the exported range")
+    except BaseException:
+        shutil.rmtree(path, ignore_errors=True)  # ours (it did not exist): an empty or half bag would mislead
+        raise
+    return Ros2Export(path, counts, skipped)
