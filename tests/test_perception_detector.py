@@ -31,7 +31,7 @@ def test_detects_and_estimates_pose_within_a_millimetre_at_30_cm() -> None:
     detections = detect_markers(make_aruco_detector(DetectorConfig()), rendered(truth))
     assert [d.id for d in detections] == [5]
     assert detections[0].corners.shape == (4, 2)
-    estimate = estimate_marker_pose(detections[0].corners, 0.045, K, np.zeros(5), None, 2.0)
+    estimate = estimate_marker_pose(detections[0].corners, 0.045, K, np.zeros(5), None, corner_sigma=0.25, normal_sigma=0.35)
     assert estimate is not None
     assert translation_distance(estimate.t_camera_marker, truth) < 0.0015
     assert math.degrees(rotation_angle(estimate.t_camera_marker, truth)) < 1.0
@@ -62,22 +62,28 @@ def test_ippe_choice_uses_error_when_clear_and_normal_when_ambiguous() -> None:
     facing = rot_x(math.pi)[:3, :3]  # marker +z towards the camera (camera −z)
     mirror = rot_x(math.pi + 0.6)[:3, :3]
     expected = np.array([0.0, 0.0, -1.0])
-    assert choose_ippe_solution([mirror, facing], [0.1, 0.5], expected, 2.0) == (0, False)  # 5× apart: error wins
-    assert choose_ippe_solution([mirror, facing], [0.1, 0.15], expected, 2.0) == (1, True)  # close: normal wins
-    assert choose_ippe_solution([facing], [0.3], expected, 2.0) == (0, False)
+    # Residuals 0.1 vs 0.5 px² with 0.05 px corner noise: the corners decide, against the prior.
+    best, ambiguous, other = choose_ippe_solution([mirror, facing], [0.1, 0.5], 0.05, expected, 0.35)
+    assert (best, ambiguous) == (0, False) and other < 1e-6
+    # Residuals 0.1 vs 0.15 px² with 0.3 px noise: the corners cannot tell, the expected normal decides.
+    best, ambiguous, other = choose_ippe_solution([mirror, facing], [0.1, 0.15], 0.3, expected, 0.35)
+    assert (best, ambiguous) == (1, True) and other < 0.5
+    assert choose_ippe_solution([facing], [0.3], 0.05, expected, 0.35) == (0, False, 0.0)
 
 
 def test_far_small_marker_resolved_by_expected_normal() -> None:
-    """A small marker far away: IPPE's two mirror solutions fit almost equally well (error ratio < 2) and the
-    lower-error one is often the wrong one; the expected normal picks the right one."""
+    """A small marker far away: IPPE's two mirror solutions fit almost equally well and the lower-error one is
+    often the wrong one; the expected normal picks the right one."""
     truth = compose(translation(0.0, 0.0, 0.9), rot_x(math.pi + 0.2))
     detector = make_aruco_detector(DetectorConfig())
     by_normal, by_error = [], []
     for seed in range(4):
         detections = detect_markers(detector, rendered(truth, size=0.025, seed=seed))
         assert detections
-        chosen = estimate_marker_pose(detections[0].corners, 0.025, K, np.zeros(5), truth[:3, 2], 2.0)
-        error_only = estimate_marker_pose(detections[0].corners, 0.025, K, np.zeros(5), truth[:3, 2], 1.0)
+        corners = detections[0].corners
+        chosen = estimate_marker_pose(corners, 0.025, K, np.zeros(5), truth[:3, 2], corner_sigma=0.25, normal_sigma=0.35)
+        # A prior so wide that it says nothing: the reprojection error alone chooses.
+        error_only = estimate_marker_pose(corners, 0.025, K, np.zeros(5), truth[:3, 2], corner_sigma=0.25, normal_sigma=1e6)
         assert chosen is not None and error_only is not None and chosen.ambiguous
         by_normal.append(math.degrees(rotation_angle(chosen.t_camera_marker, truth)))
         by_error.append(math.degrees(rotation_angle(error_only.t_camera_marker, truth)))

@@ -116,6 +116,8 @@ def check_aruco_dictionary(name: str) -> None:
 @dataclass
 class DetectorConfig:
     dictionary: str = "DICT_4X4_50"
+    # OpenCV's own corner refinement only seeds the edge fit below when that is on (then "none" would do too,
+    # but the edge fit starts better and falls back to these corners when an edge cannot be measured).
     corner_refinement: str = setting("subpix", choices=CORNER_REFINEMENTS)
     # Two adaptive-threshold windows (5 and 13 px) instead of OpenCV's three (3, 13, 23): ~1.5× faster and
     # still finds 40–50 mm markers at 0.2–0.5 m on a 640×480 image (see benchmarks/bench_perception.py).
@@ -124,9 +126,21 @@ class DetectorConfig:
     adaptive_window_step: int = setting(8, lo=1, hi=99)
     min_marker_perimeter_rate: float = setting(0.03, lo=0.001, hi=4.0)
     corner_refinement_window: int = setting(5, lo=1, hi=20)
-    # IPPE gives two mirror poses; when the worse one's reprojection error is within this ratio of the
-    # better one, the error cannot tell them apart and the expected normal decides.
-    ambiguity_ratio: float = setting(2.0, lo=1.0, hi=100.0)
+    # Corners from lines fitted to the marker's four outer edges (detector.refine_corners): removes the
+    # ~0.2 px shrink of OpenCV's corners (a 0.3–0.7 % range over-estimate) and cuts their noise ~10×.
+    edge_refinement: bool = True
+    # The longest profile across an edge (each pass sizes them to the blur it measured, and to 0.6 cell).
+    edge_band: float = setting(6.0, lo=1.0, hi=20.0, help="px either side of an edge that its profiles may span")
+    edge_max_shift: float = setting(
+        2.0, lo=0.1, hi=20.0, help="px an edge-fitted corner may move from OpenCV's before the fit is refused"
+    )
+    # Move the fitted edges by the edge shift measured on the marker's own border (detector._border_shift):
+    # corrects an unknown tone curve (a gamma-encoded camera puts edges ~0.2 px towards their dark side,
+    # +1.2 % of range at 0.33 m), sharpening or a lopsided blur, without calibrating the camera's response.
+    border_calibration: bool = True
+    # Corner noise assumed for corners that were not edge-refined (edge-refined ones carry their own): OpenCV's
+    # subpix corners were off by 0.21–0.26 px RMS on benchmarks/bench_marker_accuracy.py's scenes.
+    corner_sigma: float = setting(0.25, lo=0.001, hi=10.0, help="px, 1-σ per coordinate")
 
     def check(self) -> None:
         check_aruco_dictionary(self.dictionary)
@@ -143,6 +157,9 @@ class MarkerConfig:
     # Markers lie on the patient/table facing up by default. None = prefer the solution facing the camera.
     expected_normal: list[float] | None = setting(default_factory=lambda: [0.0, 0.0, 1.0], length=3)
     expected_normals: dict[int, list[float]] = setting(default_factory=dict)
+    # How far a marker's normal may be from the expected one (a curved body, a tilted table): the σ of the
+    # prior that chooses between IPPE's mirror solutions when the corners cannot.
+    normal_sigma: float = setting(0.35, lo=0.01, hi=math.pi, help="rad")
 
     def size_of(self, marker_id: int) -> float:
         return self.sizes.get(marker_id, self.default_size)
@@ -161,14 +178,25 @@ class MarkerConfig:
 
 @dataclass
 class FilterConfig:
-    """Per-marker robust temporal filter (medoid over a sliding window, then a mean of its inliers)."""
+    """Per-marker robust temporal filter on SE(3): medoid of a sliding window, then the mean of the samples
+    within gates scaled to the window's own scatter (see filter.py)."""
 
     window: int = setting(9, lo=1, hi=100)
     # Metres that count as much as one radian when comparing poses: 0.05 m ≈ 1 rad makes 1 mm ≈ 1.1°.
     translation_scale: float = setting(0.05, lo=1e-4, hi=10.0)
     reset_after: float = setting(0.5, lo=0.0, hi=60.0, help="s unseen before a marker's window is cleared")
-    inlier_rotation: float = setting(0.05, lo=0.0, hi=math.pi, help="rad from the medoid to join the mean")
-    inlier_translation: float = setting(0.006, lo=0.0, hi=1.0, help="m from the medoid to join the mean")
+    # A sample joins the mean within this many times the window's median distance from its anchor. Distances
+    # of 3-D Gaussian noise follow a Maxwell law whose 99.7 % quantile is 2.45× its median.
+    inlier_spread: float = setting(2.5, lo=1.0, hi=100.0, help="× the window's median distance from the anchor")
+    inlier_rotation: float = setting(0.05, lo=0.0, hi=math.pi, help="rad: the widest rotation gate")
+    inlier_translation: float = setting(0.006, lo=0.0, hi=1.0, help="m: the widest translation gate")
+    # The narrowest gates: a window of near-identical samples (a still camera) must not gate out its own noise.
+    min_inlier_rotation: float = setting(0.005, lo=0.0, hi=math.pi, help="rad")
+    min_inlier_translation: float = setting(0.0005, lo=0.0, hi=1.0, help="m")
+
+    def check(self) -> None:
+        if self.min_inlier_rotation > self.inlier_rotation or self.min_inlier_translation > self.inlier_translation:
+            raise ValueError("min_inlier_rotation/min_inlier_translation must not exceed inlier_rotation/inlier_translation")
 
 
 @dataclass

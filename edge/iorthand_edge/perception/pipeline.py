@@ -1,4 +1,4 @@
-"""The perception pipeline: frame → ArUco → IPPE pose → chain to the base frame → filter → ``Markers``.
+"""The perception pipeline: frame → ArUco → corners from the edges → IPPE pose → chain to the base frame → filter → ``Markers``.
 
 :meth:`PerceptionPipeline.start` runs capture and processing in a named worker thread that never blocks the
 caller; :meth:`PerceptionPipeline.process` does one frame synchronously (tests, benchmarks). Configuration
@@ -29,7 +29,7 @@ from .calibration import CalibrationError, load_handeye, load_intrinsics
 from .camera import CameraError, CameraFinished, CameraSource, Frame, make_camera
 from .chain import CameraChain
 from .config import PerceptionConfig, SyntheticCameraConfig
-from .detector import detect_markers, estimate_marker_pose, make_aruco_detector
+from .detector import detect_markers, estimate_marker_pose, make_aruco_detector, marker_bits, refine_detections
 from .filter import MarkerFilters
 from .synthetic import camera_matrix
 
@@ -49,6 +49,7 @@ class StageTimes:
 
     convert: float = 0.0
     detect: float = 0.0
+    refine: float = 0.0  # corners from the markers' edges
     pose: float = 0.0
     chain: float = 0.0
     filter: float = 0.0
@@ -81,6 +82,8 @@ class PerceptionPipeline:
         self.camera_matrix, self.dist_coeffs, self.calibrated_size = self._intrinsics(config)
         self.chain = self._chain(config)
         self.detector = make_aruco_detector(config.detector)
+        self._dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, config.detector.dictionary))
+        self._bits: dict[int, np.ndarray] = {}  # each seen marker's printed pattern, for the edge refinement
         self.filters = MarkerFilters(config.filter)
         self.stats = PipelineStats()
         # The newest camera image (shared with the video stream, so one camera serves both).
@@ -157,6 +160,14 @@ class PerceptionPipeline:
             pan, tilt = angles
             t_base_camera = self.chain.base_camera(t_base_tcp, pan, tilt)
             r_camera_base = t_base_camera[:3, :3].T
+            detector = self.config.detector
+            if detector.edge_refinement:
+                mark = time.perf_counter()
+                detections = refine_detections(
+                    gray, detections, self.camera_matrix, self.dist_coeffs, self._marker_bits, detector
+                )
+                now = time.perf_counter()
+                times.refine, mark = (now - mark) * 1e3, now
             for detection in detections:
                 estimate = estimate_marker_pose(
                     detection.corners,
@@ -164,7 +175,8 @@ class PerceptionPipeline:
                     self.camera_matrix,
                     self.dist_coeffs,
                     self._expected_normal(detection.id, r_camera_base),
-                    self.config.detector.ambiguity_ratio,
+                    corner_sigma=detector.corner_sigma if detection.corner_sigma is None else detection.corner_sigma,
+                    normal_sigma=self.config.markers.normal_sigma,
                 )
                 now = time.perf_counter()
                 times.pose, mark = times.pose + (now - mark) * 1e3, now
@@ -197,6 +209,12 @@ class PerceptionPipeline:
             fps=self._fps(),
             processing_ms=times.total,
         )
+
+    def _marker_bits(self, marker_id: int) -> np.ndarray:
+        bits = self._bits.get(marker_id)
+        if bits is None:
+            bits = self._bits[marker_id] = marker_bits(self._dictionary, marker_id)
+        return bits
 
     def _expected_normal(self, marker_id: int, r_camera_base: np.ndarray) -> np.ndarray | None:
         normal = self.config.markers.expected_normals.get(marker_id, self.config.markers.expected_normal)
