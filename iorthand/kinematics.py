@@ -72,12 +72,38 @@ def dh_transform(theta: float, d: float, a: float, alpha: float) -> Matrix:
 def joint_frames(m: URModel, q: ArrayLike) -> list[Matrix]:
     """The base frame and the frames after each joint (7 transforms in the base frame; the last is the flange)."""
     q = np.asarray(q, dtype=float)
+    # The six DH transforms built at once (this runs every control cycle for the kinematic guard).
+    ct, st = np.cos(q), np.sin(q)
+    ca, sa = np.cos(m.alpha), np.sin(m.alpha)
+    steps = np.zeros((6, 4, 4))
+    steps[:, 0, 0], steps[:, 0, 1], steps[:, 0, 2], steps[:, 0, 3] = ct, -st * ca, st * sa, np.multiply(m.a, ct)
+    steps[:, 1, 0], steps[:, 1, 1], steps[:, 1, 2], steps[:, 1, 3] = st, ct * ca, -ct * sa, np.multiply(m.a, st)
+    steps[:, 2, 1], steps[:, 2, 2], steps[:, 2, 3] = sa, ca, m.d
+    steps[:, 3, 3] = 1.0
     frames = [np.eye(4)]
-    t = np.eye(4)
-    for i in range(6):
-        t = t @ dh_transform(float(q[i]), m.d[i], m.a[i], m.alpha[i])
-        frames.append(t)
+    for step in steps:
+        frames.append(frames[-1] @ step)
     return frames
+
+
+def jacobian(m: URModel, q: ArrayLike, tcp_offset: ArrayLike | None = None) -> tuple[Matrix, Matrix]:
+    """The geometric Jacobian at ``q`` (6×6: rows vx, vy, vz of the TCP and wx, wy, wz, in the base frame, per
+    joint speed) and the TCP pose (4×4)."""
+    frames = joint_frames(m, q)
+    tcp = frames[-1] if tcp_offset is None else frames[-1] @ geometry.pose_to_matrix(tcp_offset)
+    axes = np.array([f[:3, 2] for f in frames[:6]])
+    origins = np.array([f[:3, 3] for f in frames[:6]])
+    jac = np.empty((6, 6))
+    jac[:3] = np.cross(axes, tcp[:3, 3] - origins).T
+    jac[3:] = axes.T
+    return jac, tcp
+
+
+def elbow_span(m: URModel, q3: float) -> float:
+    """Distance from the shoulder to the wrist's first joint (m), a function of the elbow angle alone: the arm's
+    reach is used up when it equals ``|a2| + |a3|`` (the elbow straight, a singularity)."""
+    a2, a3 = m.a[1], m.a[2]
+    return math.sqrt(max(0.0, a2 * a2 + a3 * a3 + 2 * a2 * a3 * math.cos(q3)))
 
 
 def forward(m: URModel, q: ArrayLike, tcp_offset: ArrayLike | None = None) -> Matrix:
@@ -214,8 +240,10 @@ __all__ = [
     "UR5E",
     "ArmTracker",
     "URModel",
+    "elbow_span",
     "forward",
     "inverse",
+    "jacobian",
     "joint_frames",
     "link_points",
     "model",

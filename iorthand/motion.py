@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -286,16 +286,194 @@ def plan_to(
     return check_plan(plan_line(name, current, goal, limits), limits, reference_q)
 
 
+# ---------------------------------------------------------------------------------------------------------
+# Routes: several legs run one after the other (the motion primitives)
+
+SWEEP = "sweep"
+APPROACH = "approach:"
+RETREAT = "retreat"
+HOME = "home"
+SWEEP_DEFAULTS = {"width": 0.06, "pitch": 0.01, "lanes": 4, "speed": 0.005}  # m, m, count, m/s
+
+
+@dataclass
+class Route:
+    """Legs (straight-line plans) run one after the other. ``planar``: only x and y are tracked (contact mode
+    holds the height along the probe: a sweep over a curved surface)."""
+
+    name: str
+    legs: list[Plan]
+    planar: bool = False
+    labels: list[str] = field(default_factory=list)  # what each leg is, for progress ("lane 3 of 8")
+
+    @property
+    def start(self) -> Vector:
+        return self.legs[0].start
+
+    @property
+    def goal(self) -> Vector:
+        return self.legs[-1].goal
+
+    @property
+    def duration(self) -> float:
+        return float(sum(leg.duration for leg in self.legs))
+
+    @property
+    def length(self) -> float:
+        return float(sum(leg.length for leg in self.legs))
+
+    @property
+    def inside_workspace(self) -> bool:
+        return all(leg.inside_workspace for leg in self.legs)
+
+    @property
+    def reachable(self) -> bool:
+        return all(leg.reachable for leg in self.legs)
+
+    @property
+    def ok(self) -> bool:
+        return self.inside_workspace and self.reachable
+
+    @property
+    def reason(self) -> str:
+        bad = [f"{self.labels[i] if i < len(self.labels) else f'leg {i + 1}'}: {leg.reason}"
+               for i, leg in enumerate(self.legs) if not leg.ok]
+        if len(self.legs) == 1:
+            return self.legs[0].reason
+        return "; ".join(bad) if bad else "ok"
+
+    def leg_at(self, t: float) -> tuple[int, float]:
+        """The leg running at ``t`` s from the start, and the time into it (the last leg after the end)."""
+        for i, leg in enumerate(self.legs):
+            if t < leg.duration or i == len(self.legs) - 1:
+                return i, t
+            t -= leg.duration
+        return len(self.legs) - 1, t
+
+    def summary(self, max_points: int = 60, token: str = "", ttl: float = 0.0) -> dict[str, Any]:
+        out = self.legs[0].summary(max_points, token, ttl) if len(self.legs) == 1 else {
+            "name": self.name, "ok": self.ok, "reason": self.reason, "token": token, "ttl": ttl,
+            "duration": round(self.duration, 3), "length": round(self.length, 5),
+            "rotation": round(sum(leg.rotation for leg in self.legs), 4),
+            "inside_workspace": self.inside_workspace, "reachable": self.reachable,
+            "start": [round(float(v), 5) for v in self.start], "goal": [round(float(v), 5) for v in self.goal],
+            "path": [p for leg in self.legs for p in leg.summary(max(2, max_points // len(self.legs)))["path"]],
+        }
+        out["name"], out["planar"], out["legs"] = self.name, self.planar, len(self.legs)
+        return out
+
+
+def _param(params: Mapping[str, Any], name: str, default: float, lo: float, hi: float) -> float:
+    value = params.get(name, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not lo <= value <= hi:
+        raise PoseError(f"{name}: expected a number within [{lo:g}, {hi:g}], got {value!r:.30}")
+    return float(value)
+
+
+def plan_sweep(current: ArrayLike, limits: Limits, params: Mapping[str, Any]) -> Route:
+    """A zig-zag over the surface from ``current``: ``lanes`` lanes ``width`` m long along the base x axis,
+    ``pitch`` m apart along y, at ``speed`` m/s (at most the profile's); the height and the contact are contact
+    mode's, the orientation kept. Checked at the current height (workspace, reach)."""
+    width = _param(params, "width", SWEEP_DEFAULTS["width"], 0.005, 0.5)
+    pitch = _param(params, "pitch", SWEEP_DEFAULTS["pitch"], 0.001, 0.1)
+    lanes = int(_param(params, "lanes", SWEEP_DEFAULTS["lanes"], 1, 50))
+    speed = min(_param(params, "speed", SWEEP_DEFAULTS["speed"], 0.0005, 0.25), limits.linear_speed)
+    lim = Limits(speed, limits.angular_speed, limits.acceleration, limits.workspace_min, limits.workspace_max,
+                 limits.model, limits.tcp_offset, limits.max_joint_step)
+    here = np.asarray(current, dtype=float)
+    legs: list[Plan] = []
+    labels: list[str] = []
+    direction = 1.0
+    for lane in range(lanes):
+        there = here.copy()
+        there[0] += direction * width
+        legs.append(check_plan(plan_line(SWEEP, here, there, lim), lim))
+        labels.append(f"lane {lane + 1} of {lanes}")
+        here = there
+        if lane < lanes - 1:
+            there = here.copy()
+            there[1] += pitch
+            legs.append(check_plan(plan_line(SWEEP, here, there, lim), lim))
+            labels.append(f"step to lane {lane + 2} of {lanes}")
+            here = there
+        direction = -direction
+    return Route(SWEEP, legs, planar=True, labels=labels)
+
+
+def primitives(markers: Sequence[int], standoff: float) -> list[dict[str, Any]]:
+    """The motion primitives an operator can preview (``control/poses``), each with its parameters' defaults."""
+    sweep = ", ".join(f"{k} {v:g}" for k, v in SWEEP_DEFAULTS.items())
+    out = [
+        {"name": SWEEP, "description": f"zig-zag over the surface in contact mode ({sweep})", "params": SWEEP_DEFAULTS},
+        {"name": RETREAT, "description": "straight up, away from the patient, then to the home pose"},
+    ]
+    out += [{"name": f"{APPROACH}{i}", "description": f"to stand off above marker {i}", "params": {"standoff": standoff}}
+            for i in markers]
+    return out
+
+
+def plan_route(
+    name: str,
+    current: ArrayLike,
+    limits: Limits,
+    poses: Mapping[str, Sequence[float]],
+    markers: Mapping[int, ArrayLike] | None = None,
+    retract_distance: float = 0.05,
+    marker_standoff: float = 0.10,
+    reference_q: ArrayLike | None = None,
+    params: Mapping[str, Any] | None = None,
+) -> Route:
+    """A named pose (one leg) or a primitive: ``sweep`` (params width, pitch, lanes, speed), ``approach:<id>``
+    (params standoff: above marker <id>), ``retreat`` (straight up, then to the ``home`` pose when there is one)."""
+    params = params or {}
+    current = np.asarray(current, dtype=float)
+    try:
+        known = list(SWEEP_DEFAULTS) if name == SWEEP else ["standoff"] if name.startswith(APPROACH) else []
+        unknown = sorted(set(params) - set(known))
+        if unknown:
+            raise PoseError(f"{name}: unknown parameter(s) {', '.join(map(str, unknown))}"
+                            f" (known: {', '.join(known) or 'none'})")
+        if name == SWEEP:
+            return plan_sweep(current, limits, params)
+        if name.startswith(APPROACH):
+            standoff = _param(params, "standoff", marker_standoff, 0.01, 0.5)
+            marker = f"{ABOVE_MARKER}{name[len(APPROACH):]}"
+            plan = plan_to(marker, current, limits, poses, markers, retract_distance, standoff, reference_q)
+            plan.name = name
+            return Route(name, [plan])
+        if name == RETREAT:
+            up = plan_to(RETRACT, current, limits, poses, markers, retract_distance, marker_standoff, reference_q)
+            legs, labels = [up], ["up, away from the patient"]
+            if HOME in poses:
+                legs.append(check_plan(plan_line(HOME, up.goal, np.asarray(poses[HOME], dtype=float), limits), limits))
+                labels.append("to the safe pose")
+            return Route(RETREAT, legs, labels=labels)
+    except PoseError as exc:
+        empty = np.array([current])
+        return Route(name, [Plan(name, current, current, empty, np.zeros(1), 0.0, 0.0, 0.0, False, False, str(exc))])
+    return Route(name, [plan_to(name, current, limits, poses, markers, retract_distance, marker_standoff,
+                                reference_q)])
+
+
 __all__ = [
     "ABOVE_MARKER",
+    "APPROACH",
+    "HOME",
     "RETRACT",
+    "RETREAT",
+    "SWEEP",
+    "SWEEP_DEFAULTS",
     "Limits",
     "Plan",
     "PoseError",
+    "Route",
     "above_marker",
     "check_plan",
     "plan_line",
+    "plan_route",
+    "plan_sweep",
     "plan_to",
+    "primitives",
     "reference_at",
     "resolve_pose",
     "trapezoid_duration",

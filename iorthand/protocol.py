@@ -500,6 +500,12 @@ class Status(StrEnum):
     OWNER_LOST = "owner_lost", "the owner's session was lost: acquire control again", True
     NOT_ALLOWED = "operator_not_allowed", "this operator may not command this robot"
     BAD_COMMAND = "bad_command", "the command asks for something this edge does not do (a frame, a mode)"
+    NEAR_SINGULARITY = "near_singularity", "near a singularity: motion toward it is slowed"
+    SINGULARITY = "singularity", "at a singularity's margin: motion toward it halted; move away from it"
+    NEAR_JOINT_LIMIT = "near_joint_limit", "a joint is near its limit: motion toward it is slowed"
+    JOINT_LIMIT = "joint_limit", "a joint is at its limit's margin: motion toward it halted; move away from it"
+    NEAR_REACH = "near_reach_limit", "near the edge of the arm's reach: motion outward is slowed"
+    REACH_LIMIT = "reach_limit", "at the edge of the arm's reach: motion outward halted"
     CONTACT = "contact", "contact mode: the edge holds the force along the probe; the operator steers along the surface"
     LINK_GAP = "link_gap", "commands resumed after a long gap: release the deadman and press it again", True
     STALE_VIEW = "stale_view", "the operator's picture of the robot is too old to act on", True

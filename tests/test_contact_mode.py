@@ -32,6 +32,7 @@ def contact_supervisor() -> tuple[Supervisor, object]:
 def test_contact_mode_replaces_the_axial_motion_by_the_admittance() -> None:
     sv, c = contact_supervisor()
     cfg = sv.config.contact
+    cfg.integral_gain = 0.0  # the proportional part alone here (the integral: the next test)
     ok, why = sv.set_contact(c.request(sv, "op1", keys.CONTROL_CONTACT), True, TARGET)
     assert ok and sv.contact_target == TARGET, why
     # The tool points down (POSE): the probe's axis is -z of the base. No force yet: it approaches, at most
@@ -54,6 +55,32 @@ def test_contact_mode_replaces_the_axial_motion_by_the_admittance() -> None:
     c.mono += cfg.max_force_age + 0.02
     d = sv.on_command(c.cmd(vx=0.0), c.wall, c.mono, POSE)
     assert d.twist[2] == 0.0 and "no fresh force reading" in d.reason
+
+
+def test_the_admittance_integrates_a_standing_error_without_winding_up() -> None:
+    sv, c = contact_supervisor()
+    cfg = sv.config.contact
+    assert sv.set_contact(c.request(sv, "op1", keys.CONTROL_CONTACT), True, TARGET)[0]
+    # Free space: the error is the whole target, the output at its bound: nothing accumulates.
+    for _ in range(100):
+        c.mono += sv.period
+        sv.update_contact_force(0.0, c.mono)
+        assert sv.on_command(c.cmd(vx=0.0), c.wall, c.mono, POSE).twist[2] == pytest.approx(-cfg.max_speed)
+    # In contact, 0.5 N short of the target (a surface falling away under a sweep): the speed toward it grows
+    # with the error's integral, beyond the proportional part.
+    speeds = []
+    for _ in range(50):
+        c.mono += sv.period
+        sv.update_contact_force(TARGET - 0.5, c.mono)
+        speeds.append(-sv.on_command(c.cmd(vx=0.0), c.wall, c.mono, POSE).twist[2])
+    assert speeds[0] == pytest.approx(cfg.gain * 0.5 + cfg.integral_gain * 0.5 * sv.period, rel=1e-6)
+    assert speeds[-1] == pytest.approx(cfg.gain * 0.5 + cfg.integral_gain * 0.5 * 50 * sv.period, rel=1e-6)
+    # Leaving and entering again starts from nothing.
+    assert sv.set_contact(c.request(sv, "op1", keys.CONTROL_CONTACT), False)[0]
+    assert sv.set_contact(c.request(sv, "op1", keys.CONTROL_CONTACT), True, TARGET)[0]
+    c.mono += sv.period
+    sv.update_contact_force(TARGET - 0.5, c.mono)
+    assert -sv.on_command(c.cmd(vx=0.0), c.wall, c.mono, POSE).twist[2] == pytest.approx(cfg.gain * 0.5, rel=1e-6)
 
 
 def test_contact_mode_is_entered_and_left_on_purpose() -> None:

@@ -66,6 +66,7 @@ from iorthand_edge.config import EdgeConfig
 from iorthand_edge.force import LevelState, SensorError, make_force_sensor
 from iorthand_edge.force.monitor import ForceMonitor
 from iorthand_edge.goto import GotoController
+from iorthand_edge.kinematic_guard import KinematicGuard
 from iorthand_edge.media import MediaProcess, needs_media
 from iorthand_edge.robots import Robot, RobotFault, RobotReading, make_robot
 from iorthand_edge.supervisor import Action, Decision, Supervisor
@@ -115,6 +116,9 @@ class EdgeAgent:
         self.period = self.robot.control_period
         self.supervisor = Supervisor(config.safety, period=self.period, force_required=config.force is not None,
                                      robot=config.robot_id)
+        if config.safety.kinematics.enabled:
+            self.supervisor.kinematics = KinematicGuard(config.safety.kinematics, config.robot.model,
+                                                        config.goto.tcp_offset)
         if config.force is not None:  # contact mode holds a force below the caution level, never at it
             self.supervisor.contact_ceiling = config.force.levels.caution
         axis = np.asarray(config.safety.force.contact_axis, dtype=float)
@@ -151,7 +155,8 @@ class EdgeAgent:
             require_alive=config.require_operator_alive,
             bind_keys=config.bind_operator_keys,
         )
-        self.goto = GotoController(config.goto, config.safety.workspace.min, config.safety.workspace.max)
+        self.goto = GotoController(config.goto, config.safety.workspace.min, config.safety.workspace.max,
+                                   config.robot.model)
         # The media process's markers, from this robot's markers key (for above_marker:<id>): the latest filtered
         # T_base_marker per id, and the time of the camera frame they come from (ns since the epoch).
         self._markers: dict[int, np.ndarray] = {}
@@ -380,6 +385,8 @@ class EdgeAgent:
             hook(reading)
         self._pub_robot.put(state.encode())
         self._publish_safety()
+        if self.supervisor.kinematics is not None:  # outside the lock: the next commands see the new assessment
+            self.supervisor.kinematics.update(reading.tcp_pose, reading.q)
 
     def _feed_contact_force(self) -> None:
         """Contact mode: the newest force along the probe's axis (pressing positive) to the supervisor (caller
@@ -543,9 +550,10 @@ class EdgeAgent:
     def _on_poses(self, query: zenoh.Query) -> None:
         if self._request(query, keys.CONTROL_POSES) is None:
             return
-        names = [*self.config.goto.poses, "retract", *(f"above_marker:{i}" for i in sorted(self._fresh_markers()))]
-        detail = json.dumps([{"name": n} for n in names])
-        self._reply(query, True, f"{len(names)} poses", detail=detail)
+        markers = sorted(self._fresh_markers())
+        entries = [{"name": n} for n in [*self.config.goto.poses, motion.RETRACT, *(f"{motion.ABOVE_MARKER}{i}" for i in markers)]]
+        entries += motion.primitives(markers, self.config.goto.marker_standoff)
+        self._reply(query, True, f"{len(entries)} poses and primitives", detail=json.dumps(entries))
 
     def _on_preview(self, query: zenoh.Query) -> None:
         req = self._request(query, keys.CONTROL_PREVIEW)
@@ -557,9 +565,16 @@ class EdgeAgent:
         if reading is None:
             self._reply(query, False, "no robot state yet")
             return
+        try:
+            params = json.loads(req.params) if req.params else {}
+            if not isinstance(params, dict):
+                raise ValueError("not a JSON object")
+        except ValueError as exc:
+            self._reply(query, False, f"preview {req.name!r}: params must be a JSON object ({exc})")
+            return
         # Planning (IK along the path) takes up to ~0.2 s: outside the lock, on this control-plane thread.
         pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
-                               self._fresh_markers(), reading.q)
+                               self._fresh_markers(), reading.q, params)
         (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")
         self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", detail=json.dumps(pv.detail()))
 
@@ -574,8 +589,13 @@ class EdgeAgent:
             elif self.reading is None:
                 ok, reason = False, "no robot state yet"
             else:
+                contact = self.supervisor.contact_target is not None
                 ok, reason = self.goto.start(req.name, req.token, req.operator, self.reading.tcp_pose,
-                                             time.monotonic(), self._limits())
+                                             time.monotonic(), self._limits(), contact=contact)
+                if ok and contact and not self.goto.planar:
+                    # Contact mode would hold the probe's axis against the move (a retreat lifts off on purpose).
+                    self.supervisor.contact_off(f"{req.name!r} moves the probe along its axis")
+                    reason += "; contact mode off"
         (log.info if ok else log.warning)("goto %r by %r: %s", req.name, req.operator, reason)
         self._reply(query, ok, reason)
 

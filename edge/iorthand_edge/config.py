@@ -10,7 +10,7 @@ from iorthand.config import load, setting
 from iorthand.protocol import MAX_PAYLOAD
 from iorthand.transport import RX_MAX_MESSAGE_KEY, ZenohConfig
 from iorthand_edge.actuators.config import ServosConfig, TorchConfig
-from iorthand_edge.force.config import ForceConfig, SimForceSensorConfig
+from iorthand_edge.force.config import ForceConfig, RobotForceSensorConfig, SimForceSensorConfig
 from iorthand_edge.force.contact import PhantomConfig
 from iorthand_edge.goto import GotoConfig
 from iorthand_edge.perception.config import PerceptionConfig
@@ -66,7 +66,10 @@ class EdgeConfig:
             raise ValueError("safety.auto_arm is allowed only for the simulated robot: a real arm needs local confirmation")
         simulated = isinstance(self.robot, SimRobotConfig)
         if self.force is not None and isinstance(self.force.sensor, SimForceSensorConfig) and not simulated:
-            raise ValueError("force.sensor.kind sim measures the simulated robot: use a real sensor (netft) with a real arm")
+            raise ValueError("force.sensor.kind sim measures the simulated robot: use a real sensor (netft, or robot: the arm's own) with a real arm")
+        if self.force is not None and isinstance(self.force.sensor, RobotForceSensorConfig) and simulated:
+            raise ValueError("force.sensor.kind robot reads the arm's own sensor over RTDE: the simulated robot has"
+                             " none (use kind sim with a phantom)")
         if self.phantom is not None and not simulated:
             raise ValueError("phantom: a simulated phantom only makes sense with the simulated robot (robot.kind sim)")
 

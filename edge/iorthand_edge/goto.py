@@ -53,7 +53,6 @@ class GotoConfig:
     marker_max_age: float = setting(
         0.5, lo=0.05, hi=5.0, help="s a marker pose stays usable for above_marker:<id> after its camera frame"
     )
-    model: str = setting("ur3e", choices=("ur3e", "ur5e"))
     tcp_offset: list[float] = setting(default_factory=lambda: [0.0] * 6, length=6, help="TCP in the flange frame")
     start_tolerance: float = setting(0.005, lo=0.0, hi=0.1, help="m the robot may have moved since the preview")
     start_angle_tolerance: float = setting(0.05, lo=0.0, hi=1.0, help="rad, idem for orientation")
@@ -75,9 +74,9 @@ class GotoConfig:
 
 @dataclass
 class Preview:
-    """A preview's outcome: the plan with its verdict, and the token when accepted."""
+    """A preview's outcome: the route with its verdict, and the token when accepted."""
 
-    plan: motion.Plan
+    plan: motion.Route
     token: str = ""
     ttl: float = 0.0
 
@@ -93,14 +92,14 @@ class Preview:
 class _Issued:
     name: str
     operator: str
-    plan: motion.Plan
+    plan: motion.Route
     issued_at: float
     limits: motion.Limits
 
 
 @dataclass
 class _Active:
-    plan: motion.Plan
+    plan: motion.Route
     operator: str
     started_at: float
     limits: motion.Limits
@@ -113,6 +112,7 @@ class GotoController:
     config: GotoConfig
     workspace_min: Sequence[float]
     workspace_max: Sequence[float]
+    model: str = "ur3e"  # the arm's (robot.model): reach and singularities along a path
     max_tokens: int = 16
     status: str = "idle"  # idle | moving | done | cancelled
     reason: str = ""
@@ -125,7 +125,7 @@ class GotoController:
         return motion.Limits(
             linear_speed=linear_speed, angular_speed=angular_speed, acceleration=acceleration,
             workspace_min=tuple(self.workspace_min), workspace_max=tuple(self.workspace_max),
-            model=self.config.model, tcp_offset=tuple(self.config.tcp_offset) if any(self.config.tcp_offset) else None,
+            model=self.model, tcp_offset=tuple(self.config.tcp_offset) if any(self.config.tcp_offset) else None,
         )
 
     def preview(
@@ -137,16 +137,18 @@ class GotoController:
         limits: motion.Limits,
         markers: Mapping[int, ArrayLike] | None = None,
         current_q: ArrayLike | None = None,
+        params: Mapping[str, Any] | None = None,
     ) -> Preview:
-        """Plan ``name`` from ``current_pose`` at ``limits``; a token only for an acceptable plan."""
+        """Plan ``name`` (a named pose or a primitive with its ``params``: :func:`iorthand.motion.plan_route`)
+        from ``current_pose`` at ``limits``; a token only for an acceptable plan."""
         if not self.config.enabled:
             plan = motion.plan_to(name, current_pose, limits, {}, None)
             plan.inside_workspace = plan.reachable = False
             plan.reason = "preview/goto is disabled in this edge's configuration"
-            return Preview(plan)
-        plan = motion.plan_to(
+            return Preview(motion.Route(name, [plan]))
+        plan = motion.plan_route(
             name, current_pose, limits, self.config.poses, markers,
-            self.config.retract_distance, self.config.marker_standoff, current_q,
+            self.config.retract_distance, self.config.marker_standoff, current_q, params,
         )
         if not plan.ok:
             return Preview(plan)
@@ -164,13 +166,12 @@ class GotoController:
     # ------------------------------------------------------------------ goto
 
     def start(self, name: str, token: str, operator: str, current_pose: ArrayLike, now: float,
-              limits: motion.Limits) -> tuple[bool, str]:
-        """Validate a goto. Tokens are single-use: a refused goto for a known token also consumes it unless
-        the refusal is only that another move is active."""
+              limits: motion.Limits, contact: bool = False) -> tuple[bool, str]:
+        """Validate a goto. Tokens are single-use: a refused goto for a known token also consumes it. A valid
+        goto while another move runs preempts it (a new goal). ``contact``: contact mode is on (a planar route,
+        a sweep, runs only in it: its height is the force's)."""
         if not self.config.enabled:
             return False, "preview/goto is disabled in this edge's configuration"
-        if self._active is not None:
-            return False, f"a move to {self._active.plan.name!r} is already running"
         if not token:
             return False, f"no preview token: preview {name!r} first"
         issued = self._tokens.get(token)
@@ -194,10 +195,19 @@ class GotoController:
         if (limits.linear_speed < issued.limits.linear_speed - 1e-12
                 or limits.angular_speed < issued.limits.angular_speed - 1e-12):
             return False, "the speed limits are lower than at the preview (profile changed): preview again"
+        if issued.plan.planar and not contact:
+            return False, f"{name!r} runs in contact mode (its height is the held force): turn contact mode on first"
+        if self._active is not None:
+            self.cancel(f"preempted by a new goal: {name!r}")
         # Run the path exactly as previewed (its timing was approved), never faster.
         self._active = _Active(issued.plan, operator, now, issued.limits)
-        self.status, self.reason = "moving", f"moving to {name!r} ({issued.plan.duration:.1f} s)"
+        self.status, self.reason = "moving", f"{name}: started ({issued.plan.duration:.1f} s)"
         return True, self.reason
+
+    @property
+    def planar(self) -> bool:
+        """The move under way tracks x and y only (a sweep: contact mode holds its height)."""
+        return self._active is not None and self._active.plan.planar
 
     @property
     def active(self) -> bool:
@@ -225,34 +235,42 @@ class GotoController:
         if act is None:
             return np.zeros(6)
         t = now - act.started_at
-        plan, limits = act.plan, act.limits
-        ref, s = motion.reference_at(plan, t, limits)
-        ahead, _ = motion.reference_at(plan, t + 0.02, limits)
+        route, limits = act.plan, act.limits
+        index, t_leg = route.leg_at(t)
+        leg = route.legs[index]
+        last = index == len(route.legs) - 1
+        ref, s = motion.reference_at(leg, t_leg, limits)
+        ahead, _ = motion.reference_at(leg, t_leg + 0.02, limits)
         cur = geometry.pose_to_matrix(current_pose)
         ref_m = geometry.pose_to_matrix(ref)
-        goal_m = geometry.pose_to_matrix(plan.goal)
+        goal_m = geometry.pose_to_matrix(route.goal)
+        # A planar route (a sweep in contact mode) tracks x and y only: its height is the held force's.
+        mask = np.array([1.0, 1.0, 0.0]) if route.planar else np.ones(3)
         # Off the path (blocked by a limit, a force reaction or a collision): stop rather than push on.
-        err = geometry.translation_distance(cur, ref_m)
+        err = float(np.linalg.norm((cur[:3, 3] - ref_m[:3, 3]) * mask))
         if err > self.config.max_tracking_error:
             self.cancel(f"{1000 * err:.1f} mm off the planned path (max {1000 * self.config.max_tracking_error:.0f} mm):"
                         " move cancelled")
             return np.zeros(6)
-        if s >= 1.0:
-            pos_err = geometry.translation_distance(cur, goal_m)
+        if last and s >= 1.0:
+            pos_err = float(np.linalg.norm((cur[:3, 3] - goal_m[:3, 3]) * mask))
             ang_err = geometry.rotation_angle(cur, goal_m)
             if pos_err <= self.config.position_tolerance and ang_err <= self.config.angle_tolerance:
                 self._active = None
-                self.status, self.reason = "done", f"reached {plan.name!r} ({1000 * pos_err:.2f} mm)"
+                self.status, self.reason = "done", f"{route.name}: done ({1000 * pos_err:.2f} mm from its end)"
                 return np.zeros(6)
-            if t > plan.duration + self.config.settle_timeout:
-                self.cancel(f"did not settle on {plan.name!r} within {self.config.settle_timeout:g} s"
+            if t > route.duration + self.config.settle_timeout:
+                self.cancel(f"did not settle on {route.name!r} within {self.config.settle_timeout:g} s"
                             f" ({1000 * pos_err:.1f} mm off)")
                 return np.zeros(6)
+        label = route.labels[index] if index < len(route.labels) else ""
+        done = min(1.0, t / route.duration) if route.duration > 0 else 1.0
+        self.reason = f"{route.name}: {100 * done:.0f} %" + (f" ({label})" if label else "")
         # Feed-forward: the path's velocity over the next 20 ms; feedback: toward the reference now.
         ahead_m = geometry.pose_to_matrix(ahead)
         v_ff = (ahead_m[:3, 3] - ref_m[:3, 3]) / 0.02
         w_ff = geometry.matrix_to_rotvec(ahead_m[:3, :3] @ ref_m[:3, :3].T) / 0.02
-        v = v_ff + self.config.gain * (ref_m[:3, 3] - cur[:3, 3])
+        v = (v_ff + self.config.gain * (ref_m[:3, 3] - cur[:3, 3])) * mask
         w = w_ff + self.config.gain * geometry.matrix_to_rotvec(ref_m[:3, :3] @ cur[:3, :3].T)
         # Stay within the limits here already, so the supervisor's clipping never bends the path.
         v = _clip_norm(v, limits.linear_speed)

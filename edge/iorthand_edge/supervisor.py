@@ -49,6 +49,7 @@ from iorthand.config import setting
 from iorthand.geometry import rotate
 from iorthand.protocol import TWIST_FRAMES, ControlRequest, ForceLevel, Message, Status, TwistCommand
 from iorthand.security import auth
+from iorthand_edge.kinematic_guard import KinematicGuard, KinematicLimits
 from iorthand_edge.robots.base import Vector
 
 
@@ -102,7 +103,11 @@ class ContactConfig:
     the probe's axis at a target by an admittance at the control rate (the force levels stay the outer envelope)."""
 
     target: float = setting(4.0, lo=0.5, hi=50.0, help="N along the probe axis, held (below the caution level)")
-    gain: float = setting(0.0015, lo=1e-5, hi=0.05, help="m/s of axial speed per N of force error (admittance)")
+    gain: float = setting(0.0025, lo=1e-5, hi=0.05, help="m/s of axial speed per N of force error (admittance)")
+    integral_gain: float = setting(
+        0.003, lo=0.0, hi=0.1, help="m/s per N·s of accumulated error: follows a rising or falling surface without"
+        " a standing error (0: proportional only)",
+    )
     max_speed: float = setting(0.005, lo=0.0005, hi=0.05, help="m/s along the probe axis at most")
     deadband: float = setting(0.1, lo=0.0, hi=5.0, help="N: a smaller error moves nothing along the axis")
     max_force_age: float = setting(0.05, lo=0.005, hi=1.0, help="s: an older force reading moves nothing along the axis")
@@ -127,6 +132,7 @@ class SafetyConfig:
     allowed_operators: list[str] = setting(default_factory=list, help="empty: any operator may acquire")
     force: ForceReaction = field(default_factory=ForceReaction)
     contact: ContactConfig = field(default_factory=ContactConfig)
+    kinematics: KinematicLimits = field(default_factory=KinematicLimits)
     resume_gap: float = setting(
         0.5, lo=0.05, hi=10.0, help="s; after a longer gap in the commands motion needs a fresh deadman press",
     )
@@ -219,6 +225,10 @@ class Supervisor:
         self.contact_ceiling = math.inf
         self._contact_force = 0.0
         self._contact_force_at = -math.inf
+        self._contact_integral = 0.0  # m/s: the admittance's integral term (see _hold_contact)
+        self._contact_at = -math.inf  # monotonic time _hold_contact last integrated
+        # Singularities, joint limits, reach (set by the agent, which knows the arm's model; None: not guarded).
+        self.kinematics: KinematicGuard | None = None
         self.interventions: list[tuple[Status, str]] = []  # (status, reason), drained by the agent to log
         self.status = Status.DISARMED if not self.armed else Status.IDLE
         self.reason = "" if self.armed else "not armed: confirm arming on the robot side"
@@ -399,7 +409,7 @@ class Supervisor:
         if refusal:
             return False, refusal
         if not on:
-            self._contact_off("left by the operator")
+            self.contact_off("left by the operator")
             return True, "contact mode off"
         if not (self.force_required and self.config.force.enabled):
             return False, "contact mode needs a force sensor and the force reaction on"
@@ -410,10 +420,12 @@ class Supervisor:
             return False, f"contact force {force:g} N refused: it must lie above 0 and below the caution level " \
                           f"({self.contact_ceiling:g} N)"
         self.contact_target = force
+        self._contact_integral, self._contact_at = 0.0, -math.inf
         self.interventions.append((Status.CONTACT, f"contact mode on: holding {force:g} N along the probe"))
         return True, f"contact mode on: holding {force:g} N along the probe"
 
-    def _contact_off(self, why: str) -> None:
+    def contact_off(self, why: str) -> None:
+        """Leave contact mode (if on), with the reason logged and recorded."""
         if self.contact_target is not None:
             self.contact_target = None
             self.interventions.append((Status.CONTACT, f"contact mode off: {why}"))
@@ -576,7 +588,7 @@ class Supervisor:
 
     def _halt(self, status: Status, reason: str, latch: bool = False) -> None:
         if latch:  # a stop, a fault, a lost owner, a long gap: contact mode is entered again on purpose only
-            self._contact_off(reason)
+            self.contact_off(reason)
         was_moving = self.moving or any(self._target)
         self._deadman = False
         self._target = [0.0] * 6
@@ -634,6 +646,11 @@ class Supervisor:
             twist[3:] = [v * scale for v in twist[3:]]
             hit.append("angular_speed")
             status, reason = Status.SPEED_LIMITED, f"angular speed {ang_speed:.2f} rad/s clipped to {limits.angular:.2f} rad/s ({self.profile})"
+        if self.kinematics is not None:
+            slowed = self.kinematics.limit(twist)
+            if slowed is not None:
+                hit.append("kinematics")
+                status, reason = slowed
         pose = _floats(tcp_pose)
         # Force before workspace: a retreat adds velocity, and the box must still bound it.
         force_status = self._clip_force(twist, pose, now)
@@ -660,9 +677,17 @@ class Supervisor:
         assert self.contact_target is not None
         error = self.contact_target - self._contact_force
         fresh = now - self._contact_force_at <= c.max_force_age
+        dt = 0.0 if math.isinf(self._contact_at) else min(max(0.0, now - self._contact_at), 2 * self.period)
+        self._contact_at = now
         speed = 0.0
         if fresh and abs(error) > c.deadband:
-            speed = max(-c.max_speed, min(c.max_speed, c.gain * error))
+            # PI: the integral follows a surface that rises or falls under a sweep (a proportional admittance
+            # would lag it by a standing error of slope·speed/gain). It integrates only while the output is not
+            # at its bound (no wind-up during the approach from free space, when the error is the whole target).
+            integral = self._contact_integral + c.integral_gain * error * dt
+            if abs(c.gain * error + integral) < c.max_speed:
+                self._contact_integral = integral
+            speed = max(-c.max_speed, min(c.max_speed, c.gain * error + self._contact_integral))
         _add_along(twist, speed - along, n)
         if not fresh:
             return f"contact mode: no fresh force reading for {1000 * (now - self._contact_force_at):.0f} ms: holding"

@@ -24,7 +24,7 @@ import sys
 import threading
 import time
 from collections import OrderedDict, defaultdict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -289,10 +289,12 @@ class OperatorClient:
             raise ControlRefused(reply.reason)
         return _json_list(reply.detail, "poses")
 
-    def preview_pose(self, name: str) -> ControlReply:
-        """Ask the twin to preview moving to ``name``; its reply carries the verdict and a token."""
+    def preview_pose(self, name: str, params: Mapping[str, float] | None = None) -> ControlReply:
+        """Ask the twin to preview moving to ``name`` (a named pose, or a primitive with its ``params``: ``sweep``
+        {width, pitch, lanes, speed}, ``approach:<marker>`` {standoff}, ``retreat``); the reply carries the
+        verdict and a token."""
         key = keys.service_key(keys.TWIN, self.keys.robot, "preview")
-        return self._control("preview", key=key, name=name)
+        return self._control("preview", key=key, name=name, params=json.dumps(dict(params)) if params else "")
 
     def goto_pose(self, name: str, token: str) -> ControlReply:
         """Execute a previewed move (``control/goto`` with the preview's token); the edge decides."""

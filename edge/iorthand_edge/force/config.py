@@ -40,7 +40,15 @@ class NetFTSensorConfig(ForceSensorConfig):
     bias_on_start: bool = setting(False, help="zero the sensor when the agent starts (tool in free space!)")
 
 
-ForceSensorConfig.VARIANTS = {c.KIND: c for c in (SimForceSensorConfig, NetFTSensorConfig)}
+@dataclass
+class RobotForceSensorConfig(ForceSensorConfig):
+    """The arm's own wrist sensor (a UR e-Series: getActualTCPForce over RTDE), as the robot driver reports it."""
+
+    KIND: ClassVar[str] = "robot"
+    max_age: float = setting(0.05, lo=0.005, hi=1.0, help="s: an older robot state gives no sample (stale)")
+
+
+ForceSensorConfig.VARIANTS = {c.KIND: c for c in (SimForceSensorConfig, NetFTSensorConfig, RobotForceSensorConfig)}
 
 
 @dataclass

@@ -21,7 +21,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from iorthand_edge.force.config import ForceSensorConfig, NetFTSensorConfig, SimForceSensorConfig
+from iorthand.geometry import rotvec_to_matrix
+from iorthand_edge.force.config import (
+    ForceSensorConfig,
+    NetFTSensorConfig,
+    RobotForceSensorConfig,
+    SimForceSensorConfig,
+)
 from iorthand_edge.force.contact import PhantomConfig, contact_wrench
 from iorthand_edge.robots.base import RobotReading
 
@@ -272,6 +278,47 @@ class NetFTSensor(ForceSensor):
             self._sock = None
 
 
+class RobotForceSensor(ForceSensor):
+    """The arm's built-in wrist sensor: a UR e-Series reports it over RTDE (``getActualTCPForce``) in the base
+    frame at the TCP; this turns it into the tool frame, as a wrist sensor reads. One sample per new robot state;
+    none from a state that is old or from a robot that is not connected (the levels then go stale)."""
+
+    def __init__(self, config: RobotForceSensorConfig, reading: Callable[[], RobotReading | None]) -> None:
+        self.config = config
+        self._reading = reading
+        self._offset = np.zeros(6)
+        self._last_ns = 0
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        pass
+
+    def _tool_frame(self, r: RobotReading) -> Wrench:
+        rot = rotvec_to_matrix(np.asarray(r.tcp_pose, dtype=float)[3:]).T
+        w = np.asarray(r.tcp_force, dtype=float)
+        return np.concatenate([rot @ w[:3], rot @ w[3:]])
+
+    def read(self, timeout: float) -> WrenchSample | None:
+        r = self._reading()
+        if r is None or not r.connected or r.timestamp_ns == self._last_ns:
+            return None
+        if time.time_ns() - r.timestamp_ns > self.config.max_age * 1e9:
+            return None
+        self._last_ns = r.timestamp_ns
+        with self._lock:
+            return WrenchSample(self._tool_frame(r) - self._offset, r.timestamp_ns)
+
+    def zero(self) -> None:
+        r = self._reading()
+        if r is None or not r.connected:
+            raise SensorError("robot force sensor: no state from the robot, nothing to zero")
+        with self._lock:
+            self._offset = self._tool_frame(r)
+
+    def close(self) -> None:
+        pass
+
+
 def make_force_sensor(
     config: ForceSensorConfig, phantom: PhantomConfig | None, reading: Callable[[], RobotReading | None]
 ) -> ForceSensor:
@@ -279,4 +326,6 @@ def make_force_sensor(
         return SimForceSensor(config, phantom, reading)
     if isinstance(config, NetFTSensorConfig):
         return NetFTSensor(config)
+    if isinstance(config, RobotForceSensorConfig):
+        return RobotForceSensor(config, reading)
     raise ValueError(f"no force sensor driver for {type(config).__name__}")

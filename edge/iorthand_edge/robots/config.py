@@ -19,6 +19,7 @@ class RobotConfig:
     KIND: ClassVar[str] = ""
 
     control_rate_hz: float = setting(125.0, lo=10.0, hi=1000.0, help="control loop and state/robot rate")
+    model: str = setting("ur3e", choices=("ur3e", "ur5e"), help="the arm (its kinematics: reach, singularities)")
 
 
 @dataclass
@@ -30,7 +31,6 @@ class SimRobotConfig(RobotConfig):
         default_factory=lambda: [0.30, 0.0, 0.25, 3.14159, 0.0, 0.0], length=6,
         help="start pose [x,y,z,rx,ry,rz], m and rotation vector; default: tool pointing down",
     )
-    model: str = setting("ur3e", choices=("ur3e", "ur5e"))
 
 
 @dataclass
@@ -39,7 +39,6 @@ class URRobotConfig(RobotConfig):
 
     KIND: ClassVar[str] = "ur"
     host: str = "127.0.0.1"
-    model: str = setting("ur3e", choices=("ur3e", "ur5e"))
     rtde_frequency: float = setting(125.0, lo=10.0, hi=500.0)
     watchdog_hz: float = setting(10.0, lo=1.0, hi=500.0, help="controller stops the program after 1/f s silent")
     connect_timeout: float = setting(5.0, lo=0.5, hi=60.0)

@@ -1,0 +1,215 @@
+"""Kinematic awareness in live teleoperation: singularities, joint limits and the edge of reach. Pure code.
+
+The arm's joint angles follow its TCP pose (the robot's reported ``q`` where it agrees with the pose, else a
+Newton step from the previous angles: continuous, never a flip between IK branches). Once per control cycle
+:meth:`KinematicGuard.update` measures, at those angles:
+
+- **manipulability**: the inverse condition number ``σmin/σmax`` of the Jacobian, its angular rows scaled by the
+  arm's reach so that metres and radians weigh alike (0 at a singularity; a UR3e at home: 0.09). Which way is
+  *toward* the singularity is the least singular direction, signed by a small step along it;
+- **joint limits**: each joint's distance to its configured range (the ±360° of the e-Series, or tighter: the
+  end-effector's cables);
+- **reach**: what is left before the elbow is straight, ``|a2| + |a3|`` minus the shoulder–wrist span.
+
+:meth:`KinematicGuard.limit` then scales each operator twist, as MoveIt Servo does: a twist that moves toward one
+of them inside its *slow* margin is slowed with what is left of the margin (see :func:`_fraction`), and halted (zero) at
+the *halt* margin; motion away from it is never slowed. Each case has its own status and a reason that names the
+joint or the singularity. The per-command work is a few dozen multiplications on lists (the command path);
+the numpy work happens in :meth:`~KinematicGuard.update`, in the control cycle.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from iorthand import geometry, kinematics
+from iorthand.config import setting
+from iorthand.protocol import Status
+
+JOINT_NAMES = ("base", "shoulder", "elbow", "wrist 1", "wrist 2", "wrist 3")
+_DAMPING = 1e-3  # of the pseudo-inverse: joint speeds stay finite at a singularity (only their sign is used there)
+
+
+@dataclass
+class KinematicLimits:
+    """The ``safety.kinematics`` section: where live motion slows and halts."""
+
+    enabled: bool = setting(True, help="slow and halt near singularities, joint limits and the edge of reach")
+    slow_manipulability: float = setting(0.03, lo=0.001, hi=0.5, help="below this, motion toward a singularity slows")
+    halt_manipulability: float = setting(0.01, lo=0.0, hi=0.5, help="at this, motion toward a singularity halts")
+    joint_min: list[float] = setting(default_factory=lambda: [-2 * math.pi] * 6, length=6,
+                                     help="rad per joint (base … wrist 3); tighter than ±2π for cabled tools")
+    joint_max: list[float] = setting(default_factory=lambda: [2 * math.pi] * 6, length=6, help="rad per joint")
+    joint_slow_margin: float = setting(0.26, lo=0.01, hi=1.0, help="rad from a joint limit where motion slows")
+    joint_halt_margin: float = setting(0.035, lo=0.0, hi=0.5, help="rad from a joint limit where motion halts")
+    reach_slow_margin: float = setting(0.03, lo=0.001, hi=0.3, help="m of elbow reach left where motion slows")
+    reach_halt_margin: float = setting(0.005, lo=0.0, hi=0.1, help="m of elbow reach left where motion halts")
+
+    def check(self) -> None:
+        if self.halt_manipulability >= self.slow_manipulability:
+            raise ValueError("halt_manipulability must be below slow_manipulability")
+        if self.joint_halt_margin >= self.joint_slow_margin:
+            raise ValueError("joint_halt_margin must be below joint_slow_margin")
+        if self.reach_halt_margin >= self.reach_slow_margin:
+            raise ValueError("reach_halt_margin must be below reach_slow_margin")
+        for i, (lo, hi) in enumerate(zip(self.joint_min, self.joint_max, strict=True)):
+            if lo >= hi:
+                raise ValueError(f"joint_min[{i}] ({lo}) must be below joint_max[{i}] ({hi})")
+
+
+@dataclass
+class Assessment:
+    """What :meth:`KinematicGuard.update` found at the current joint angles, and what :meth:`KinematicGuard.limit`
+    needs of it (lists, not numpy: see the module doc). Replaced whole by each update, so a command on another
+    thread sees one consistent assessment."""
+
+    q: list[float] | None = None  # None: no joint solution for the pose (beyond reach)
+    manipulability: float = 0.0
+    reach_left: float = 0.0  # m of elbow span left
+    nearest_joint: int = -1  # the joint closest to its limit
+    joint_margin: float = math.inf  # rad from that limit
+    pinv: list[list[float]] = field(default_factory=list)  # rows: joint speed per scaled twist component
+    toward: list[float] | None = None  # the scaled twist direction into the singularity (when near one)
+    near_joints: list[tuple[int, int, float]] = field(default_factory=list)  # (joint, +1 max / -1 min, margin)
+    reach_near: bool = False
+
+
+def _fraction(left: float, halt: float, slow: float) -> float:
+    """How much speed is allowed with ``left`` of a margin: 1 at ``slow`` and beyond, 0 at ``halt`` and within, the
+    square root in between: a constant deceleration, which reaches the halt in finite time (a speed in proportion
+    to the distance left would only approach it, exponentially)."""
+    return math.sqrt(min(1.0, max(0.0, (left - halt) / (slow - halt))))
+
+
+class KinematicGuard:
+    def __init__(self, limits: KinematicLimits, model: str, tcp_offset: ArrayLike | None = None) -> None:
+        limits.check()
+        self.limits = limits
+        self.model = kinematics.model(model)
+        offset = np.asarray(tcp_offset, dtype=float) if tcp_offset is not None else None
+        self.tcp_offset = offset if offset is not None and np.any(offset) else None
+        self.scale = self.model.reach  # m per rad: weighs rotations like the motion of the arm's far end
+        self.state = Assessment()
+        self._q: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ per control cycle
+
+    def update(self, tcp_pose: ArrayLike, reported_q: ArrayLike | None = None) -> Assessment:
+        """The joint angles for ``tcp_pose`` and what is near at them."""
+        q = self._track(np.asarray(tcp_pose, dtype=float), reported_q)
+        self._q = q
+        if q is None:
+            self.state = Assessment()
+            return self.state
+        lim = self.limits
+        u, s, vt, m = self._svd(q)
+        pinv = vt.T @ np.diag(s / (s * s + _DAMPING**2)) @ u.T
+        toward = None
+        if m < lim.slow_manipulability:
+            direction = u[:, -1]
+            step = pinv @ direction
+            probe = q + 1e-3 * step / max(float(np.linalg.norm(step)), 1e-12)  # 1 mrad along it
+            toward = (direction if self._svd(probe)[3] < m else -direction).tolist()
+        margins = [(float(q[i] - lim.joint_min[i]), float(lim.joint_max[i] - q[i])) for i in range(6)]
+        near_joints = [(i, side, margin) for i, pair in enumerate(margins)
+                       for side, margin in zip((-1, 1), pair, strict=True) if margin < lim.joint_slow_margin]
+        nearest = min(range(6), key=lambda i: min(margins[i]))
+        full = abs(self.model.a[1]) + abs(self.model.a[2])
+        reach_left = full - kinematics.elbow_span(self.model, float(q[2]))
+        self.state = Assessment([float(v) for v in q], m, reach_left, nearest, min(margins[nearest]), pinv.tolist(),
+                                toward, near_joints, reach_left < lim.reach_slow_margin)
+        return self.state
+
+    def _svd(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        jac, _ = kinematics.jacobian(self.model, q, self.tcp_offset)
+        jac[3:] *= self.scale
+        u, s, vt = np.linalg.svd(jac)
+        return u, s, vt, float(s[-1] / s[0])
+
+    def _track(self, pose: np.ndarray, reported_q: ArrayLike | None) -> np.ndarray | None:
+        """Joint angles at ``pose``: the reported ones if they agree, else Newton from the last (else IK)."""
+        target = geometry.pose_to_matrix(pose)
+        if reported_q is not None:
+            q = np.asarray(reported_q, dtype=float)
+            if self._error(q, target) < 1e-4:
+                return q
+        q = self._q
+        if q is not None:
+            for _ in range(4):
+                jac, tcp = kinematics.jacobian(self.model, q, self.tcp_offset)
+                err = np.concatenate([target[:3, 3] - tcp[:3, 3],
+                                      geometry.matrix_to_rotvec(target[:3, :3] @ tcp[:3, :3].T)])
+                if np.linalg.norm(err[:3]) + 0.1 * np.linalg.norm(err[3:]) < 1e-7:
+                    return q
+                q = q + np.linalg.lstsq(jac, err, rcond=1e-6)[0]
+            if self._error(q, target) < 1e-5:
+                return q
+        return kinematics.solve_near(self.model, pose, self._q, self.tcp_offset)
+
+    def _error(self, q: np.ndarray, target: np.ndarray) -> float:
+        tcp = kinematics.forward(self.model, q, self.tcp_offset)
+        return geometry.translation_distance(tcp, target) + 0.1 * geometry.rotation_angle(tcp, target)
+
+    # ------------------------------------------------------------------ per command
+
+    def limit(self, twist: list[float]) -> tuple[Status, str] | None:
+        """Scale ``twist`` (base frame, in place) for whatever it moves toward; (status, reason) if it did."""
+        snap = self.state
+        if snap.q is None:
+            if any(twist):
+                twist[:] = [0.0] * 6
+                return Status.REACH_LIMIT, "no joint solution for this pose (beyond the arm's reach): motion halted"
+            return None
+        lim = self.limits
+        k = self.scale
+        scaled = [*twist[:3], k * twist[3], k * twist[4], k * twist[5]]
+        worst, status, reason = 1.0, Status.OK, ""
+        if snap.toward is not None and sum(a * b for a, b in zip(scaled, snap.toward, strict=True)) > 0:
+            m = snap.manipulability
+            worst = _fraction(m, lim.halt_manipulability, lim.slow_manipulability)
+            status, reason = Status.NEAR_SINGULARITY, f"{_singularity_name(snap.q)} (manipulability {m:.3f})"
+        if snap.near_joints or snap.reach_near:
+            qdot = [sum(a * b for a, b in zip(row, scaled, strict=True)) for row in snap.pinv]
+            for joint, side, margin in snap.near_joints:
+                if side * qdot[joint] > 0:
+                    f = _fraction(margin, lim.joint_halt_margin, lim.joint_slow_margin)
+                    if f < worst:
+                        worst, status = f, Status.NEAR_JOINT_LIMIT
+                        reason = (f"{JOINT_NAMES[joint]} {math.degrees(margin):.1f}° from its "
+                                  f"{'upper' if side > 0 else 'lower'} limit")
+            # The span grows as the elbow straightens: |q3| falling.
+            if snap.reach_near and snap.q[2] * qdot[2] < 0:
+                left = snap.reach_left
+                f = _fraction(left, lim.reach_halt_margin, lim.reach_slow_margin)
+                if f < worst:
+                    worst, status = f, Status.NEAR_REACH
+                    reason = f"the edge of reach: {1000 * left:.1f} mm of the elbow's span left"
+        if worst >= 1.0:
+            return None
+        twist[:] = [v * worst for v in twist]
+        if worst <= 0.0:
+            return _HALTED[status], f"{reason}: motion toward it halted (move away from it)"
+        return status, f"{reason}: slowed to {math.floor(100 * worst)} %"
+
+
+
+def _singularity_name(q: list[float]) -> str:
+    """Which of the UR's singularities is nearest (for the operator): wrist 2 straight, the elbow straight, or the
+    wrist over the base's axis (the shoulder's)."""
+    wrist = abs(math.sin(q[4]))
+    elbow = abs(math.sin(q[2]))
+    if wrist <= elbow and wrist < 0.5:
+        return f"near the wrist singularity (wrist 2 at {math.degrees(math.asin(wrist)):.0f}° from straight)"
+    if elbow < 0.5:
+        return f"near the elbow singularity (elbow {math.degrees(math.asin(elbow)):.0f}° from straight)"
+    return "near the shoulder singularity (the wrist close to the base's axis)"
+
+
+_HALTED = {Status.NEAR_SINGULARITY: Status.SINGULARITY, Status.NEAR_JOINT_LIMIT: Status.JOINT_LIMIT,
+           Status.NEAR_REACH: Status.REACH_LIMIT}
+
+__all__ = ["JOINT_NAMES", "Assessment", "KinematicGuard", "KinematicLimits"]
