@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 import pytest
 
 from iorthand import keys
 from iorthand.protocol import ForceSample, Status
-from iorthand_edge.supervisor import SafetyConfig, Supervisor
+from iorthand_edge.supervisor import Supervisor
 from tests.conftest import wait_until
 from tests.test_supervisor import POSE, armed
 

@@ -117,7 +117,7 @@ def test_deadman_release_or_a_dead_link_preempts_a_sweep_20_of_20(edge_factory, 
         else:
             op.set_twist([0, 0, 0], [0, 0, 0], deadman=False)
         wait_until(lambda: not edge.goto.active, 2.0, message=f"trial {trial}: the sweep ended")
-        wait_until(lambda: any(t > t_let_go and not moving for t, moving in states), 2.0,
+        wait_until(lambda since=t_let_go: any(t > since and not moving for t, moving in states), 2.0,
                    message=f"trial {trial}: a stop")
         stopped = min(t for t, moving in states if t > t_let_go and not moving)
         stops_ms.append((stopped - t_let_go) / 1e6)
