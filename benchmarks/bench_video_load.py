@@ -100,7 +100,7 @@ def phase(endpoint: str, workdir: Path, video: bool, seconds: float, index: int)
         time.sleep(1.0)  # warm-up: subscriptions propagated, video flowing
         with lock:
             frames.clear()
-        first = len(client.echoes)
+        first = client.echo_count
         cpu0 = edge_ps.cpu_times()
         t0 = time.monotonic()
         direction = 1.0
@@ -111,7 +111,7 @@ def phase(endpoint: str, workdir: Path, video: bool, seconds: float, index: int)
         elapsed = time.monotonic() - t0
         cpu1 = edge_ps.cpu_times()
         client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
-        echoes = client.echoes[first:]
+        echoes = client.echoes_since(first)
         with lock:
             got = list(frames)
     finally:

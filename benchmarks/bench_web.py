@@ -106,13 +106,13 @@ def python_phase(endpoint: str, robot: str, seconds: float) -> list[float]:
     try:
         op.set_twist([0.0, 0.0, 0.0], [0.0] * 3, deadman=False)
         time.sleep(0.3)
-        start = len(op.echoes)
+        start = op.echo_count
         speed, end = 0.005, time.monotonic() + seconds
         while time.monotonic() < end:
             op.set_twist([0.0, speed, 0.0], [0.0] * 3, deadman=True)
             time.sleep(min(2.0, max(0.0, end - time.monotonic())))
             speed = -speed
-        return [e.rtt_ms for e in op.echoes[start:] if e.accepted]
+        return [e.rtt_ms for e in op.echoes_since(start) if e.accepted]
     finally:
         close_operator(op)
 

@@ -53,7 +53,7 @@ def _owner_holds_still(alice: OperatorClient) -> None:
     alice.acquire()
     alice.start()
     alice.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)  # the deadman held, standing still
-    wait_until(lambda: any(e.accepted for e in alice.echoes[-5:]), 5.0, message="the owner's commands applied")
+    wait_until(lambda: any(e.accepted for e in list(alice.echoes)[-5:]), 5.0, message="the owner's commands applied")
 
 
 def _check_nothing_forged_applied(agent, alice: OperatorClient, echoes: list[AppliedCommand], x0: np.ndarray) -> None:
@@ -161,10 +161,10 @@ def test_a_link_gap_with_the_deadman_held(edge_factory, operator_factory, gap: f
     wait_until(lambda: _moving(alice), 5.0, message="moving")
     alice.muted = True  # the link goes dead; the operator keeps holding the deadman
     time.sleep(gap)
-    n = len(alice.echoes)
+    n = alice.echo_count
     alice.muted = False
-    wait_until(lambda: len(alice.echoes) > n + 20, 5.0, message="commands flowing again")
-    after = alice.echoes[n + 10:]
+    wait_until(lambda: alice.echo_count > n + 20, 5.0, message="commands flowing again")
+    after = alice.echoes_since(n + 10)
     if resumes:
         assert all(e.accepted for e in after), {e.status for e in after}
         assert np.any(agent._commanded), "the robot moving again"

@@ -220,7 +220,7 @@ def test_operator_keeps_control_while_every_input_is_flooded(edge_factory, opera
     payloads = [garbage(rng, i) for i in range(90)]
     puts = [k.key(s) for s in (keys.CMD_TWIST, keys.CMD_STOP, keys.CMD_SERVO, keys.CMD_TORCH)]
     controls = [k.key(s) for s in (keys.CONTROL_ACQUIRE, keys.CONTROL_RELEASE, keys.CONTROL_ARM, keys.CONTROL_GOTO)]
-    n_echoes = len(op.echoes)
+    n_echoes = op.echo_count
     for i in range(6000):
         payload = b"\x00" * (10 * 2**20) if i % 1000 == 500 else payloads[i % len(payloads)]
         if i % 3 == 0:
@@ -233,7 +233,7 @@ def test_operator_keeps_control_while_every_input_is_flooded(edge_factory, opera
             op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)  # a live UI keeps giving input
     wait_until(lambda: agent.rejects.total > 1000, 10.0, message="the flood counted")
     assert agent.supervisor.owner == "alice" and op.owner
-    refused = [e.status for e in op.echoes[n_echoes:] if e.status in (Status.NOT_OWNER, Status.OWNER_LOST)]
+    refused = [e.status for e in op.echoes_since(n_echoes) if e.status in (Status.NOT_OWNER, Status.OWNER_LOST)]
     assert not refused, refused[:5]
     assert len(agent.rejects.counts) <= agent.rejects.max_keys
 

@@ -144,7 +144,8 @@ class OperatorClient:
         self._seq_other: defaultdict[str, Sequencer] = defaultdict(Sequencer)
         self.bind_keys = bind_keys  # commands and control queries on keys carrying our id (ACL-bound)
         self._sent: OrderedDict[int, int] = OrderedDict()  # seq → send time (ns), bounded
-        self.echoes: list[Echo] = []
+        self.echoes: deque[Echo] = deque(maxlen=100_000)  # the newest (~28 min at 60 Hz): bounded for long sessions
+        self.echo_count = 0  # every echo ever appended: marks for echoes_since (the deque drops its oldest)
         self.sent_count = 0
         self.last_sent_ns = 0
         self.send_times: list[float] = []  # monotonic send instants, for jitter figures
@@ -162,6 +163,7 @@ class OperatorClient:
         self.gil_switch_interval = gil_switch_interval
         self.sender_priority = "normal"  # what the sender thread got: "SCHED_FIFO", "normal (…)"
         self.events: deque[Event] = deque(maxlen=200)
+        self.event_count = 0  # every event ever logged: marks for events_since
         self.force_level: ForceLevelState | None = None
         self.force_level_at = 0.0  # monotonic receive time of force_level
         self.peak_force_level = 0  # highest fresh level seen (scripts and the demo report it)
@@ -338,6 +340,18 @@ class OperatorClient:
 
     def log_event(self, kind: str, status: str, reason: str) -> None:
         self.events.append(Event(time.time(), kind, status, reason))
+        self.event_count += 1
+
+    def echoes_since(self, mark: int) -> list[Echo]:
+        """The echoes that arrived after ``mark`` (an earlier ``echo_count``), as many as are still kept."""
+        with self._lock:
+            n = min(self.echo_count - mark, len(self.echoes))
+            return list(self.echoes)[len(self.echoes) - n:] if n > 0 else []
+
+    def events_since(self, mark: int) -> list[Event]:
+        """The events logged after ``mark`` (an earlier ``event_count``), as many as are still kept."""
+        n = min(self.event_count - mark, len(self.events))
+        return list(self.events)[len(self.events) - n:] if n > 0 else []
 
     def link_quality(self, now_ns: int | None = None) -> LinkQuality:
         return self.link.snapshot(time.time_ns() if now_ns is None else now_ns)
@@ -631,8 +645,7 @@ class OperatorClient:
             sent = self._sent.get(msg.cmd_seq)
             if sent is not None:
                 self.echoes.append(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status))
-                if len(self.echoes) > 100_000:
-                    del self.echoes[: len(self.echoes) - 100_000]
+                self.echo_count += 1
         if sent is not None:
             self.link.echoed(msg.cmd_seq, sent, now)
             if self.echo_listener is not None:
@@ -691,7 +704,7 @@ class OperatorClient:
         while time.monotonic() < deadline:
             if self._proc_sender is not None:
                 self._proc_sender.drain()
-            if len(self.echoes) >= self.sent_count:
+            if self.echo_count >= self.sent_count:
                 return
             time.sleep(0.005)
 

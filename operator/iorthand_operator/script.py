@@ -92,7 +92,7 @@ def _mm(p: np.ndarray | None) -> list[float] | None:
 
 
 def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -> dict[str, Any]:
-    start, sent0, echo0, ev0 = _pos(client), client.sent_count, len(client.echoes), len(client.events)
+    start, sent0, echo0, ev0 = _pos(client), client.sent_count, client.echo_count, client.event_count
     t0 = time.monotonic()
     zero = np.zeros(3)
     stop_ms: float | None = None
@@ -134,7 +134,7 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
     elif step.action == "silence":
         stop_ms = _silence(client, step.duration)
     end = _pos(client)
-    echoes = client.echoes[echo0:]
+    echoes = client.echoes_since(echo0)
     return {
         "kind": step.kind,
         "seconds": round(time.monotonic() - t0, 3),
@@ -145,7 +145,7 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
         "echoed": len(echoes),
         "accepted": sum(e.accepted for e in echoes),
         "refused": sum(not e.accepted for e in echoes),
-        "events": [f"{e.kind} {e.status}: {e.reason}" for e in list(client.events)[ev0:]],
+        "events": [f"{e.kind} {e.status}: {e.reason}" for e in client.events_since(ev0)],
         **({"recoveries": recoveries} if recoveries else {}),
         **({"deadman_stop_ms": stop_ms} if step.action == "silence" else {}),
     }
@@ -172,12 +172,12 @@ def _silence(client: OperatorClient, duration: float) -> float | None:
 def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
     """Play ``script`` on a started client that holds control; return the JSON-able summary."""
     client.wait_for_echoes()  # the grant's release, sent as the client started, is not the script's
-    start, sent0, echo0 = _pos(client), client.sent_count, len(client.echoes)
+    start, sent0, echo0 = _pos(client), client.sent_count, client.echo_count
     steps = [run_step(client, step, script.patience) for step in script.steps]
     client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
     time.sleep(script.settle)
     end = _pos(client)
-    echoes = client.echoes[echo0:]
+    echoes = client.echoes_since(echo0)
     q = client.link_quality()
     safety = client.safety
     refusals = sorted({f"{e.status}: {e.reason}" for e in client.events if e.kind == "refused"})

@@ -60,13 +60,13 @@ def move(client: OperatorClient, linear: np.ndarray, angular: np.ndarray, second
     """Hold the deadman and command a constant twist until the robot has moved for ``seconds`` (recovering from
     halts on the way, :func:`drive_for`), release, wait for rest."""
     start = _position(client)
-    first_echo = len(client.echoes)
+    first_echo = client.echo_count
     client.set_twist(linear, angular, deadman=True)
     moved_s, recoveries = drive_for(client, seconds, patience)
     client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
     _wait_still(client)
     end = _position(client)
-    echoes = client.echoes[first_echo:]
+    echoes = client.echoes_since(first_echo)
     limit = client.safety.linear_limit if client.safety else float("nan")
     return {
         "start_mm": (1000 * start).round(2).tolist(),
