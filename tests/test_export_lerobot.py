@@ -2,6 +2,8 @@
 lerobot's own ``LeRobotDataset`` loads: the episodes the annotations mark, at a fixed rate, the state, force and
 applied twist held at each frame time, the camera's and the ultrasound's pictures (black while the source
 failed). The pure parts (episodes, frame times, sample and hold) are checked on their own, without lerobot.
+A session whose camera streams H.264 (``tests/h264_session.py``) gives the pictures the edge encoded, black
+where the stream cannot be decoded (before its first keyframe, a failure, a lost frame until the next keyframe).
 
 Without lerobot (or torch) installed, the tests that need it skip and say so."""
 
@@ -35,6 +37,7 @@ from iorthand_cloud.recorder.export_lerobot import (
     observations,
 )
 from iorthand_cloud.recorder.reader import iter_records
+from tests import h264_session as h264
 from tests.conftest import iorthand_cmd
 from tests.test_export_ros2 import FAILURE, ROBOT, Recorded, record_session
 
@@ -108,6 +111,61 @@ def test_state_is_held_and_the_action_is_the_twist_that_follows() -> None:
     assert act[:, 0].tolist() == pytest.approx([0.5, 0.5, 0.5, 0.0, 0.0, 0.7])
     no_force, _ = observations(state, None, applied, times, fps=10)
     assert not no_force[:, 12:].any() and (no_force[:, :12] == obs[:, :12]).all()
+
+
+def _h264_frames(n: int, size: tuple[int, int]) -> tuple[list[VideoFrame], dict[int, np.ndarray]]:
+    """``n`` frames of the edge's pattern through the edge's encoder (keyframes every 10 frames), 10 ms apart;
+    the first 3 dropped (a recording that starts inside a group of pictures), frames 12-13 failure notices."""
+    from iorthand_edge.video.config import StreamConfig
+    from iorthand_edge.video.h264 import H264Encoder
+    from iorthand_edge.video.sources import PatternSource
+    from iorthand_edge.video.stream import Captured, encode_frame
+
+    config = StreamConfig(width=size[0], height=size[1], fps=100.0, codec="h264", keyframe_interval=0.1)
+    encoder, source = H264Encoder(*size, 100.0, 2_000_000, 0.1), PatternSource(*size)
+    frames, images = [], {}
+    for seq in range(1, n + 1):
+        t = seq * 10_000_000
+        if seq in (12, 13):
+            frame = encode_frame("camera", Captured(seq, t, None, "unplugged"), config, encoder)
+        else:
+            images[seq] = source.grab()
+            frame = encode_frame("camera", Captured(seq, t, images[seq]), config, encoder)
+        if seq > 3:
+            frames.append(frame)
+    return frames, images
+
+
+def test_h264_pictures_are_decoded_in_order_and_held_black_where_they_cannot_be() -> None:
+    from iorthand_cloud.recorder.export_lerobot import _HeldVideo
+
+    frames, images = _h264_frames(40, (160, 120))
+    assert [f.seq for f in frames if f.keyframe] == [11, 14, 24, 34]  # 11: the edge's next; 14: after the failure
+    it = iter(frames)
+    video = _HeldVideo(lambda: next(it, None), 80, 60, "video/camera")  # half size
+    for seq in range(4, 41, 3):  # asked at a third of the rate: every frame is decoded all the same
+        img = video.at(seq * 10_000_000 + 5_000_000).astype(np.float64)
+        assert img.shape == (60, 80, 3)
+        if seq < 11 or seq in (12, 13):  # before the first keyframe; the failure notices
+            assert not img.any(), seq
+        else:
+            errors = {k: np.abs(img - np.asarray(Image.fromarray(v[..., ::-1]).resize((80, 60)))).mean()
+                      for k, v in images.items()}
+            assert min(errors, key=errors.__getitem__) == seq and errors[seq] < 12, (seq, sorted(errors.values())[:2])
+    assert video.left_out == 7 and video.undecodable == 0  # seq 4-10
+
+
+def test_an_h264_session_without_pyav_is_said_in_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    import sys
+
+    from iorthand_cloud.recorder.export_lerobot import _HeldVideo
+
+    monkeypatch.setitem(sys.modules, "av", None)  # import av → ImportError
+    frames = iter([VideoFrame(width=2, height=2, encoding="h264", data=b"\0\0\0\1", keyframe=True).stamp(1, t=5)])
+    video = _HeldVideo(lambda: next(frames, None), 2, 2, "video/camera")
+    with pytest.raises(ExportError, match=r"^the session's video/camera video is H.264: decoding it needs the Python "
+                                          r"package 'av' \(PyAV\), which is not installed: pip install 'av>=15,<16'$"):
+        video.at(10)
 
 
 # ------------------------------------------------------------------------------------------------- a recorded session
@@ -246,3 +304,62 @@ def test_mistakes_are_said_in_one_line(recorded: Recorded, tmp_path: Path) -> No
                            capture_output=True, text=True, timeout=120)
         assert (r.returncode, "Traceback" in r.stderr) == (1, False), r.stderr
         assert said in r.stderr
+
+
+# ------------------------------------------------------------------------------------------------- H.264 camera
+
+
+@pytest.fixture(scope="module")
+def h264_recorded(tmp_path_factory: pytest.TempPathFactory, lerobot_dataset: Any) -> Iterator[h264.H264Recorded]:
+    yield h264.record_h264_session(tmp_path_factory.mktemp("rec264"), "learned-h264")
+
+
+@pytest.mark.slow
+def test_an_h264_camera_gives_its_pictures_and_black_where_they_cannot_be_decoded(
+        h264_recorded: h264.H264Recorded, lerobot_dataset: Any, video_decoding: None, tmp_path: Path) -> None:
+    folder = h264_recorded.folder
+    result = export_lerobot(folder, tmp_path / "ds")
+    (ep,) = result.episodes
+    ds = lerobot_dataset.LeRobotDataset(f"iorthand/{folder.name}", root=tmp_path / "ds")
+    assert ds.num_frames == result.frames == len(frame_times(ep.start, ep.end, 30))
+    w, h = h264.SIZE
+    assert ds.meta.features["observation.images.camera"]["shape"] == (h, w, 3)
+    assert "observation.images.ultrasound" not in ds.meta.features
+
+    frames = sorted(h264.camera_frames(folder), key=lambda f: f.t)
+    good = {f.seq for f in h264.decodable(h264.camera_frames(folder))}
+    assert any(f"{len(frames) - sum(1 for f in frames if f.failure) - len(good)} video/camera H.264 frame(s) came "
+               "before a keyframe" in w for w in result.warnings), result.warnings
+    # Every frame time, by what the stream holds there: a decodable picture, a failure notice, or a frame that
+    # cannot be decoded (before the first keyframe, or after the lost one until the next keyframe).
+    kinds: dict[str, list[int]] = {"picture": [], "failure": [], "undecodable": []}
+    for i, t in enumerate(frame_times(ep.start, ep.end, 30).tolist()):
+        held = _held(frames, t)
+        kinds["picture" if held.seq in good else "failure" if held.failure else "undecodable"].append(i)
+    before = [k for k in kinds["undecodable"] if k < kinds["failure"][0]]
+    after = [k for k in kinds["undecodable"] if k > kinds["failure"][-1]]
+    assert before[0] == 0 and len(before) > 10 and len(after) > 3  # the start, and after the lost frame
+    chosen = {*kinds["picture"][::12], kinds["picture"][-1], kinds["failure"][1], *before[::7], after[-1]}
+    for index in sorted(chosen):
+        item = ds[index]
+        t = ep.start + int(item["frame_index"]) * S // 30
+        img = item["observation.images.camera"].numpy().transpose(1, 2, 0) * 255.0
+        assert img.shape == (h, w, 3)
+        held = _held(frames, t)
+        if index in kinds["picture"]:
+            # The picture the edge encoded as the frame held at t: nearer to it than to any other it encoded.
+            errors = {seq: np.abs(img - bgr[..., ::-1]).mean() for seq, bgr in h264_recorded.images.items()}
+            best = min(errors, key=errors.__getitem__)
+            assert best == held.seq and errors[best] < 15, (index, held.seq, best, errors[best])
+        else:
+            assert img.mean() < 2.0, (index, held.seq, held.failure)  # black, not a frozen or broken picture
+    # Half size at 10 frames a second: the decoded pictures are scaled as they are converted.
+    small = export_lerobot(folder, tmp_path / "small", fps=10, image_scale=0.5)
+    ds = lerobot_dataset.LeRobotDataset(f"iorthand/{folder.name}", root=tmp_path / "small")
+    assert ds.meta.features["observation.images.camera"]["shape"] == (h // 2, w // 2, 3)
+    index = len(frame_times(ep.start, ep.end, 10)) - 3
+    held = _held(frames, small.episodes[0].start + index * S // 10)
+    assert held.seq in good
+    img = ds[index]["observation.images.camera"].numpy().transpose(1, 2, 0) * 255.0
+    source = np.asarray(Image.fromarray(h264_recorded.images[held.seq][..., ::-1]).resize((w // 2, h // 2)))
+    assert np.abs(img - source).mean() < 15

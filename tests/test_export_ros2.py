@@ -4,7 +4,11 @@ frames and stamps as documented. The pure parts (quaternions, ROS names, refusal
 
 :func:`record_session` is shared with ``tests/test_export_lerobot.py``: a router, the recorder, the synthetic
 full-rate session (state, force, markers, commands, safety, camera) plus an ultrasound stream with a failure
-window, and annotations sent at given moments."""
+window, and annotations sent at given moments.
+
+A session whose camera streams H.264 (``tests/h264_session.py``) becomes ``foxglove_msgs/msg/CompressedVideo``
+messages that start at a keyframe, leave out what a decoder cannot take, and decode with PyAV into the pictures
+the edge encoded."""
 
 from __future__ import annotations
 
@@ -17,11 +21,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import av
 import numpy as np
 import pytest
 import zenoh
 from rosbags.rosbag2 import Reader
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from iorthand import geometry, keys
 from iorthand.protocol import (
@@ -39,6 +44,7 @@ from iorthand.transport import QOS_BY_KEY, client_config, free_port, open_sessio
 from iorthand_cloud.recorder import client
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.export_ros2 import (
+    COMPRESSED_VIDEO,
     JOINT_NAMES,
     Decoded,
     ExportError,
@@ -52,6 +58,7 @@ from iorthand_cloud.recorder.export_ros2 import (
 from iorthand_cloud.recorder.reader import iter_records
 from iorthand_cloud.recorder.service import RecorderService
 from iorthand_cloud.recorder.simulate import SyntheticSession, make_jpegs
+from tests import h264_session as h264
 from tests.conftest import iorthand_cmd
 from tests.test_recorder import recorder_config
 
@@ -210,6 +217,9 @@ def _read_bag(path: Path) -> tuple[dict[str, list], dict[str, str]]:
     msgs: dict[str, list] = {}
     types: dict[str, str] = {}
     with Reader(path) as reader:
+        for conn in reader.connections:  # a type Jazzy lacks (Foxglove's): from its definition in the bag
+            if conn.msgtype not in typestore.types:
+                typestore.register(get_types_from_msg(conn.msgdef.data, conn.msgtype))
         for conn, timestamp, raw in reader.messages():
             msgs.setdefault(conn.topic, []).append((timestamp, typestore.deserialize_cdr(raw, conn.msgtype)))
             types[conn.topic] = conn.msgtype
@@ -362,3 +372,101 @@ def test_the_command_line(recorded: Recorded, tmp_path: Path) -> None:
     assert again.returncode == 1 and "Traceback" not in again.stderr
     assert f"{out} exists already" in again.stderr
     assert Counter(p.suffix for p in out.iterdir())[".mcap"] == 1
+
+
+# ------------------------------------------------------------------------------------------------- H.264 video
+
+
+def _h264(seq: int, keyframe: bool = False, failure: str = "") -> Decoded:
+    msg = VideoFrame(width=4, height=2, encoding="h264", data=b"" if failure else bytes([0, 0, 0, 1, seq]),
+                     keyframe=keyframe, failure=failure).stamp(seq, t=1_000_000_000 + seq)
+    return Decoded(keys.RobotKeys(ROBOT).key(keys.VIDEO_CAMERA), ROBOT, keys.VIDEO_CAMERA, 2_000_000_000 + seq, msg)
+
+
+def test_h264_frames_start_at_a_keyframe_and_wait_for_one_after_a_loss() -> None:
+    conv = Ros2Converter([ROBOT], get_typestore(Stores.ROS2_JAZZY))
+    # (seq, keyframe, failure): two P-frames before the first keyframe; a failure; a lost frame (seq 9); a P-frame
+    # after the edge restarted (seq back to 1), then its keyframe.
+    script = [(1, False, ""), (2, False, ""), (3, True, ""), (4, False, ""), (5, False, "camera unplugged"),
+              (6, False, ""), (7, True, ""), (8, False, ""), (10, False, ""), (11, True, ""), (12, False, ""),
+              (1, False, ""), (2, True, "")]
+    video, logs = [], []
+    for seq, key, failure in script:
+        for m in conv.convert(_h264(seq, key, failure)):
+            (video if m.topic == "/sim1/camera/video/compressed" else logs).append(m)
+    assert {m.msgtype for m in video} == {COMPRESSED_VIDEO}
+    assert [m.msg.data[-1] for m in video] == [3, 4, 7, 8, 11, 12, 2]
+    v = video[0].msg
+    assert (v.format, v.frame_id, v.timestamp.sec, v.timestamp.nanosec) == ("h264", "camera_optical", 1, 3)
+    assert video[0].timestamp == 2_000_000_003
+    assert conv.skipped == {"h264 frames before a keyframe": 5}  # seq 1, 2, 6, 10 and the restarted 1
+    texts = [m.msg.msg for m in logs if m.topic == "/rosout"]
+    assert texts == ["camera video has no frames: camera unplugged (the edge retries)",
+                     "camera video back: frames flow again",
+                     "camera video: 1 H.264 frame(s) missing before frame 10: frames left out until the next keyframe"]
+
+
+@pytest.fixture(scope="module")
+def h264_recorded(tmp_path_factory: pytest.TempPathFactory) -> Iterator[h264.H264Recorded]:
+    yield h264.record_h264_session(tmp_path_factory.mktemp("rec264"), "bagged-h264")
+
+
+def _best_match(picture: np.ndarray, images: dict[int, np.ndarray]) -> tuple[int, float]:
+    errors = {seq: float(np.abs(picture.astype(np.float64) - img).mean()) for seq, img in images.items()}
+    best = min(errors, key=errors.__getitem__)
+    return best, errors[best]
+
+
+@pytest.mark.slow
+def test_h264_video_becomes_compressed_video_from_its_first_keyframe(h264_recorded: h264.H264Recorded,
+                                                                    tmp_path: Path) -> None:
+    frames = h264.camera_frames(h264_recorded.folder)
+    expected = h264.decodable(frames)
+    assert not frames[0].keyframe and frames[0].seq == h264.PRE_ROLL + 1  # the recording starts inside a GOP
+    assert sum(1 for f in frames if f.failure) > 5 and h264_recorded.lost_seq
+    assert 40 < len(expected) < len(frames) - 20
+
+    result = export_ros2(h264_recorded.folder, tmp_path / "bag")
+    msgs, types = _read_bag(tmp_path / "bag")
+    topic = "/sim1/camera/video/compressed"
+    assert types[topic] == COMPRESSED_VIDEO and "/sim1/camera/image/compressed" not in types
+    bag = [v for _, v in msgs[topic]]
+    assert len(bag) == result.counts[topic] == len(expected)
+    assert result.skipped["h264 frames before a keyframe"] == sum(1 for f in frames if not f.failure) - len(expected)
+    assert [v.data.tobytes() for v in bag] == [f.data for f in expected]
+    assert [_stamp(v.timestamp) for v in bag] == [f.t for f in expected]
+    assert {(v.format, v.frame_id) for v in bag} == {("h264", "camera_optical")}
+    # The first message is a keyframe, and the stream decodes: each picture is the one the edge encoded.
+    assert expected[0].keyframe and expected[0].seq > frames[0].seq
+    codec = av.CodecContext.create("h264", "r")
+    decoded = 0
+    for v, f in zip(bag, expected, strict=True):
+        if f.seq > h264_recorded.lost_seq:
+            break
+        (picture,) = codec.decode(av.Packet(v.data.tobytes()))
+        if decoded % 10 == 0:
+            img = picture.to_ndarray(format="bgr24")
+            assert img.shape == (h264.SIZE[1], h264.SIZE[0], 3)
+            seq, error = _best_match(img, h264_recorded.images)
+            assert seq == f.seq and error < 10, (seq, f.seq, error)
+        decoded += 1
+    assert decoded > 30
+    logs = [lg.msg for _, lg in msgs["/rosout"] if lg.name == "iorthand.sim1.video"]
+    assert logs == [f"camera video has no frames: {h264.FAILURE_TEXT} (the edge retries)",
+                    "camera video back: frames flow again",
+                    f"camera video: 1 H.264 frame(s) missing before frame {h264_recorded.lost_seq + 1}: frames left "
+                    "out until the next keyframe"]
+
+
+@pytest.mark.slow
+def test_an_h264_range_cut_inside_a_group_of_pictures_starts_at_its_next_keyframe(
+        h264_recorded: h264.H264Recorded, tmp_path: Path) -> None:
+    folder = h264_recorded.folder
+    t0 = next(iter_records(folder)).log_time
+    lo, hi = t0 + 1_000_000_000, t0 + 3_500_000_000  # inside the first recorded group of pictures → past the lost frame
+    frames = h264.camera_frames(folder, lo, hi)
+    expected = h264.decodable(frames)
+    assert not frames[0].keyframe and expected[0].keyframe and expected[0].t - frames[0].t > 300_000_000
+    export_ros2(folder, tmp_path / "part", start=1.0, end=3.5)
+    msgs, _ = _read_bag(tmp_path / "part")
+    assert [v.data.tobytes() for _, v in msgs["/sim1/camera/video/compressed"]] == [f.data for f in expected]

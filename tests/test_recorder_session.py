@@ -355,3 +355,64 @@ def test_a_report_of_a_session_still_recording_reads_it_and_touches_nothing(rout
         sim.join(2)
         assert client.stop(s).ok
         svc.shutdown()
+
+
+@pytest.mark.slow
+def test_export_rrd_logs_an_h264_camera_as_a_video_stream_from_its_first_keyframe(tmp_path: Path) -> None:
+    """A session whose camera streams H.264 (tests/h264_session.py): the .rrd holds a VideoStream (H.264 codec,
+    static) whose samples are the recorded access units a decoder can take, in order, never thinned by
+    ``video_fps``; failure notices and the lost frame clear the picture. Read back with rerun's chunk reader."""
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    from iorthand_cloud.recorder.export import export_rrd
+    from tests import h264_session as h264
+
+    rec = h264.record_h264_session(tmp_path / "rec", "rrd-h264")
+    entity = "/sim1/video/camera"
+
+    def read(path: Path) -> tuple[list[tuple[int, bytes]], list[int], list[str]]:
+        """The entity's samples (time, data; in time order), the times it is cleared at, the robot's events."""
+        codecs: list[Any] = []
+        samples: list[tuple[int, bytes, bool]] = []
+        clears: list[int] = []
+        events: list[str] = []
+        for chunk in RrdReader(str(path)).stream():
+            batch = chunk.to_record_batch().to_pydict()
+            if chunk.entity_path == entity and chunk.is_static:
+                codecs += batch["VideoStream:codec"]
+            elif chunk.entity_path == entity and "VideoStream:sample" in batch:
+                samples += [(t.value, bytes(s[0]), k[0]) for t, s, k in zip(
+                    batch["time"], batch["VideoStream:sample"], batch["VideoStream:is_keyframe"], strict=True)]
+            elif chunk.entity_path == entity:
+                assert set(batch) == {"rerun.controls.RowId", "log_time", "time", "Clear:is_recursive"}
+                clears += [t.value for t in batch["time"]]
+            elif chunk.entity_path == "/sim1/events":
+                events += [str(x[0]) for x in batch["TextLog:text"]]
+        assert codecs == [[rr.VideoCodec.H264.value]]  # once, static
+        samples.sort()
+        assert [k for _, _, k in samples] == [data in keyframe_data for _, data, _ in samples]
+        return [(t, data) for t, data, _ in samples], sorted(clears), events
+
+    frames = h264.camera_frames(rec.folder)
+    expected = h264.decodable(frames)
+    keyframe_data = {f.data for f in frames if f.keyframe}
+    assert not frames[0].keyframe and len(expected) > 40
+    path, _ = export_rrd(rec.folder, tmp_path / "all.rrd", video_fps=1.0)  # thins JPEG only
+    samples, clears, events = read(path)
+    assert samples == [(f.t, f.data) for f in expected]
+    failures = [f.t for f in frames if f.failure]
+    lost_next = next(f.t for f in frames if f.seq == rec.lost_seq + 1)
+    assert clears == [*failures, lost_next]
+    assert events == [f"camera video has no frames: {h264.FAILURE_TEXT} (the edge retries)",
+                      "camera video back: frames flow again",
+                      f"camera video: 1 frame(s) missing before frame {rec.lost_seq + 1}: no picture until the next "
+                      "keyframe"]
+    # A range cut inside a group of pictures starts at the next keyframe.
+    t0 = next(iter_records(rec.folder)).log_time
+    in_range = h264.camera_frames(rec.folder, t0 + 1_000_000_000, t0 + 3_500_000_000)
+    part = h264.decodable(in_range)
+    assert not in_range[0].keyframe and part[0].keyframe and part[0].seq > in_range[0].seq
+    path, _ = export_rrd(rec.folder, tmp_path / "part.rrd", start=1.0, end=3.5)
+    samples, _, _ = read(path)
+    assert samples == [(f.t, f.data) for f in part]

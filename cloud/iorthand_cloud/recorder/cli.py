@@ -235,7 +235,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                  "or dataset folder must not exist yet")
     p.add_argument("--start", type=float, help="s from the session's first message")
     p.add_argument("--end", type=float)
-    p.add_argument("--video-fps", type=cli_number(float, lo=0.1), default=5.0, help="rrd: images per second kept")
+    p.add_argument("--video-fps", type=cli_number(float, lo=0.1), default=5.0, help="rrd: JPEG images per second kept (H.264 video is never thinned: every frame from a keyframe on)")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap",
                    help="ros2: the bag's storage (sqlite3 for ROS 2 Humble without the MCAP plugin)")
     p.add_argument("--fps", type=cli_number(int, lo=1, hi=120), default=30,

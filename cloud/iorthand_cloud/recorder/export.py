@@ -1,9 +1,14 @@
 """``iorthand export SESSION``: a session (or a time range of it) as a rerun ``.rrd`` file for viewing.
 
 Decoded with the protocol classes and logged on a ``time`` timeline (the messages' source times): the tool
-pose and path, forces and warning levels as time series, markers as points, camera frames as JPEG images,
-annotations and safety-state changes as text logs. Video is thinned to ``video_fps`` (rerun holds every frame
-in memory). Nothing is logged from a Zenoh callback: this is an offline conversion.
+pose and path, forces and warning levels as time series, markers as points, camera frames as JPEG images or
+an H.264 video stream, annotations and safety-state changes as text logs. JPEG video is thinned to
+``video_fps`` (rerun holds every frame in memory). H.264 cannot be thinned (a P-frame needs every frame back to
+its keyframe): each stream is logged as a ``VideoStream`` (its codec once, static; then every access unit as a
+sample, which the viewer decodes), from its first keyframe in the exported range on; after a failure notice or
+a frame missing from the recording, from the next keyframe (:class:`~iorthand_cloud.recorder.export_ros2.H264Sync`).
+A failure notice clears the picture (no frozen picture that reads as live), and so does a missing frame. Nothing
+is logged from a Zenoh callback: this is an offline conversion.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from iorthand.protocol import (
     message_type_for,
     source_news,
 )
+from iorthand_cloud.recorder.export_ros2 import H264Sync
 from iorthand_cloud.recorder.reader import iter_records, read_manifest, session_dir
 
 LEVEL_COLOURS = {0: (0, 170, 0, 255), 1: (230, 190, 0, 255), 2: (220, 0, 0, 255)}
@@ -48,6 +54,8 @@ def export_rrd(session: str | Path, out: str | Path | None = None, start: float 
     last_frame: dict[str, int] = {}
     last_status: dict[str, str] = {}
     video_failure: dict[str, str] = {}  # per key: the failure of its latest frame ("" = pictures)
+    h264: dict[str, H264Sync] = {}  # per key of an H.264 stream: which of its frames a decoder can take
+    video_streams: set[str] = set()  # entity paths whose VideoStream codec is logged
     logged = 0
     for r in iter_records(folder, lo, hi):
         if r.malformed:
@@ -57,7 +65,7 @@ def export_rrd(session: str | Path, out: str | Path | None = None, start: float 
                 a = Annotation.decode(r.data)
             except DecodeError:
                 continue
-            rec.set_time("time", timestamp=(a.t or r.log_time) / 1e9)
+            rec.set_time("time", timestamp=np.datetime64(a.t or r.log_time, "ns"))
             tags = f" [{', '.join(a.tags)}]" if a.tags else ""
             score = f" score {a.score}" if a.score is not None else ""
             rec.log("annotations", rr.TextLog(f"{a.author}: {a.text}{tags}{score}", level="INFO"))
@@ -71,7 +79,7 @@ def export_rrd(session: str | Path, out: str | Path | None = None, start: float 
         except DecodeError:
             continue
         robot, suffix = keys.split_key(r.key)
-        rec.set_time("time", timestamp=(msg.t or r.publish_time) / 1e9)
+        rec.set_time("time", timestamp=np.datetime64(msg.t or r.publish_time, "ns"))  # exact: ns
         base = f"{robot}"
         if isinstance(msg, RobotState):
             p = msg.tcp_pose
@@ -105,7 +113,11 @@ def export_rrd(session: str | Path, out: str | Path | None = None, start: float 
             video_failure[r.key] = msg.failure
             if news:
                 rec.log(f"{base}/events", rr.TextLog(news, level="WARN" if msg.failure else "INFO"))
-            if msg.failure:  # no picture rather than a frozen one
+            if msg.encoding == "h264":
+                if not _log_h264(rec, f"{base}/{suffix}", f"{base}/events", h264.setdefault(r.key, H264Sync()),
+                                 msg, video_streams):
+                    continue
+            elif msg.failure:  # no picture rather than a frozen one
                 rec.log(f"{base}/{suffix}", rr.Clear(recursive=False))
             elif msg.t - last_frame.get(r.key, -period) >= period and msg.encoding == "jpeg":
                 last_frame[r.key] = msg.t
@@ -118,3 +130,23 @@ def export_rrd(session: str | Path, out: str | Path | None = None, start: float 
     rec.flush()
     rec.disconnect()  # closes the file sink: the .rrd is complete when we return
     return path, logged
+
+
+def _log_h264(rec: rr.RecordingStream, path: str, events: str, sync: H264Sync, msg: VideoFrame,
+              streams: set[str]) -> bool:
+    """One frame (or failure notice) of an H.264 stream at ``path``; whether anything was logged (``streams``:
+    the paths whose codec is logged already)."""
+    was_synced = sync.synced
+    ok = sync.admit(msg)
+    lost = bool(sync.missing) and was_synced
+    if lost:
+        rec.log(events, rr.TextLog(f"{msg.source} video: {sync.missing} frame(s) missing before frame {msg.seq}: "
+                                   "no picture until the next keyframe", level="WARN"))
+    if msg.failure or lost:  # no picture rather than a frozen one
+        rec.log(path, rr.Clear(recursive=False))
+    if ok:
+        if path not in streams:  # the codec once (static), then each access unit as a sample
+            rec.log(path, rr.VideoStream(codec=rr.VideoCodec.H264), static=True)
+            streams.add(path)
+        rec.log(path, rr.VideoStream.from_fields(sample=msg.data, is_keyframe=msg.keyframe))
+    return ok or msg.failure != "" or lost

@@ -21,6 +21,10 @@ topic                                           type                            
 ``/<ns>/camera/image/compressed``,              sensor_msgs/msg/CompressedImage  ``video/camera``,
 ``/<ns>/ultrasound/image/compressed``                                            ``video/ultrasound`` (JPEG frames;
                                                                                  failure notices are not images)
+``/<ns>/camera/video/compressed``,              foxglove_msgs/msg/               ``video/camera``,
+``/<ns>/ultrasound/video/compressed``           CompressedVideo                  ``video/ultrasound`` (H.264 frames,
+                                                                                 one Annex B access unit each,
+                                                                                 format ``h264``: see below)
 ``/rosout``                                     rcl_interfaces/msg/Log           safety status changes, refusals,
                                                                                  video failures, annotations
 ==============================================  ===============================  ==================================
@@ -39,7 +43,16 @@ Frames (REP-103: metres, radians, right-handed, quaternions x-y-z-w; REP-105/ur_
 With more than one robot in the session, every frame and joint name is prefixed with the robot's namespace
 (``sim1/base``, ``sim1/tcp``…) so that the trees do not merge; with one robot they are plain.
 
-Times: each header stamp is the message's source time ``t`` (ns, the edge's clock); the bag's own timestamp is
+H.264 frames go into the bag as Foxglove reads them natively (``foxglove_msgs/msg/CompressedVideo``; its
+definition is in the bag, for readers without foxglove_msgs). A P-frame needs the frames before it back to a
+keyframe, so a topic starts at a keyframe: the frames before the first keyframe of the exported range (a
+recording or a ``--start`` that begins inside a group of pictures) are left out, and so are those after a
+failure notice or a frame missing from the recording (a gap in ``seq``) until the next keyframe (a missing frame
+is said on ``/rosout``; the frames left out are counted in :attr:`Ros2Export.skipped`). :class:`H264Sync` is
+that rule, shared with the other exports.
+
+Times: each header stamp (a CompressedVideo's ``timestamp``) is the message's source time ``t`` (ns, the edge's
+clock); the bag's own timestamp is
 when the recorder received it (as ``ros2 bag record`` stores reception times). A refusal goes to ``/rosout``
 once when it starts (the first refused command of a run with the same status), not once per refused command:
 a released deadman refuses 60 commands a second, which ``applied_twist`` carries anyway.
@@ -94,6 +107,15 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 WRENCH = "geometry_msgs/msg/WrenchStamped"
 TWIST = "geometry_msgs/msg/TwistStamped"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+COMPRESSED_VIDEO = "foxglove_msgs/msg/CompressedVideo"
+# foxglove_msgs/msg/CompressedVideo as foxglove/schemas publishes it: not in the ROS distributions' typestores.
+COMPRESSED_VIDEO_MSG = """\
+# A single frame of a compressed video bitstream
+builtin_interfaces/Time timestamp
+string frame_id
+uint8[] data
+string format
+"""
 LOG = "rcl_interfaces/msg/Log"
 
 ANNOTATIONS_KEY = keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)
@@ -102,6 +124,48 @@ _ROS_NAME = re.compile(r"[^A-Za-z0-9_]")
 
 class ExportError(ValueError):
     """A session that cannot be exported as asked; the message says what and why."""
+
+
+def add_foxglove_types(typestore: Any) -> None:
+    """Teach ``typestore`` :data:`COMPRESSED_VIDEO` (once)."""
+    if COMPRESSED_VIDEO not in typestore.types:
+        from rosbags.typesys import get_types_from_msg
+
+        typestore.register(get_types_from_msg(COMPRESSED_VIDEO_MSG, COMPRESSED_VIDEO))
+
+
+class H264Sync:
+    """Which frames of one H.264 stream can be decoded, taken in recorded order (one per video key).
+
+    A P-frame needs every frame back to the last keyframe. So the stream is decodable from a keyframe on, until
+    a failure notice (no picture; the edge's next frame is a keyframe) or a gap in ``seq`` (a frame lost on the
+    way or by the recorder; ``seq`` going back is an edge that restarted, a new stream) breaks it until the next
+    keyframe. Frames before the first keyframe (a recording or an exported range that starts inside a group of
+    pictures) cannot be decoded either."""
+
+    def __init__(self) -> None:
+        self.synced = False
+        self.missing = 0  # frames missing just before the latest message (its seq gap)
+        self.left_out = 0  # H.264 frames :meth:`admit` refused
+        self._seq: int | None = None
+
+    def admit(self, msg: VideoFrame) -> bool:
+        """Whether ``msg`` (a frame or a failure notice of the stream) is a picture to pass on to a decoder."""
+        prev, self._seq = self._seq, msg.seq
+        self.missing = msg.seq - prev - 1 if prev is not None and msg.seq > prev + 1 else 0
+        if msg.failure or self.missing or (prev is not None and msg.seq <= prev):
+            self.synced = False
+        if msg.failure:
+            return False
+        if not self.synced and not msg.keyframe:
+            self.left_out += 1
+            return False
+        self.synced = True
+        return True
+
+    def lose(self) -> None:
+        """A frame did not decode: the ones after it cannot either, until the next keyframe."""
+        self.synced = False
 
 
 # --------------------------------------------------------------------------------------------------- reading
@@ -246,18 +310,22 @@ class Ros2Converter:
     _status: dict[str, str] = field(default_factory=dict, init=False)
     _refusing: dict[str, str | None] = field(default_factory=dict, init=False)
     _video_failure: dict[str, str] = field(default_factory=dict, init=False)
+    _h264: dict[str, H264Sync] = field(default_factory=dict, init=False)
+    skipped: dict[str, int] = field(default_factory=dict, init=False)  # recorded messages left out, by why
 
     def __post_init__(self) -> None:
         self.namespaces = ros_namespaces(self.robots)
         several = len(self.namespaces) > 1
         self._prefix = {r: f"{ns}/" if several else "" for r, ns in self.namespaces.items()}
+        add_foxglove_types(self.typestore)
         t = self.typestore.types
         self._Time, self._Header = t["builtin_interfaces/msg/Time"], t["std_msgs/msg/Header"]
         self._Vector3, self._Quaternion = t["geometry_msgs/msg/Vector3"], t["geometry_msgs/msg/Quaternion"]
         self._Transform = t["geometry_msgs/msg/Transform"]
         self._TransformStamped = t["geometry_msgs/msg/TransformStamped"]
         self._Wrench, self._Twist = t["geometry_msgs/msg/Wrench"], t["geometry_msgs/msg/Twist"]
-        self._types = {name: t[name] for name in (JOINT_STATE, TF_MESSAGE, WRENCH, TWIST, COMPRESSED_IMAGE, LOG)}
+        self._types = {name: t[name] for name in (JOINT_STATE, TF_MESSAGE, WRENCH, TWIST, COMPRESSED_IMAGE,
+                                                  COMPRESSED_VIDEO, LOG)}
         self._empty = np.zeros(0, dtype=np.float64)
 
     # ---------------------------------------------------------------- names
@@ -268,8 +336,9 @@ class Ros2Converter:
     def topic(self, robot: str, name: str) -> str:
         return f"/{self.namespaces[robot]}/{name}"
 
-    def video_topic(self, robot: str, suffix: str) -> str:
-        return self.topic(robot, f"{suffix.rsplit('/', 1)[-1]}/image/compressed")
+    def video_topic(self, robot: str, suffix: str, encoding: str = "jpeg") -> str:
+        kind = "video" if encoding == "h264" else "image"
+        return self.topic(robot, f"{suffix.rsplit('/', 1)[-1]}/{kind}/compressed")
 
     # ---------------------------------------------------------------- building blocks
 
@@ -356,11 +425,37 @@ class Ros2Converter:
                 level = self._types[LOG].WARN if msg.failure else self._types[LOG].INFO
                 out.append(BagMessage(ROSOUT, LOG, d.log_time, self._log(
                     t, level, f"iorthand.{self.namespaces[robot]}.video", news)))
-            if not msg.failure and msg.encoding == "jpeg":  # a failure notice carries no picture
-                frame_id = self.frame(robot, VIDEO_FRAMES.get(d.suffix, d.suffix.rsplit("/", 1)[-1]))
+            frame_id = self.frame(robot, VIDEO_FRAMES.get(d.suffix, d.suffix.rsplit("/", 1)[-1]))
+            if msg.encoding == "h264":
+                out.extend(self._h264_frame(robot, d, msg, frame_id))
+            elif not msg.failure and msg.encoding == "jpeg":  # a failure notice carries no picture
                 img = self._types[COMPRESSED_IMAGE](header=self._header(t, frame_id), format="jpeg",
                                                     data=np.frombuffer(msg.data, dtype=np.uint8))
                 out.append(BagMessage(self.video_topic(robot, d.suffix), COMPRESSED_IMAGE, d.log_time, img))
+            elif not msg.failure:
+                why = f"{msg.encoding} video frames (not a ROS format)"
+                self.skipped[why] = self.skipped.get(why, 0) + 1
+        return out
+
+    def _h264_frame(self, robot: str, d: Decoded, msg: VideoFrame, frame_id: str) -> list[BagMessage]:
+        """A CompressedVideo message for a frame a decoder can take (see :class:`H264Sync`); a /rosout warning
+        when frames are missing from a stream that was being decoded."""
+        sync = self._h264.setdefault(d.key, H264Sync())
+        was_synced = sync.synced
+        ok = sync.admit(msg)
+        out: list[BagMessage] = []
+        if sync.missing and was_synced:
+            text = (f"{msg.source} video: {sync.missing} H.264 frame(s) missing before frame {msg.seq}: "
+                    "frames left out until the next keyframe")
+            out.append(BagMessage(ROSOUT, LOG, d.log_time, self._log(
+                msg.t, self._types[LOG].WARN, f"iorthand.{self.namespaces[robot]}.video", text)))
+        if ok:
+            video = self._types[COMPRESSED_VIDEO](timestamp=self._stamp(msg.t), frame_id=frame_id, format="h264",
+                                                  data=np.frombuffer(msg.data, dtype=np.uint8))
+            out.append(BagMessage(self.video_topic(robot, d.suffix, "h264"), COMPRESSED_VIDEO, d.log_time, video))
+        elif not msg.failure:
+            why = "h264 frames before a keyframe"
+            self.skipped[why] = self.skipped.get(why, 0) + 1
         return out
 
     def _refusal(self, robot: str, msg: AppliedCommand, log_time: int) -> list[BagMessage]:
@@ -424,7 +519,7 @@ def export_ros2(session: str | Path, out: str | Path | None = None, start: float
         raise FileExistsError(f"{path} exists already: remove it or choose another --out")
     lo, hi = time_window(folder, start, end)
     typestore = get_typestore(Stores.ROS2_JAZZY)
-    conv = Ros2Converter(session_robots(folder), typestore)
+    conv = Ros2Converter(session_robots(folder), typestore)  # adds foxglove_msgs/msg/CompressedVideo to it
     counts: dict[str, int] = {}
     skipped: dict[str, int] = {}
     serialize = typestore.serialize_cdr
@@ -442,6 +537,8 @@ def export_ros2(session: str | Path, out: str | Path | None = None, start: float
                             m.topic, m.msgtype, typestore=typestore, offered_qos_profiles=qos)
                     writer.write(conn, m.timestamp, serialize(m.msg, m.msgtype))
                     counts[m.topic] = counts.get(m.topic, 0) + 1
+        for why, n in conv.skipped.items():
+            skipped[why] = skipped.get(why, 0) + n
         if not counts:
             raise ExportError("the session has nothing a ROS 2 bag carries in the exported range")
     except BaseException:
