@@ -190,3 +190,43 @@ def flatten(t: ArrayLike) -> list[float]:
 
 def unflatten(values: Sequence[float]) -> Matrix:
     return np.asarray(values, dtype=float).reshape(4, 4)
+
+def rotvec_to_quaternion(rv: Sequence[float]) -> tuple[float, float, float, float]:
+    """A rotation vector (axis × angle, rad: UR's rx, ry, rz) → unit quaternion (x, y, z, w), as ROS and Foxglove
+    order it. Plain floats: exporters and the Foxglove channels call this for every message."""
+    rx, ry, rz = (float(c) for c in rv)
+    theta = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if theta < 1e-12:
+        return (0.0, 0.0, 0.0, 1.0)
+    s = math.sin(theta / 2.0) / theta
+    return (rx * s, ry * s, rz * s, math.cos(theta / 2.0))
+
+
+def matrix_to_quaternion(m: ArrayLike) -> tuple[float, float, float, float]:
+    """The rotation of a matrix → unit quaternion (x, y, z, w) with w ≥ 0 (q and −q are the same rotation: one
+    canonical sign). ``m``: a 3×3 or 4×4 array, or its 9 or 16 numbers row-major. Shepperd's method: the largest
+    of w, x, y, z is computed first, so no division by a small number, stable for every angle."""
+    if isinstance(m, np.ndarray) and m.ndim == 2:
+        m = m[:3, :3].ravel().tolist()
+    elif not isinstance(m, (list, tuple)):
+        m = np.asarray(m, dtype=float).ravel().tolist()
+    n = 4 if len(m) == 16 else 3
+    r00, r01, r02 = m[0], m[1], m[2]
+    r10, r11, r12 = m[n], m[n + 1], m[n + 2]
+    r20, r21, r22 = m[2 * n], m[2 * n + 1], m[2 * n + 2]
+    trace = r00 + r11 + r22
+    if trace > 0.0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = ((r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s, 0.25 * s)
+    elif r00 > r11 and r00 > r22:
+        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 1e-300))
+        q = (0.25 * s, (r01 + r10) / s, (r02 + r20) / s, (r21 - r12) / s)
+    elif r11 > r22:
+        s = 2.0 * math.sqrt(max(1.0 + r11 - r00 - r22, 1e-300))
+        q = ((r01 + r10) / s, 0.25 * s, (r12 + r21) / s, (r02 - r20) / s)
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + r22 - r00 - r11, 1e-300))
+        q = ((r02 + r20) / s, (r12 + r21) / s, 0.25 * s, (r10 - r01) / s)
+    norm = math.sqrt(sum(c * c for c in q))
+    x, y, z, w = (c / norm for c in q)
+    return (x, y, z, w) if w >= 0.0 else (-x, -y, -z, -w)

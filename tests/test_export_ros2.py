@@ -51,9 +51,7 @@ from iorthand_cloud.recorder.export_ros2 import (
     Ros2Converter,
     export_ros2,
     iter_decoded,
-    matrix_quaternion,
     ros_namespaces,
-    rotvec_quaternion,
 )
 from iorthand_cloud.recorder.reader import iter_records
 from iorthand_cloud.recorder.service import RecorderService
@@ -148,11 +146,11 @@ def _quat_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
                                 [1e-9, 0, 0], [0, math.pi - 1e-7, 0], [-1.0, 0.2, 2.9]])
 def test_quaternions_are_the_rotations(rv: list[float]) -> None:
     r = geometry.rotvec_to_matrix(rv)
-    q = rotvec_quaternion(rv)
+    q = geometry.rotvec_to_quaternion(rv)
     assert math.isclose(sum(c * c for c in q), 1.0, rel_tol=1e-12)
     np.testing.assert_allclose(_quat_matrix(q), r, atol=1e-9)
     pose = geometry.make_transform(r, [0.1, 0.2, 0.3]).flatten().tolist()
-    qm = matrix_quaternion(pose)
+    qm = geometry.matrix_to_quaternion(pose)
     np.testing.assert_allclose(_quat_matrix(qm), r, atol=1e-9)
     assert qm[3] >= 0
 

@@ -72,11 +72,11 @@ ROTVECS = [[0.0, 0.0, 0.0], [1e-14, 0.0, 0.0], [math.pi, 0.0, 0.0], [0.0, math.p
 @pytest.mark.parametrize("rv", ROTVECS)
 def test_quaternions_rotate_as_the_ur_pose_and_the_matrix_do(rv: list[float]) -> None:
     r = geometry.rotvec_to_matrix(rv)
-    for q in (fx.rotvec_to_quaternion(*rv), fx.matrix_to_quaternion(geometry.flatten(geometry.make_transform(r)))):
+    for q in (geometry.rotvec_to_quaternion(rv), geometry.matrix_to_quaternion(geometry.flatten(geometry.make_transform(r)))):
         assert math.isclose(sum(c * c for c in q), 1.0, rel_tol=1e-9)
         for v in np.eye(3):
             assert np.allclose(_rotate(q, v), r @ v, atol=1e-9)
-    assert fx.matrix_to_quaternion(r.flatten().tolist())[3] >= 0.0  # 3×3 too, and w ≥ 0
+    assert geometry.matrix_to_quaternion(r.flatten().tolist())[3] >= 0.0  # 3×3 too, and w ≥ 0
 
 
 @pytest.mark.parametrize("d", [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.6, -0.48, 0.64)])

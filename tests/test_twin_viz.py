@@ -67,7 +67,7 @@ def test_capsules_follow_the_links():
 def test_quaternions():
     for rv in ([0, 0, 0], [0.3, -0.2, 0.1], [math.pi, 0, 0], [0, 0, 3.0]):
         r = geometry.rotvec_to_matrix(rv)
-        x, y, z, w = model.matrix_to_quaternion(r)
+        x, y, z, w = geometry.matrix_to_quaternion(r)
         assert np.allclose(geometry.rotvec_to_matrix(
             2 * math.acos(max(-1.0, min(1.0, w))) * np.array([x, y, z]) / max(np.linalg.norm([x, y, z]), 1e-12)), r,
             atol=1e-9)

@@ -71,7 +71,7 @@ from google.protobuf.descriptor import FileDescriptor
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message as ProtoMessage
 
-from iorthand import keys
+from iorthand import geometry, keys
 from iorthand.protocol import (
     Annotation,
     AppliedCommand,
@@ -239,40 +239,6 @@ SCHEMAS: dict[str, _Schema] = {
 # every message, where numpy's per-call overhead costs more than the arithmetic)
 
 
-def rotvec_to_quaternion(rx: float, ry: float, rz: float) -> Quaternion:
-    """A rotation vector (axis × angle, rad: UR's convention) → unit quaternion (x, y, z, w)."""
-    theta = math.sqrt(rx * rx + ry * ry + rz * rz)
-    if theta < 1e-12:
-        return (0.0, 0.0, 0.0, 1.0)
-    s = math.sin(theta / 2.0) / theta
-    return (rx * s, ry * s, rz * s, math.cos(theta / 2.0))
-
-
-def matrix_to_quaternion(m: Sequence[float]) -> Quaternion:
-    """The rotation of a 4×4 row-major matrix (16 numbers; or 3×3 row-major, 9) → unit quaternion (x, y, z, w).
-    Shepperd's method: the largest of w, x, y, z is computed first, so no division by a small number."""
-    n = 4 if len(m) == 16 else 3
-    r00, r01, r02 = m[0], m[1], m[2]
-    r10, r11, r12 = m[n], m[n + 1], m[n + 2]
-    r20, r21, r22 = m[2 * n], m[2 * n + 1], m[2 * n + 2]
-    trace = r00 + r11 + r22
-    if trace > 0.0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = ((r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s, 0.25 * s)
-    elif r00 > r11 and r00 > r22:
-        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 1e-300))
-        q = (0.25 * s, (r01 + r10) / s, (r02 + r20) / s, (r21 - r12) / s)
-    elif r11 > r22:
-        s = 2.0 * math.sqrt(max(1.0 + r11 - r00 - r22, 1e-300))
-        q = ((r01 + r10) / s, 0.25 * s, (r12 + r21) / s, (r02 - r20) / s)
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + r22 - r00 - r11, 1e-300))
-        q = ((r02 + r20) / s, (r12 + r21) / s, 0.25 * s, (r10 - r01) / s)
-    norm = math.sqrt(sum(c * c for c in q))
-    x, y, z, w = (c / norm for c in q)
-    return (x, y, z, w) if w >= 0.0 else (-x, -y, -z, -w)  # one of the two equal quaternions, w ≥ 0
-
-
 def x_axis_to(dx: float, dy: float, dz: float) -> Quaternion:
     """The shortest rotation taking +x onto the unit vector (dx, dy, dz): Foxglove's arrows point along +x."""
     w = 1.0 + dx
@@ -313,7 +279,7 @@ def robot_transforms(robot: str, msg: RobotState) -> FrameTransforms:
     p = msg.tcp_pose
     tf.translation.x, tf.translation.y, tf.translation.z = p[0], p[1], p[2]
     r = tf.rotation
-    r.x, r.y, r.z, r.w = rotvec_to_quaternion(p[3], p[4], p[5])
+    r.x, r.y, r.z, r.w = geometry.rotvec_to_quaternion(p[3:6])
     return out
 
 
@@ -330,7 +296,7 @@ def marker_transforms(robot: str, msg: Markers) -> FrameTransforms | None:
         tf.parent_frame_id, tf.child_frame_id = base, marker_frame(robot, marker.id)
         tf.translation.x, tf.translation.y, tf.translation.z = m[3], m[7], m[11]
         r = tf.rotation
-        r.x, r.y, r.z, r.w = matrix_to_quaternion(m)
+        r.x, r.y, r.z, r.w = geometry.matrix_to_quaternion(m)
     return out
 
 
@@ -344,7 +310,7 @@ def marker_scene(robot: str, msg: Markers) -> SceneUpdate:
     base = frame_id(robot, BASE_FRAME)
     for marker in msg.markers:
         m = marker.pose
-        q = matrix_to_quaternion(m)
+        q = geometry.matrix_to_quaternion(m)
         position = (m[3], m[7], m[11])
         e = out.entities.add()
         _timestamp(e.timestamp, msg.t)
@@ -606,8 +572,7 @@ class FoxgloveConverter:
 
 __all__ = [
     "SCHEMAS", "SOURCE_META", "FoxgloveChannel", "FoxgloveConverter", "FoxgloveMessage", "annotation_log",
-    "file_descriptor_set",
-    "force_level_sample", "force_sample", "frame_id", "marker_scene", "marker_transforms", "matrix_to_quaternion",
-    "probe_scene", "refusal_log", "robot_transforms", "rotvec_to_quaternion", "safety_log", "source_log", "topic",
+    "file_descriptor_set", "force_level_sample", "force_sample", "frame_id", "marker_scene", "marker_transforms",
+    "probe_scene", "refusal_log", "robot_transforms", "safety_log", "source_log", "topic",
     "video_message", "x_axis_to",
 ]

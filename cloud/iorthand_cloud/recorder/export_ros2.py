@@ -64,7 +64,6 @@ does the reading and writing.
 from __future__ import annotations
 
 import contextlib
-import math
 import re
 import shutil
 from collections.abc import Iterable, Iterator, Sequence
@@ -74,7 +73,7 @@ from typing import Any
 
 import numpy as np
 
-from iorthand import keys
+from iorthand import geometry, keys
 from iorthand.protocol import (
     Annotation,
     AppliedCommand,
@@ -237,39 +236,6 @@ def session_robots(folder: Path) -> list[str]:
 # --------------------------------------------------------------------------------------------------- maths
 
 
-def rotvec_quaternion(rv: Sequence[float]) -> tuple[float, float, float, float]:
-    """Rotation vector (UR's rx, ry, rz) → unit quaternion (x, y, z, w), as ROS orders it."""
-    rx, ry, rz = (float(c) for c in rv)
-    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
-    if angle < 1e-12:
-        return 0.0, 0.0, 0.0, 1.0
-    s = math.sin(angle / 2.0) / angle
-    return rx * s, ry * s, rz * s, math.cos(angle / 2.0)
-
-
-def matrix_quaternion(m: Sequence[float]) -> tuple[float, float, float, float]:
-    """The rotation of a 4×4 row-major pose (16 numbers) → unit quaternion (x, y, z, w) with w ≥ 0.
-
-    Shepperd's method: the largest of the four candidates is divided by, so it is stable for every angle."""
-    r00, r01, r02, r10, r11, r12, r20, r21, r22 = m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]
-    trace = r00 + r11 + r22
-    if trace > max(r00, r11, r22):
-        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
-        q = ((r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s, 0.25 * s)
-    elif r00 >= r11 and r00 >= r22:
-        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 1e-300))
-        q = (0.25 * s, (r01 + r10) / s, (r02 + r20) / s, (r21 - r12) / s)
-    elif r11 >= r22:
-        s = 2.0 * math.sqrt(max(1.0 + r11 - r00 - r22, 1e-300))
-        q = ((r01 + r10) / s, 0.25 * s, (r12 + r21) / s, (r02 - r20) / s)
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + r22 - r00 - r11, 1e-300))
-        q = ((r02 + r20) / s, (r12 + r21) / s, 0.25 * s, (r10 - r01) / s)
-    n = math.sqrt(sum(c * c for c in q)) or 1.0
-    sign = -1.0 if q[3] < 0 else 1.0  # q and -q are the same rotation: one canonical sign
-    return q[0] * sign / n, q[1] * sign / n, q[2] * sign / n, q[3] * sign / n
-
-
 def ros_namespaces(robots: Iterable[str]) -> dict[str, str]:
     """Robot id → ROS namespace token: ``-`` (valid in our ids, not in ROS names) becomes ``_``, and a leading
     digit (invalid in ROS) gets an ``r`` before it. Two ids that would share a namespace are refused."""
@@ -392,12 +358,12 @@ class Ros2Converter:
                 position=np.asarray(msg.q, dtype=np.float64), velocity=self._empty, effort=self._empty)
             out.append(BagMessage(self.topic(robot, "joint_states"), JOINT_STATE, d.log_time, js))
             p = msg.tcp_pose
-            tf = self._transform(t, self.frame(robot, BASE), self.frame(robot, TCP), p[:3], rotvec_quaternion(p[3:6]))
+            tf = self._transform(t, self.frame(robot, BASE), self.frame(robot, TCP), p[:3], geometry.rotvec_to_quaternion(p[3:6]))
             out.append(BagMessage(TF, TF_MESSAGE, d.log_time, self._tf([tf])))
         elif isinstance(msg, Markers):
             base = self.frame(robot, BASE)
             tfs = [self._transform(t, base, self.frame(robot, MARKER_FRAME.format(id=m.id)),
-                                   (m.pose[3], m.pose[7], m.pose[11]), matrix_quaternion(m.pose))
+                                   (m.pose[3], m.pose[7], m.pose[11]), geometry.matrix_to_quaternion(m.pose))
                    for m in msg.markers]
             if tfs:
                 out.append(BagMessage(TF, TF_MESSAGE, d.log_time, self._tf(tfs)))

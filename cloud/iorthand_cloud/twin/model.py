@@ -8,7 +8,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -116,27 +115,7 @@ def world_from_base(view: RobotView) -> Vector:
 def transform_parts(t: ArrayLike) -> tuple[Vector, Vector]:
     """A 4×4 as (translation, quaternion xyzw) for rerun."""
     t = np.asarray(t, dtype=float)
-    return t[:3, 3].copy(), matrix_to_quaternion(t[:3, :3])
-
-
-def matrix_to_quaternion(r: ArrayLike) -> Vector:
-    """Rotation matrix → unit quaternion (x, y, z, w) (Shepperd's method: stable for every angle)."""
-    m = np.asarray(r, dtype=float)
-    tr = float(np.trace(m))
-    if tr > 0:
-        s = math.sqrt(tr + 1.0) * 2
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    out = np.array(q)
-    return out / np.linalg.norm(out)
+    return t[:3, 3].copy(), np.array(geometry.matrix_to_quaternion(t))
 
 
 __all__ = [
@@ -144,7 +123,6 @@ __all__ = [
     "Capsules",
     "force_colour",
     "intrinsics",
-    "matrix_to_quaternion",
     "quaternion_z_to",
     "segments_to_capsules",
     "tcp_camera",
