@@ -43,6 +43,7 @@ from iorthand_cloud.bridge.mapping import (
     to_json,
 )
 from iorthand_cloud.bridge.mqtt import MqttBridge, make_client
+from iorthand_operator.console.model import vitals_line
 from tests.conftest import ROOT, stop_process, wait_until
 
 MOSQUITTO = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
@@ -528,10 +529,12 @@ def test_robot_state_goes_out_as_json_at_most_max_hz(broker_factory, bridge_fact
     probe.close()
 
 
-def test_a_vital_sign_on_mqtt_arrives_on_zenoh_as_a_sensor_reading(broker_factory, bridge_factory, session_factory) -> None:
+def test_a_vital_sign_on_mqtt_arrives_on_zenoh_as_a_sensor_reading(broker_factory, bridge_factory, session_factory,
+                                                                   operator_factory) -> None:
     broker = broker_factory()
     bridge = bridge_factory(broker.port, [HEART])
     sink = ZenohSink(session_factory(), "iorthand/**")
+    console = operator_factory()  # what the terminal console and the web page show it from
     probe = Probe(broker.port)
     got = _deliver(probe, "site/sim1/vitals/heart_rate", json.dumps({"value": 72, "unit": "bpm"}), sink)
     key, payload = got[0]
@@ -542,7 +545,18 @@ def test_a_vital_sign_on_mqtt_arrives_on_zenoh_as_a_sensor_reading(broker_factor
     probe.publish("site/sim1/vitals/heart_rate", json.dumps({"value": 80}))
     wait_until(lambda: bool(got := sink.all()) and SensorReading.decode(got[-1][1]).value == 80.0, message="80 bpm")
     assert bridge.stats["heart-rate"].refused == 0 and bridge.blocked == 0
+    wait_until(lambda: "heart_rate" in console.vitals and console.vitals["heart_rate"][0].value == 80.0,
+               message="the vital sign on the operator's console")
+    assert vitals_line(console.vitals, time.monotonic()) == "heart_rate 80 bpm"
     probe.close()
+
+
+def test_the_console_line_says_how_old_a_vital_sign_is() -> None:
+    hr = SensorReading(name="heart_rate", value=72.0, unit="bpm")
+    spo2 = SensorReading(name="spo2", value=98.0, unit="%")
+    line = vitals_line({"spo2": (spo2, 100.0), "heart_rate": (hr, 90.0)}, now=101.0)
+    assert line == "heart_rate 72 bpm (11 s old) · spo2 98 %"
+    assert vitals_line({}, now=1.0) == ""
 
 
 BAD = [

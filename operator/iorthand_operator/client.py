@@ -44,6 +44,7 @@ from iorthand.protocol import (
     RejectCounter,
     RobotState,
     SafetyStatus,
+    SensorReading,
     Sequencer,
     ServoCommand,
     ServoState,
@@ -95,6 +96,7 @@ class Event:
 
 # Safety statuses that mean the robot was stopped (worth a line in the log when the edge enters them).
 STOP_STATUSES = frozenset(s for s in Status if s.halts)
+MAX_VITALS = 16
 
 class OperatorClient:
     def __init__(
@@ -170,6 +172,9 @@ class OperatorClient:
         self.force: ForceSample | None = None
         self.force_at = 0.0
         self.force_history: deque[float] = deque(maxlen=120)  # |F| N, for the sparkline
+        # The patient's vital signs (sensor/vital, from iorthand bridge mqtt): the newest reading per name and its
+        # receive time (monotonic), at most MAX_VITALS names (a flood of names cannot grow it).
+        self.vitals: dict[str, tuple[SensorReading, float]] = {}
         self.servo: ServoState | None = None
         self.torch: TorchState | None = None
         self.markers: Markers | None = None
@@ -218,6 +223,7 @@ class OperatorClient:
             session.declare_subscriber(self.keys.key(keys.STATE_SERVO), self._on_servo),
             session.declare_subscriber(self.keys.key(keys.STATE_TORCH), self._on_torch),
             session.declare_subscriber(self.keys.key(keys.MARKERS), self._on_markers),
+            session.declare_subscriber(self.keys.key(keys.SENSOR_VITAL), self._on_vital),
             session.liveliness().declare_subscriber(self.keys.key(keys.ALIVE_EDGE), self._on_edge_alive, history=True),
         ]
 
@@ -610,6 +616,11 @@ class OperatorClient:
         if msg is not None:
             self.force, self.force_at = msg, time.monotonic()
             self.force_history.append(float(np.linalg.norm(msg.force)))
+
+    def _on_vital(self, sample: zenoh.Sample) -> None:
+        msg = self._decode(SensorReading, sample)
+        if msg is not None and msg.name and (msg.name in self.vitals or len(self.vitals) < MAX_VITALS):
+            self.vitals[msg.name] = (msg, time.monotonic())
 
     def _on_servo(self, sample: zenoh.Sample) -> None:
         msg = self._decode(ServoState, sample)

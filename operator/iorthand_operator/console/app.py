@@ -278,6 +278,8 @@ class OperatorConsole(App[int]):
         if v.wrench:
             t.add_row(Text("T " + _fmt(v.wrench[3:], "N·m", 2)))
         t.add_row(Text(v.spark or "", style=f.colour))
+        if v.vitals:
+            t.add_row(Text("patient: " + v.vitals, style="cyan"))
         return t
 
     def _link(self, v: ConsoleView) -> Table:

@@ -25,7 +25,15 @@ import numpy as np
 
 from iorthand_operator import recovery
 from iorthand_operator.client import ControlRefused, OperatorClient
-from iorthand_operator.console.model import ForceView, LinkRow, force_view, link_rows, next_profile, sparkline
+from iorthand_operator.console.model import (
+    ForceView,
+    LinkRow,
+    force_view,
+    link_rows,
+    next_profile,
+    sparkline,
+    vitals_line,
+)
 from iorthand_operator.console.settings import ConsoleSettings
 from iorthand_operator.inputs.base import InputDevice, InputSample
 
@@ -57,6 +65,7 @@ class ConsoleView:
     frame: str = "base"  # of our twists: base, or tool (the probe's frame about its tip)
     contact: str = ""  # contact mode: "holding 4 N" ("" when off)
     task: str = ""  # a motion primitive under way and its progress
+    vitals: str = ""  # the patient's vital signs (sensor/vital), "" when none has arrived
     linear_limit_mm_s: float = math.nan
     angular_limit_deg_s: float = math.nan
     limits_hit: list[str] = field(default_factory=list)
@@ -242,6 +251,7 @@ class ConsoleController:
             v.wrench = [*c.force.force, *c.force.torque]
         top = c.force_level.danger if c.force_level is not None else None
         v.spark = sparkline(c.force_history, 30, top)
+        v.vitals = vitals_line(dict(c.vitals), now)
         if state is not None:
             p = state.tcp_pose
             v.tcp_pose_mm_deg = [1000 * p[0], 1000 * p[1], 1000 * p[2], *(math.degrees(a) for a in p[3:])]

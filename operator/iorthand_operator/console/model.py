@@ -8,10 +8,10 @@ that says level 0 and not stale. No message yet → grey "NO DATA"; the edge say
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from iorthand.protocol import FORCE_LEVEL_COLOURS, ForceLevel, ForceLevelState
+from iorthand.protocol import FORCE_LEVEL_COLOURS, ForceLevel, ForceLevelState, SensorReading
 from iorthand_operator.link import GRADE_COLOURS, LinkQuality, LinkThresholds
 
 GREY = "grey50"
@@ -38,6 +38,17 @@ def force_view(msg: ForceLevelState | None, received_at: float, now: float, stal
     return ForceView(
         FORCE_LEVEL_COLOURS[level].replace("grey", GREY), level.name, f"{msg.quantity} {msg.value:.1f} N {thresholds}"
     )
+
+
+def vitals_line(vitals: Mapping[str, tuple[SensorReading, float]], now: float, old_after: float = 5.0) -> str:
+    """The patient's vital signs for a status line, by name: "heart_rate 72 bpm · spo2 98 %"; a reading older
+    than ``old_after`` s says how old it is (a silent sensor must not pass for a steady patient)."""
+    parts = []
+    for name in sorted(vitals):
+        msg, at = vitals[name]
+        age = now - at
+        parts.append(f"{name} {msg.value:g} {msg.unit}".strip() + (f" ({age:.0f} s old)" if age > old_after else ""))
+    return " · ".join(parts)
 
 
 def sparkline(values: Sequence[float], width: int = 30, top: float | None = None) -> str:

@@ -48,7 +48,7 @@ from iorthand.security.acl import Deployment
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
 from iorthand_operator import recovery
 from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient
-from iorthand_operator.console.model import force_view
+from iorthand_operator.console.model import force_view, vitals_line
 from iorthand_operator.link import GRADE_COLOURS, LinkThresholds
 from iorthand_operator.web import messages, users
 from iorthand_operator.web.config import WebConfig
@@ -529,6 +529,8 @@ class Page:
         if w.force is not None and st is not None and now - w.force_at < 0.5:
             force["vector"] = [round(v, 3) for v in geometry.rotate(st.tcp_pose[3:], w.force.force)]
         out["force"] = force
+        if w.vitals:  # the patient's vital signs (sensor/vital), one line as on the terminal console
+            out["vitals"] = vitals_line(dict(w.vitals), now)
         if w.markers is not None and now - w.markers_at < 1.0:
             out["markers"] = [{"id": m.id, "pose": [round(v, 4) for v in m.pose]} for m in w.markers.markers]
         if w.servo is not None:

@@ -15,7 +15,7 @@ const $ = (id) => document.getElementById(id);
 
 const ui = {
   robot: $("robot"), link: $("link"), who: $("who"), force: $("force"), forceLabel: $("force-label"),
-  forceDetail: $("force-detail"), status: $("status"), reason: $("reason"), control: $("control"),
+  forceDetail: $("force-detail"), status: $("status"), reason: $("reason"), control: $("control"), vitals: $("vitals"),
   profile: $("profile"), estop: $("estop"), deadman: $("deadman"), events: $("events"), camera: $("camera"),
   ultrasound: $("ultrasound"), poseList: $("pose-list"), verdict: $("pose-verdict"), goto: $("goto"),
 };
@@ -347,6 +347,7 @@ function onState(s) {
   ui.force.className = `force ${f.colour || "grey"}`;
   ui.forceLabel.textContent = f.label || "NO DATA";
   ui.forceDetail.textContent = f.detail || "";
+  ui.vitals.textContent = s.vitals ? `patient: ${s.vitals}` : "";
   if (s.link) {
     const fmt = (v) => (v == null ? "—" : v.toFixed(1));
     ui.link.textContent = `RTT ${fmt(s.link.rtt_p50)}/${fmt(s.link.rtt_p95)} ms · loss ${((s.link.loss_up || 0) * 100).toFixed(1)} %`;
