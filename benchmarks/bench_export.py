@@ -20,6 +20,8 @@ runs at half the picture size, at 30 and 10 fps, show where LeRobot's time goes:
 h264 with GOP 2, per-frame image statistics) costs ~10 ms per 640×480 frame and stream.
 
 Usage: ``python benchmarks/bench_export.py [--minutes 10] [--runs rrd,ros2,lerobot,...] [--keep]``.
+With ``--runs`` (``--formats``) naming some of the runs, the results of the others are kept from the existing
+output file if it was for a session as long (each run says when it was measured, ``measured_at``).
 """
 
 from __future__ import annotations
@@ -256,16 +258,32 @@ def bench_format(folder: Path, run: str, out: Path) -> dict[str, Any]:
     return {"options": " ".join(RUNS[run]), "seconds": round(elapsed, 2), "cpu_seconds": round(cpu, 1),
             "meets_target": elapsed <= TARGET_S,
             "mb": round(_size(out) / 1e6, 1), "said": r.stdout.strip().splitlines()[-1],
-            "load_avg_after": [round(x, 2) for x in os.getloadavg()]}
+            "load_avg_after": [round(x, 2) for x in os.getloadavg()],
+            "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def _kept_runs(out: Path, runs: list[str], minutes: float) -> dict[str, Any]:
+    """The results in ``out`` of the runs not run this time, if measured on a session as long (same generator)."""
+    try:
+        before = json.loads(out.read_text())
+    except (OSError, ValueError):
+        return {}
+    if before.get("session", {}).get("minutes") != minutes:
+        return {}
+    return {run: res for run, res in before.get("exports", {}).items() if run not in runs}
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--minutes", type=float, default=10.0)
-    p.add_argument("--runs", default=",".join(RUNS), help=f"comma-separated, of: {', '.join(RUNS)}")
+    p.add_argument("--runs", "--formats", default=",".join(RUNS),
+                   help=f"comma-separated, of: {', '.join(RUNS)} (the others' results are kept from --out)")
     p.add_argument("--keep", action="store_true", help="keep the generated session and the exports")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "export.json"))
     args = p.parse_args()
+    runs = args.runs.split(",")
+    if unknown := [r for r in runs if r not in RUNS]:
+        p.error(f"unknown run(s): {', '.join(unknown)}")
     results: dict[str, Any] = {
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "load_avg_at_start": [round(x, 2) for x in os.getloadavg()]},
@@ -279,7 +297,7 @@ def main() -> int:
         for _ in iter_records(folder):  # untimed: every export starts with the files in the page cache
             pass
         results["exports"] = {}
-        for run in args.runs.split(","):
+        for run in runs:
             out = tmp / (f"export-{run}" if run != "rrd" else "export.rrd")
             results["exports"][run] = bench_format(folder, run, out)
             print(json.dumps({run: results["exports"][run]}, indent=1), flush=True)
@@ -289,6 +307,9 @@ def main() -> int:
         else:
             shutil.rmtree(tmp, ignore_errors=True)
     out = Path(args.out)
+    kept = _kept_runs(out, runs, args.minutes)
+    results["exports"] = {run: results["exports"].get(run) or kept[run] for run in RUNS
+                          if run in results["exports"] or run in kept}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1) + "\n")
     print(f"results: {out}")

@@ -416,3 +416,88 @@ def test_export_rrd_logs_an_h264_camera_as_a_video_stream_from_its_first_keyfram
     path, _ = export_rrd(rec.folder, tmp_path / "part.rrd", start=1.0, end=3.5)
     samples, _, _ = read(path)
     assert samples == [(f.t, f.data) for f in part]
+
+
+def test_export_rrd_holds_every_recorded_row_in_columns(recorded, monkeypatch, tmp_path: Path) -> None:
+    """The .rrd against the recording's own messages, read back with rerun's chunk reader: per entity, one row
+    per message logged (at its source time), with its values; the columnar batches (made small here, so that
+    every entity is sent in several) change nothing."""
+    import numpy as np
+    from rerun.chunk import RrdReader
+
+    from iorthand.protocol import Annotation, ForceLevelState, ForceSample, Markers, RobotState, SafetyStatus
+    from iorthand_cloud.recorder import export
+
+    _, folder = recorded
+    monkeypatch.setattr(export, "BATCH_ROWS", 100)
+    monkeypatch.setattr(export, "PATH_BATCH", 3)
+    path, logged = export.export_rrd(folder, tmp_path / "all.rrd")
+    rows: dict[str, list[tuple[int, dict[str, Any]]]] = {}
+    for chunk in RrdReader(str(path)).stream():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch().to_pydict()
+        names = [c for c in batch if c not in ("rerun.controls.RowId", "log_time", "time")]
+        assert len(batch["log_time"]) == len(batch["time"])  # as log stamps it
+        for i, t in enumerate(batch["time"]):
+            rows.setdefault(chunk.entity_path, []).append((t.value, {c: batch[c][i] for c in names}))
+    for r in rows.values():
+        r.sort(key=lambda row: row[0])
+
+    def decoded(cls: Any, suffix: str, changes_only: bool = False) -> list[Any]:
+        """The key's messages, in source-time order (safety: the status changes, as received)."""
+        key = f"iorthand/sim1/{suffix}"
+        out = [cls.decode(r.data) for r in iter_records(folder) if r.key == key]
+        if changes_only:
+            out = [m for i, m in enumerate(out) if i == 0 or out[i - 1].status != m.status]
+        return sorted(out, key=lambda m: m.t)
+
+    states = decoded(RobotState, keys.STATE_ROBOT)
+    forces = decoded(ForceSample, keys.STATE_FORCE)
+    levels = decoded(ForceLevelState, keys.STATE_FORCE_LEVEL)
+    all_markers = decoded(Markers, keys.MARKERS)
+    markers = [m for m in all_markers if m.markers]
+    safety = decoded(SafetyStatus, keys.STATE_SAFETY)
+    changes = decoded(SafetyStatus, keys.STATE_SAFETY, changes_only=True)
+    annotations = [Annotation.decode(r.data) for r in iter_records(folder) if r.key.endswith("/annotations")]
+    assert len(states) > 1000 and len(forces) > 800 and levels and markers and len(changes) > 1 and annotations
+
+    def series(entity: str, component: str) -> list[tuple[int, Any]]:
+        return [(t, row[component]) for t, row in rows[entity]]
+
+    for i, axis in enumerate("xyz"):
+        assert series(f"/sim1/tcp/{axis}", "Scalars:scalars") == [(m.t, [m.tcp_pose[i]]) for m in states]
+        assert series(f"/sim1/force/f{axis}", "Scalars:scalars") == [(m.t, [m.force[i]]) for m in forces]
+    assert series("/sim1/force/norm", "Scalars:scalars") == [(m.t, [float(np.linalg.norm(m.force))]) for m in forces]
+    assert series("/sim1/force/level", "Scalars:scalars") == [(m.t, [-1.0 if m.stale else float(m.level)])
+                                                              for m in levels]
+    tcp = rows["/sim1/world/tcp"]
+    assert [t for t, _ in tcp] == [m.t for m in states]
+    for (_, row), m in zip(tcp, states, strict=True):
+        p = np.asarray(m.tcp_pose)
+        angle = float(np.linalg.norm(p[3:6]))
+        (axis, radians), = [(a["axis"], a["angle"]) for a in row["Transform3D:rotation_axis_angle"]]
+        assert np.array_equal(np.float32(row["Transform3D:translation"]), np.float32([p[:3]]))
+        assert np.array_equal(np.float32(axis), np.float32(p[3:6] if angle > 0 else [0, 0, 1]))
+        assert np.float32(radians) == np.float32(angle)
+    trail = [(m.t, m.tcp_pose[:3]) for m in states]
+    strips = rows["/sim1/world/path"]
+    assert [t for t, _ in strips] == [trail[k - 1][0] for k in range(25, len(trail) + 1, 25)]
+    for (_, row), k in zip(strips, range(25, len(trail) + 1, 25), strict=True):
+        (strip,) = row["LineStrips3D:strips"]
+        assert np.array_equal(np.float32(strip), np.float32([xyz for _, xyz in trail[max(0, k - 2000):k]]))
+    points = rows["/sim1/world/markers"]
+    assert [t for t, _ in points] == [m.t for m in markers]
+    for (_, row), m in zip(points, markers, strict=True):
+        assert row["Points3D:labels"] == [str(x.id) for x in m.markers]
+        assert np.array_equal(np.float32(row["Points3D:positions"]),
+                              np.float32([[x.pose[3], x.pose[7], x.pose[11]] for x in m.markers]))
+        assert np.float32(row["Points3D:radii"]).tolist() == [np.float32(0.005)]
+    assert [(t, row["TextLog:text"]) for t, row in rows["/sim1/safety"]] == [
+        (m.t, [f"{m.status}: {m.reason}"]) for m in changes]
+    assert len(rows["/annotations"]) == len(annotations)
+    assert set(rows) == {"/sim1/tcp/x", "/sim1/tcp/y", "/sim1/tcp/z", "/sim1/force/fx", "/sim1/force/fy",
+                         "/sim1/force/fz", "/sim1/force/norm", "/sim1/force/level", "/sim1/world/tcp",
+                         "/sim1/world/path", "/sim1/world/markers", "/sim1/safety", "/annotations"}
+    # "logged" counts every message of these types (as before the columns), shown or not
+    assert logged == len(states) + len(forces) + len(levels) + len(all_markers) + len(safety) + len(annotations)
