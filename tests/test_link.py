@@ -74,3 +74,16 @@ def test_grades_against_thresholds() -> None:
     w.sent(1, 0)
     w.echoed(1, 0, 120 * MS)
     assert w.snapshot(200 * MS).grades(t)["rtt"] == BAD
+
+
+def test_a_window_nobody_reads_stays_bounded() -> None:
+    """A scripted operator runs for hours without asking for a snapshot: what is two windows old is dropped."""
+    w = LinkWindow(window_s=1.0)
+    t0 = 10**12
+    for i in range(60 * 600):  # ten minutes of 60 Hz sends, echoes and states
+        t = t0 + i * 16 * MS
+        w.sent(i, t)
+        w.echoed(i, t, t + 5 * MS)
+        w.state(i, t)
+    kept = len(w._sent) + len(w._echoes) + len(w._states) + len(w._echoed)
+    assert kept <= 4 * 2 * 64, kept  # ~2 s of each at 60 Hz

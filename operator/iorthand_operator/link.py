@@ -129,23 +129,24 @@ class LinkWindow:
         self._echoes: deque[tuple[int, float]] = deque()  # (echo ns, rtt ms), arrival order
         self._states: deque[tuple[int, int]] = deque()  # (receive ns, seq)
 
-    # Each insert also drops what left the window (amortised O(1)): a client nobody asks for a snapshot (a
-    # scripted operator running for hours) must not keep every send, echo and state it ever saw.
+    # Each insert also drops what is two windows old (amortised O(1)): a client nobody asks for a snapshot (a
+    # scripted operator running for hours) must not keep every send, echo and state it ever saw. Two windows, not
+    # one: a snapshot may be taken a little behind the newest insert (an echo stamped after it was asked for).
     def sent(self, seq: int, t_ns: int) -> None:
         with self._lock:
             self._sent.append((t_ns, seq))
-            self._trim(t_ns)
+            self._trim(t_ns - self.window_ns)
 
     def echoed(self, seq: int, sent_ns: int, echo_ns: int) -> None:
         with self._lock:
             self._echoed[seq] = echo_ns - sent_ns
             self._echoes.append((echo_ns, (echo_ns - sent_ns) / 1e6))
-            self._trim(echo_ns)
+            self._trim(echo_ns - self.window_ns)
 
     def state(self, seq: int, t_ns: int) -> None:
         with self._lock:
             self._states.append((t_ns, seq))
-            self._trim(t_ns)
+            self._trim(t_ns - self.window_ns)
 
     def _trim(self, now_ns: int) -> None:
         cut = now_ns - self.window_ns
