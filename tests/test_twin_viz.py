@@ -183,3 +183,43 @@ def test_store_says_when_a_video_source_fails_and_shows_no_picture_meanwhile():
     ]
     (image,) = store.snapshot("r1", include_images=True).images
     assert (image.failure, image.data) == ("", jpeg)
+
+
+def test_vital_signs_are_plotted_per_name_with_their_unit(tmp_path) -> None:
+    from rerun.chunk import RrdReader
+
+    from iorthand.protocol import SensorReading
+
+    cfg = config()
+    rec = rr.RecordingStream("iorthand-twin-test")
+    mem = rec.memory_recording()
+    viz = Visualizer(cfg, rec)
+    viz.start()
+    try:
+        now = time.monotonic()
+        viz.feeder.robot_added("a", 0)
+        for i, bpm in enumerate((72.0, 75.0, 80.0)):
+            viz.feeder.offer("a", keys.SENSOR_VITAL, SensorReading(name="heart_rate", value=bpm, unit="bpm").stamp(i + 1),
+                             now)
+        viz.feeder.offer("a", keys.SENSOR_VITAL, SensorReading(name="sp o2", value=98.0, unit="%").stamp(9), now)
+        deadline = time.monotonic() + 5
+        while (viz.handled < 5 or len(viz.queue)) and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        viz.stop()
+    assert viz.errors == 0
+    path = tmp_path / "vitals.rrd"
+    path.write_bytes(mem.drain_as_bytes())
+    values: dict[str, list[float]] = {}
+    names: dict[str, list[str]] = {}
+    for chunk in RrdReader(str(path)).stream():
+        batch = chunk.to_record_batch().to_pydict()
+        if "/vitals/" not in chunk.entity_path:
+            continue
+        if "Scalars:scalars" in batch:
+            values.setdefault(chunk.entity_path, []).extend(v[0] for v in batch["Scalars:scalars"])
+        if "SeriesLines:names" in batch:
+            names[chunk.entity_path] = [str(n) for n in batch["SeriesLines:names"][0]]
+    assert values["/robots/a/vitals/heart_rate"] == [72.0, 75.0, 80.0]
+    assert names["/robots/a/vitals/heart_rate"] == ["heart_rate (bpm)"]
+    assert values[r"/robots/a/vitals/sp\ o2"] == [98.0]  # a name with a space stays one entity part

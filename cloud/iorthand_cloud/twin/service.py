@@ -51,7 +51,7 @@ log = logging.getLogger("iorthand.twin")
 # (state/applied is kept too: refusals are safety events).
 STATE_SUFFIXES = (
     keys.STATE_ROBOT, keys.STATE_SAFETY, keys.STATE_APPLIED, keys.STATE_FORCE, keys.STATE_FORCE_LEVEL,
-    keys.STATE_SERVO, keys.STATE_TORCH, keys.MARKERS,
+    keys.STATE_SERVO, keys.STATE_TORCH, keys.MARKERS, keys.SENSOR_VITAL,
 )
 VIDEO_SUFFIXES = (keys.VIDEO_CAMERA, keys.VIDEO_ULTRASOUND)
 LAZY_SUFFIX = "/" + keys.STATE_ROBOT

@@ -37,6 +37,7 @@ from iorthand.protocol import (
     Markers,
     Message,
     RobotState,
+    SensorReading,
     ServoState,
     VideoFrame,
 )
@@ -50,6 +51,7 @@ log = logging.getLogger("iorthand.twin.viz")
 
 FORCE_SCALE = 0.01  # m of arrow per N
 TIMELINE = "time"
+MAX_VITALS = 16  # vital signs plotted per robot (as many as the consoles show)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -156,6 +158,8 @@ class VizFeeder:
             elif suffix == keys.MARKERS:
                 if self._markers.due(robot, now):
                     self.queue.put(VizItem("markers", robot, msg.t, msg))
+            elif suffix == keys.SENSOR_VITAL:
+                self.queue.put(VizItem("vital", robot, msg.t, msg))  # a patient monitor's pace: a few per second
             elif suffix in (keys.STATE_FORCE_LEVEL, keys.STATE_SERVO):
                 self.queue.put(VizItem(suffix, robot, msg.t, msg))  # on change / ≤ 10 Hz already
 
@@ -180,7 +184,11 @@ def blueprint(robots: list[str]) -> rrb.Blueprint:
     for r in robots:
         images.append(rrb.Spatial2DView(name=f"{r} camera", origin=f"/robots/{r}/tcp/camera"))
         images.append(rrb.Spatial2DView(name=f"{r} ultrasound", origin=f"/robots/{r}/ultrasound"))
-    right: list[Any] = [rrb.TimeSeriesView(name="force (N)", origin="/robots")]
+    # The force and the patient's vital signs (iorthand bridge mqtt), as tabs: one plot at a time on a phone.
+    right: list[Any] = [rrb.Tabs(
+        rrb.TimeSeriesView(name="force (N)", origin="/robots", contents=["+ /robots/*/force_plot/**"]),
+        rrb.TimeSeriesView(name="vital signs", origin="/robots", contents=["+ /robots/*/vitals/**"]),
+    )]
     if images:
         right.append(rrb.Tabs(*images))
     right.append(rrb.TextLogView(name="safety events", origin="/robots"))
@@ -212,6 +220,7 @@ class _Drawn:
     last_force_mono: float = -math.inf
     arrow_grey: bool = True
     series_named: bool = False
+    vitals_named: set[str] = field(default_factory=set)  # vital signs given their series line (name, unit)
     thresholds_named: bool = False
     thresholds_logged: float = -math.inf
     arrow_colour: tuple[int, int, int, int] = (0, 0, 0, 0)
@@ -379,6 +388,16 @@ class Visualizer:
         drawn.last_force = list(f[-1])
         drawn.last_force_mono = time.monotonic()
         self._draw_arrow(robot, drawn, drawn.level_stale)
+
+    def _on_vital(self, robot: str, drawn: _Drawn, msg: SensorReading) -> None:
+        entity = f"robots/{robot}/vitals/{rr.escape_entity_path_part(msg.name)}"
+        if msg.name not in drawn.vitals_named:
+            if len(drawn.vitals_named) >= MAX_VITALS:
+                return  # a flood of names must not grow the recording without bound
+            drawn.vitals_named.add(msg.name)
+            self.rec.log(entity, rr.SeriesLines(names=[f"{msg.name} ({msg.unit})" if msg.unit else msg.name]),
+                         static=True)
+        self.rec.log(entity, rr.Scalars([msg.value]))
 
     def _on_state_force_level(self, robot: str, drawn: _Drawn, msg: ForceLevelState) -> None:
         first = drawn.caution != msg.caution or drawn.danger != msg.danger
