@@ -4,7 +4,9 @@ libx264 through PyAV, tuned for latency: ``ultrafast`` + ``zerolatency`` (no loo
 is encoded and sent as it is captured), a bounded VBV buffer (no frame much bigger than the rate allows, so the
 uplink never queues seconds of video), SPS/PPS repeated at every keyframe (a viewer can start at any of them), a
 keyframe every ``keyframe_interval`` s (a viewer that joins or lost a frame waits at most that) and on request
-(:meth:`H264Encoder.request_keyframe`: a viewer's feedback). Each access unit travels in one ``VideoFrame``
+(:meth:`H264Encoder.request_keyframe`: a viewer's feedback). One encoder thread: x264's default of 1.5 threads per
+core spread the encoding over every core and delayed the control process (command path p99 with video 5.7 → 4.3
+ms in one run, benchmarks/bench_command_path.py); one thread encodes 640×480 at 30 fps with room to spare. Each access unit travels in one ``VideoFrame``
 (Annex B, ``encoding: h264``, ``keyframe`` set on IDR frames).
 
 The bitrate is a target that :mod:`iorthand_edge.video.bitrate` moves with the link; libx264 cannot change it
@@ -53,7 +55,7 @@ class H264Encoder:
         codec.framerate = fractions.Fraction(round(self.fps * 1000), 1000)
         codec.bit_rate = int(self.bitrate)
         codec.options = {
-            "preset": "ultrafast", "tune": "zerolatency", "forced-idr": "1",
+            "preset": "ultrafast", "tune": "zerolatency", "forced-idr": "1", "threads": "1",
             "x264-params": (f"keyint={keyint}:min-keyint={keyint}:scenecut=0:bframes=0:repeat-headers=1:"
                             f"vbv-maxrate={kbps}:vbv-bufsize={max(8, int(kbps * VBV_SECONDS))}:nal-hrd=none"),
         }
