@@ -25,7 +25,7 @@ def agent(grants: Grants) -> EdgeAgent:
     """An edge agent with the simulated robot, armed and owned by "op"; never started, so nothing is on the wire."""
     a = EdgeAgent(edge_config("tcp/127.0.0.1:1", "sim1"))
     a.robot.connect()
-    a.reading = a.robot.read_state()
+    a.first_reading()
     a.supervisor.arm()
     ok, why = grants.acquire(a.supervisor, "op", time.monotonic())
     assert ok, why

@@ -171,11 +171,18 @@ class EdgeAgent:
 
     # ------------------------------------------------------------------ lifecycle
 
+    def first_reading(self) -> None:
+        """The robot's state before the first control cycle, assessed for the kinematic guard: without it the
+        guard knows no joint angles and would halt a command sent before the first cycle as beyond reach."""
+        self.reading = self.robot.read_state()
+        if self.supervisor.kinematics is not None:
+            self.supervisor.kinematics.update(self.reading.tcp_pose, self.reading.q)
+
     def start(self) -> None:
         if self.config.cpu_latency_us is not None:
             self._cpu_latency = CpuLatencyHold(self.config.cpu_latency_us)
         self.robot.connect()
-        self.reading = self.robot.read_state()
+        self.first_reading()
         self.session = open_session(self.config.zenoh, stop=self.stop_event)
         s, k = self.session, self.keys
         self._pub_robot = publisher(s, k.key(keys.STATE_ROBOT))
