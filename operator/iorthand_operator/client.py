@@ -69,7 +69,7 @@ class ControlRefused(RuntimeError):
     """The edge refused a control request; the message is the edge's reason."""
 
 
-@dataclass
+@dataclass(slots=True)  # 100 000 of them are kept: no per-object dict
 class Echo:
     """One command's round trip: sent by us, applied (or refused) by the edge, echoed back."""
 
