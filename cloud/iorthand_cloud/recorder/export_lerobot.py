@@ -62,11 +62,11 @@ from iorthand_cloud.recorder.export_ros2 import (
     Decoded,
     ExportError,
     H264Sync,
+    export_target,
     iter_decoded,
     session_robots,
     time_window,
 )
-from iorthand_cloud.recorder.reader import read_manifest, session_dir
 
 DEFAULT_FPS = 30
 EPISODE_START, EPISODE_END, TASK_TAG = "episode-start", "episode-end", "task"
@@ -433,11 +433,7 @@ def export_lerobot(session: str | Path, out: str | Path | None = None, start: fl
         raise ExportError(f"fps {fps} is not within 1..120")
     if image_scale not in IMAGE_SCALES:
         raise ExportError(f"image scale {image_scale:g} is not one of {', '.join(f'{x:g}' for x in IMAGE_SCALES)}")
-    folder = session_dir(session)
-    manifest = read_manifest(folder)
-    path = Path(out) if out else folder / f"{manifest.session_id}-lerobot"
-    if path.exists():
-        raise FileExistsError(f"{path} exists already: remove it or choose another --out")
+    folder, manifest, path = export_target(session, out, "lerobot")
     robot = _pick_robot(folder, robot)
     lo, hi = time_window(folder, start, end)
     data = _gather(folder, lo, hi, robot)

@@ -88,6 +88,7 @@ from iorthand.protocol import (
     message_type_for,
     source_news,
 )
+from iorthand_cloud.recorder.manifest import Manifest
 from iorthand_cloud.recorder.reader import iter_records, read_manifest, session_dir
 
 # UR's joint names, as ur_description and the ROS driver name them (base to wrist).
@@ -179,6 +180,17 @@ class Decoded:
     suffix: str
     log_time: int  # the recorder's receive time, ns
     msg: Message
+
+
+def export_target(session: str | Path, out: str | Path | None, fmt: str) -> tuple[Path, Manifest, Path]:
+    """The session's folder, its manifest and where an export goes (``out``, else ``<session id>-<fmt>`` beside
+    the session): never over something that exists."""
+    folder = session_dir(session)
+    manifest = read_manifest(folder)
+    path = Path(out) if out else folder / f"{manifest.session_id}-{fmt}"
+    if path.exists():
+        raise FileExistsError(f"{path} exists already: remove it or choose another --out")
+    return folder, manifest, path
 
 
 def time_window(folder: Path, start: float | None, end: float | None) -> tuple[int | None, int | None]:
@@ -478,11 +490,7 @@ def export_ros2(session: str | Path, out: str | Path | None = None, start: float
 
     if storage not in STORAGES:
         raise ExportError(f"storage {storage!r} is not one of {', '.join(STORAGES)}")
-    folder = session_dir(session)
-    manifest = read_manifest(folder)
-    path = Path(out) if out else folder / f"{manifest.session_id}-ros2"
-    if path.exists():
-        raise FileExistsError(f"{path} exists already: remove it or choose another --out")
+    folder, manifest, path = export_target(session, out, "ros2")
     lo, hi = time_window(folder, start, end)
     typestore = get_typestore(Stores.ROS2_JAZZY)
     conv = Ros2Converter(session_robots(folder), typestore)  # adds foxglove_msgs/msg/CompressedVideo to it
