@@ -33,6 +33,7 @@ import yaml
 
 from iorthand.transport import free_port
 from iorthand_cloud.recorder import manifest as mf
+from iorthand_cloud.recorder.reader import iter_records
 from iorthand_cloud.twin import viewer_state
 from iorthand_operator.bench import report
 from iorthand_operator.bench.procs import Group, iorthand_argv
@@ -99,11 +100,28 @@ def viewer_lag(url: str, seconds: float = 60.0) -> dict[str, Any]:
             "lag_s_end_median": round(sorted(last)[len(last) // 2], 3) if last else None}
 
 
+def gaps_in(folder: Path, keys: set[str], started_ns: int) -> list[dict[str, Any]]:
+    """Where each sequence gap of ``keys`` fell: after which message, how many missing, how far into the run (s),
+    so that a gap can be matched against what else the machine was doing then."""
+    last: dict[str, int] = {}
+    found: list[dict[str, Any]] = []
+    for rec in iter_records(folder):
+        if rec.key not in keys or rec.malformed:
+            continue
+        prev = last.get(rec.key)
+        if prev is not None and rec.sequence > prev + 1:
+            found.append({"key": rec.key, "after_seq": prev, "missing": rec.sequence - prev - 1,
+                          "at_s": round((rec.log_time - started_ns) / 1e9, 1)})
+        last[rec.key] = rec.sequence
+    return found
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--minutes", type=float, default=120.0)
     p.add_argument("--sample-s", type=float, default=10.0)
     p.add_argument("--out", default=str(RESULTS / "soak.json"))
+    p.add_argument("--twin-config", default=str(ROOT / "configs" / "twin.yaml"), help="e.g. another memory_limit")
     args = p.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="iorthand-soak-"))
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -123,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
             "router": g.start("router", iorthand_argv("router", "--listen", endpoint), ready="router ready"),
             "recorder": g.start("recorder", iorthand_argv("recorder", "--config", str(work / "recorder.yaml")),
                                 ready="recorder ready"),
-            "twin": g.start("twin", iorthand_argv("twin", "--config", str(ROOT / "configs" / "twin.yaml"), "--connect",
+            "twin": g.start("twin", iorthand_argv("twin", "--config", args.twin_config, "--connect",
                                                   endpoint, "--save", str(work / "twin.rrd"), "--log-dir", str(work),
                                                   "--web-port", str(web_port), "--grpc-port", str(grpc_port)),
                             ready="twin ready", timeout=60.0),
@@ -163,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
         subprocess.run(iorthand_argv("recorder", "stop", "--connect", endpoint), capture_output=True, timeout=60)
     manifest = mf.Manifest.read(work / "recordings" / "soak")
     totals = mf.totals(manifest.keys)
+    gapped = {key for key, st in manifest.keys.items() if st.missing}
+    gaps = gaps_in(work / "recordings" / "soak", gapped, int(started * 1e9)) if gapped else []
     growth: dict[str, Any] = {}
     for name in SERVICES:
         series = [(s["t_s"], s[name]) for s in samples if s.get(name) == s.get(name)]  # NaN-free
@@ -173,11 +193,12 @@ def main(argv: list[str] | None = None) -> int:
                         "growth_after_10_min_mb": round(max(after) - at_settle, 1) if after else None}
     data = {
         "benchmark": "soak", "machine": report.machine(),
-        "config": {"minutes": args.minutes, "sample_s": args.sample_s, "workdir": str(work), "started": started},
+        "config": {"minutes": args.minutes, "sample_s": args.sample_s, "workdir": str(work), "started": started,
+                   "twin_memory_limit": yaml.safe_load(Path(args.twin_config).read_text())["viewer"]["memory_limit"]},
         "host_cpu": report.cpu_share_since(cpu0),
         "rss_mb": samples, "growth": growth, "viewer": lag,
         "recording": {"messages": totals.get("messages"), "missing": totals.get("missing"),
-                      "malformed": totals.get("malformed"), "dropped": manifest.dropped},
+                      "malformed": totals.get("malformed"), "dropped": manifest.dropped, "gaps": gaps},
         "targets": {
             "rss_growth_mb": {"limit": TARGET_GROWTH_MB, "pass": all(
                 g["growth_after_10_min_mb"] is not None and g["growth_after_10_min_mb"] <= TARGET_GROWTH_MB
