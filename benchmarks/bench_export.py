@@ -15,13 +15,19 @@ involve. Ten minutes are generated in about a minute instead of ten. Five episod
 Each export is the command a user runs (``iorthand export SESSION --format F``) in a fresh process, timed from
 start to exit (imports included: lerobot's take ~4 s), after one untimed read of the session so that every
 run starts with the files in the page cache. Target: ≤ 30 s each. Besides the three formats with their
-defaults (rrd: images thinned to 5 fps; ros2: MCAP storage; lerobot: 30 fps, full-size h264 video), two LeRobot
-runs at half the picture size, at 30 and 10 fps, show where LeRobot's time goes: its video path (JPEG decode,
-h264 with GOP 2, per-frame image statistics) costs ~10 ms per 640×480 frame and stream.
+defaults (rrd: images thinned to 5 fps; ros2: MCAP storage; lerobot: 30 fps, full size, the recorded JPEGs as
+its MJPEG video), LeRobot at half the picture size (every picture decoded and encoded again), and LeRobot's own
+h264 encoder (JPEG decode, h264 with GOP 2, per-frame image statistics: ~10 ms per 640×480 frame and stream) at
+full and half size and at 10 fps.
 
-Usage: ``python benchmarks/bench_export.py [--minutes 10] [--runs rrd,ros2,lerobot,...] [--keep]``.
-With ``--runs`` (``--formats``) naming some of the runs, the results of the others are kept from the existing
-output file if it was for a session as long (each run says when it was measured, ``measured_at``).
+``--video h264`` makes the camera and the ultrasound H.264, as the edge sends them by default (its own encoder at
+its default bitrate; benchmarks/results/export-h264.json): a LeRobot export then decodes every frame and encodes
+each picture as a JPEG.
+
+Usage: ``python benchmarks/bench_export.py [--minutes 10] [--video jpeg|h264] [--runs rrd,ros2,lerobot,...]
+[--keep] [--out FILE]``. With ``--runs`` (``--formats``) naming some of the runs, the results of the others are
+kept from the existing output file if it was for the same session (length and video; each run says when it was
+measured, ``measured_at``).
 """
 
 from __future__ import annotations
@@ -157,8 +163,36 @@ class _Recording:
         self.manifest.write(self.folder, fsync=False)
 
 
-def generate(folder: Path, minutes: float) -> dict[str, Any]:
-    """Write a session of ``minutes`` into ``folder``; returns what was generated."""
+class _H264Video:
+    """Camera or ultrasound frames as the edge sends them with ``video.codec: h264`` (its default): its own encoder
+    and frame builder (:func:`~iorthand_edge.video.stream.encode_frame`) at its default bitrate and keyframe
+    interval, over a cycle of synthetic pictures (:func:`simulate.make_jpegs`, decoded)."""
+
+    def __init__(self, source: str, width: int, height: int, fps: float) -> None:
+        import cv2
+        import numpy as np
+
+        from iorthand_edge.video.config import StreamConfig
+        from iorthand_edge.video.h264 import H264Encoder
+
+        self.source = source
+        self.config = StreamConfig(width=width, height=height, fps=fps)
+        self.encoder = H264Encoder(width, height, fps, 1000 * self.config.bitrate_kbps, self.config.keyframe_interval)
+        self.images = [cv2.imdecode(np.frombuffer(j, np.uint8), cv2.IMREAD_COLOR)
+                       for j in simulate.make_jpegs(8, width, height)]
+
+    def frame(self, seq: int, t_ns: int) -> bytes:
+        from iorthand_edge.video.stream import Captured, encode_frame
+
+        frame = encode_frame(self.source, Captured(seq, t_ns, self.images[seq % len(self.images)]), self.config,
+                             self.encoder)
+        assert frame is not None  # zerolatency: one access unit per picture
+        return frame.encode()
+
+
+def generate(folder: Path, minutes: float, video: str = "jpeg") -> dict[str, Any]:
+    """Write a session of ``minutes`` into ``folder`` with ``video`` (jpeg, h264) frames; returns what was
+    generated."""
     t_gen = time.perf_counter()
     duration = minutes * 60.0
     start_ns = time.time_ns()
@@ -178,9 +212,22 @@ def generate(folder: Path, minutes: float) -> dict[str, Any]:
 
     def ultrasound(_t: float) -> None:
         n = us_seq.next()
+        if h264:
+            sink(us_key, h264[keys.VIDEO_ULTRASOUND].frame(n, clock.now))
+            return
         frame = VideoFrame(source="ultrasound", width=ULTRASOUND[0], height=ULTRASOUND[1],
                            data=us_jpegs[n % len(us_jpegs)]).stamp(n)
         sink(us_key, frame.encode())
+
+    cam_key = keys.RobotKeys(ROBOT).key(keys.VIDEO_CAMERA)
+    cam_seq = Sequencer()
+
+    def camera_h264(_t: float) -> None:
+        n = cam_seq.next()
+        sink(cam_key, h264[keys.VIDEO_CAMERA].frame(n, clock.now))
+
+    h264 = {keys.VIDEO_CAMERA: _H264Video("camera", 640, 480, simulate.RATES[keys.VIDEO_CAMERA]),
+            keys.VIDEO_ULTRASOUND: _H264Video("ultrasound", *ULTRASOUND)} if video == "h264" else {}
 
     marks: list[tuple[float, str, list[str]]] = []
     k = 0
@@ -194,7 +241,7 @@ def generate(folder: Path, minutes: float) -> dict[str, Any]:
         handlers: dict[str, Callable[[float], None]] = {
             keys.STATE_ROBOT: sim._robot, keys.STATE_FORCE: sim._force, keys.MARKERS: sim._markers,
             keys.CMD_TWIST: sim._twist, keys.STATE_SAFETY: sim._safety, keys.STATE_FORCE_LEVEL: sim._force_level,
-            keys.VIDEO_CAMERA: sim._video,
+            keys.VIDEO_CAMERA: camera_h264 if h264 else sim._video,
         }
         rates = {**{s: sim.rates[s] for s in handlers}, keys.VIDEO_ULTRASOUND: ULTRASOUND[2]}
         handlers[keys.VIDEO_ULTRASOUND] = ultrasound
@@ -218,7 +265,7 @@ def generate(folder: Path, minutes: float) -> dict[str, Any]:
     rec.close(stop_ns)
     totals = mf.totals(rec.manifest.keys)
     return {
-        "minutes": minutes, "messages": totals["messages"], "bytes": totals["bytes"],
+        "minutes": minutes, "video": video, "messages": totals["messages"], "bytes": totals["bytes"],
         "per_key": {k: v.messages for k, v in sorted(rec.manifest.keys.items())},
         "episodes_marked": len(marks) // 2, "session_mb_on_disk": round(_size(folder) / 1e6, 1),
         "generate_s": round(time.perf_counter() - t_gen, 1),
@@ -231,14 +278,17 @@ def _size(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
 
 
-# Each run: the export command's options. The first three are the formats as a user gets them by default; the
-# LeRobot variants show what its video (decode, encode, statistics per frame) costs at a smaller size or rate.
+# Each run: the export command's options. The first three are the formats as a user gets them by default (LeRobot:
+# the recorded JPEGs as its MJPEG video); the others show what a scaled picture costs (decoded and encoded again)
+# and what LeRobot's own encoder (decode, h264 GOP 2, statistics per frame) costs, also at a smaller size or rate.
 RUNS: dict[str, list[str]] = {
     "rrd": ["--format", "rrd"],
     "ros2": ["--format", "ros2"],
     "lerobot": ["--format", "lerobot"],
     "lerobot_half_size": ["--format", "lerobot", "--image-scale", "0.5"],
-    "lerobot_half_size_10fps": ["--format", "lerobot", "--image-scale", "0.5", "--fps", "10"],
+    "lerobot_h264": ["--format", "lerobot", "--vcodec", "h264"],
+    "lerobot_h264_half_size": ["--format", "lerobot", "--vcodec", "h264", "--image-scale", "0.5"],
+    "lerobot_h264_half_size_10fps": ["--format", "lerobot", "--vcodec", "h264", "--image-scale", "0.5", "--fps", "10"],
 }
 
 
@@ -262,13 +312,15 @@ def bench_format(folder: Path, run: str, out: Path) -> dict[str, Any]:
             "measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 
-def _kept_runs(out: Path, runs: list[str], minutes: float) -> dict[str, Any]:
-    """The results in ``out`` of the runs not run this time, if measured on a session as long (same generator)."""
+def _kept_runs(out: Path, runs: list[str], minutes: float, video: str) -> dict[str, Any]:
+    """The results in ``out`` of the runs not run this time, if measured on a session as long with the same video
+    (same generator)."""
     try:
         before = json.loads(out.read_text())
     except (OSError, ValueError):
         return {}
-    if before.get("session", {}).get("minutes") != minutes:
+    session = before.get("session", {})
+    if session.get("minutes") != minutes or session.get("video", "jpeg") != video:
         return {}
     return {run: res for run, res in before.get("exports", {}).items() if run not in runs}
 
@@ -278,6 +330,8 @@ def main() -> int:
     p.add_argument("--minutes", type=float, default=10.0)
     p.add_argument("--runs", "--formats", default=",".join(RUNS),
                    help=f"comma-separated, of: {', '.join(RUNS)} (the others' results are kept from --out)")
+    p.add_argument("--video", choices=["jpeg", "h264"], default="jpeg",
+                   help="the session's camera and ultrasound frames (h264: as the edge sends them by default)")
     p.add_argument("--keep", action="store_true", help="keep the generated session and the exports")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "export.json"))
     args = p.parse_args()
@@ -292,7 +346,7 @@ def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="bench-export-"))
     try:
         folder = tmp / "ten-minutes"
-        results["session"] = generate(folder, args.minutes)
+        results["session"] = generate(folder, args.minutes, args.video)
         print(json.dumps({"session": results["session"]}, indent=1), flush=True)
         for _ in iter_records(folder):  # untimed: every export starts with the files in the page cache
             pass
@@ -307,7 +361,7 @@ def main() -> int:
         else:
             shutil.rmtree(tmp, ignore_errors=True)
     out = Path(args.out)
-    kept = _kept_runs(out, runs, args.minutes)
+    kept = _kept_runs(out, runs, args.minutes, args.video)
     results["exports"] = {run: results["exports"].get(run) or kept[run] for run in RUNS
                           if run in results["exports"] or run in kept}
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ Without lerobot (or torch) installed, the tests that need it skip and say so."""
 from __future__ import annotations
 
 import io
+import json
 import os
 import subprocess
 from collections.abc import Iterator
@@ -84,6 +85,7 @@ def test_the_command_line_offers_what_the_exporters_take() -> None:
     assert opts["format"].choices == ["rrd", "ros2", "lerobot"] and opts["format"].default == "rrd"
     assert tuple(opts["storage"].choices) == export_ros2.STORAGES
     assert tuple(opts["vcodec"].choices) == lr.VCODECS and tuple(opts["image_scale"].choices) == lr.IMAGE_SCALES
+    assert opts["vcodec"].default == lr.VCODECS[0] == "mjpeg"
     assert opts["fps"].default == lr.DEFAULT_FPS
 
 
@@ -153,6 +155,20 @@ def test_h264_pictures_are_decoded_in_order_and_held_black_where_they_cannot_be(
                       for k, v in images.items()}
             assert min(errors, key=errors.__getitem__) == seq and errors[seq] < 12, (seq, sorted(errors.values())[:2])
     assert video.left_out == 7 and video.undecodable == 0  # seq 4-10
+
+
+def test_a_picture_is_held_until_the_source_has_been_silent_too_long() -> None:
+    from iorthand_cloud.recorder.export_lerobot import HOLD_MAX_S, _HeldVideo
+
+    picture = np.full((48, 64, 3), 200, np.uint8)
+    out = io.BytesIO()
+    Image.fromarray(picture).save(out, "JPEG", quality=95)
+    frames = iter([VideoFrame(width=64, height=48, data=out.getvalue()).stamp(1, t=1_000_000_000)])
+    video = _HeldVideo(lambda: next(frames, None), 64, 48, "video/camera")
+    held = 1_000_000_000 + int(HOLD_MAX_S * 1e9)
+    assert video.at(held).mean() > 190  # the last picture, as long as nothing says the source is gone …
+    assert not video.at(held + 1).any()  # … then nothing at all, not even a failure notice: black
+    assert Image.open(io.BytesIO(video.jpeg_at(held + 1))).convert("L").getextrema()[1] < 5
 
 
 def test_an_h264_session_without_pyav_is_said_in_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -278,17 +294,29 @@ def test_a_recorded_session_as_a_lerobot_dataset(recorded: Recorded, lerobot_dat
         else:
             assert np.abs(us_img - _rgb(us.data)).mean() < 15
     assert black == 2
+    # mjpeg: the recorded camera JPEGs are the video's frames byte for byte (nothing decoded or re-encoded).
+    import av  # LeRobot's own dependency
+    assert ds.meta.features["observation.images.camera"]["info"]["video.codec"] == "mjpeg"
+    for ep_index, ep in enumerate(result.episodes):
+        video = tmp_path / "ds" / ds.meta.get_video_file_path(ep_index, "observation.images.camera")
+        with av.open(str(video)) as container:
+            packets = [bytes(p) for p in container.demux(video=0) if p.size]
+        assert len(packets) == lengths[ep_index]
+        for frame_index in (0, 17, lengths[ep_index] - 1):
+            assert packets[frame_index] == _held(camera, ep.start + frame_index * S // 30).data
 
 
 @pytest.mark.slow
-def test_half_size_at_ten_frames_a_second(recorded: Recorded, lerobot_dataset: Any, video_decoding: None,
-                                          tmp_path: Path) -> None:
-    result = export_lerobot(recorded.folder, tmp_path / "small", fps=10, image_scale=0.5, task="phantom study")
+def test_half_size_at_ten_frames_a_second_with_lerobots_h264(recorded: Recorded, lerobot_dataset: Any,
+                                                             video_decoding: None, tmp_path: Path) -> None:
+    result = export_lerobot(recorded.folder, tmp_path / "small", fps=10, image_scale=0.5, task="phantom study",
+                            vcodec="h264")
     ds = lerobot_dataset.LeRobotDataset(f"iorthand/{recorded.folder.name}", root=tmp_path / "small")
     assert ds.fps == 10 and ds.meta.features["observation.images.camera"]["shape"] == (240, 320, 3)
     assert [e.task for e in result.episodes] == ["phantom study"] * 2
     assert ds.num_frames == sum(len(frame_times(e.start, e.end, 10)) for e in result.episodes)
     assert tuple(ds[3]["observation.images.camera"].shape) == (3, 240, 320)
+    assert ds.meta.features["observation.images.camera"]["info"]["video.codec"] == "h264"
 
 
 @pytest.mark.slow
@@ -363,3 +391,34 @@ def test_an_h264_camera_gives_its_pictures_and_black_where_they_cannot_be_decode
     img = ds[index]["observation.images.camera"].numpy().transpose(1, 2, 0) * 255.0
     source = np.asarray(Image.fromarray(h264_recorded.images[held.seq][..., ::-1]).resize((w // 2, h // 2)))
     assert np.abs(img - source).mean() < 15
+
+
+@pytest.mark.slow
+def test_a_video_written_in_slices_is_the_video_written_whole(h264_recorded: h264.H264Recorded, recorded: Recorded,
+                                                              lerobot_dataset: Any, monkeypatch: pytest.MonkeyPatch,
+                                                              tmp_path: Path) -> None:
+    """The mjpeg writer cuts each episode's frames into slices that worker processes write side by side, each
+    reading from before its first frame: slices starting inside an H.264 group of pictures, or on a held JPEG,
+    give the frames, warnings and statistics of one slice."""
+    import av
+
+    from iorthand_cloud.recorder import export_lerobot as lr
+
+    def packets(root: Path, feature: str) -> list[bytes]:
+        out = []
+        for video in sorted((root / "videos" / feature).rglob("*.mp4")):
+            with av.open(str(video)) as container:
+                out += [bytes(p) for p in container.demux(video=0) if p.size]
+        return out
+
+    for name, folder in (("h264", h264_recorded.folder), ("jpeg", recorded.folder)):
+        whole = export_lerobot(folder, tmp_path / f"{name}-whole")
+        monkeypatch.setattr(lr, "SLICE_S", 0.35)  # 10 frames a slice: several per episode
+        sliced = export_lerobot(folder, tmp_path / f"{name}-sliced")
+        monkeypatch.undo()
+        assert sliced.frames == whole.frames and sliced.warnings == whole.warnings, name
+        for feature in (f for f, ft in whole.features.items() if ft["dtype"] == "video"):
+            a, b = packets(whole.path, feature), packets(sliced.path, feature)
+            assert len(a) == whole.frames and a == b, (name, feature)
+        stats = [json.loads((r.path / "meta" / "stats.json").read_text()) for r in (whole, sliced)]
+        assert stats[0]["observation.images.camera"] == stats[1]["observation.images.camera"], name

@@ -242,8 +242,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="lerobot: frames per second of the dataset (state and images held at each frame time)")
     p.add_argument("--robot", help="lerobot: the robot to export (needed when the session has several)")
     p.add_argument("--task", help="lerobot: the task of every episode (default: from the annotations or the note)")
-    p.add_argument("--vcodec", choices=["h264", "libsvtav1"], default="h264",
-                   help="lerobot: video codec (h264 encodes faster; libsvtav1 is LeRobot's own default)")
+    p.add_argument("--vcodec", choices=["mjpeg", "h264", "libsvtav1"], default="mjpeg",
+                   help="lerobot: video codec (mjpeg: the recorded JPEGs as they are, fast, every frame a keyframe; "
+                        "h264 and libsvtav1, LeRobot's own default: re-encoded, smaller files, many times slower)")
     p.add_argument("--image-scale", type=float, choices=[1.0, 0.5, 0.25], default=1.0,
                    help="lerobot: picture size relative to the recorded frames (smaller: less to encode and store)")
     p.set_defaults(func=_cmd_export)

@@ -1,6 +1,6 @@
 """``iorthand export SESSION --format lerobot``: one robot's session as a LeRobotDataset v3 (parquet + mp4 +
-``meta/``), written with lerobot's own API (``LeRobotDataset.create`` / ``add_frame`` / ``save_episode`` /
-``finalize``), offline (``HF_HUB_OFFLINE=1``: nothing is fetched from or pushed to a hub).
+``meta/``), written with lerobot's own metadata, parquet and statistics code, offline (``HF_HUB_OFFLINE=1``:
+nothing is fetched from or pushed to a hub).
 
 Features, at a fixed rate (``fps``, default 30, the camera's rate):
 
@@ -9,13 +9,22 @@ Features, at a fixed rate (``fps``, default 30, the camera's rate):
   frame); names in :data:`STATE_NAMES`.
 - ``action`` (float32 × 6): the applied twist ``[vx, vy, vz, wx, wy, wz]`` (m/s, rad/s, base frame) from
   ``state/applied``: what the supervisor let through of the operator's command, not what was asked.
-- ``observation.images.camera``, ``observation.images.ultrasound``: mp4 videos (PyAV; h264 by default, or
-  LeRobot's own default AV1), at the size of the recorded frames or ``image_scale`` (½, ¼) of it, for each video
-  key the session has. Video is most of the export's time: per frame and stream, a JPEG decode, the h264
-  encode (GOP 2, as LeRobot sets it) and LeRobot's image statistics (~3 ms, whatever the size). A lower rate
-  is proportionally faster; a smaller picture saves decoding, encoding and disk, not the statistics.
-  A recorded H.264 stream (the edge's default) is decoded with PyAV, every frame in recorded order (a P-frame
-  needs those before it, so a lower rate saves no decoding there), ~0.3 ms a frame at 640×480.
+- ``observation.images.camera``, ``observation.images.ultrasound``: mp4 videos (PyAV), at the size of the recorded
+  frames or ``image_scale`` (½, ¼) of it, for each video key the session has.
+
+Video codec (``vcodec``). ``mjpeg``, the default: every frame a JPEG in the mp4, so a recorded JPEG frame goes in
+as it is, without being decoded or encoded (a packet copy, microseconds), and a picture held over several frame
+times (the ultrasound at 15 fps in a 30 fps dataset) is the same JPEG again; only pictures that are not such a
+JPEG are encoded (quality :data:`JPEG_QUALITY`): H.264 pictures (decoded with PyAV, every frame in recorded
+order, as a P-frame needs those before it), scaled pictures, black ones. Every frame is a keyframe, so a
+training loader seeks to any frame directly; the files are about as large as the recording's JPEG video.
+The image statistics come from a sample of the frames as LeRobot samples them (:func:`sample_indices`), decoded
+at 1/8 size (LeRobot subsamples them to ~150 px). Each episode's frames are written in slices of
+:data:`SLICE_S` by worker processes, one per core, each reading from :data:`LOOKBACK_S` before its slice (the
+picture held there; the keyframe an H.264 slice decodes from) and joined per episode; a slice gives what a
+walk through the whole episode gives (tested). ``h264`` and ``libsvtav1`` (LeRobot's own default): every frame
+decoded and handed to LeRobot's encoder (GOP 2) and its per-frame image statistics, ~10 ms per 640×480 frame
+and stream: smaller files, an export many times slower (benchmarks/results/export.json).
 
 Sampling. Frame ``k`` of an episode is at ``t_k = start + k / fps`` (source times, the edge's clock). The state,
 the force and each image are the newest sample at or before ``t_k`` (sample and hold). The action of frame
@@ -25,7 +34,8 @@ command timeout (150 ms) counts as zero, because after it the edge has stopped t
 frame is a failure notice (the source is down) is black: a frozen picture must not pass for a live one. So is
 an H.264 picture that cannot be decoded: before the stream's first keyframe in the exported range, and after a
 failure notice or a frame missing from the recording until the next keyframe
-(:class:`~iorthand_cloud.recorder.export_ros2.H264Sync`). A dataset starts when every stream has a first sample
+(:class:`~iorthand_cloud.recorder.export_ros2.H264Sync`); and a picture held :data:`HOLD_MAX_S` with no newer
+frame or notice at all (the source, or the edge, went silent). A dataset starts when every stream has a first sample
 (a frame or a notice, decodable or not), and ends with the first stream to end.
 
 Episodes come from annotations (``iorthand annotate TEXT --tag episode-start`` / ``--tag episode-end``): a start
@@ -35,9 +45,8 @@ one there and opens the next; the last one open ends with the session. An end wi
 The task of an episode whose start has no text, and of a session without episode tags: ``--task``, else the
 text of the latest annotation tagged ``task``, else the session's note, else :data:`DEFAULT_TASK`.
 
-Conversion (episodes, frame times, sample and hold) is pure; :func:`export_lerobot` reads the session twice
-(the numbers first, then the video streams together in time order, decoding only the JPEG frames it uses and
-every H.264 frame) and writes.
+Conversion (episodes, frame times, sample and hold) is pure; :func:`export_lerobot` reads the numbers first,
+then the video (decoding only the JPEG frames it has to, and every H.264 frame) and writes.
 """
 
 from __future__ import annotations
@@ -48,7 +57,7 @@ import os
 import shutil
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -79,7 +88,14 @@ STATE_NAMES = [
 ]
 ACTION_NAMES = ["vx", "vy", "vz", "wx", "wy", "wz"]
 VIDEO_KEYS = (keys.VIDEO_CAMERA, keys.VIDEO_ULTRASOUND)
-VCODECS = ("h264", "libsvtav1")
+VCODECS = ("mjpeg", "h264", "libsvtav1")  # mjpeg: JPEGs as they are (see the module's docstring)
+JPEG_QUALITY = 90  # for the pictures the mjpeg track has to encode
+SLICE_S = 30.0  # s of frames per task of the mjpeg writer: the tasks of every episode and stream run in parallel
+HOLD_MAX_S = 10.0  # s a picture is held with no newer frame or notice; then black (the source went silent)
+KEYFRAME_MAX_S = 10.0  # the edge's longest keyframe interval (the bound of its video.keyframe_interval)
+# s read before a slice: the frame held at its start, and for H.264 the keyframe its pictures are decoded from.
+LOOKBACK_S = max(HOLD_MAX_S, KEYFRAME_MAX_S)
+LATE_S = 2.0  # s read after a slice's last frame time: frames received later than that after their source time
 IMAGE_SCALES = (1.0, 0.5, 0.25)  # the ratios a JPEG decoder shrinks by for free (see _HeldVideo)
 ROBOT_TYPE = "ur"
 # What this export needs beyond iorthand-cloud. lerobot 0.4.4 is the newest for Python 3.11, installed without its
@@ -197,6 +213,7 @@ class _VideoExtent:
     width: int  # of its first frame (a failure notice carries the configured size too)
     height: int
     frames: int  # recorded frames, failure notices included
+    streams: set[str]  # the recorder's streams they are in (segments.VIDEO, unless its configuration says otherwise)
 
 
 @dataclass
@@ -237,9 +254,10 @@ def _gather(folder: Path, lo: int | None, hi: int | None, robot: str) -> _Sessio
         elif isinstance(msg, VideoFrame):
             v = video.get(d.suffix)
             if v is None:
-                video[d.suffix] = _VideoExtent(msg.t, msg.t, msg.width, msg.height, 1)
+                video[d.suffix] = _VideoExtent(msg.t, msg.t, msg.width, msg.height, 1, {d.stream})
             else:
                 v.first, v.last, v.frames = min(v.first, msg.t), max(v.last, msg.t), v.frames + 1
+                v.streams.add(d.stream)
     return _Session(Series.of(st_t, st, 12), Series.of(f_t, f, 3) if f_t else None, Series.of(a_t, a, 6), anns,
                     video)
 
@@ -298,20 +316,28 @@ class _H264Pictures:
         return pictures[-1] if pictures else None
 
 
+_STALE = object()  # a held picture not converted yet
+
+
 class _HeldVideo:
-    """One video stream walked in time order: the frame held at each asked time, decoded once (RGB, the
-    dataset's size), black where the source had no picture (a failure notice, or a frame that does not decode).
-    JPEG frames are decoded only when held at an asked time; H.264 frames all, as they come."""
+    """One video stream walked in time order: the frame held at each asked time, black where the source had no
+    picture (a failure notice, or a frame that does not decode), as an RGB array at the dataset's size
+    (:meth:`at`) or as a JPEG (:meth:`jpeg_at`), each converted once per held frame. A JPEG frame is decoded only
+    when an RGB array of it is asked for, or when it cannot go into a JPEG track as it is; H.264 frames are
+    all decoded, as they come."""
 
     def __init__(self, frames: Callable[[], VideoFrame | None], width: int, height: int, suffix: str = "") -> None:
         self._frames = frames
         self._next = frames()
         self._held: Any = None  # a JPEG VideoFrame, a decoded H.264 picture (av.VideoFrame), or None: black
-        self._image: np.ndarray | None = None
+        self._held_t = 0  # the source time of the frame held, ns
+        self._image: Any = None  # the held picture as RGB (None: black), or _STALE
+        self._jpeg: bytes | None = None  # … and as a JPEG, once asked for
         self._h264: _H264Pictures | None = None
         self._suffix = suffix
         self.size = (width, height)
         self.black = np.zeros((height, width, 3), dtype=np.uint8)
+        self._black_jpeg: bytes | None = None
         self._bad_jpegs = 0
 
     @property
@@ -324,8 +350,7 @@ class _HeldVideo:
         """H.264 frames that could not be decoded where they are (before a keyframe): black pictures."""
         return self._h264.sync.left_out if self._h264 is not None else 0
 
-    def at(self, t: int) -> np.ndarray:
-        changed = False
+    def _advance(self, t: int) -> None:
         while self._next is not None and self._next.t <= t:
             frame, self._next = self._next, self._frames()
             if frame.encoding == "h264":
@@ -334,10 +359,41 @@ class _HeldVideo:
                 self._held = self._h264.feed(frame)
             else:
                 self._held = frame
-            changed = True
-        if changed:
+            self._held_t = frame.t
+            self._image, self._jpeg = _STALE, None
+
+    def _silent(self, t: int) -> bool:
+        """No frame, not even a failure notice, for :data:`HOLD_MAX_S` before ``t``: the source is gone."""
+        return t - self._held_t > HOLD_MAX_S * 1e9
+
+    def hold(self, t: int) -> None:
+        """Take in the frames up to ``t`` (ns) without converting the one held there."""
+        self._advance(t)
+
+    def at(self, t: int) -> np.ndarray:
+        self._advance(t)
+        if self._silent(t):
+            return self.black
+        if self._image is _STALE:
             self._image = self._decode(self._held)
         return self._image if self._image is not None else self.black
+
+    def jpeg_at(self, t: int) -> bytes:
+        self._advance(t)
+        if self._silent(t):
+            self._black_jpeg = self._black_jpeg or _jpeg(self.black)
+            return self._black_jpeg
+        if self._jpeg is None:
+            if isinstance(self._held, VideoFrame) and _fits_as_is(self._held, self.size):
+                self._jpeg = self._held.data
+            else:
+                image = self.at(t)
+                if image is self.black:
+                    self._black_jpeg = self._black_jpeg or _jpeg(self.black)
+                    self._jpeg = self._black_jpeg
+                else:
+                    self._jpeg = _jpeg(image)
+        return self._jpeg
 
     def _decode(self, held: Any) -> np.ndarray | None:
         if held is None:
@@ -362,6 +418,168 @@ class _HeldVideo:
         if img.size != self.size:
             img = img.resize(self.size)
         return np.asarray(img)
+
+
+def _fits_as_is(frame: VideoFrame, size: tuple[int, int]) -> bool:
+    """A recorded JPEG that can be a frame of the dataset's JPEG track as it is: a picture (not a failure notice),
+    complete (the end marker is there), colour at the dataset's size, and chroma 4:2:0 (the track's one pixel
+    format). Only the headers are read: a picture whose coded data is damaged past them goes in as recorded."""
+    from PIL import Image, JpegImagePlugin
+
+    if frame.failure or not frame.data.startswith(b"\xff\xd8") or not frame.data.endswith(b"\xff\xd9"):
+        return False
+    try:
+        img = Image.open(io.BytesIO(frame.data))
+        return (img.format == "JPEG" and img.mode == "RGB" and img.size == size
+                and JpegImagePlugin.get_sampling(img) == 2)
+    except Exception:  # not a JPEG it can read: decoded instead, which says so (black, counted)
+        return False
+
+
+def _jpeg(image: np.ndarray) -> bytes:
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray(image).save(out, "JPEG", quality=JPEG_QUALITY, subsampling=2)  # 2: 4:2:0
+    return out.getvalue()
+
+
+class _JpegTrack:
+    """Frames of one video feature as MJPEG in an mp4 (PyAV): frame k is the k-th JPEG added, at k/fps, each a
+    keyframe. The frames whose index is in ``sampled`` are kept (:attr:`samples`) for the statistics."""
+
+    def __init__(self, path: Path, fps: int, size: tuple[int, int], sampled: Collection[int] = ()) -> None:
+        from fractions import Fraction
+
+        import av
+
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._packet = av.Packet
+        self._container = av.open(str(path), "w", format="mp4")
+        self._stream = self._container.add_stream("mjpeg", rate=fps)
+        self._stream.width, self._stream.height = size
+        self._stream.pix_fmt = "yuvj420p"
+        self._time_base = Fraction(1, fps)
+        self._stream.time_base = self._time_base
+        self._sampled = set(sampled)
+        self.samples: list[bytes] = []
+        self.count = 0
+
+    def add(self, jpeg: bytes) -> None:
+        packet = self._packet(jpeg)
+        packet.stream = self._stream
+        packet.pts = packet.dts = self.count
+        packet.time_base = self._time_base
+        packet.is_keyframe = True
+        self._container.mux(packet)
+        if self.count in self._sampled:
+            self.samples.append(jpeg)
+        self.count += 1
+
+    def close(self) -> None:
+        self._container.close()
+
+
+def _picture_stats(samples: Sequence[bytes]) -> dict[str, np.ndarray]:
+    """Sampled JPEG frames' statistics in LeRobot's form: per channel, in [0, 1], shape (3, 1, 1). Large pictures
+    are decoded at 1/8 size (the JPEG decoder's cheapest scale; LeRobot subsamples them to ~150 px): channel
+    statistics hardly change, their cost drops 4× (its quantiles are histograms over every value)."""
+    from lerobot.datasets.compute_stats import get_feature_stats
+    from PIL import Image
+
+    pictures = []
+    for data in samples:
+        img = Image.open(io.BytesIO(data))
+        if max(img.size) >= 300:
+            img.draft("RGB", (img.width // 8, img.height // 8))
+        pictures.append(np.asarray(img.convert("RGB")).transpose(2, 0, 1))
+    stats = get_feature_stats(np.stack(pictures), axis=(0, 2, 3), keepdims=True)
+    return {k: v if k == "count" else np.squeeze(v / 255.0, axis=0) for k, v in stats.items()}
+
+
+@dataclass(frozen=True)
+class _Slice:
+    """A task: the frames of one video stream at ``times`` (ns) as a JPEG track in ``path``."""
+
+    folder: Path
+    robot: str
+    suffix: str
+    streams: tuple[str, ...]  # the recorder's streams its frames are in
+    size: tuple[int, int]
+    fps: int
+    times: np.ndarray
+    path: Path
+    sampled: tuple[int, ...]  # indices into ``times`` whose frames are kept for the statistics
+    counted_after: int  # ns: frames after this that do not decode are counted (the previous slice's last time)
+
+
+@dataclass
+class _SliceDone:
+    frames: int
+    samples: list[bytes]
+    undecodable: int
+    left_out: int
+
+
+def _write_slice(job: _Slice) -> _SliceDone:
+    """One slice, in a worker process: the stream read from :data:`LOOKBACK_S` before its first frame time (the
+    frame held there; for H.264, the keyframe its pictures are decoded from, which a slice starting mid-way
+    through a group of pictures needs) to :data:`LATE_S` after its last, walked as :class:`_HeldVideo` walks it.
+    Frames that do not decode are counted after ``counted_after``, so that each is counted by one slice."""
+    first, last = int(job.times[0]), int(job.times[-1])
+    frames = (d.msg for d in iter_decoded(job.folder, first - int(LOOKBACK_S * 1e9), last + int(LATE_S * 1e9),
+                                           suffixes={job.suffix}, streams=job.streams,
+                                           topics=[keys.RobotKeys(job.robot).key(job.suffix)])
+              if isinstance(d.msg, VideoFrame))
+    video = _HeldVideo(lambda: next(frames, None), *job.size, job.suffix)
+    video.hold(min(job.counted_after, first - 1))  # the lookback: decoded where it must be, not written
+    undecodable, left_out = video.undecodable, video.left_out
+    track = _JpegTrack(job.path, job.fps, job.size, job.sampled)
+    try:
+        for t in job.times.tolist():
+            track.add(video.jpeg_at(t))
+    finally:
+        track.close()
+    return _SliceDone(track.count, track.samples, video.undecodable - undecodable, video.left_out - left_out)
+
+
+class _Rows:
+    """The dataset's parquet rows, episode after episode, in LeRobot's files (``data_path``): a new file when the
+    current one would pass ``data_files_size_in_mb``. The rows are built as LeRobot builds them (a
+    ``datasets.Dataset`` with its features), without its per-row image embedding pass, which costs ~1 ms a row
+    and has nothing to embed here (the pictures are in the videos)."""
+
+    def __init__(self, meta: Any) -> None:
+        self._meta = meta
+        self._chunk, self._file = 0, 0
+        self._writer: Any = None
+        self._bytes = 0
+
+    def write(self, columns: dict[str, np.ndarray]) -> dict[str, int]:
+        import datasets
+        import pyarrow.parquet as pq
+        from lerobot.datasets.utils import get_hf_features_from_features, update_chunk_file_indices
+
+        features = get_hf_features_from_features(self._meta.features)
+        table = datasets.Dataset.from_dict({k: columns[k] for k in features}, features=features,
+                                           split="train").with_format("arrow")[:]
+        if self._writer is not None and (self._bytes + table.nbytes) / 1e6 >= self._meta.data_files_size_in_mb:
+            self.close()
+            self._chunk, self._file = update_chunk_file_indices(self._chunk, self._file, self._meta.chunks_size)
+        if self._writer is None:
+            path = self._meta.root / self._meta.data_path.format(chunk_index=self._chunk, file_index=self._file)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = pq.ParquetWriter(path, schema=table.schema, compression="snappy", use_dictionary=True)
+        self._writer.write_table(table)
+        self._bytes += table.nbytes
+        first = int(columns["index"][0])
+        return {"data/chunk_index": self._chunk, "data/file_index": self._file,
+                "dataset_from_index": first, "dataset_to_index": first + len(table)}
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer, self._bytes = None, 0
 
 
 # --------------------------------------------------------------------------------------------------- writing
@@ -422,9 +640,124 @@ def _quiet_libraries() -> None:
     av.logging.set_libav_level(av.logging.ERROR)
 
 
+def _write_encoded(ds: Any, episodes: list[Episode], data: _Session, folder: Path, lo: int | None, hi: int | None,
+                   robot: str, sizes: dict[str, tuple[int, int]], fps: int) -> tuple[int, dict[str, list[int]]]:
+    """Every frame through LeRobot's ``add_frame``, the video streams read together in one pass
+    (:class:`_VideoDemux`): its streaming encoder encodes the pictures and takes their statistics. Returns what
+    :func:`_write_jpeg_tracks` returns."""
+    streams = set().union(*(data.video[s].streams for s in sizes))  # only these are read
+    demux = _VideoDemux(iter_decoded(folder, lo, hi, suffixes=set(sizes), streams=streams), robot,
+                        {s: data.video[s].frames for s in sizes})
+    videos = {s: _HeldVideo(functools.partial(demux.next, s), *size, s) for s, size in sizes.items()}
+    frames = 0
+    for ep in episodes:
+        times = frame_times(ep.start, ep.end, fps)
+        state, action = observations(data.state, data.force, data.applied, times, fps)
+        for i, t in enumerate(times.tolist()):
+            frame: dict[str, Any] = {"observation.state": state[i], "action": action[i], "task": ep.task}
+            for suffix, video in videos.items():
+                frame[image_feature(suffix)] = video.at(t)
+            _wait_for_room(ds)
+            ds.add_frame(frame)
+        ds.save_episode()
+        frames += len(times)
+    return frames, {s: [v.undecodable, v.left_out] for s, v in videos.items()}
+
+
+def _slices(times: np.ndarray, fps: int) -> list[np.ndarray]:
+    size = max(1, int(SLICE_S * fps))
+    return [times[i:i + size] for i in range(0, len(times), size)]
+
+
+def _write_jpeg_tracks(ds: Any, episodes: list[Episode], data: _Session, folder: Path, robot: str,
+                       sizes: dict[str, tuple[int, int]], fps: int) -> tuple[int, dict[str, list[int]]]:
+    """Each episode's videos as JPEG tracks, written in slices of :data:`SLICE_S` by a pool of worker processes
+    (one per core: decoding H.264 and encoding JPEGs is most of the work, and Python threads would share one
+    core) and joined into a file per episode and feature (``videos/<feature>/chunk-…/file-…``, from 0 s: a
+    LeRobot v3 episode may have its own file); each episode's columns at once (:class:`_Rows`); its metadata and
+    statistics through LeRobot's ``meta.save_episode`` (which writes ``meta/``). Returns the number of frames
+    and, per stream, the frames that did not decode and those left out before a keyframe."""
+    import multiprocessing
+    import tempfile
+    from concurrent.futures import ProcessPoolExecutor
+
+    from lerobot.datasets.compute_stats import compute_episode_stats, sample_indices
+    from lerobot.datasets.utils import update_chunk_file_indices
+    from lerobot.datasets.video_utils import concatenate_video_files
+
+    meta = ds.meta
+    columns = {k: ft for k, ft in meta.features.items() if ft["dtype"] not in ("video", "image", "string")}
+    work = Path(tempfile.mkdtemp(prefix="slices-", dir=meta.root))
+    jobs: dict[tuple[int, str], list[_Slice]] = {}
+    for index, ep in enumerate(episodes):
+        times = frame_times(ep.start, ep.end, fps)
+        sampled = sample_indices(len(times))
+        for suffix, size in sizes.items():
+            parts, offset = jobs.setdefault((index, suffix), []), 0
+            for n, part in enumerate(_slices(times, fps)):
+                local = tuple(i - offset for i in sampled if offset <= i < offset + len(part))
+                parts.append(_Slice(folder, robot, suffix, tuple(sorted(data.video[suffix].streams)), size, fps,
+                                    part, work / f"{index}-{suffix.replace('/', '_')}-{n}.mp4", local,
+                                    int(times[offset - 1]) if offset else int(part[0]) - 1))
+                offset += len(part)
+    counts: dict[str, list[int]] = {suffix: [0, 0] for suffix in sizes}
+    rows = _Rows(meta)
+    frames, place = 0, (0, 0)
+    workers = min(os.cpu_count() or 1, max(1, sum(map(len, jobs.values()))))
+    try:
+        # forkserver: workers forked from a clean process, not from this one with torch and its threads loaded
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
+            futures = {key: [pool.submit(_write_slice, job) for job in parts] for key, parts in jobs.items()}
+            for index, ep in enumerate(episodes):
+                if index:
+                    place = update_chunk_file_indices(*place, meta.chunks_size)
+                times = frame_times(ep.start, ep.end, fps)
+                n = len(times)
+                stats: dict[str, Any] = {}
+                metadata: dict[str, Any] = {"episode_index": index}
+                for suffix in sizes:
+                    feature = image_feature(suffix)
+                    results = [f.result() for f in futures[index, suffix]]
+                    if sum(r.frames for r in results) != n:
+                        raise ExportError(f"{feature}, episode {index}: {sum(r.frames for r in results)} frames "
+                                          f"written of {n}")
+                    target = meta.root / meta.video_path.format(video_key=feature, chunk_index=place[0],
+                                                                file_index=place[1])
+                    target.parent.mkdir(parents=True, exist_ok=True)
+                    parts = [job.path for job in jobs[index, suffix]]
+                    if len(parts) == 1:
+                        shutil.move(parts[0], target)
+                    else:
+                        concatenate_video_files(parts, target)  # a remux: every frame is a keyframe
+                    stats[feature] = _picture_stats([j for r in results for j in r.samples])
+                    counts[suffix][0] += sum(r.undecodable for r in results)
+                    counts[suffix][1] += sum(r.left_out for r in results)
+                    metadata.update({f"videos/{feature}/chunk_index": place[0],
+                                     f"videos/{feature}/file_index": place[1],
+                                     f"videos/{feature}/from_timestamp": 0.0,
+                                     f"videos/{feature}/to_timestamp": n / fps})
+                state, action = observations(data.state, data.force, data.applied, times, fps)
+                meta.save_episode_tasks([ep.task])
+                episode = {"observation.state": state, "action": action,
+                           "timestamp": (np.arange(n) / fps).astype(np.float32), "frame_index": np.arange(n),
+                           "episode_index": np.full(n, index),
+                           "index": np.arange(meta.total_frames, meta.total_frames + n),
+                           "task_index": np.full(n, meta.get_task_index(ep.task))}
+                stats.update(compute_episode_stats(episode, columns))
+                metadata.update(rows.write(episode))
+                if index == 0:
+                    meta.update_video_info()  # codec, size, pixel format: read from episode 0's files
+                meta.save_episode(index, n, [ep.task], stats, metadata)
+                frames += n
+    finally:
+        rows.close()
+        shutil.rmtree(work, ignore_errors=True)
+    return frames, counts
+
+
 def export_lerobot(session: str | Path, out: str | Path | None = None, start: float | None = None,
                    end: float | None = None, fps: int = DEFAULT_FPS, robot: str | None = None,
-                   task: str | None = None, vcodec: str = "h264", image_scale: float = 1.0) -> LeRobotExport:
+                   task: str | None = None, vcodec: str = VCODECS[0], image_scale: float = 1.0) -> LeRobotExport:
     """Write the dataset folder (refusing one that exists); ``start``/``end`` are seconds from the session's
     first message."""
     if vcodec not in VCODECS:
@@ -472,30 +805,20 @@ def export_lerobot(session: str | Path, out: str | Path | None = None, start: fl
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     _quiet_libraries()
-    suffixes = [s for s in VIDEO_KEYS if s in data.video]
-    demux = _VideoDemux(iter_decoded(folder, lo, hi, suffixes=set(suffixes)), robot,
-                        {s: data.video[s].frames for s in suffixes})
-    videos = {s: _HeldVideo(functools.partial(demux.next, s), *features[image_feature(s)]["shape"][1::-1], s)
-              for s in suffixes}
-    frames = 0
+    sizes = {s: features[image_feature(s)]["shape"][1::-1] for s in VIDEO_KEYS if s in data.video}
     try:
+        # mjpeg: no LeRobot encoder (the tracks are written here); it still needs a codec name it knows.
         ds = LeRobotDataset.create(f"iorthand/{manifest.session_id}", fps, features, root=path,
-                                   robot_type=ROBOT_TYPE, use_videos=True, vcodec=vcodec, streaming_encoding=True,
-                                   encoder_queue_maxsize=16)
-        for ep in episodes:
-            times = frame_times(ep.start, ep.end, fps)
-            state, action = observations(data.state, data.force, data.applied, times, fps)
-            for i, t in enumerate(times.tolist()):
-                frame: dict[str, Any] = {"observation.state": state[i], "action": action[i], "task": ep.task}
-                for suffix, video in videos.items():
-                    frame[image_feature(suffix)] = video.at(t)
-                _wait_for_room(ds)
-                ds.add_frame(frame)
-            ds.save_episode()
-            frames += len(times)
+                                   robot_type=ROBOT_TYPE, use_videos=True,
+                                   vcodec="h264" if vcodec == "mjpeg" else vcodec,
+                                   streaming_encoding=vcodec != "mjpeg", encoder_queue_maxsize=16)
+        if vcodec == "mjpeg":
+            frames, counts = _write_jpeg_tracks(ds, episodes, data, folder, robot, sizes, fps)
+        else:
+            frames, counts = _write_encoded(ds, episodes, data, folder, lo, hi, robot, sizes, fps)
         ds.finalize()
-        counts = _video_frame_counts(path, [image_feature(s) for s in videos])
-        short = {k: n for k, n in counts.items() if n != frames}
+        written = _video_frame_counts(path, [image_feature(s) for s in sizes])
+        short = {k: n for k, n in written.items() if n != frames}
         if short:
             lost = ", ".join(f"{k}: {n} of {frames}" for k, n in short.items())
             raise ExportError(f"the video encoder lost frames ({lost}): the dataset was removed; try again on a "
@@ -503,11 +826,11 @@ def export_lerobot(session: str | Path, out: str | Path | None = None, start: fl
     except BaseException:
         shutil.rmtree(path, ignore_errors=True)  # ours: it did not exist before; half a dataset misleads
         raise
-    for suffix, video in videos.items():
-        if video.undecodable:
-            warnings.append(f"{video.undecodable} {suffix} frame(s) did not decode: black in the dataset")
-        if video.left_out:
-            warnings.append(f"{video.left_out} {suffix} H.264 frame(s) came before a keyframe (where the range or "
+    for suffix, (undecodable, left_out) in counts.items():
+        if undecodable:
+            warnings.append(f"{undecodable} {suffix} frame(s) did not decode: black in the dataset")
+        if left_out:
+            warnings.append(f"{left_out} {suffix} H.264 frame(s) came before a keyframe (where the range or "
                             "the recording starts, or after a missing frame) and cannot be decoded: black in the "
                             "dataset while they are held")
     return LeRobotExport(path, fps, frames, episodes, features, warnings)

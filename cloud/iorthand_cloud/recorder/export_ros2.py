@@ -66,7 +66,7 @@ from __future__ import annotations
 import contextlib
 import re
 import shutil
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -180,6 +180,7 @@ class Decoded:
     suffix: str
     log_time: int  # the recorder's receive time, ns
     msg: Message
+    stream: str = ""  # the recorder's stream it was read from (segments.VIDEO, TELEMETRY)
 
 
 def export_target(session: str | Path, out: str | Path | None, fmt: str) -> tuple[Path, Manifest, Path]:
@@ -205,11 +206,13 @@ def time_window(folder: Path, start: float | None, end: float | None) -> tuple[i
 
 
 def iter_decoded(folder: Path, lo: int | None = None, hi: int | None = None,
-                 suffixes: set[str] | None = None, skipped: dict[str, int] | None = None) -> Iterator[Decoded]:
+                 suffixes: set[str] | None = None, skipped: dict[str, int] | None = None,
+                 streams: Collection[str] | None = None, topics: Collection[str] | None = None) -> Iterator[Decoded]:
     """The session's messages in receive order, decoded; ``suffixes`` keeps only those robot keys (annotations
-    are always kept). Malformed payloads (stored raw by the recorder) and keys without a message type are left
-    out and counted in ``skipped``."""
-    for r in iter_records(folder, lo, hi):
+    are always kept); ``streams`` and ``topics`` read only those streams and keys (:func:`iter_records`).
+    Malformed payloads (stored raw by the recorder) and keys without a message type are left out and counted in
+    ``skipped``."""
+    for r in iter_records(folder, lo, hi, streams, topics):
         if r.key == ANNOTATIONS_KEY:
             cls: type[Message] | None = Annotation
             robot, suffix = "", keys.RECORDER_ANNOTATIONS
@@ -232,7 +235,7 @@ def iter_decoded(folder: Path, lo: int | None = None, hi: int | None = None,
             if skipped is not None:
                 skipped["undecodable"] = skipped.get("undecodable", 0) + 1
             continue
-        yield Decoded(r.key, robot, suffix, r.log_time, msg)
+        yield Decoded(r.key, robot, suffix, r.log_time, msg, r.stream)
 
 
 def session_robots(folder: Path) -> list[str]:

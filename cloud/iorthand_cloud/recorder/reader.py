@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import heapq
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,17 +38,26 @@ def segment_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.mcap") if p.is_file())
 
 
-def _iter_file(path: Path, start: int | None, end: int | None) -> Iterator[Record]:
-    stream = path.name.rsplit("-", 1)[0]
+def stream_of(path: Path) -> str:
+    """``video-0003.mcap`` → ``video``."""
+    return path.name.rsplit("-", 1)[0]
+
+
+def _iter_file(path: Path, start: int | None, end: int | None,
+               topics: Collection[str] | None = None) -> Iterator[Record]:
+    stream = stream_of(path)
     with path.open("rb") as f:
         try:
             reader = make_reader(f)
             reader.get_summary()
         except Exception:  # no footer yet (a segment being written) or a torn one: its complete records
             f.seek(0)
-            yield from _iter_unfinished(f, stream, start, end)
+            yield from _iter_unfinished(f, stream, start, end, topics)
             return
-        for _schema, channel, message in reader.iter_messages(starting_at=start, ending_before=end, log_time_order=True):
+        # With topics, the chunks' message indexes let the reader skip the other channels' messages.
+        wanted = list(topics) if topics is not None else None
+        for _schema, channel, message in reader.iter_messages(topics=wanted, starting_at=start, ending_before=end,
+                                                              log_time_order=True):
             yield Record(
                 key=channel.topic, log_time=message.log_time, publish_time=message.publish_time,
                 sequence=message.sequence, data=message.data,
@@ -56,7 +65,8 @@ def _iter_file(path: Path, start: int | None, end: int | None) -> Iterator[Recor
             )
 
 
-def _iter_unfinished(f: Any, stream: str, start: int | None, end: int | None) -> Iterator[Record]:
+def _iter_unfinished(f: Any, stream: str, start: int | None, end: int | None,
+                     topics: Collection[str] | None = None) -> Iterator[Record]:
     """The complete records of a segment without a footer, in receive-time order (the torn tail is left out)."""
     channels: dict[int, Channel] = {}
     out: list[Record] = []
@@ -68,6 +78,8 @@ def _iter_unfinished(f: Any, stream: str, start: int | None, end: int | None) ->
                 if (start is not None and record.log_time < start) or (end is not None and record.log_time >= end):
                     continue
                 ch = channels[record.channel_id]
+                if topics is not None and ch.topic not in topics:
+                    continue
                 out.append(Record(key=ch.topic, log_time=record.log_time, publish_time=record.publish_time,
                                   sequence=record.sequence, data=record.data,
                                   malformed=ch.metadata.get(MALFORMED_META) == "true", stream=stream))
@@ -77,10 +89,13 @@ def _iter_unfinished(f: Any, stream: str, start: int | None, end: int | None) ->
     yield from out
 
 
-def iter_records(folder: str | Path, start: int | None = None, end: int | None = None) -> Iterator[Record]:
-    """Every message of a session in receive-time order; ``start``/``end`` are receive times in ns."""
-    files = segment_files(session_dir(folder))
-    return heapq.merge(*(_iter_file(p, start, end) for p in files), key=lambda r: r.log_time)
+def iter_records(folder: str | Path, start: int | None = None, end: int | None = None,
+                 streams: Collection[str] | None = None, topics: Collection[str] | None = None) -> Iterator[Record]:
+    """Every message of a session in receive-time order; ``start``/``end`` are receive times in ns; ``streams``
+    (:data:`~iorthand_cloud.recorder.segments.VIDEO`, ``TELEMETRY``) reads only those streams' segments, and
+    ``topics`` only those keys."""
+    files = [p for p in segment_files(session_dir(folder)) if streams is None or stream_of(p) in streams]
+    return heapq.merge(*(_iter_file(p, start, end, topics) for p in files), key=lambda r: r.log_time)
 
 
 def read_manifest(folder: str | Path) -> Manifest:

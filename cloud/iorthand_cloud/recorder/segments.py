@@ -23,6 +23,9 @@ from mcap.writer import CompressionType, Writer
 PROFILE = "iorthand"
 LIBRARY = "iorthand-recorder"
 MALFORMED_META = "iorthand.malformed"
+# The streams of a session, each its own series of segments: video (uncompressed) apart from the rest (zstd), so
+# a reader that wants one does not read the other.
+TELEMETRY, VIDEO = "telemetry", "video"
 
 
 @dataclass(frozen=True)

@@ -58,12 +58,12 @@ from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig
 from iorthand_cloud.recorder.repair import has_footer, repair_all, repair_segment
 from iorthand_cloud.recorder.schemas import MESSAGE_ENCODING, RAW_ENCODING, SCHEMA_ENCODING, schema_bytes
-from iorthand_cloud.recorder.segments import Attachment, ChannelSpec, Segment, Stream
+from iorthand_cloud.recorder.segments import TELEMETRY, VIDEO, Attachment, ChannelSpec, Segment, Stream
 
 log = logging.getLogger("iorthand.recorder")
 
 SESSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
-TELEMETRY, VIDEO, SKIP = "telemetry", "video", "skip"
+SKIP = "skip"  # a route: not recorded
 FOXGLOVE = "foxglove"  # the stream of Foxglove channels, and the subfolder of a session it is written into
 
 
