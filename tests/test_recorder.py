@@ -18,6 +18,7 @@ from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
 from iorthand_cloud.recorder.reader import iter_records, segment_files
 from iorthand_cloud.recorder.report import build_report, missing_where
+from iorthand_cloud.recorder.segments import VIDEO
 from iorthand_cloud.recorder.service import RecorderService
 from tests.conftest import wait_until
 
@@ -90,6 +91,10 @@ def test_records_messages_with_times_sequence_and_gaps(recorder_factory, session
     assert all(r.publish_time == ForceSample.decode(r.data).t and r.log_time >= r.publish_time for r in good)
     bad = [r for r in records if r.malformed]
     assert len(bad) == 1 and bad[0].data == b"\xc1 garbage"
+    # A reader may take only some streams or keys: the others' segments and messages are not read.
+    assert {r.key for r in iter_records(folder, streams=[VIDEO])} == {"iorthand/sim1/video/camera"}
+    only_force = list(iter_records(folder, topics=["iorthand/sim1/state/force"]))
+    assert [r.sequence for r in only_force if not r.malformed] == seqs and len(only_force) == 6
     anns = [r for r in records if r.key == keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)]
     decoded = Annotation.decode(anns[0].data)
     assert decoded.text == "probe slipped" and decoded.tags == ["slip"] and decoded.score == 3.0

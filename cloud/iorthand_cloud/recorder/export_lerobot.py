@@ -67,6 +67,7 @@ import numpy as np
 from iorthand import keys
 from iorthand.protocol import Annotation, AppliedCommand, ForceSample, RobotState, VideoFrame
 from iorthand_cloud.recorder.export_ros2 import (
+    ANNOTATIONS_KEY,
     JOINT_NAMES,
     Decoded,
     ExportError,
@@ -236,7 +237,8 @@ def _gather(folder: Path, lo: int | None, hi: int | None, robot: str) -> _Sessio
     anns: list[Annotation] = []
     video: dict[str, _VideoExtent] = {}
     wanted = {keys.STATE_ROBOT, keys.STATE_FORCE, keys.STATE_APPLIED, *VIDEO_KEYS}
-    for d in iter_decoded(folder, lo, hi, suffixes=wanted):
+    topics = [ANNOTATIONS_KEY, *(keys.RobotKeys(robot).key(s) for s in wanted)]  # the others' messages are skipped
+    for d in iter_decoded(folder, lo, hi, suffixes=wanted, topics=topics):
         msg = d.msg
         if isinstance(msg, Annotation):
             anns.append(msg)
