@@ -706,52 +706,53 @@ def _write_jpeg_tracks(ds: Any, episodes: list[Episode], data: _Session, folder:
     rows = _Rows(meta)
     frames, place = 0, (0, 0)
     workers = min(os.cpu_count() or 1, max(1, sum(map(len, jobs.values()))))
+    # forkserver: workers forked from a clean process, not from this one with torch and its threads loaded
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
     try:
-        # forkserver: workers forked from a clean process, not from this one with torch and its threads loaded
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver")) as pool:
-            futures = {key: [pool.submit(_write_slice, job) for job in parts] for key, parts in jobs.items()}
-            for index, ep in enumerate(episodes):
-                if index:
-                    place = update_chunk_file_indices(*place, meta.chunks_size)
-                times = frame_times(ep.start, ep.end, fps)
-                n = len(times)
-                stats: dict[str, Any] = {}
-                metadata: dict[str, Any] = {"episode_index": index}
-                for suffix in sizes:
-                    feature = image_feature(suffix)
-                    results = [f.result() for f in futures[index, suffix]]
-                    if sum(r.frames for r in results) != n:
-                        raise ExportError(f"{feature}, episode {index}: {sum(r.frames for r in results)} frames "
-                                          f"written of {n}")
-                    target = meta.root / meta.video_path.format(video_key=feature, chunk_index=place[0],
-                                                                file_index=place[1])
-                    target.parent.mkdir(parents=True, exist_ok=True)
-                    parts = [job.path for job in jobs[index, suffix]]
-                    if len(parts) == 1:
-                        shutil.move(parts[0], target)
-                    else:
-                        concatenate_video_files(parts, target)  # a remux: every frame is a keyframe
-                    stats[feature] = _picture_stats([j for r in results for j in r.samples])
-                    counts[suffix][0] += sum(r.undecodable for r in results)
-                    counts[suffix][1] += sum(r.left_out for r in results)
-                    metadata.update({f"videos/{feature}/chunk_index": place[0],
-                                     f"videos/{feature}/file_index": place[1],
-                                     f"videos/{feature}/from_timestamp": 0.0,
-                                     f"videos/{feature}/to_timestamp": n / fps})
-                state, action = observations(data.state, data.force, data.applied, times, fps)
-                meta.save_episode_tasks([ep.task])
-                episode = {"observation.state": state, "action": action,
-                           "timestamp": (np.arange(n) / fps).astype(np.float32), "frame_index": np.arange(n),
-                           "episode_index": np.full(n, index),
-                           "index": np.arange(meta.total_frames, meta.total_frames + n),
-                           "task_index": np.full(n, meta.get_task_index(ep.task))}
-                stats.update(compute_episode_stats(episode, columns))
-                metadata.update(rows.write(episode))
-                if index == 0:
-                    meta.update_video_info()  # codec, size, pixel format: read from episode 0's files
-                meta.save_episode(index, n, [ep.task], stats, metadata)
-                frames += n
+        futures = {key: [pool.submit(_write_slice, job) for job in parts] for key, parts in jobs.items()}
+        for index, ep in enumerate(episodes):
+            if index:
+                place = update_chunk_file_indices(*place, meta.chunks_size)
+            times = frame_times(ep.start, ep.end, fps)
+            n = len(times)
+            stats: dict[str, Any] = {}
+            metadata: dict[str, Any] = {"episode_index": index}
+            for suffix in sizes:
+                feature = image_feature(suffix)
+                results = [f.result() for f in futures[index, suffix]]
+                if sum(r.frames for r in results) != n:
+                    raise ExportError(f"{feature}, episode {index}: {sum(r.frames for r in results)} frames "
+                                      f"written of {n}")
+                target = meta.root / meta.video_path.format(video_key=feature, chunk_index=place[0],
+                                                            file_index=place[1])
+                target.parent.mkdir(parents=True, exist_ok=True)
+                parts = [job.path for job in jobs[index, suffix]]
+                if len(parts) == 1:
+                    shutil.move(parts[0], target)
+                else:
+                    concatenate_video_files(parts, target)  # a remux: every frame is a keyframe
+                stats[feature] = _picture_stats([j for r in results for j in r.samples])
+                counts[suffix][0] += sum(r.undecodable for r in results)
+                counts[suffix][1] += sum(r.left_out for r in results)
+                metadata.update({f"videos/{feature}/chunk_index": place[0],
+                                 f"videos/{feature}/file_index": place[1],
+                                 f"videos/{feature}/from_timestamp": 0.0,
+                                 f"videos/{feature}/to_timestamp": n / fps})
+            state, action = observations(data.state, data.force, data.applied, times, fps)
+            meta.save_episode_tasks([ep.task])
+            episode = {"observation.state": state, "action": action,
+                       "timestamp": (np.arange(n) / fps).astype(np.float32), "frame_index": np.arange(n),
+                       "episode_index": np.full(n, index),
+                       "index": np.arange(meta.total_frames, meta.total_frames + n),
+                       "task_index": np.full(n, meta.get_task_index(ep.task))}
+            stats.update(compute_episode_stats(episode, columns))
+            metadata.update(rows.write(episode))
+            if index == 0:
+                meta.update_video_info()  # codec, size, pixel format: read from episode 0's files
+            meta.save_episode(index, n, [ep.task], stats, metadata)
+            frames += n
     finally:
+        pool.shutdown(cancel_futures=True)  # after a failure, the slices not started are not written
         rows.close()
         shutil.rmtree(work, ignore_errors=True)
     return frames, counts
