@@ -171,6 +171,40 @@ def test_a_picture_is_held_until_the_source_has_been_silent_too_long() -> None:
     assert Image.open(io.BytesIO(video.jpeg_at(held + 1))).convert("L").getextrema()[1] < 5
 
 
+def test_jpeg_frames_go_into_the_jpeg_track_as_they_are_only_when_they_fit() -> None:
+    from iorthand_cloud.recorder.export_lerobot import _HeldVideo
+
+    def jpeg(size: tuple[int, int], mode: str = "RGB", value: int = 120, subsampling: int = 2) -> bytes:
+        out = io.BytesIO()
+        Image.new(mode, size, value).save(out, "JPEG", quality=90, **({"subsampling": subsampling} if mode == "RGB" else {}))
+        return out.getvalue()
+
+    good = jpeg((64, 48))
+    cases = [  # (frame data or a failure notice, what the track gets)
+        (good, "as is"),
+        (good[: len(good) // 2], "black"),  # truncated: no end marker, does not decode
+        (jpeg((128, 96), value=60), "encoded"),  # another size: decoded, scaled, encoded at the dataset's
+        (jpeg((64, 48), "L", 200), "encoded"),  # grey: the track's frames are colour
+        (jpeg((64, 48), subsampling=0), "encoded"),  # 4:4:4: the track is 4:2:0
+        ("camera unplugged", "black"),
+    ]
+    frames = iter([VideoFrame(width=64, height=48, data=c, failure="").stamp(i, t=i * 10)
+                   if isinstance(c, bytes) else VideoFrame(width=64, height=48, failure=c).stamp(i, t=i * 10)
+                   for i, (c, _) in enumerate(cases, 1)])
+    video = _HeldVideo(lambda: next(frames, None), 64, 48, "video/camera")
+    for i, (data, expected) in enumerate(cases, 1):
+        out = video.jpeg_at(i * 10)
+        picture = np.asarray(Image.open(io.BytesIO(out)).convert("RGB"), dtype=np.float64)
+        assert picture.shape == (48, 64, 3), i
+        if expected == "as is":
+            assert out == data
+        elif expected == "black":
+            assert picture.max() < 8, i
+        else:
+            assert out != data and abs(picture.mean() - np.asarray(Image.open(io.BytesIO(data)).convert("RGB")).mean()) < 3
+    assert video.undecodable == 1  # the truncated one, said in the export's warnings
+
+
 def test_an_h264_session_without_pyav_is_said_in_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
     import sys
 
