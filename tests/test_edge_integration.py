@@ -93,8 +93,11 @@ def test_markers_are_published_in_the_base_frame_and_servos_do_not_move_them(
 
 
 def test_previewed_goto_through_the_twin(edge_factory, twin_factory, operator_factory) -> None:
+    # A 1 s command timeout: this test is about the preview, its token and the pose reached; router, edge, twin and
+    # operator share its process, and a pause of that process on a loaded machine must not cancel the move
+    # (stopping at the 150 ms timeout is tested in test_teleop_loop and test_primitives_live).
     edge = edge_factory(
-        safety={"profile": "local"},
+        safety={"profile": "local", "command_timeout": 1.0},
         goto={"poses": {"home": [0.30, 0.02, 0.24, math.pi, 0.0, 0.0], "outside": [0.60, 0.0, 0.25, math.pi, 0.0, 0.0]}},
     )
     twin_factory()
