@@ -429,8 +429,8 @@ def test_an_h264_camera_gives_its_pictures_and_black_where_they_cannot_be_decode
 
 @pytest.mark.slow
 def test_a_video_written_in_slices_is_the_video_written_whole(h264_recorded: h264.H264Recorded, recorded: Recorded,
-                                                              lerobot_dataset: Any, monkeypatch: pytest.MonkeyPatch,
-                                                              tmp_path: Path) -> None:
+                                                              lerobot_dataset: Any, video_decoding: None,
+                                                              monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """The mjpeg writer cuts each episode's frames into slices that worker processes write side by side, each
     reading from before its first frame: slices starting inside an H.264 group of pictures, or on a held JPEG,
     give the frames, warnings and statistics of one slice."""
@@ -456,3 +456,8 @@ def test_a_video_written_in_slices_is_the_video_written_whole(h264_recorded: h26
             assert len(a) == whole.frames and a == b, (name, feature)
         stats = [json.loads((r.path / "meta" / "stats.json").read_text()) for r in (whole, sliced)]
         assert stats[0]["observation.images.camera"] == stats[1]["observation.images.camera"], name
+        # The joined slices keep their frame times: LeRobot decodes the same picture at every index.
+        datasets = [lerobot_dataset.LeRobotDataset(f"iorthand/{folder.name}", root=r.path) for r in (whole, sliced)]
+        for index in (0, 9, 10, 11, 25, whole.frames - 1):
+            a, b = (ds[index]["observation.images.camera"].numpy() for ds in datasets)
+            assert np.array_equal(a, b), (name, index)
