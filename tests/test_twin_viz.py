@@ -223,3 +223,22 @@ def test_vital_signs_are_plotted_per_name_with_their_unit(tmp_path) -> None:
     assert values["/robots/a/vitals/heart_rate"] == [72.0, 75.0, 80.0]
     assert names["/robots/a/vitals/heart_rate"] == ["heart_rate (bpm)"]
     assert values[r"/robots/a/vitals/sp\ o2"] == [98.0]  # a name with a space stays one entity part
+
+
+def test_the_default_phantom_is_drawn_where_the_demo_edge_has_it() -> None:
+    """The twin draws the phantom the demo's simulated edge presses on (configs/edge-sim.yaml), so the probe is
+    drawn touching it when the force sensor says it does, and its markers lie on it."""
+    from pathlib import Path
+
+    import yaml
+
+    edge = yaml.safe_load((Path(__file__).resolve().parent.parent / "configs" / "edge-sim.yaml").read_text())
+    phantom = next(o for o in RobotView().scene if o.name == "phantom")
+    lo = np.subtract(phantom.center, np.divide(phantom.size, 2))
+    hi = np.add(phantom.center, np.divide(phantom.size, 2))
+    ph = edge["phantom"]
+    assert hi[2] == pytest.approx(ph["surface_z"])
+    assert [lo[0], hi[0]] == pytest.approx(ph["x_range"]) and [lo[1], hi[1]] == pytest.approx(ph["y_range"])
+    for marker in edge["perception"]["scene"]["markers"]:
+        x, y, z = marker["pose"][:3]
+        assert lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and z == pytest.approx(hi[2]), marker

@@ -63,10 +63,12 @@ class SceneObject:
 
 
 def _default_scene() -> list[SceneObject]:
+    # The phantom of the demo's simulated edge (configs/edge-sim.yaml, phantom: x 0.20–0.40, y ±0.10, its top at
+    # z 0.15, where its markers lie): keep the two in step, or the probe is drawn pressing on air.
     return [
         SceneObject("table", [0.0, 0.0, -0.01], [0.6, 0.6, 0.02], [110, 90, 70, 255]),
         SceneObject("bed", [0.32, 0.0, -0.05], [0.35, 0.55, 0.10], [200, 200, 215, 255]),
-        SceneObject("phantom", [0.32, 0.0, 0.03], [0.14, 0.10, 0.06], [230, 180, 160, 255]),
+        SceneObject("phantom", [0.30, 0.0, 0.075], [0.20, 0.20, 0.15], [230, 180, 160, 255]),
     ]
 
 
