@@ -32,7 +32,8 @@ the force and each image are the newest sample at or before ``t_k`` (sample and 
 LeRobot pairs an observation with the action that follows it; an applied twist older than the edge's default
 command timeout (150 ms) counts as zero, because after it the edge has stopped the robot. An image whose latest
 frame is a failure notice (the source is down) is black: a frozen picture must not pass for a live one. So is
-an H.264 picture that cannot be decoded: before the stream's first keyframe in the exported range, and after a
+an H.264 picture that cannot be decoded: before the stream's first keyframe (up to :data:`LOOKBACK_S` before the
+exported range, with ``mjpeg``; within it, with LeRobot's encoders), and after a
 failure notice or a frame missing from the recording until the next keyframe
 (:class:`~iorthand_cloud.recorder.export_ros2.H264Sync`); and a picture held :data:`HOLD_MAX_S` with no newer
 frame or notice at all (the source, or the edge, went silent). A dataset starts when every stream has a first sample
