@@ -692,8 +692,8 @@ def _write_jpeg_tracks(ds: Any, episodes: list[Episode], data: _Session, folder:
     columns = {k: ft for k, ft in meta.features.items() if ft["dtype"] not in ("video", "image", "string")}
     work = Path(tempfile.mkdtemp(prefix="slices-", dir=meta.root))
     jobs: dict[tuple[int, str], list[_Slice]] = {}
-    for index, ep in enumerate(episodes):
-        times = frame_times(ep.start, ep.end, fps)
+    episode_times = [frame_times(ep.start, ep.end, fps) for ep in episodes]
+    for index, times in enumerate(episode_times):
         sampled = sample_indices(len(times))
         for suffix, size in sizes.items():
             parts, offset = jobs.setdefault((index, suffix), []), 0
@@ -711,10 +711,9 @@ def _write_jpeg_tracks(ds: Any, episodes: list[Episode], data: _Session, folder:
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
     try:
         futures = {key: [pool.submit(_write_slice, job) for job in parts] for key, parts in jobs.items()}
-        for index, ep in enumerate(episodes):
+        for index, (ep, times) in enumerate(zip(episodes, episode_times, strict=True)):
             if index:
                 place = update_chunk_file_indices(*place, meta.chunks_size)
-            times = frame_times(ep.start, ep.end, fps)
             n = len(times)
             stats: dict[str, Any] = {}
             metadata: dict[str, Any] = {"episode_index": index}
