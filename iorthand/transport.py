@@ -143,6 +143,7 @@ def zenoh_entries(cfg: ZenohConfig) -> dict[str, Any]:
         "scouting/multicast/enabled": cfg.multicast_scouting,
         "transport/link/tx/lease": cfg.lease_ms,
         "transport/shared_memory/enabled": cfg.shared_memory,
+        **{f"{TX_QUEUE_SIZE_KEY}/{priority}": size for priority, size in TX_QUEUE_SIZE.items()},
     }
     if cfg.mode != "router":
         entries["scouting/gossip/enabled"] = False
@@ -450,13 +451,19 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-# A router forwards many robots' commands over one link (edge site → cloud in a mesh). Zenoh's queue per
-# priority holds 2 batches by default and each express command takes a whole batch, so a CPU stall of a
-# millisecond or two fills it and the next commands are dropped (CongestionControl.DROP waits 1 ms). Measured
-# with 20 robots through a mesh of three routers on 2 cores (`iorthand bench scale`): 20–29 of 18,020
-# commands lost with the default; with these, none in most runs and 1 in a run on a noisier host (p99 12.7 ms).
-# Batches are allocated lazily, only when a stall needs them.
-ROUTER_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
+# Send queues per priority, in batches, for every session (routers, edges, operators, services). Zenoh's
+# default holds 2 batches and each express command takes a whole one, so when a process's send thread stalls
+# (CPU, I/O) for more than two command periods, the next commands are dropped (CongestionControl.DROP waits
+# 1 ms) while the sender's own loop runs on time. Measured:
+# - a router forwarding 20 robots through a mesh of three routers on 2 cores (`iorthand bench scale`): 20–29 of
+#   18,020 commands lost with the default; with these, none in most runs and 1 in a run on a noisier host;
+# - an operator whose send thread stalled 40–55 ms in the 2-hour soak lost 2 twists of 3 sent meanwhile (the
+#   edge never saw them); tests/test_transport_stall.py stalls it 100 ms at 60 Hz: 32–37 of 180 lost with the
+#   default, none with these.
+# Batches are allocated lazily, only when a stall needs them. A late twist still reaches the edge, which acts on
+# the newest of a burst and counts the rest as superseded.
+TX_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
+TX_QUEUE_SIZE_KEY = "transport/link/tx/queue/size"
 
 
 ROUTER_LEASE_MS = 2000
@@ -488,7 +495,7 @@ def router_settings(listen: list[str], connect: list[str] | None = None, lease_m
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         # rx: nothing legitimate is larger than a video frame; Zenoh's default (1 GiB) lets one sender make the
         # router reassemble and forward gigabytes.
-        "transport": {"link": {"tx": {"lease": lease_ms, "queue": {"size": dict(ROUTER_QUEUE_SIZE)}},
+        "transport": {"link": {"tx": {"lease": lease_ms, "queue": {"size": dict(TX_QUEUE_SIZE)}},
                                "rx": {"max_message_size": RX_MAX_MESSAGE}}},
     }
     if not shared_memory:

@@ -15,7 +15,7 @@ from iorthand.security import acl, certs, diagnose, identity
 from iorthand.transport import (
     DIALING_LEASE_EXTRA_MS,
     ROUTER_LEASE_MS,
-    ROUTER_QUEUE_SIZE,
+    TX_QUEUE_SIZE,
     TlsConfig,
     ZenohConfig,
     load_router_config,
@@ -158,7 +158,7 @@ def test_generated_config_is_accepted_by_zenoh(tmp_path: Path, bind: bool) -> No
 
 def test_every_router_configuration_has_the_command_queue_sizes() -> None:
     """The generated (TLS) configuration, the shipped plain one and ``iorthand router``'s built-in one all
-    ride out CPU stalls without dropping commands (see ROUTER_QUEUE_SIZE)."""
+    ride out CPU stalls without dropping commands (see TX_QUEUE_SIZE)."""
     configs = {
         "generated": zenoh.Config.from_json5(acl.to_json5(acl.router_config(_dep()))),
         "configs/router.json5": load_router_config(ROOT / "configs" / "router.json5"),
@@ -166,7 +166,7 @@ def test_every_router_configuration_has_the_command_queue_sizes() -> None:
     }
     for name, zc in configs.items():
         sizes = json.loads(zc.get_json("transport/link/tx/queue/size"))
-        assert {k: sizes[k] for k in ROUTER_QUEUE_SIZE} == ROUTER_QUEUE_SIZE, name
+        assert {k: sizes[k] for k in TX_QUEUE_SIZE} == TX_QUEUE_SIZE, name
         assert json.loads(zc.get_json("transport/link/tx/lease")) == ROUTER_LEASE_MS, name
 
 

@@ -47,7 +47,7 @@ from typing import Any
 from iorthand import channels, keys
 from iorthand.channels import Channel, Kind, OperatorKey, Role
 from iorthand.config import setting
-from iorthand.transport import ROUTER_LEASE_MS, ROUTER_QUEUE_SIZE, announced_lease
+from iorthand.transport import ROUTER_LEASE_MS, TX_QUEUE_SIZE, announced_lease
 
 ALL_MESSAGES = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -254,7 +254,7 @@ def router_config(dep: Deployment) -> dict[str, Any]:
         # A certificate that expires while connected ends the link instead of living on until the next restart.
         "close_link_on_expiration": True,
     }
-    tx = {"lease": announced_lease(dep.lease_ms, bool(dep.connect)), "queue": {"size": dict(ROUTER_QUEUE_SIZE)}}
+    tx = {"lease": announced_lease(dep.lease_ms, bool(dep.connect)), "queue": {"size": dict(TX_QUEUE_SIZE)}}
     transport: dict[str, Any] = {"link": {"tls": tls, "tx": tx}}
     if dep.users_file is not None:
         transport["auth"] = {"usrpwd": {"dictionary_file": str(dep.users_file)}}
