@@ -103,16 +103,17 @@ def viewer_lag(url: str, seconds: float = 60.0) -> dict[str, Any]:
 def gaps_in(folder: Path, keys: set[str], started_ns: int) -> list[dict[str, Any]]:
     """Where each sequence gap of ``keys`` fell: after which message, how many missing, how far into the run (s),
     so that a gap can be matched against what else the machine was doing then."""
-    last: dict[str, int] = {}
+    stats = {key: mf.KeyStats() for key in keys}
     found: list[dict[str, Any]] = []
-    for rec in iter_records(folder):
-        if rec.key not in keys or rec.malformed:
+    for rec in iter_records(folder, topics=keys):
+        if rec.malformed:
             continue
-        prev = last.get(rec.key)
-        if prev is not None and rec.sequence > prev + 1:
-            found.append({"key": rec.key, "after_seq": prev, "missing": rec.sequence - prev - 1,
+        st = stats[rec.key]
+        after, missing = st.last_seq, st.missing
+        st.observe(len(rec.data), rec.log_time, rec.sequence)
+        if st.missing > missing:
+            found.append({"key": rec.key, "after_seq": after, "missing": st.missing - missing,
                           "at_s": round((rec.log_time - started_ns) / 1e9, 1)})
-        last[rec.key] = rec.sequence
     return found
 
 

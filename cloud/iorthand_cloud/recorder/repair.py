@@ -19,8 +19,8 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from iorthand_cloud.recorder import manifest as mf
-from iorthand_cloud.recorder.reader import iter_records, segment_files
-from iorthand_cloud.recorder.segments import LIBRARY, PROFILE
+from iorthand_cloud.recorder.reader import iter_records, segment_files, stream_of
+from iorthand_cloud.recorder.segments import COMPRESSION, LIBRARY, PROFILE
 
 log = logging.getLogger("iorthand.recorder")
 
@@ -45,7 +45,7 @@ def repair_segment(path: Path) -> RepairResult:
     """Rewrite ``path`` from its readable records; returns what was recovered."""
     size = path.stat().st_size
     tmp = path.with_suffix(".mcap.repair")
-    compression = CompressionType.NONE if path.name.startswith("video") else CompressionType.ZSTD
+    compression = COMPRESSION.get(stream_of(path), CompressionType.ZSTD)
     messages = 0
     good_offset = 0
     with path.open("rb") as src, tmp.open("wb") as dst:
@@ -128,8 +128,9 @@ def repair_session(folder: Path) -> list[RepairResult]:
                     path, res.messages, res.lost_bytes)
         seg = by_file.get(path.name)
         if seg is None:
-            seg = mf.SegmentInfo(file=path.name, stream=path.name.rsplit("-", 1)[0],
-                                 compression="none" if path.name.startswith("video") else "zstd", opened_t=0)
+            stream = stream_of(path)
+            seg = mf.SegmentInfo(file=path.name, stream=stream,
+                                 compression=COMPRESSION.get(stream, CompressionType.ZSTD).name.lower(), opened_t=0)
             manifest.segments.append(seg)
             by_file[path.name] = seg
         seg.status, seg.recovered_messages, seg.lost_bytes = "repaired", res.messages, res.lost_bytes

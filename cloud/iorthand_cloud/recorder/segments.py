@@ -26,6 +26,8 @@ MALFORMED_META = "iorthand.malformed"
 # The streams of a session, each its own series of segments: video (uncompressed) apart from the rest (zstd), so
 # a reader that wants one does not read the other.
 TELEMETRY, VIDEO = "telemetry", "video"
+# Video (JPEG, H.264) is compressed already: zstd would spend CPU on it for nothing.
+COMPRESSION = {TELEMETRY: CompressionType.ZSTD, VIDEO: CompressionType.NONE}
 
 
 @dataclass(frozen=True)

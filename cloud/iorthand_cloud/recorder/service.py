@@ -58,7 +58,7 @@ from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig
 from iorthand_cloud.recorder.repair import has_footer, repair_all, repair_segment
 from iorthand_cloud.recorder.schemas import MESSAGE_ENCODING, RAW_ENCODING, SCHEMA_ENCODING, schema_bytes
-from iorthand_cloud.recorder.segments import TELEMETRY, VIDEO, Attachment, ChannelSpec, Segment, Stream
+from iorthand_cloud.recorder.segments import COMPRESSION, TELEMETRY, VIDEO, Attachment, ChannelSpec, Segment, Stream
 
 log = logging.getLogger("iorthand.recorder")
 
@@ -325,8 +325,8 @@ class RecorderService:
         try:
             folder.mkdir(parents=True, exist_ok=False)
             rec.streams = {
-                TELEMETRY: self._stream(rec, TELEMETRY, CompressionType.ZSTD, self.config.segment_max_mb, attachments),
-                VIDEO: self._stream(rec, VIDEO, CompressionType.NONE, self.config.video_segment_max_mb, []),
+                TELEMETRY: self._stream(rec, TELEMETRY, COMPRESSION[TELEMETRY], self.config.segment_max_mb, attachments),
+                VIDEO: self._stream(rec, VIDEO, COMPRESSION[VIDEO], self.config.video_segment_max_mb, []),
             }
             if self.config.foxglove.enabled:
                 rec.streams[FOXGLOVE] = self._foxglove_stream(rec, attachments)

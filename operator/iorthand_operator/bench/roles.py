@@ -18,6 +18,7 @@ import contextlib
 import json
 import logging
 import os
+import queue
 import random
 import signal
 import socket
@@ -314,7 +315,11 @@ def video_probe(args: argparse.Namespace) -> int:
     stop = _stop_event(args.max_seconds)
     session = _zenoh(args)
     k = keys.RobotKeys(args.robot)
-    sub = session.declare_subscriber(k.key(keys.VIDEO_CAMERA), zenoh.handlers.FifoChannel(256))
+    # Arrival is stamped in Zenoh's callback, as the command echoes' are: a polling loop would add up to its
+    # sleep to every frame's delay. Decoding happens after, in this thread.
+    arrived: queue.SimpleQueue[tuple[int, bytes]] = queue.SimpleQueue()
+    sub = session.declare_subscriber(k.key(keys.VIDEO_CAMERA),
+                                     lambda sample: arrived.put((time.time_ns(), sample.payload.to_bytes())))
     feedback = publisher(session, k.key(keys.CMD_VIDEO_FEEDBACK))
     seq = Sequencer()
     decoder = H264Decoder()
@@ -324,7 +329,10 @@ def video_probe(args: argparse.Namespace) -> int:
     print("video-probe ready", flush=True)
     end = time.monotonic() + args.duration
     while not stop.is_set() and time.monotonic() < end:
-        sample = sub.try_recv()
+        try:
+            arrival, payload = arrived.get(timeout=0.05)
+        except queue.Empty:
+            arrival, payload = 0, b""
         now = time.monotonic()
         if now >= report_at:
             recent = sorted(f[2] - f[1] for f in frames[-received:]) if received else []
@@ -332,11 +340,9 @@ def video_probe(args: argparse.Namespace) -> int:
             feedback.put(VideoFeedback(operator=args.operator_id, received=received, lost=lost,
                                        delay_p90=min(3600.0, max(0.0, p90)) if recent else -1.0).stamp(seq.next()).encode())
             received, lost, report_at = 0, 0, now + 1.0
-        if sample is None:
-            stop.wait(0.002)
+        if not arrival:
             continue
-        arrival = time.time_ns()
-        frame = VideoFrame.decode(sample.payload.to_bytes())
+        frame = VideoFrame.decode(payload)
         if frame.failure:
             continue
         gap = bool(last_seq) and frame.seq > last_seq + 1
@@ -349,9 +355,10 @@ def video_probe(args: argparse.Namespace) -> int:
             if not decoded and now - asked > 0.5:
                 feedback.put(VideoFeedback(operator=args.operator_id, keyframe=True).stamp(seq.next()).encode())
                 asked = now
-        frames.append([frame.seq, frame.t, arrival, len(sample.payload), frame.keyframe, decoded])
+        frames.append([frame.seq, frame.t, arrival, len(payload), frame.keyframe, decoded])
     if args.out:
         _write(args.out, {"frames": frames, "encoding": frame.encoding if frames else ""})
+    sub.undeclare()
     session.close()
     return 0
 
