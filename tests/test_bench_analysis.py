@@ -116,3 +116,16 @@ def test_cpu_share_from_known_cpu_times() -> None:
     rows = report.latency_rows({"c": {"rtt_ms": dict.fromkeys(("count", "p50", "p90", "p99", "p99.9", "max", "jitter"), 1.0),
                                       "host_cpu": {"steal_percent": 5.0}}})
     assert rows[0][report.LATENCY_HEADERS.index("stolen %")] == 5.0
+
+
+def test_a_result_names_the_commit_of_the_code_that_produced_it() -> None:
+    import subprocess
+
+    from tests.conftest import ROOT
+
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    if head.returncode:
+        assert report.source_tree() == ""  # not a checkout: nothing to name
+        return
+    dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--"]).returncode
+    assert report.source_tree() == head.stdout.strip() + ("+changes" if dirty else "")

@@ -33,6 +33,17 @@ def _cmd_version(argv: list[str]) -> str:
         return ""
 
 
+def source_tree() -> str:
+    """The commit of the iorthand code that runs (``+changes`` when its files differ from it), or "" outside a
+    git checkout: a result names the code that produced it."""
+    root = Path(__file__).resolve().parents[3]
+    commit = _cmd_version(["git", "-C", str(root), "rev-parse", "--short", "HEAD"])
+    if not commit or " " in commit:  # not a checkout: git's error message
+        return ""
+    dirty = subprocess.run(["git", "-C", str(root), "diff", "--quiet", "HEAD", "--"], capture_output=True, timeout=10)
+    return commit + ("+changes" if dirty.returncode else "")
+
+
 def _read(path: str) -> str:
     try:
         return Path(path).read_text().strip()
@@ -117,6 +128,7 @@ def machine() -> dict[str, Any]:
             "paho-mqtt": _pkg("paho-mqtt"),
             "msgpack": _pkg("msgpack"),
             "iorthand": _pkg("iorthand"),
+            "iorthand_tree": source_tree(),
             "mosquitto": _cmd_version(["dpkg-query", "-W", "-f=${Version}", "mosquitto"]),
             "nftables": _cmd_version(["dpkg-query", "-W", "-f=${Version}", "nftables"]),
         },
