@@ -460,8 +460,9 @@ def free_port() -> int:
 # - an operator whose send thread stalled 40–55 ms in the 2-hour soak lost 2 twists of 3 sent meanwhile (the
 #   edge never saw them); tests/test_transport_stall.py stalls it 100 ms at 60 Hz: 32–37 of 180 lost with the
 #   default, none with these.
-# Batches are allocated lazily, only when a stall needs them. A late twist still reaches the edge, which acts on
-# the newest of a burst and counts the rest as superseded.
+# Batches are allocated lazily, only when a stall needs them. The twists held through a stall reach the edge
+# together and late: it applies them in order at once (the newest sets the velocity) and drops any older than
+# the supervisor's max_command_age.
 TX_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
 TX_QUEUE_SIZE_KEY = "transport/link/tx/queue/size"
 
