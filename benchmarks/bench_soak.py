@@ -4,7 +4,8 @@ Starts, as `iorthand demo` does, a router, the recorder, the twin (serving its w
 simulated edge of configs/edge-sim.yaml (robot, force, servos, torch, camera + ultrasound video in H.264,
 perception) and one scripted operator that plays configs/demo-script.yaml over and over for ``--minutes``
 (one process, one recording: a session, not a series of starts). Every ``--sample-s`` it samples the resident
-memory of each service (with its children: the edge's media process, the twin's rerun relay). At the end it opens
+memory of each service (with its children: the edge's media process, the twin's rerun relay) and how much of it
+is Zenoh's shared memory (pools mapped by every receiver, bounded by iorthand.transport.SHM_POOL_SIZE). At the end it opens
 the twin's viewer in Debian's Chromium (Playwright) and reads how far its time cursor is behind live
 (:mod:`iorthand_cloud.twin.viewer_state`), stops the recording and reads what it holds.
 
@@ -47,18 +48,31 @@ TARGET_LAG_S = 1.0
 SETTLE_MIN = 10.0
 
 
-def rss_mb(pid: int, children: bool = True) -> float:
-    """Resident memory of a process and (``children``) its children (MB)."""
+def memory_mb(pid: int, children: bool = True) -> tuple[float, float]:
+    """Resident memory of a process and (``children``) its children, and how much of it is shared memory (MB):
+    Zenoh's pools, which every receiver maps and counts (iorthand.transport.SHM_POOL_SIZE)."""
     try:
         p = psutil.Process(pid)
         procs = [p, *(p.children(recursive=True) if children else [])]
     except psutil.NoSuchProcess:
-        return float("nan")
-    total = 0
+        return float("nan"), float("nan")
+    rss = shm = 0
     for q in procs:
-        with contextlib.suppress(psutil.NoSuchProcess):
-            total += q.memory_info().rss
-    return total / 1e6
+        with contextlib.suppress(psutil.NoSuchProcess, FileNotFoundError, ProcessLookupError):
+            rss += q.memory_info().rss
+            with open(f"/proc/{q.pid}/status") as f:
+                shm += next((int(line.split()[1]) * 1024 for line in f if line.startswith("RssShmem:")), 0)
+    return rss / 1e6, shm / 1e6
+
+
+def settled_growth(samples: list[dict[str, Any]], column: str) -> dict[str, Any]:
+    """A column's start, its value at SETTLE_MIN, its end, and its growth after SETTLE_MIN (to its highest)."""
+    series = [(s["t_s"], s[column]) for s in samples if s.get(column) == s.get(column)]  # NaN-free
+    after = [v for t, v in series if t >= 60 * SETTLE_MIN]
+    at_settle = after[0] if after else None
+    return {"start_mb": series[0][1] if series else None, "at_10_min_mb": at_settle,
+            "end_mb": series[-1][1] if series else None,
+            "growth_after_10_min_mb": round(max(after) - at_settle, 1) if after else None}
 
 
 def long_script(path: Path, minutes: float) -> None:
@@ -159,12 +173,15 @@ def main(argv: list[str] | None = None) -> int:
         def sample() -> None:
             t0 = time.monotonic()
             while not stop.wait(0 if not samples else args.sample_s):
-                samples.append({"t_s": round(time.monotonic() - t0, 1),
-                                **{name: round(rss_mb(c.proc.pid), 1) for name, c in procs.items()},
-                                # The parts: the twin's Python process (its rerun relay is a child), the edge's
-                                # control process (its media process is a child).
-                                "twin_own": round(rss_mb(procs["twin"].proc.pid, children=False), 1),
-                                "edge_own": round(rss_mb(procs["edge"].proc.pid, children=False), 1)})
+                row: dict[str, float] = {"t_s": round(time.monotonic() - t0, 1)}
+                for name, c in procs.items():
+                    rss, shm = memory_mb(c.proc.pid)
+                    row[name], row[f"{name}_shm"] = round(rss, 1), round(shm, 1)
+                # The parts: the twin's Python process (its rerun relay is a child), the edge's control process
+                # (its media process is a child).
+                row["twin_own"] = round(memory_mb(procs["twin"].proc.pid, children=False)[0], 1)
+                row["edge_own"] = round(memory_mb(procs["edge"].proc.pid, children=False)[0], 1)
+                samples.append(row)
 
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
@@ -184,14 +201,8 @@ def main(argv: list[str] | None = None) -> int:
     totals = mf.totals(manifest.keys)
     gapped = {key for key, st in manifest.keys.items() if st.missing}
     gaps = gaps_in(work / "recordings" / "soak", gapped, int(started * 1e9)) if gapped else []
-    growth: dict[str, Any] = {}
-    for name in SERVICES:
-        series = [(s["t_s"], s[name]) for s in samples if s.get(name) == s.get(name)]  # NaN-free
-        after = [v for t, v in series if t >= 60 * SETTLE_MIN]
-        at_settle = after[0] if after else None
-        growth[name] = {"start_mb": series[0][1] if series else None, "at_10_min_mb": at_settle,
-                        "end_mb": series[-1][1] if series else None,
-                        "growth_after_10_min_mb": round(max(after) - at_settle, 1) if after else None}
+    growth = {name: {**settled_growth(samples, name),
+                     "of_which_shared_memory": settled_growth(samples, f"{name}_shm")} for name in SERVICES}
     data = {
         "benchmark": "soak", "machine": report.machine(),
         "config": {"minutes": args.minutes, "sample_s": args.sample_s, "workdir": str(work), "started": started,

@@ -145,6 +145,8 @@ def zenoh_entries(cfg: ZenohConfig) -> dict[str, Any]:
         "transport/shared_memory/enabled": cfg.shared_memory,
         **{f"{TX_QUEUE_SIZE_KEY}/{priority}": size for priority, size in TX_QUEUE_SIZE.items()},
     }
+    if cfg.shared_memory:
+        entries[SHM_POOL_SIZE_KEY] = SHM_POOL_SIZE
     if cfg.mode != "router":
         entries["scouting/gossip/enabled"] = False
         entries[RX_MAX_MESSAGE_KEY] = RX_MAX_MESSAGE  # a router forwards its sites' messages, whatever they are
@@ -466,6 +468,16 @@ def free_port() -> int:
 TX_QUEUE_SIZE = {"real_time": 8, "interactive_high": 4}
 TX_QUEUE_SIZE_KEY = "transport/link/tx/queue/size"
 
+# The shared-memory pool of a session that sends large messages (≥ 3 KB) to processes on its own host. Zenoh's
+# default is 16 MiB per sending session (a router forwarding a remote site's video makes one too); every process
+# that receives from it maps it, and its RSS counts each page it has touched, up to the whole pool. Our largest
+# messages are video frames of tens of KB, and receivers copy them out in the callback, so few are in flight; a
+# message that does not fit goes over the link as usual. Measured with the default: a burst of 300 frames of
+# 60 KB, forwarded by a router from a site without shared memory, grew the recorder's RSS by 17.7 MB at once, as
+# in the 2-hour soak's simultaneous step in router, recorder and twin (tests/test_shared_memory.py).
+SHM_POOL_SIZE = 4 * 1024 * 1024
+SHM_POOL_SIZE_KEY = "transport/shared_memory/transport_optimization/pool_size"
+
 
 ROUTER_LEASE_MS = 2000
 # A router that dials another (an edge site's router → the cloud) announces a longer lease than the router it
@@ -499,8 +511,8 @@ def router_settings(listen: list[str], connect: list[str] | None = None, lease_m
         "transport": {"link": {"tx": {"lease": lease_ms, "queue": {"size": dict(TX_QUEUE_SIZE)}},
                                "rx": {"max_message_size": RX_MAX_MESSAGE}}},
     }
-    if not shared_memory:
-        cfg["transport"]["shared_memory"] = {"enabled": False}
+    cfg["transport"]["shared_memory"] = ({"transport_optimization": {"pool_size": SHM_POOL_SIZE}} if shared_memory
+                                         else {"enabled": False})
     if connect:
         cfg["connect"] = {"endpoints": list(connect)}
     return cfg

@@ -15,6 +15,8 @@ from iorthand.security import acl, certs, diagnose, identity
 from iorthand.transport import (
     DIALING_LEASE_EXTRA_MS,
     ROUTER_LEASE_MS,
+    SHM_POOL_SIZE,
+    SHM_POOL_SIZE_KEY,
     TX_QUEUE_SIZE,
     TlsConfig,
     ZenohConfig,
@@ -156,9 +158,10 @@ def test_generated_config_is_accepted_by_zenoh(tmp_path: Path, bind: bool) -> No
     assert json.loads(zc.get_json("access_control/enabled")) is True
 
 
-def test_every_router_configuration_has_the_command_queue_sizes() -> None:
+def test_every_router_configuration_has_the_command_queue_sizes_and_the_small_shared_memory_pool() -> None:
     """The generated (TLS) configuration, the shipped plain one and ``iorthand router``'s built-in one all
-    ride out CPU stalls without dropping commands (see TX_QUEUE_SIZE)."""
+    ride out CPU stalls without dropping commands (see TX_QUEUE_SIZE) and forward through a small pool
+    (SHM_POOL_SIZE)."""
     configs = {
         "generated": zenoh.Config.from_json5(acl.to_json5(acl.router_config(_dep()))),
         "configs/router.json5": load_router_config(ROOT / "configs" / "router.json5"),
@@ -168,6 +171,7 @@ def test_every_router_configuration_has_the_command_queue_sizes() -> None:
         sizes = json.loads(zc.get_json("transport/link/tx/queue/size"))
         assert {k: sizes[k] for k in TX_QUEUE_SIZE} == TX_QUEUE_SIZE, name
         assert json.loads(zc.get_json("transport/link/tx/lease")) == ROUTER_LEASE_MS, name
+        assert json.loads(zc.get_json(SHM_POOL_SIZE_KEY)) == SHM_POOL_SIZE, name
 
 
 def test_a_router_that_dials_another_announces_the_longer_lease() -> None:

@@ -47,7 +47,7 @@ from typing import Any
 from iorthand import channels, keys
 from iorthand.channels import Channel, Kind, OperatorKey, Role
 from iorthand.config import setting
-from iorthand.transport import ROUTER_LEASE_MS, TX_QUEUE_SIZE, announced_lease
+from iorthand.transport import ROUTER_LEASE_MS, SHM_POOL_SIZE, TX_QUEUE_SIZE, announced_lease
 
 ALL_MESSAGES = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -255,7 +255,8 @@ def router_config(dep: Deployment) -> dict[str, Any]:
         "close_link_on_expiration": True,
     }
     tx = {"lease": announced_lease(dep.lease_ms, bool(dep.connect)), "queue": {"size": dict(TX_QUEUE_SIZE)}}
-    transport: dict[str, Any] = {"link": {"tls": tls, "tx": tx}}
+    transport: dict[str, Any] = {"link": {"tls": tls, "tx": tx},
+                                 "shared_memory": {"transport_optimization": {"pool_size": SHM_POOL_SIZE}}}
     if dep.users_file is not None:
         transport["auth"] = {"usrpwd": {"dictionary_file": str(dep.users_file)}}
     cfg: dict[str, Any] = {
