@@ -7,7 +7,7 @@ import math
 from iorthand_operator.bench import report
 from iorthand_operator.bench.linkemu import LinkProfile
 from iorthand_operator.bench.transports import analyse_ping, merge_ping_rounds
-from iorthand_operator.bench.wan import PROFILES, blackout_trials, netem_args, summarize_trials
+from iorthand_operator.bench.wan import PROFILES, blackout_trials, netem_args, summarize_trials, video_figures
 
 MS = 1_000_000
 
@@ -129,3 +129,28 @@ def test_a_result_names_the_commit_of_the_code_that_produced_it() -> None:
         return
     dirty = subprocess.run(["git", "-C", str(ROOT), "diff", "--quiet", "HEAD", "--"]).returncode
     assert report.source_tree() == head.stdout.strip() + ("+changes" if dirty else "")
+
+
+def test_video_figures_count_what_a_viewer_got_after_the_warm_up() -> None:
+    """Frames as the video probe writes them (seq, capture ns, arrival ns, bytes, keyframe, decoded): 30 fps for
+    12 s on a 40 ms link, 60 ms from capture to arrival, except 4 frames that a stall held 240 ms more, one frame
+    missing by sequence and one that did not decode. The first 2 s are the warm-up."""
+    period = 1e9 / 30
+    frames = []
+    for i in range(360):
+        if i == 200:
+            continue  # lost on the way
+        arrival = int(1e9 + i * period)
+        late = 300e6 if i in (100, 101, 102, 103) else 60e6
+        frames.append([i + 1, int(arrival - late), arrival, 6000, i % 30 == 0, i != 150])
+    v = video_figures(frames, link_delay_ms=40.0, codec="h264")
+    kept = [f for f in frames if f[2] >= frames[0][2] + 2e9]
+    assert v["frames"] == len(kept) == 299
+    assert v["decoded"] == 298
+    assert v["lost_by_sequence"] == 1
+    assert 29.0 < v["fps_delivered"] < 30.5
+    assert v["delay_ms"]["p50"] == 60.0
+    assert v["share_over_target"] == round(4 / 298, 4)  # 260 ms over the link's 40: over the 200 ms target
+    assert v["delay_over_link_p99_ms"] > 200.0  # 4 of 298 is more than 1 %: the p99 is a stalled frame
+    span_s = (kept[-1][2] - (frames[0][2] + 2e9)) / 1e9
+    assert v["bitrate_kbit_s"] == round(8 * 6000 * 299 / span_s / 1e3, 1)  # ≈ 1.44 Mbit/s

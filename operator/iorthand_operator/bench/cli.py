@@ -23,7 +23,7 @@ from iorthand.config import cli_number
 from iorthand.cpu_latency import CpuLatencyHold
 from iorthand_operator.bench import linkemu, report
 from iorthand_operator.bench.procs import Unavailable, run_cleanups, set_nice
-from iorthand_operator.bench.wan import EMULATORS, PROFILES, VIDEOS
+from iorthand_operator.bench.wan import EMULATORS, FRAME_DELAY_OVER_LINK_TARGET_MS, PROFILES, VIDEOS
 
 log = logging.getLogger("iorthand.bench")
 
@@ -128,10 +128,12 @@ def run_wan_part(args: argparse.Namespace) -> dict[str, Any]:
     if vids:
         print("\nVideo across the link (640×480, 30 fps captured)")
         print(report.table(["profile+codec", "fps delivered", "delay p50 ms", "delay p99 ms", "p99 over link ms",
-                            "kbit/s", "command p99 ÷ no video"],
+                            f"% over link +{FRAME_DELAY_OVER_LINK_TARGET_MS:g} ms", "kbit/s", "command p99 ÷ no video"],
                            [[n, p["video"]["fps_delivered"], p["video"].get("delay_ms", {}).get("p50"),
                              p["video"].get("delay_ms", {}).get("p99"), p["video"].get("delay_over_link_p99_ms"),
-                             p["video"].get("bitrate_kbit_s"), p.get("command_p99_ratio_to_no_video")]
+                             None if p["video"].get("share_over_target") is None
+                             else round(100 * p["video"]["share_over_target"], 2), p["video"].get("bitrate_kbit_s"),
+                             p.get("command_p99_ratio_to_no_video")]
                             for n, p in vids.items()]))
     pngs = [plots.cdf_plot(profs, args.out / "wan-cdf.png", "what the operator experiences, per WAN profile")]
     if "blackout" in profs:
