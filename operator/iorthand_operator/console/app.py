@@ -8,6 +8,7 @@ the active device; with a gamepad, the keyboard still has e-stop and the pose li
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -19,6 +20,7 @@ from textual import events, work
 from textual.app import App, ComposeResult
 from textual.binding import Binding
 from textual.containers import Grid, Vertical
+from textual.css.query import NoMatches
 from textual.message import Message
 from textual.screen import ModalScreen
 from textual.widgets import Footer, OptionList, RichLog, Static
@@ -229,6 +231,11 @@ class OperatorConsole(App[int]):
     def refresh_view(self) -> None:
         v = self.controller.view()
         self.view_model = v
+        # NoMatches: the console is closing, and a last tick of the refresh timer came after its panels were removed.
+        with contextlib.suppress(NoMatches):
+            self._draw(v)
+
+    def _draw(self, v: ConsoleView) -> None:
         self.query_one("#status", Static).update(self._status(v))
         self.query_one("#force", Static).update(self._force(v))
         # textual's CSS colours differ from rich's: grey50 is "grey" there.
