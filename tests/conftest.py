@@ -31,15 +31,18 @@ def router_endpoint() -> Iterator[str]:
 
 
 class RouterProcess:
-    """A router in its own process (``iorthand router``), so tests can kill and restart it."""
+    """A router in its own process (``iorthand router``), so tests can kill and restart it; with ``config``, that
+    router configuration file (which names the endpoint) instead of the built-in one."""
 
-    def __init__(self, endpoint: str) -> None:
+    def __init__(self, endpoint: str, config: Path | None = None) -> None:
         self.endpoint = endpoint
+        self.config = config
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
+        settings = ["--config", str(self.config)] if self.config else ["--listen", self.endpoint]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "iorthand.cli", "router", "--listen", self.endpoint],
+            [sys.executable, "-m", "iorthand.cli", "router", *settings],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
         )
         assert self.proc.stdout is not None

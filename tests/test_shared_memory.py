@@ -13,37 +13,25 @@ own bookkeeping segment.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
 
+from iorthand import keys
 from iorthand.transport import SHM_POOL_SIZE, client_config, free_port, open_session, router_settings
-from tests.conftest import stop_process, wait_until
+from tests.conftest import RouterProcess, wait_until
 
 FRAMES = 300
 FRAME_BYTES = 60_000
-KEY = "iorthand/shm1/video/camera"
+KEY = keys.RobotKeys("shm1").key(keys.VIDEO_CAMERA)
 BOOKKEEPING = 2 * 1024 * 1024  # Zenoh's per-process metadata segment (1.25 MiB), mapped once
 
 
 def shared_resident_bytes() -> int:
     with open("/proc/self/status") as f:
         return next(int(line.split()[1]) * 1024 for line in f if line.startswith("RssShmem:"))
-
-
-def start_router(config: Path) -> subprocess.Popen[bytes]:
-    proc = subprocess.Popen([sys.executable, "-m", "iorthand.cli", "router", "--config", str(config)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 15
-    for line in proc.stdout:
-        if b"router ready" in line or time.monotonic() > deadline:
-            break
-    return proc
 
 
 def burst_growth(tmp_path: Path, pool: str) -> int:
@@ -54,7 +42,8 @@ def burst_growth(tmp_path: Path, pool: str) -> int:
         del settings["transport"]["shared_memory"]
     config = tmp_path / f"router-{pool}.json5"
     config.write_text(json.dumps(settings))
-    router = start_router(config)
+    router = RouterProcess(endpoint, config)
+    router.start()
     receiver = open_session(client_config(endpoint))
     site = open_session(client_config(endpoint, shared_memory=False))
     received = 0
@@ -80,7 +69,7 @@ def burst_growth(tmp_path: Path, pool: str) -> int:
     finally:
         site.close()
         receiver.close()
-        stop_process(router)
+        router.stop()
     return growth
 
 
