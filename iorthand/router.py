@@ -13,7 +13,15 @@ from pathlib import Path
 import zenoh
 
 from iorthand.config import ConfigError, cli_number
-from iorthand.transport import announced_lease, check_endpoint, load_router_config, router_settings
+from iorthand.transport import (
+    DATAGRAM_MAX_LINKS,
+    MAX_LINKS_KEY,
+    announced_lease,
+    check_endpoint,
+    load_router_config,
+    router_settings,
+    with_datagram_links,
+)
 
 log = logging.getLogger("iorthand.router")
 
@@ -58,15 +66,31 @@ def _cmd(args: argparse.Namespace) -> int:
             config.insert_json5("transport/link/tx/lease", str(lease_ms))
         if args.no_shared_memory:
             config.insert_json5("transport/shared_memory/enabled", "false")
+        if args.datagrams:
+            listen, connect = (_endpoints(config, "listen"), _endpoints(config, "connect"))
+            try:
+                listen, connect = with_datagram_links(listen, connect)
+            except ValueError as exc:
+                raise ConfigError(args.config, "--datagrams", str(exc)) from None
+            config.insert_json5("listen/endpoints", json.dumps(listen))
+            config.insert_json5("connect/endpoints", json.dumps(connect))
+            config.insert_json5(MAX_LINKS_KEY, str(DATAGRAM_MAX_LINKS))
     else:
-        settings = router_settings(args.listen or ["tcp/127.0.0.1:7447"], args.connect,
-                                   lease_ms=args.lease_ms, shared_memory=not args.no_shared_memory)
+        try:
+            settings = router_settings(args.listen or ["tcp/127.0.0.1:7447"], args.connect, lease_ms=args.lease_ms,
+                                       shared_memory=not args.no_shared_memory, datagrams=args.datagrams)
+        except ValueError as exc:
+            raise ConfigError("command line", "--datagrams", str(exc)) from None
         config = zenoh.Config.from_json5(json.dumps(settings))
-    endpoints = json.loads(config.get_json("listen/endpoints"))
+    run_router(config, ", ".join(_endpoints(config, "listen")))
+    return 0
+
+
+def _endpoints(config: zenoh.Config, which: str) -> list[str]:
+    endpoints = json.loads(config.get_json(f"{which}/endpoints"))
     if isinstance(endpoints, dict):  # per-role form {router: [...], peer: [...]}
         endpoints = endpoints.get("router", [])
-    run_router(config, ", ".join(endpoints))
-    return 0
+    return list(endpoints)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -77,4 +101,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lease-ms", type=cli_number(int, lo=500, hi=60_000), help="the lease this router announces (default 2000 ms, 1000 ms more with --connect: see announced_lease)")
     p.add_argument("--no-shared-memory", action="store_true",
                    help="never hand payloads over through shared memory (a router modelling its own host)")
+    p.add_argument("--datagrams", action="store_true",
+                   help="UDP links beside the TCP ones (listen on UDP at each TCP address, dial UDP beside each TCP "
+                        "--connect): the video goes as datagrams, everything else stays on TCP; not with tls/ "
+                        "(use quic/HOST:PORT?mixed_rel=1)")
     p.set_defaults(func=_cmd)

@@ -37,6 +37,11 @@ class QosProfile:
     priority: zenoh.Priority
     congestion: zenoh.CongestionControl
     express: bool = False
+    best_effort: bool = False  # see VIDEO
+
+    @property
+    def reliability(self) -> zenoh.Reliability:
+        return zenoh.Reliability.BEST_EFFORT if self.best_effort else zenoh.Reliability.RELIABLE
 
 
 COMMAND = QosProfile(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.DROP, express=True)
@@ -45,8 +50,13 @@ STATE = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP
 SAFETY = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.BLOCK)
 DATA = QosProfile(zenoh.Priority.DATA, zenoh.CongestionControl.DROP)
 # BLOCK: a full uplink makes the edge's put wait (it then skips frames at the source and lowers the H.264 bitrate)
-# instead of losing fragments in transit, which spoils an H.264 stream until its next keyframe.
-VIDEO = QosProfile(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.BLOCK)
+# instead of dropping frames in the sender's queue, which spoils an H.264 stream until its next keyframe.
+# BEST_EFFORT: where a datagram link exists (a QUIC link with mixed_rel=1, or a UDP link beside TCP between
+# routers: see DATAGRAM_LINK_META), Zenoh sends the frames as datagrams, so a packet lost on a radio link costs the
+# frames up to the next keyframe (the viewer asks for one) instead of holding every frame behind it for a
+# retransmission (4G, `iorthand bench wan`: p99 frame delay 205 ms over the link's own on TCP). On a TCP or TLS
+# link best effort changes nothing: TCP delivers every byte.
+VIDEO = QosProfile(zenoh.Priority.DATA_LOW, zenoh.CongestionControl.BLOCK, best_effort=True)
 
 # What each QoS profile named by the table of channels is on the wire.
 QOS_PROFILES: dict[channels.Qos, QosProfile] = {
@@ -102,6 +112,12 @@ class ZenohConfig:
             raise ValueError("connect: a client needs at least one router endpoint, e.g. tcp/127.0.0.1:7447")
         for ep in [*self.connect, *self.listen]:
             check_endpoint(ep)
+            if ep.startswith("udp/"):
+                # A session whose only link is UDP would send its commands and state as datagrams too: lost
+                # without a word, and in clear.
+                raise ValueError(f"endpoint {ep!r}: UDP carries nothing reliably and nothing encrypted; use tcp/ or "
+                                 f"tls/, or quic/HOST:PORT?mixed_rel=1 for datagrams (iorthand router --datagrams "
+                                 f"adds UDP links between routers)")
             if ep.startswith(("tls/", "quic/")) and self.tls is None:
                 raise ValueError(f"endpoint {ep!r} needs a tls section (root_ca, certificate, private_key)")
         if self.username and self.password_file is None:
@@ -274,7 +290,7 @@ def publisher(session: zenoh.Session, key: str, qos: QosProfile | None = None) -
         _, suffix = keys.split_key(key)
         qos = QOS_BY_KEY[suffix]
     return session.declare_publisher(
-        key, priority=qos.priority, congestion_control=qos.congestion, express=qos.express
+        key, priority=qos.priority, congestion_control=qos.congestion, express=qos.express, reliability=qos.reliability
     )
 
 
@@ -495,13 +511,45 @@ def announced_lease(lease_ms: int, dials: bool) -> int:
     return lease_ms + DIALING_LEASE_EXTRA_MS if dials else lease_ms
 
 
+# Datagram links between routers: a router that dials another over TCP may add a UDP link to the same host and
+# port, for best-effort messages only (the video, QoS VIDEO), so that a packet lost on the way costs a frame
+# instead of holding back the stream behind it; the router it dials listens on UDP too and admits a second link
+# per transport. Zenoh picks the link by each message's reliability: everything reliable stays on TCP. UDP is
+# not encrypted: with TLS the datagram link is QUIC's (``quic/HOST:PORT?mixed_rel=1`` instead of ``tls/``).
+DATAGRAM_LINK_META = "rel=0"
+DATAGRAM_MAX_LINKS = 2
+MAX_LINKS_KEY = "transport/unicast/max_links"
+
+
+def datagram_endpoint(endpoint: str) -> str:
+    """The UDP endpoint beside ``tcp/HOST:PORT`` (metadata dropped); ValueError naming why for any other."""
+    protocol, _, address = endpoint.partition("/")
+    hostport = re.split(r"[?#]", address, maxsplit=1)[0]
+    if protocol == "tcp":
+        return f"udp/{hostport}"
+    if protocol == "tls":
+        raise ValueError(f"endpoint {endpoint!r}: UDP datagrams would carry the video in clear beside TLS; "
+                         f"use quic/{hostport}?mixed_rel=1 instead (QUIC's datagrams are encrypted)")
+    raise ValueError(f"endpoint {endpoint!r}: a datagram link goes beside a tcp/HOST:PORT endpoint")
+
+
+def with_datagram_links(listen: list[str], connect: list[str]) -> tuple[list[str], list[str]]:
+    """The endpoints of a router with datagram links: a UDP listener on each TCP listener's address, and a UDP
+    link (best effort only) beside each TCP link it dials."""
+    return ([*listen, *(datagram_endpoint(e) for e in listen)],
+            [*connect, *(f"{datagram_endpoint(e)}?{DATAGRAM_LINK_META}" for e in connect)])
+
+
 def router_settings(listen: list[str], connect: list[str] | None = None, lease_ms: int | None = None,
-                    shared_memory: bool = True) -> dict[str, Any]:
+                    shared_memory: bool = True, datagrams: bool = False) -> dict[str, Any]:
     """A plain router's configuration as a dict (written as JSON, it is a JSON5 file a stock zenohd reads).
     The lease defaults to ROUTER_LEASE_MS, longer for a router that connects to others (:func:`announced_lease`).
     ``shared_memory=False`` models a router on its own host: two routers on one machine otherwise negotiate
-    shared memory and hand large payloads over through it, which no link between sites can do."""
+    shared memory and hand large payloads over through it, which no link between sites can do. ``datagrams``:
+    UDP links beside the TCP ones (:func:`with_datagram_links`)."""
     lease_ms = lease_ms or announced_lease(ROUTER_LEASE_MS, bool(connect))
+    if datagrams:
+        listen, connect = with_datagram_links(listen, connect or [])
     cfg: dict[str, Any] = {
         "mode": "router",
         "listen": {"endpoints": list(listen)},
@@ -513,6 +561,8 @@ def router_settings(listen: list[str], connect: list[str] | None = None, lease_m
     }
     cfg["transport"]["shared_memory"] = ({"transport_optimization": {"pool_size": SHM_POOL_SIZE}} if shared_memory
                                          else {"enabled": False})
+    if datagrams:
+        cfg["transport"]["unicast"] = {"max_links": DATAGRAM_MAX_LINKS}
     if connect:
         cfg["connect"] = {"endpoints": list(connect)}
     return cfg
@@ -538,6 +588,7 @@ __all__ = [
     "ZenohConfig",
     "announced_lease",
     "client_config",
+    "datagram_endpoint",
     "open_session",
     "publisher",
     "query",

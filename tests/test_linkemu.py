@@ -1,7 +1,9 @@
-"""The userspace link emulator on 127.0.0.1: delay, order under jitter, blackout, clean close."""
+"""The userspace link emulator on 127.0.0.1: delay, order under jitter, blackout, clean close; and its datagram relay:
+delay, loss per packet, nothing held behind a loss."""
 
 from __future__ import annotations
 
+import contextlib
 import random
 import socket
 import subprocess
@@ -11,7 +13,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from iorthand_operator.bench.linkemu import DelayLine, LinkEmulator, LinkProfile
+from iorthand_operator.bench.linkemu import PACKET_PAYLOAD, DatagramRelay, DelayLine, LinkEmulator, LinkProfile
 from tests.conftest import iorthand_cmd
 
 
@@ -38,6 +40,24 @@ def echo_server() -> Iterator[tuple[str, int]]:
     threading.Thread(target=accept, daemon=True).start()
     yield srv.getsockname()
     stop.set()
+    srv.close()
+
+
+@pytest.fixture
+def udp_echo() -> Iterator[tuple[str, int]]:
+    srv = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    srv.bind(("127.0.0.1", 0))
+
+    def serve() -> None:
+        while True:
+            try:
+                data, peer = srv.recvfrom(65536)
+                srv.sendto(data, peer)
+            except OSError:
+                return
+
+    threading.Thread(target=serve, daemon=True).start()
+    yield srv.getsockname()
     srv.close()
 
 
@@ -144,3 +164,70 @@ def test_the_bench_command_runs_the_relay(echo_server: tuple[str, int]) -> None:
     finally:
         proc.kill()
         proc.wait(10)
+
+
+def test_datagram_loss_is_per_packet_and_datagrams_never_stall() -> None:
+    line = DelayLine(LinkProfile(10.0, 0.0, stall_prob=0.05, stall_ms=200.0), random.Random(7))
+    small = sum(line.lost(100) for _ in range(20_000)) / 20_000
+    big = sum(line.lost(6 * PACKET_PAYLOAD) for _ in range(20_000)) / 20_000  # six packets
+    assert small == pytest.approx(0.05, abs=0.01)
+    assert big == pytest.approx(1 - 0.95 ** 6, abs=0.015)
+    # A datagram that gets through is delayed by the link only: a loss holds nothing back.
+    assert {line.sample_delay(stalls=False) for _ in range(1000)} == {0.010}
+    assert not DelayLine(LinkProfile(10.0), random.Random(1)).lost(60_000)
+
+
+def test_datagram_relay_delays_both_ways(udp_echo: tuple[str, int]) -> None:
+    with DatagramRelay(("127.0.0.1", 0), udp_echo, LinkProfile(25.0)) as relay, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(5)
+        t0 = time.monotonic()
+        s.sendto(b"ping", ("127.0.0.1", relay.port))
+        data, _ = s.recvfrom(100)
+        rtt = time.monotonic() - t0
+    assert data == b"ping"
+    assert 0.050 <= rtt < 2.0  # 25 ms each way
+
+
+def test_datagram_relay_loses_some_keeps_order_and_holds_none_back(udp_echo: tuple[str, int]) -> None:
+    with DatagramRelay(("127.0.0.1", 0), udp_echo, LinkProfile(5.0, 3.0, 0.1, 200.0), seed=3) as relay, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(1.0)
+        sent: dict[int, float] = {}
+        got: list[tuple[int, float]] = []
+
+        def receive() -> None:  # stamps arrivals while the sender runs
+            with contextlib.suppress(TimeoutError):
+                while True:
+                    data, _ = s.recvfrom(100)
+                    got.append((int.from_bytes(data, "big"), time.monotonic()))
+
+        reader = threading.Thread(target=receive)
+        reader.start()
+        for i in range(300):
+            sent[i] = time.monotonic()
+            s.sendto(i.to_bytes(4, "big"), ("127.0.0.1", relay.port))
+            time.sleep(0.002)
+        reader.join(10)
+        lost = relay.datagrams_lost
+    seqs = [i for i, _ in got]
+    assert seqs == sorted(seqs)  # in order, like the TCP relay
+    # 10 % per direction: about 19 % of the round trips lost, and every one the relay counted.
+    assert 0.08 < 1 - len(got) / 300 < 0.32
+    assert lost == 300 - len(got)
+    # No 200 ms stall behind a loss: every echo came back within the delay and jitter (plus this VM's scheduling).
+    assert max(t - sent[i] for i, t in got) < 0.1
+
+
+def test_datagram_blackout_loses_everything(udp_echo: tuple[str, int]) -> None:
+    with DatagramRelay(("127.0.0.1", 0), udp_echo, LinkProfile()) as relay, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(0.3)
+        relay.blackout(True)
+        s.sendto(b"a", ("127.0.0.1", relay.port))
+        with pytest.raises(TimeoutError):
+            s.recvfrom(10)
+        relay.blackout(False)
+        s.settimeout(5)
+        s.sendto(b"b", ("127.0.0.1", relay.port))
+        assert s.recvfrom(10)[0] == b"b"  # "a" never arrives: nothing was kept for later

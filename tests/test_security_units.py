@@ -96,6 +96,9 @@ def test_config_refuses_tls_endpoint_without_tls_and_user_without_password() -> 
         from_dict({"connect": ["tls/1.2.3.4:7447"]}, ZenohConfig)
     with pytest.raises(ConfigError, match="password_file"):
         from_dict({"connect": ["tcp/1.2.3.4:7447"], "username": "u"}, ZenohConfig)
+    # A session on UDP alone would send its commands as datagrams, lost without a word, and in clear.
+    with pytest.raises(ConfigError, match=r"UDP carries nothing reliably.*quic/HOST:PORT\?mixed_rel=1"):
+        from_dict({"connect": ["udp/1.2.3.4:7447"]}, ZenohConfig)
 
 
 def _dep(**kw: object) -> acl.Deployment:

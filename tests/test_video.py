@@ -181,12 +181,15 @@ def test_a_camera_that_stops_giving_frames_is_reopened() -> None:
     assert pub.frames[first].t - pub.frames[first - 1].t >= 0.2e9
 
 
-def test_video_qos_is_low_priority_and_blocks_at_the_sender() -> None:
+def test_video_qos_is_low_priority_blocks_at_the_sender_and_may_go_as_datagrams() -> None:
     """BLOCK: a full uplink shows as a slow put at the edge (which then skips frames at the source and lowers the
-    bitrate), not as frames lost on the way (a lost H.264 frame spoils the ones after it)."""
+    bitrate), not as frames dropped from its queue (a lost H.264 frame spoils the ones after it). Best effort: where
+    a datagram link exists, a packet lost on the radio costs frames, not a stall of the stream
+    (tests/test_datagram_links.py)."""
     import zenoh
 
     assert VIDEO.priority == zenoh.Priority.DATA_LOW and VIDEO.congestion == zenoh.CongestionControl.BLOCK
+    assert VIDEO.reliability == zenoh.Reliability.BEST_EFFORT
 
 
 def test_streams_through_the_router_on_their_own_session(edge_factory, session_factory) -> None:
@@ -264,12 +267,18 @@ def test_h264_frames_decode_in_order_and_start_at_a_keyframe() -> None:
     late = H264Decoder()
     got = [bool(late.decode(f.data, f.keyframe)) for f in back[10:]]
     assert not any(got[:20]) and all(got[20:])  # seq 11…30 wait; the keyframe at seq 31 starts the picture
-    # On request (a viewer's feedback), the next frame is a keyframe; so is the first at a new bitrate.
-    enc.request_keyframe()
+    # On request (a viewer's feedback), the next frame is a keyframe; so is the first at a new bitrate. Requests
+    # while the keyframe is on its way (other viewers, or the same viewer's next undecodable frames) get no other.
+    now = time.monotonic()
+    assert enc.viewer_asks_keyframe(now + 1.0)
     assert encode_frame("camera", Captured(99, 1, source.grab()), config, enc).keyframe
+    assert not enc.viewer_asks_keyframe() and not enc.viewer_asks_keyframe(time.monotonic() + 0.1)
     assert not encode_frame("camera", Captured(100, 2, source.grab()), config, enc).keyframe
-    enc.set_bitrate(150_000)
+    assert enc.viewer_asks_keyframe(time.monotonic() + 0.25)  # that keyframe was lost too: asked again later
     assert encode_frame("camera", Captured(101, 3, source.grab()), config, enc).keyframe
+    assert not encode_frame("camera", Captured(102, 4, source.grab()), config, enc).keyframe
+    enc.set_bitrate(150_000)
+    assert encode_frame("camera", Captured(103, 5, source.grab()), config, enc).keyframe
 
 
 def test_the_bitrate_falls_at_once_on_congestion_and_climbs_back_slowly() -> None:

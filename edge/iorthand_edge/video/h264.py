@@ -4,7 +4,7 @@ libx264 through PyAV, tuned for latency: ``ultrafast`` + ``zerolatency`` (no loo
 is encoded and sent as it is captured), a bounded VBV buffer (no frame much bigger than the rate allows, so the
 uplink never queues seconds of video), SPS/PPS repeated at every keyframe (a viewer can start at any of them), a
 keyframe every ``keyframe_interval`` s (a viewer that joins or lost a frame waits at most that) and on request
-(:meth:`H264Encoder.request_keyframe`: a viewer's feedback). One encoder thread: x264's default of 1.5 threads per
+(:meth:`H264Encoder.viewer_asks_keyframe`: a viewer's feedback). One encoder thread: x264's default of 1.5 threads per
 core spread the encoding over every core and delayed the control process (command path p99 with video 5.7 → 4.3
 ms in one run, benchmarks/bench_command_path.py); one thread encodes 640×480 at 30 fps with room to spare. Each access unit travels in one ``VideoFrame``
 (Annex B, ``encoding: h264``, ``keyframe`` set on IDR frames).
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import fractions
 import logging
+import time
 
 import av
 import numpy as np
@@ -29,6 +30,12 @@ log = logging.getLogger("iorthand.edge.video")
 # delay a keyframe adds on a thin link) at some cost in quality. 0.3 s: a keyframe crosses a link of twice the
 # bitrate in about a frame period more than a plain frame.
 VBV_SECONDS = 0.3
+# A viewer asks for a keyframe at every frame it cannot decode until one arrives, and several viewers may ask about
+# the same lost frame. Requests within this long after a keyframe went out are about frames before it (it is on
+# its way) and get no other (each is several times a plain frame: on a lossy datagram link, answering them all
+# made more loss). A viewer that lost that keyframe too asks again after it. 0.2 s: a 4G round trip (~100 ms)
+# and a few frame periods.
+KEYFRAME_REQUEST_HOLD_S = 0.2
 
 
 class H264Encoder:
@@ -44,6 +51,7 @@ class H264Encoder:
         self._codec: av.VideoCodecContext | None = None
         self._pts = 0
         self._want_key = True
+        self._key_sent_at = -1e9  # monotonic s
         self.reopened = 0
 
     def _open(self) -> av.VideoCodecContext:
@@ -70,7 +78,17 @@ class H264Encoder:
             self._codec = None
 
     def request_keyframe(self) -> None:
+        """The next frame is a keyframe (the source is back: whoever watches starts again)."""
         self._want_key = True
+
+    def viewer_asks_keyframe(self, now: float | None = None) -> bool:
+        """A viewer's request (``now``: monotonic s): the next frame is a keyframe, unless one went out less than
+        KEYFRAME_REQUEST_HOLD_S ago. Returns whether the request was taken."""
+        now = time.monotonic() if now is None else now
+        if now - self._key_sent_at < KEYFRAME_REQUEST_HOLD_S:
+            return False
+        self._want_key = True
+        return True
 
     def encode(self, image: Image, t_ms: int) -> list[tuple[bytes, bool]]:
         """The access units for ``image`` (usually one; none while the encoder fills up), with keyframe flags."""
@@ -91,7 +109,10 @@ class H264Encoder:
         except av.error.FFmpegError as exc:
             self._codec = None
             raise VideoError(f"H.264 encoding failed: {exc}") from exc
-        return [(bytes(p), bool(p.is_keyframe)) for p in packets]
+        out = [(bytes(p), bool(p.is_keyframe)) for p in packets]
+        if any(key for _, key in out):
+            self._key_sent_at = time.monotonic()
+        return out
 
 
 class H264Decoder:

@@ -143,7 +143,7 @@ class VideoStream:
         """A viewer's report (the media process's subscription): a keyframe it waits for, and how the frames
         reach it (the bitrate follows the worst viewer)."""
         if self.h264 is not None and feedback.keyframe:
-            self.h264.request_keyframe()
+            self.h264.viewer_asks_keyframe()
         if self.bitrate is not None:
             self.bitrate.on_feedback(feedback.received, feedback.lost, feedback.delay_p90)
 

@@ -1,4 +1,5 @@
-"""A userspace link emulator: a TCP relay that holds each chunk for a profile's delay while keeping order.
+"""A userspace link emulator: a TCP relay that holds each chunk for a profile's delay while keeping order, and
+a UDP relay that does the same to datagrams and loses some.
 
 This machine's kernel has no ``netem``, and Zenoh and MQTT links are TCP, so delay and jitter are added at the
 stream level: every chunk read from one side is released to the other side at
@@ -6,6 +7,11 @@ stream level: every chunk read from one side is released to the other side at
 (TCP never reorders what the application sees), so jitter shows up the way it does on a real TCP link: late
 chunks hold back the ones behind them. A "stall" (probability per chunk) adds a long extra delay to one chunk —
 what a lost segment and its retransmission look like to a TCP receiver (head-of-line blocking on 4G).
+
+The datagram relay (``--udp``) carries Zenoh's UDP links (best-effort traffic: the video). It applies the same
+delay and jitter, in order, and the profile's stall probability as the loss of one packet: a datagram of n
+packets of the link's MTU is lost with probability 1 - (1 - p)^n, as on the radio link whose lost segments TCP
+retransmits in the stall. Nothing resends a lost datagram; the datagrams behind it are not held back.
 
 A blackout holds every chunk until it ends (a TCP connection over a dead radio keeps its bytes and delivers
 them late, in a burst); in namespaces the WAN benchmark blacks out with nftables drop rules instead.
@@ -31,6 +37,9 @@ from dataclasses import dataclass
 log = logging.getLogger("iorthand.bench.linkemu")
 
 _CHUNK = 65536
+# Payload bytes of one IP packet of a datagram on an Ethernet-sized link (1500 - 20 IP - 8 UDP): a larger datagram
+# travels as fragments and is lost if any of them is.
+PACKET_PAYLOAD = 1472
 
 
 @dataclass(frozen=True)
@@ -62,20 +71,29 @@ class DelayLine:
         self._rng = rng
         self._last_release = -float("inf")
 
-    def sample_delay(self) -> float:
-        """One chunk's own delay in seconds (before the in-order constraint)."""
+    def sample_delay(self, stalls: bool = True) -> float:
+        """One chunk's own delay in seconds (before the in-order constraint); without ``stalls`` (a datagram: a
+        lost one is gone, see :meth:`lost`) delay and jitter only."""
         p = self.profile
         d = p.delay_ms
         if p.jitter_ms:
             d += self._rng.uniform(-p.jitter_ms, p.jitter_ms)
-        if p.stall_prob and self._rng.random() < p.stall_prob:
+        if stalls and p.stall_prob and self._rng.random() < p.stall_prob:
             d += p.stall_ms
         return max(0.0, d) / 1000.0
 
-    def release_time(self, arrival: float) -> float:
-        release = max(arrival + self.sample_delay(), self._last_release)
+    def release_time(self, arrival: float, stalls: bool = True) -> float:
+        release = max(arrival + self.sample_delay(stalls), self._last_release)
         self._last_release = release
         return release
+
+    def lost(self, size: int) -> bool:
+        """Whether a datagram of ``size`` bytes is lost: each of its packets with the stall probability."""
+        p = self.profile.stall_prob
+        if not p:
+            return False
+        packets = max(1, -(-size // PACKET_PAYLOAD))
+        return self._rng.random() < 1.0 - (1.0 - p) ** packets
 
 
 class _Pipe:
@@ -239,6 +257,137 @@ class LinkEmulator:
         self.close()
 
 
+class _DatagramDirection:
+    """One direction of the datagram relay: datagrams queued with their release time, sent in order by one thread."""
+
+    def __init__(self, name: str, line: DelayLine, relay: DatagramRelay) -> None:
+        self.line, self.relay = line, relay
+        self._queue: deque[tuple[float, bytes, socket.socket, tuple[str, int] | None]] = deque()
+        self._cond = threading.Condition()
+        self.thread = threading.Thread(target=self._write, name=f"{name}-wr", daemon=True)
+
+    def push(self, data: bytes, out: socket.socket, to: tuple[str, int] | None) -> None:
+        now = time.monotonic()
+        with self._cond:
+            if self.relay.blacked_out.is_set() or self.line.lost(len(data)):
+                self.relay.count_lost()
+                return
+            self._queue.append((self.line.release_time(now, stalls=False), data, out, to))
+            self._cond.notify()
+
+    def _write(self) -> None:
+        while not self.relay.closed.is_set():
+            with self._cond:
+                while not self._queue and not self.relay.closed.is_set():
+                    self._cond.wait(0.2)
+                if not self._queue:
+                    continue
+                release, data, out, to = self._queue.popleft()
+            wait = release - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+            with contextlib.suppress(OSError):  # a peer gone, a full buffer: a datagram lost, as on a link
+                if to is None:
+                    out.send(data)
+                else:
+                    out.sendto(data, to)
+                self.relay.count(len(data))
+
+
+class DatagramRelay:
+    """Relays the datagrams sent to ``listen`` to ``target`` and the answers back, each direction delayed and
+    thinned by its profile. Each sender address gets its own socket towards the target (its own flow there)."""
+
+    def __init__(self, listen: tuple[str, int], target: tuple[str, int], up: LinkProfile,
+                 down: LinkProfile | None = None, seed: int = 1) -> None:
+        self.target = target
+        rng = random.Random(seed)
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind(listen)
+        self.address: tuple[str, int] = self._sock.getsockname()
+        self.blacked_out = threading.Event()
+        self.closed = threading.Event()
+        self._lock = threading.Lock()
+        self._flows: dict[tuple[str, int], socket.socket] = {}
+        self.datagrams = self.bytes_relayed = self.datagrams_lost = 0
+        self._up = _DatagramDirection("udp-up", DelayLine(up, random.Random(rng.random())), self)
+        self._down = _DatagramDirection("udp-down", DelayLine(down if down is not None else up,
+                                                              random.Random(rng.random())), self)
+        self._threads = [threading.Thread(target=self._read_clients, name="udp-rd", daemon=True),
+                         self._up.thread, self._down.thread]
+
+    @property
+    def port(self) -> int:
+        return self.address[1]
+
+    def start(self) -> DatagramRelay:
+        for t in self._threads:
+            t.start()
+        return self
+
+    def count(self, n: int) -> None:
+        with self._lock:
+            self.datagrams += 1
+            self.bytes_relayed += n
+
+    def count_lost(self) -> None:
+        with self._lock:
+            self.datagrams_lost += 1
+
+    def blackout(self, on: bool) -> None:
+        """Lose (on) or carry again (off) every datagram: a dead radio keeps no datagrams for later."""
+        (self.blacked_out.set if on else self.blacked_out.clear)()
+
+    def _flow(self, client: tuple[str, int]) -> socket.socket:
+        with self._lock:
+            flow = self._flows.get(client)
+            if flow is None:
+                flow = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                flow.connect(self.target)
+                self._flows[client] = flow
+                threading.Thread(target=self._read_target, args=(flow, client), name="udp-rd-target",
+                                 daemon=True).start()
+            return flow
+
+    def _read_clients(self) -> None:
+        while not self.closed.is_set():
+            try:
+                data, client = self._sock.recvfrom(_CHUNK)
+            except OSError:
+                return
+            self._up.push(data, self._flow(client), None)
+
+    def _read_target(self, flow: socket.socket, client: tuple[str, int]) -> None:
+        while not self.closed.is_set():
+            try:
+                data = flow.recv(_CHUNK)
+            except OSError:  # closed, or the target refused (ICMP port unreachable): keep listening until closed
+                if self.closed.is_set():
+                    return
+                time.sleep(0.05)
+                continue
+            self._down.push(data, self._sock, client)
+
+    def close(self) -> None:
+        self.closed.set()
+        with self._lock:
+            socks = [self._sock, *self._flows.values()]
+            self._flows.clear()
+        for s in socks:
+            with contextlib.suppress(OSError):
+                s.shutdown(socket.SHUT_RDWR)
+            s.close()
+        for t in self._threads:
+            if t.is_alive():
+                t.join(timeout=2.0)
+
+    def __enter__(self) -> DatagramRelay:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def _hostport(text: str) -> tuple[str, int]:
     host, _, port = text.rpartition(":")
     if not host or not port.isdigit() or int(port) > 65535:
@@ -249,6 +398,8 @@ def _hostport(text: str) -> tuple[str, int]:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The emulator's options, for this module's own command line and for ``iorthand bench linkemu``."""
     p.add_argument("--listen", type=_hostport, required=True, help="HOST:PORT to accept on (port 0: any free one)")
+    p.add_argument("--udp", action="store_true", help="relay datagrams (a Zenoh UDP link) instead of TCP connections; "
+                   "the stall probability is then the loss of each packet")
     p.add_argument("--connect", type=_hostport, required=True, help="HOST:PORT each accepted connection is relayed to")
     p.add_argument("--delay-ms", type=float, default=0.0, help="one-way delay of each direction")
     p.add_argument("--jitter-ms", type=float, default=0.0, help="± this much, uniform, order kept")
@@ -261,13 +412,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Relay until SIGTERM/SIGINT or ``max_seconds``; SIGUSR1 starts a blackout, SIGUSR2 ends it."""
     prof = LinkProfile(args.delay_ms, args.jitter_ms, args.stall_prob, args.stall_ms)
-    emu = LinkEmulator(args.listen, args.connect, prof, seed=args.seed).start()
+    emu: LinkEmulator | DatagramRelay = (DatagramRelay if args.udp else LinkEmulator)(
+        args.listen, args.connect, prof, seed=args.seed).start()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGUSR1, lambda *_: emu.blackout(True))
     signal.signal(signal.SIGUSR2, lambda *_: emu.blackout(False))
-    print(f"linkemu ready {emu.address[0]}:{emu.port} -> {args.connect[0]}:{args.connect[1]} {prof}", flush=True)
+    kind = "datagrams" if args.udp else "tcp"
+    print(f"linkemu ready {emu.address[0]}:{emu.port} -> {args.connect[0]}:{args.connect[1]} {prof} ({kind})", flush=True)
     stop.wait(args.max_seconds)
     emu.close()
     return 0

@@ -310,7 +310,7 @@ def video_probe(args: argparse.Namespace) -> int:
     decodes: after a lost frame nothing does until the next keyframe). It reports to the edge once a second and
     asks for a keyframe when it needs one (VideoFeedback), as the web console does."""
     from iorthand.protocol import VideoFeedback
-    from iorthand_edge.video.h264 import H264Decoder  # the benchmark runs where the edge's packages are
+    from iorthand_edge.video.h264 import KEYFRAME_REQUEST_HOLD_S, H264Decoder  # where the edge's packages are
 
     stop = _stop_event(args.max_seconds)
     session = _zenoh(args)
@@ -352,7 +352,8 @@ def video_probe(args: argparse.Namespace) -> int:
         decoded = True
         if frame.encoding == "h264":
             decoded = bool(decoder.decode(frame.data, frame.keyframe, gap=gap))
-            if not decoded and now - asked > 0.5:
+            # Again while none comes (the edge answers one request per hold: the keyframe may be lost too).
+            if not decoded and now - asked > KEYFRAME_REQUEST_HOLD_S:
                 feedback.put(VideoFeedback(operator=args.operator_id, keyframe=True).stamp(seq.next()).encode())
                 asked = now
         frames.append([frame.seq, frame.t, arrival, len(payload), frame.keyframe, decoded])

@@ -54,9 +54,9 @@ class Sites:
 
 
 def start_router(group: Group, name: str, port: int, connect: list[str] | None = None, netns: str | None = None,
-                 host: str = "127.0.0.1") -> Any:
+                 host: str = "127.0.0.1", datagrams: bool = False) -> Any:
     # Every bench router stands for a site on its own host: no shared memory between them (nor with clients).
-    argv = iorthand_argv("router", "--listen", ep(port, host), "--no-shared-memory")
+    argv = iorthand_argv("router", "--listen", ep(port, host), "--no-shared-memory", *(["--datagrams"] if datagrams else []))
     for c in connect or []:
         argv += ["--connect", c]
     return group.start(name, argv, netns=netns, ready="router ready", timeout=30.0)

@@ -76,7 +76,11 @@ PROFILES: dict[str, WanProfile] = {
 EMULATORS = ("auto", "netem", "relay")
 # What the edge streams during a profile (``--video``): nothing, or 640×480 at 30 fps of the camera's test pattern
 # (with sensor noise) in one of its codecs. The probe in the operator's namespace watches it across the link.
-VIDEOS = ("none", "jpeg", "h264")
+# ``h264-datagrams``: the same H.264 stream, with the edge-site router's link to the cloud doubled by a UDP link
+# (``iorthand router --datagrams``) through a datagram relay of the same profile: the video crosses the WAN as
+# datagrams, everything else stays on TCP. The operator's side stays TCP (a client session has one link).
+VIDEOS = ("none", "jpeg", "h264", "h264-datagrams")
+DATAGRAMS_SUFFIX = "-datagrams"
 VIDEO_CAMERA = {"source": "pattern", "width": 640, "height": 480, "fps": 30.0}
 # netem sends a packet no earlier than the one queued before it only while it paces a rate; without one, jitter
 # would reorder packets, which no wired or radio link does to a TCP stream. This rate limits nothing here.
@@ -198,11 +202,11 @@ class Namespaces:
         self.created.clear()
 
 
-def _relay_argv(listen: str, connect: str, prof: LinkProfile, seed: int, max_s: float) -> list[str]:
+def _relay_argv(listen: str, connect: str, prof: LinkProfile, seed: int, max_s: float, udp: bool = False) -> list[str]:
     return python_argv("iorthand_operator.bench.linkemu", "--listen", listen, "--connect", connect,
                        "--delay-ms", str(prof.delay_ms), "--jitter-ms", str(prof.jitter_ms),
                        "--stall-prob", str(prof.stall_prob), "--stall-ms", str(prof.stall_ms), "--seed", str(seed),
-                       "--max-seconds", str(max_s))
+                       "--max-seconds", str(max_s), *(["--udp"] if udp else []))
 
 
 @dataclass
@@ -225,6 +229,8 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
     if video not in VIDEOS:
         raise ValueError(f"unknown video {video!r} (known: {', '.join(VIDEOS)})")
     name = f"wan-{profile.name}" + (f"-{video}" if video != "none" else "")
+    datagrams = video.endswith(DATAGRAMS_SUFFIX)
+    codec = video.removesuffix(DATAGRAMS_SUFFIX)
     schedule = [plan.blackout_s] * plan.trials + list(plan.long_blackouts) if profile.blackout else []
     total = plan.duration if not profile.blackout else sum(
         plan.settle_s + b + (plan.recover_s if b < 2.0 else plan.long_recover_s) for b in schedule) + 1.0
@@ -234,7 +240,7 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
     out, mon_out = workdir / f"{name}-probe.json", workdir / f"{name}-monitor.json"
     blackouts: list[tuple[int, int, int]] = []  # (cut, restore requested, restore done), ns
     with Group(workdir / name) as g:
-        relay_edge = None
+        edge_relays: list[Any] = []  # what a blackout on loopback signals
         if netns is None:
             ns_op = ns_cloud = ns_edge = None
             cloud_port, edge_port = free_port(), free_port()
@@ -248,18 +254,22 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
                 "10.201.1.1:17447", "10.201.2.1:17448")
         if netem and netns is not None:  # (netem without namespaces was refused above)
             netns.emulate(op_link, profile.link, profile.rate)
-            start_router(g, "router-cloud", cloud_port, netns=ns_cloud, host="0.0.0.0")
+            start_router(g, "router-cloud", cloud_port, netns=ns_cloud, host="0.0.0.0", datagrams=datagrams)
         else:
             if netns is not None:
                 netns.shape(profile.rate)
-            start_router(g, "router-cloud", cloud_port, netns=ns_cloud)
+            start_router(g, "router-cloud", cloud_port, netns=ns_cloud, datagrams=datagrams)
             g.start("relay-op", _relay_argv(op_dial, f"127.0.0.1:{cloud_port}", op_link, 11, max_s), netns=ns_cloud,
                     ready="linkemu ready")
-            relay_edge = g.start("relay-edge", _relay_argv(edge_dial, f"127.0.0.1:{cloud_port}", profile.link, 12,
-                                                           max_s), netns=ns_cloud, ready="linkemu ready")
-        start_router(g, "router-edge", edge_port, [f"tcp/{edge_dial}"], netns=ns_edge)
+            edge_relays.append(g.start("relay-edge", _relay_argv(edge_dial, f"127.0.0.1:{cloud_port}", profile.link, 12,
+                                                              max_s), netns=ns_cloud, ready="linkemu ready"))
+            if datagrams:  # the same address and port, over UDP: what the edge-site router's UDP link dials
+                edge_relays.append(g.start("relay-edge-udp", _relay_argv(
+                    edge_dial, f"127.0.0.1:{cloud_port}", profile.link, 13, max_s, udp=True), netns=ns_cloud,
+                    ready="linkemu ready"))
+        start_router(g, "router-edge", edge_port, [f"tcp/{edge_dial}"], netns=ns_edge, datagrams=datagrams)
         start_edge(g, robot, [ep(edge_port)], netns=ns_edge,
-                   video=None if video == "none" else {"camera": {**VIDEO_CAMERA, "codec": video}})
+                   video=None if video == "none" else {"camera": {**VIDEO_CAMERA, "codec": codec}})
         video_out = workdir / f"{name}-video.json"
         if video != "none":
             g.start("video", python_argv(ROLES, "video-probe", "--connect", f"tcp/{op_dial}", "--robot", robot,
@@ -274,11 +284,11 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
         if profile.blackout:
             for length in schedule:
                 time.sleep(plan.settle_s)
-                _blackout(netns, relay_edge, True)
+                _blackout(netns, edge_relays, True)
                 b0 = time.time_ns()
                 time.sleep(length)
                 b_end_req = time.time_ns()
-                _blackout(netns, relay_edge, False)
+                _blackout(netns, edge_relays, False)
                 blackouts.append((b0, b_end_req, max(b_end_req, time.time_ns())))
                 # A blackout longer than the 2 s lease ends the Zenoh sessions: give them time to come back.
                 time.sleep(plan.recover_s if length < 2.0 else plan.long_recover_s)
@@ -301,7 +311,8 @@ def run_profile(workdir: Path, profile: WanProfile, plan: Plan, netns: Namespace
         while not video_out.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
         frames = json.loads(video_out.read_text())["frames"] if video_out.exists() else []
-        result["video"] = video_figures(frames, profile.link.delay_ms, video)
+        result["video"] = video_figures(frames, profile.link.delay_ms, codec)
+        result["video"]["link"] = "TCP and UDP datagrams" if datagrams else "TCP"
     if profile.blackout:
         result["trials"] = blackout_trials(states, rd["records"], blackouts)
         result["blackout_s"] = plan.blackout_s
@@ -340,11 +351,12 @@ def video_figures(frames: list[list[Any]], link_delay_ms: float, codec: str, war
     }
 
 
-def _blackout(netns: Namespaces | None, relay: Any, on: bool) -> None:
+def _blackout(netns: Namespaces | None, relays: list[Any], on: bool) -> None:
     if netns is not None:
         netns.blackout(on)
     else:
-        relay.signal(signal.SIGUSR1 if on else signal.SIGUSR2)
+        for relay in relays:
+            relay.signal(signal.SIGUSR1 if on else signal.SIGUSR2)
 
 
 def _spurious_stops(states: list[list[Any]], blackouts: list[tuple[int, int, int]]) -> int:
