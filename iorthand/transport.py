@@ -127,13 +127,19 @@ class ZenohConfig:
 def check_endpoint(endpoint: str) -> None:
     """A Zenoh endpoint PROTOCOL/HOST:PORT (metadata after ``?`` or ``#`` allowed); ValueError naming it if not."""
     form = f"endpoint {endpoint!r} must look like tcp/HOST:PORT or tls/HOST:PORT"
-    protocol, _, address = endpoint.partition("/")
+    protocol, address = _endpoint_parts(endpoint)
     if not protocol or not address:
         raise ValueError(form)
     if protocol in ("tcp", "tls", "udp", "quic", "ws"):
-        host, _, port = re.split(r"[?#]", address, maxsplit=1)[0].rpartition(":")
+        host, _, port = address.rpartition(":")
         if not host or not port.isdigit() or int(port) > 65535:
             raise ValueError(f"{form}: {port!r} is not a port number (0-65535)" if host else form)
+
+
+def _endpoint_parts(endpoint: str) -> tuple[str, str]:
+    """PROTOCOL and ADDRESS of PROTOCOL/ADDRESS?METADATA#CONFIG."""
+    protocol, _, rest = endpoint.partition("/")
+    return protocol, re.split(r"[?#]", rest, maxsplit=1)[0]
 
 
 def zenoh_config(cfg: ZenohConfig, entries: dict[str, Any] | None = None) -> zenoh.Config:
@@ -523,8 +529,7 @@ MAX_LINKS_KEY = "transport/unicast/max_links"
 
 def datagram_endpoint(endpoint: str) -> str:
     """The UDP endpoint beside ``tcp/HOST:PORT`` (metadata dropped); ValueError naming why for any other."""
-    protocol, _, address = endpoint.partition("/")
-    hostport = re.split(r"[?#]", address, maxsplit=1)[0]
+    protocol, hostport = _endpoint_parts(endpoint)
     if protocol == "tcp":
         return f"udp/{hostport}"
     if protocol == "tls":

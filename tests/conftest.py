@@ -32,17 +32,19 @@ def router_endpoint() -> Iterator[str]:
 
 class RouterProcess:
     """A router in its own process (``iorthand router``), so tests can kill and restart it; with ``config``, that
-    router configuration file (which names the endpoint) instead of the built-in one."""
+    router configuration file (which names the endpoint) instead of the built-in one; ``options``: more of the
+    command's options (``--connect``, ``--datagrams``, ...)."""
 
-    def __init__(self, endpoint: str, config: Path | None = None) -> None:
+    def __init__(self, endpoint: str, config: Path | None = None, options: tuple[str, ...] = ()) -> None:
         self.endpoint = endpoint
         self.config = config
+        self.options = options
         self.proc: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
         settings = ["--config", str(self.config)] if self.config else ["--listen", self.endpoint]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "iorthand.cli", "router", *settings],
+            [sys.executable, "-m", "iorthand.cli", "router", *settings, *self.options],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
         )
         assert self.proc.stdout is not None

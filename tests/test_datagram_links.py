@@ -30,7 +30,7 @@ from iorthand import keys
 from iorthand.security.lab import make_lab
 from iorthand.transport import client_config, datagram_endpoint, free_port, open_session, publisher, router_settings
 from iorthand_operator.bench.linkemu import DatagramRelay, LinkEmulator, LinkProfile
-from tests.conftest import stop_process, wait_until
+from tests.conftest import RouterProcess, wait_until
 
 ROBOT = "sim1"
 FRAMES = 200
@@ -38,15 +38,10 @@ FRAME_BYTES = 3000  # three packets: each lost with 10 %, the frame with 27 %
 LOSSY = LinkProfile(2.0, 0.0, stall_prob=0.1)  # 10 % of the packets lost (a TCP stream would stall on them)
 
 
-def _router(*args: str) -> subprocess.Popen[bytes]:
-    proc = subprocess.Popen([sys.executable, "-m", "iorthand.cli", "router", "--no-shared-memory", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 15
-    for line in proc.stdout:
-        if b"router ready" in line or time.monotonic() > deadline:
-            break
-    return proc
+def _router(endpoint: str, *options: str) -> RouterProcess:
+    router = RouterProcess(endpoint, options=("--no-shared-memory", "--datagrams", *options))
+    router.start()
+    return router
 
 
 def _send_and_count(pub_session: zenoh.Session, sub_session: zenoh.Session) -> tuple[list[int], list[int]]:
@@ -104,9 +99,8 @@ def test_routers_with_datagrams_send_the_video_over_udp_and_the_rest_over_tcp(re
     cloud_port, edge_port, link_port = free_port(), free_port(), free_port()
     # The WAN between the sites: a TCP relay and a lossy datagram relay on the same port number.
     relay = relays(link_port, cloud_port, tcp=True)
-    procs = [_router("--listen", f"tcp/127.0.0.1:{cloud_port}", "--datagrams")]
-    procs.append(_router("--listen", f"tcp/127.0.0.1:{edge_port}", "--connect", f"tcp/127.0.0.1:{link_port}",
-                         "--datagrams"))
+    routers = [_router(f"tcp/127.0.0.1:{cloud_port}"),
+               _router(f"tcp/127.0.0.1:{edge_port}", "--connect", f"tcp/127.0.0.1:{link_port}")]
     edge = open_session(client_config(f"tcp/127.0.0.1:{edge_port}", shared_memory=False))
     viewer = open_session(client_config(f"tcp/127.0.0.1:{cloud_port}", shared_memory=False))
     try:
@@ -114,8 +108,8 @@ def test_routers_with_datagrams_send_the_video_over_udp_and_the_rest_over_tcp(re
     finally:
         edge.close()
         viewer.close()
-        for p in procs:
-            stop_process(p)
+        for router in routers:
+            router.stop()
     _check(frames, reliable, relay)
     assert relay.datagrams >= len(frames)
 
