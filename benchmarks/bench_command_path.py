@@ -222,9 +222,11 @@ def twist_size() -> int:
 # ------------------------------------------------------------------------------------------------ orchestrator
 
 
-def edge_config(variant: str, endpoint: str, robot: str = ROBOT) -> dict[str, Any]:
+def edge_config(variant: str, endpoint: str, robot: str = ROBOT, cpu_latency_us: int | None = None) -> dict[str, Any]:
     cfg = yaml.safe_load((ROOT / "configs" / "edge-sim.yaml").read_text())
     cfg["robot_id"] = robot
+    if cpu_latency_us is not None:  # the edge's PM QoS request: machine-wide, so the bare echo has it too
+        cfg["cpu_latency_us"] = cpu_latency_us
     cfg["zenoh"] = {"mode": "client", "connect": [endpoint], "shared_memory": False, "connect_retry_s": 60.0}
     cfg.setdefault("safety", {})["auto_arm"] = True
     if variant in ("plain", "video-apart"):
@@ -291,7 +293,8 @@ def run_phase(group_dir: Path, variant: str, endpoint: str, args: argparse.Names
         edges = []
         for tree, path in trees.items():
             cfg_path = group_dir / f"edge-{tree}.yaml"
-            cfg_path.write_text(yaml.safe_dump(edge_config(variant, endpoint, robots[tree]), sort_keys=False))
+            cfg_path.write_text(yaml.safe_dump(edge_config(variant, endpoint, robots[tree], args.cpu_latency_us),
+                                              sort_keys=False))
             env = [f"IORTHAND_HOPS_OUT={group_dir / f'hops-{tree}.json'}"]
             if path:
                 pp = [path, f"{path}/edge", f"{path}/operator"]
@@ -304,7 +307,8 @@ def run_phase(group_dir: Path, variant: str, endpoint: str, args: argparse.Names
             # the commands through a plain edge: what moving media out of the control process would give.
             video_robots = f"{ROBOT}-media"
             cfg_path = group_dir / "edge-media.yaml"
-            cfg_path.write_text(yaml.safe_dump(edge_config("video", endpoint, video_robots), sort_keys=False))
+            cfg_path.write_text(yaml.safe_dump(edge_config("video", endpoint, video_robots, args.cpu_latency_us),
+                                              sort_keys=False))
             g.start("edge-media", iorthand_argv("edge", "--config", str(cfg_path)), ready="edge agent", timeout=60.0)
         if variant in ("video", "video-apart"):
             g.start("video-sub", [*me, "--role", "video-sub", "--connect", endpoint, "--robots", video_robots,
@@ -422,7 +426,7 @@ def orchestrate(args: argparse.Namespace) -> int:
         "machine": report.machine(),
         "config": {"duration_s": args.duration, "warmup_s": args.warmup, "rounds": args.rounds, "rate_hz": args.rate,
                    "variants": args.variants, "payload_bytes": size, "edge_trees": trees,
-                   "label": args.label, "side_by_side": args.side_by_side, "workdir": str(work), "started": started},
+                   "label": args.label, "side_by_side": args.side_by_side, "cpu_latency_us": args.cpu_latency_us, "workdir": str(work), "started": started},
         "host_cpu": report.cpu_share_since(cpu_before),
         **res,
     }
@@ -462,6 +466,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="run the edge from these source trees (agent.py variants), taking turns in every round")
     p.add_argument("--side-by-side", action="store_true",
                    help="with several --edge-pythonpath trees: run their edges at once, commands interleaved")
+    p.add_argument("--cpu-latency-us", type=int, default=None, metavar="US",
+                   help="the edge's cpu_latency_us (a PM QoS request while the client holds control, machine-wide: "
+                        "the bare echo has it too); default: the edge configuration's")
     p.add_argument("--label", default="", help="a note stored in the JSON (which edge variant)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "command_path.json"))
     p.add_argument("--workdir", default=None, help="parent folder of the processes' logs (default /tmp)")

@@ -20,15 +20,19 @@ log = logging.getLogger(__name__)
 CPU_DMA_LATENCY = Path("/dev/cpu_dma_latency")
 
 
+def _checked_us(max_us: int) -> int:
+    if isinstance(max_us, bool) or not isinstance(max_us, int) or max_us < 0:
+        raise ValueError(f"cpu latency: a whole number of microseconds ≥ 0, got {max_us!r}")
+    return max_us
+
+
 class CpuLatencyHold:
     """One PM QoS request: while it is open, no CPU of this machine enters an idle state that takes longer than
     ``max_us`` µs to leave. The request is machine-wide and ends on :meth:`close` or when the process exits.
     Best effort, like :func:`iorthand.transport.raise_priority`: it needs root, and ``state`` says what it got."""
 
     def __init__(self, max_us: int, path: Path = CPU_DMA_LATENCY) -> None:
-        if isinstance(max_us, bool) or not isinstance(max_us, int) or max_us < 0:
-            raise ValueError(f"cpu latency: a whole number of microseconds ≥ 0, got {max_us!r}")
-        self.max_us = max_us
+        self.max_us = _checked_us(max_us)
         self._fd: int | None = None
         fd = None
         try:
@@ -60,3 +64,34 @@ class CpuLatencyHold:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+
+
+class CpuLatencyWhileNeeded:
+    """A request of ``max_us`` µs held only while :meth:`need` says so (the edge: while an operator holds control,
+    so that the host idles normally the rest of the day). A request the device refuses (not root) is reported
+    once in ``state`` and not tried again."""
+
+    def __init__(self, max_us: int, path: Path = CPU_DMA_LATENCY) -> None:
+        self.max_us = _checked_us(max_us)
+        self.path = path
+        self._hold: CpuLatencyHold | None = None
+        self._refused = False
+        self.state = f"{max_us} µs while needed"
+
+    @property
+    def held(self) -> bool:
+        return self._hold is not None
+
+    def need(self, needed: bool) -> None:
+        if needed and self._hold is None and not self._refused:
+            hold = CpuLatencyHold(self.max_us, self.path)
+            if hold.held:
+                self._hold = hold
+            else:
+                self._refused, self.state = True, hold.state
+        elif not needed and self._hold is not None:
+            self._hold.close()
+            self._hold = None
+
+    def close(self) -> None:
+        self.need(False)

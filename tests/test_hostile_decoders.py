@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -246,6 +247,45 @@ def test_inbox_is_bounded_in_bytes_too() -> None:
     single = Inbox(10, keep="oldest", max_bytes=100)
     single.put("larger than the bound", 500)  # an empty queue takes any one item: nothing is stuck forever
     assert len(single) == 1
+
+
+def test_inbox_hands_a_waiting_worker_its_item_and_loses_none_when_waits_time_out() -> None:
+    """The worker waiting in get() gets the next put directly; items that come while it works wait in order; a
+    wait that times out as an item arrives loses nothing; close() wakes a waiting worker."""
+    box = Inbox(10_000, keep="oldest")
+    got: list = []
+    worker = threading.Thread(target=lambda: got.append(box.get(timeout=5.0)))
+    worker.start()
+    time.sleep(0.05)  # the worker waits
+    box.put("handed over", 10)
+    worker.join(2.0)
+    assert got == ["handed over"] and len(box) == 0 and box.nbytes == 0
+    assert box.get(timeout=0.01) is None  # nothing left, not the same item twice
+
+    # Timeouts racing the producer: every item arrives once, in order.
+    n, received = 5_000, []
+
+    def consume() -> None:
+        while len(received) < n:
+            item = box.get(timeout=0.0002)
+            if item is not None:
+                received.append(item)
+
+    consumer = threading.Thread(target=consume)
+    consumer.start()
+    for i in range(n):
+        box.put(i)
+        if i % 7 == 0:
+            time.sleep(0.0001)
+    consumer.join(30.0)
+    assert received == list(range(n))
+
+    waiter = threading.Thread(target=lambda: got.append(box.get()))
+    waiter.start()
+    time.sleep(0.05)
+    box.close()
+    waiter.join(2.0)
+    assert not waiter.is_alive() and got[-1] is None
 
 
 def test_reject_log_is_rate_limited(caplog: pytest.LogCaptureFixture) -> None:

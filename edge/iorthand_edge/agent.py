@@ -41,7 +41,7 @@ import numpy as np
 import zenoh
 
 from iorthand import geometry, keys, motion
-from iorthand.cpu_latency import CpuLatencyHold
+from iorthand.cpu_latency import CpuLatencyWhileNeeded
 from iorthand.protocol import (
     AppliedCommand,
     ControlReply,
@@ -167,7 +167,7 @@ class EdgeAgent:
         # Servos, torch and video stop with the agent but a crash of theirs must not stop the robot's control:
         # they get their own stop event. The force worker shares the agent's: losing it is a safety fault.
         self._aux_stop = threading.Event()
-        self._cpu_latency: CpuLatencyHold | None = None
+        self._cpu_latency = None if config.cpu_latency_us is None else CpuLatencyWhileNeeded(config.cpu_latency_us)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -179,8 +179,6 @@ class EdgeAgent:
             self.supervisor.kinematics.update(self.reading.tcp_pose, self.reading.q)
 
     def start(self) -> None:
-        if self.config.cpu_latency_us is not None:
-            self._cpu_latency = CpuLatencyHold(self.config.cpu_latency_us)
         self.robot.connect()
         self.first_reading()
         self.session = open_session(self.config.zenoh, stop=self.stop_event)
@@ -221,7 +219,7 @@ class EdgeAgent:
             "edge agent %r up: robot %s, %s, armed=%s, profile %s (%.0f mm/s), CPU wake-up latency %s",
             self.config.robot_id, type(self.robot).__name__, ", ".join(self.config.zenoh.connect) or self.config.zenoh.mode,
             self.supervisor.armed, self.supervisor.profile, 1000 * self.supervisor.limits.linear,
-            self._cpu_latency.state if self._cpu_latency else "as the host sets it",
+            f"{self._cpu_latency.max_us} µs while an operator holds control" if self._cpu_latency else "the host's own",
         )
         for setting_name, why in self.config.warnings():
             log.warning("%s: %s", setting_name, why)
@@ -388,6 +386,8 @@ class EdgeAgent:
                 fault=fault, robot_time=reading.robot_time,
                 cmd_seq=self._last_cmd_seq, cmd_recv_t=self._last_cmd_recv,
             ).stamp(self._seq["robot"].next(), reading.timestamp_ns)
+        if self._cpu_latency is not None:  # fast wake-ups while somebody drives, the host's own idle otherwise
+            self._cpu_latency.need(bool(self.supervisor.owner))
         for hook in self.cycle_hooks:
             hook(reading)
         self._pub_robot.put(state.encode())

@@ -49,9 +49,9 @@ class EdgeConfig:
     )
     realtime: bool = setting(True, help="SCHED_FIFO for the control loop thread when allowed")
     cpu_latency_us: int | None = setting(
-        None, lo=0, help="while the edge runs, no CPU of this host enters an idle state slower than this to leave "
-        "(PM QoS, root; 0: idle cores poll, which costs power): every thread wake-up on the command path is faster. "
-        "Null: the host's own idle states"
+        None, lo=0, help="while an operator holds control, no CPU of this host enters an idle state slower than this "
+        "to leave (PM QoS, root; 0: idle cores poll, which costs power): every thread wake-up on the command path is "
+        "faster. Null: the host's own idle states"
     )
     bind_operator_keys: bool = setting(
         False, help="commands and control queries only on keys that carry the operator id (with the generated ACL)"
