@@ -65,7 +65,6 @@ class CpuLatencyHold:
         self.close()
 
 
-
 class CpuLatencyWhileNeeded:
     """A request of ``max_us`` µs held only while :meth:`need` says so (the edge: while an operator holds control,
     so that the host idles normally the rest of the day). A request the device refuses (not root) is reported
@@ -76,7 +75,7 @@ class CpuLatencyWhileNeeded:
         self.path = path
         self._hold: CpuLatencyHold | None = None
         self._refused = False
-        self.state = f"{max_us} µs while needed"
+        self.state = f"{max_us} µs while an operator holds control"
 
     @property
     def held(self) -> bool:

@@ -219,7 +219,7 @@ class EdgeAgent:
             "edge agent %r up: robot %s, %s, armed=%s, profile %s (%.0f mm/s), CPU wake-up latency %s",
             self.config.robot_id, type(self.robot).__name__, ", ".join(self.config.zenoh.connect) or self.config.zenoh.mode,
             self.supervisor.armed, self.supervisor.profile, 1000 * self.supervisor.limits.linear,
-            f"{self._cpu_latency.max_us} µs while an operator holds control" if self._cpu_latency else "the host's own",
+            self._cpu_latency.state if self._cpu_latency else "the host's own",
         )
         for setting_name, why in self.config.warnings():
             log.warning("%s: %s", setting_name, why)
