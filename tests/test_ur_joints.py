@@ -278,6 +278,9 @@ def test_speedl_out_of_the_workspace_ends_in_a_protective_stop(make_emulator: Ca
     assert kin.inverse(kin.UR3E, status["pose"])  # ...where the arm still has joints
     assert pose_error(fk(status["q"]), status["pose"])[0] < 1e-9
     print(f"speedL out of reach: {[e for e in status['events'] if 'protective stop:' in e][-1]}")
+    # ur_rtde's control connection reads its own RTDE stream, which may show the stop a few packets after the
+    # receive connection's does; once it sees the program stopped, a new speedL is refused.
+    assert _wait(lambda: worker.call("c", "isProgramRunning") is False, 1.0)
     assert worker.call("c", "speedL", [0.05, 0.0, 0.0, 0.0, 0.0, 0.0], 1.0, 0.0) is False
 
 
