@@ -197,8 +197,8 @@ def main(argv: list[str] | None = None) -> int:
                 operator_ended_s = round(time.monotonic() - t_load, 1)
                 print(f"  soak: the scripted operator ended at {operator_ended_s} s, before the soak", flush=True)
         # The load ends here; the viewer is measured after it. Chromium starting on this 2-core machine starves
-        # the other processes for a moment, and an operator still streaming would drop commands at its own sender
-        # (command QoS: DROP; a 30-s run lost 8 of 2 777 so, none of which reached the edge either).
+        # the other processes for a moment, and an operator still streaming drops commands at its own sender
+        # (command QoS: DROP): a 30-s run lost 8 of 2 777 that way, and the edge got none of the 8 either.
         procs["operator"].stop()
         twin_log = (work / "twin.log").read_text() if (work / "twin.log").exists() else ""
         url = next((line.split(": ", 1)[1] for line in twin_log.splitlines() if line.startswith("twin viewer: ")), "")
