@@ -31,7 +31,6 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
-from operator import attrgetter
 from typing import Annotated, Any, ClassVar, Literal, Self
 
 import msgpack
@@ -201,6 +200,15 @@ def _encode_hook(value: Any) -> Any:
 _ENCODER = msgspec.msgpack.Encoder(enc_hook=_encode_hook)
 
 
+def _map_header(entries: int) -> bytes:
+    """The msgpack header of a map with ``entries`` entries (the spec's smallest form, as msgspec writes it)."""
+    if entries < 16:
+        return bytes([0x80 | entries])
+    if entries < 2**16:
+        return b"\xde" + entries.to_bytes(2, "big")
+    return b"\xdf" + entries.to_bytes(4, "big")
+
+
 def _wire_type(hint: Any, meta: dict[str, Any]) -> Any:
     """The msgspec type of one field: the declared type with its bounds (the same the checkers apply)."""
     origin = typing.get_origin(hint)
@@ -351,17 +359,29 @@ class Message(Struct):
             raise TypeError(f"{cls.__name__}: mac must be the last field (a signature covers the bytes before it)")
 
     @classmethod
-    def _encoding(cls) -> tuple[tuple[str, ...], Callable[[Any], tuple[Any, ...]]]:
-        cache = cls.__dict__.get("_encoding_cache")
+    def _wire_head(cls, body: bytes) -> tuple[bytes, int]:
+        """msgspec's encoding of this class's dataclass (``body``) is a map of its fields, in declaration order;
+        the wire map has one entry more, ``v``, first. Returns the head that replaces msgspec's map header (the
+        header for one more entry, then ``v``) and the header's length. Both depend on the class alone (msgspec
+        sizes the header by the class's dataclass fields, ClassVars included: a map16 for the larger ones)."""
+        cache = cls.__dict__.get("_head_cache")
         if cache is None:
-            names = tuple(name for name, _, _ in cls._fields())
-            cache = ("v", *names), attrgetter(*names)
-            cls._encoding_cache = cache  # type: ignore[attr-defined]
+            if body[0] & 0xF0 == 0x80:
+                entries, start = body[0] & 0x0F, 1
+            elif body[0] == 0xDE:
+                entries, start = int.from_bytes(body[1:3], "big"), 3
+            else:
+                raise TypeError(f"{cls.__name__}: msgspec did not encode a map ({body[0]:#x})")
+            cache = _map_header(entries + 1) + _ENCODER.encode("v") + _ENCODER.encode(cls.VERSION), start
+            cls._head_cache = cache  # type: ignore[attr-defined]
         return cache
 
     def encode(self) -> bytes:
-        names, values = self._encoding()
-        payload = _ENCODER.encode(dict(zip(names, (self.VERSION, *values(self)), strict=True)))
+        # msgspec encodes the dataclass itself, with no Python-level copy of its values: a dict built per
+        # message cost more than the encoding on a cold CPU (the 60 Hz command path).
+        body = _ENCODER.encode(self)
+        head, start = self._wire_head(body)
+        payload = b"".join((head, memoryview(body)[start:]))  # one copy, whatever the size (video frames)
         if len(payload) > self.MAX_BYTES:
             raise ValueError(f"{type(self).__name__}: encoded size {len(payload)} exceeds {self.MAX_BYTES} bytes")
         return payload

@@ -475,17 +475,21 @@ class OperatorClient:
 
     def _send(self, state_t: int | None = None) -> TwistCommand | None:
         """What the command stream sends now (the thread sender's tick, or one send_now), sent."""
+        assert self._pub_twist is not None, "the thread sender's publisher"
         with self._lock:
             out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
                                     self._muted, self._heartbeat, self._state_t if state_t is None else state_t,
                                     self._key_gen, self._key, self._pressed_at, self._key_at, self._halted_at,
                                     self._frame)
-        if out is None:
-            return None
-        cmd, payload = out
-        self._record_send(cmd.seq, cmd.t, time.monotonic())
-        assert self._pub_twist is not None, "the thread sender's publisher"
-        self._pub_twist.put(payload)
+            if out is None:
+                return None
+            cmd, payload = out
+            mono = time.monotonic()
+            # Sent, then recorded: only the signature lies between the command's stamp and its send. Under the
+            # lock that the echo's handler takes to match it, so an echo that beats the record waits for it.
+            self._pub_twist.put(payload)
+            self._note_sent(cmd.seq, cmd.t, mono)
+        self.link.sent(cmd.seq, cmd.t)
         return cmd
 
     @property
@@ -514,15 +518,19 @@ class OperatorClient:
 
     def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
         with self._lock:
-            self._sent[seq] = t_ns
-            while len(self._sent) > 4096:
-                self._sent.popitem(last=False)
-            self.sent_count += 1
-            self.last_sent_ns = t_ns
-            self.send_times.append(mono)
-            if len(self.send_times) > 400_000:  # ~2 h at 60 Hz: keep memory bounded on long sessions
-                del self.send_times[:100_000]
+            self._note_sent(seq, t_ns, mono)
         self.link.sent(seq, t_ns)
+
+    def _note_sent(self, seq: int, t_ns: int, mono: float) -> None:
+        """One command sent, for matching its echo and for the figures (the caller holds ``_lock``)."""
+        self._sent[seq] = t_ns
+        while len(self._sent) > 4096:
+            self._sent.popitem(last=False)
+        self.sent_count += 1
+        self.last_sent_ns = t_ns
+        self.send_times.append(mono)
+        if len(self.send_times) > 400_000:  # ~2 h at 60 Hz: keep memory bounded on long sessions
+            del self.send_times[:100_000]
 
     def _renew_lease(self) -> None:
         """The client's heartbeat (every 50 ms: this process is alive and running Python, see CommandStream)
