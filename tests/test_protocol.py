@@ -226,3 +226,23 @@ def test_a_signed_message_ends_with_its_mac() -> None:
     for cls in signed:
         payload = sample(cls).encode()
         assert list(msgpack.unpackb(payload))[-1] == "mac", cls.__name__
+
+
+def test_a_sequencer_counts_from_one_without_duplicates_across_threads() -> None:
+    import threading
+
+    seq = protocol.Sequencer()
+    drawn: list[list[int]] = [[] for _ in range(4)]
+
+    def draw(out: list[int]) -> None:
+        for _ in range(20_000):
+            out.append(seq.next())
+
+    threads = [threading.Thread(target=draw, args=(out,)) for out in drawn]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    every = sorted(n for out in drawn for n in out)
+    assert every == list(range(1, 80_001))
+    assert all(out == sorted(out) for out in drawn)  # each publisher's own numbers only rise
