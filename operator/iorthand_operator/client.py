@@ -484,12 +484,12 @@ class OperatorClient:
             if out is None:
                 return None
             cmd, payload = out
-            mono = time.monotonic()
-            # Sent, then recorded: only the signature lies between the command's stamp and its send. Under the
-            # lock that the echo's handler takes to match it, so an echo that beats the record waits for it.
-            self._pub_twist.put(payload)
-            self._note_sent(cmd.seq, cmd.t, mono)
-        self.link.sent(cmd.seq, cmd.t)
+            self._sent[cmd.seq] = cmd.t  # what the echo's handler matches, in place before the echo can come
+        # Sent, then counted: only the signature lies between the command's stamp and its send. Never a Zenoh
+        # call under _lock: Zenoh may hold its own locks while a callback of ours waits for _lock.
+        mono = time.monotonic()
+        self._pub_twist.put(payload)
+        self._record_send(cmd.seq, cmd.t, mono)
         return cmd
 
     @property
@@ -517,20 +517,17 @@ class OperatorClient:
         return self._send(state_t)
 
     def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
+        """One command sent, for matching its echo and for the figures."""
         with self._lock:
-            self._note_sent(seq, t_ns, mono)
+            self._sent[seq] = t_ns
+            while len(self._sent) > 4096:
+                self._sent.popitem(last=False)
+            self.sent_count += 1
+            self.last_sent_ns = t_ns
+            self.send_times.append(mono)
+            if len(self.send_times) > 400_000:  # ~2 h at 60 Hz: keep memory bounded on long sessions
+                del self.send_times[:100_000]
         self.link.sent(seq, t_ns)
-
-    def _note_sent(self, seq: int, t_ns: int, mono: float) -> None:
-        """One command sent, for matching its echo and for the figures (the caller holds ``_lock``)."""
-        self._sent[seq] = t_ns
-        while len(self._sent) > 4096:
-            self._sent.popitem(last=False)
-        self.sent_count += 1
-        self.last_sent_ns = t_ns
-        self.send_times.append(mono)
-        if len(self.send_times) > 400_000:  # ~2 h at 60 Hz: keep memory bounded on long sessions
-            del self.send_times[:100_000]
 
     def _renew_lease(self) -> None:
         """The client's heartbeat (every 50 ms: this process is alive and running Python, see CommandStream)
