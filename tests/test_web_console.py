@@ -376,6 +376,7 @@ def _hide(page) -> None:
 def test_every_way_a_page_lets_go_stops_the_robot_within_the_timeout(stack, browser, how) -> None:
     relay = Relay(stack.port) if how == "cut" else None
     url = f"http://127.0.0.1:{relay.port}" if relay else stack.url
+    page = None
     try:
         page = open_console(browser, url)
         fingers = Fingers(page)
@@ -400,9 +401,12 @@ def test_every_way_a_page_lets_go_stops_the_robot_within_the_timeout(stack, brow
         if how in ("lift", "touchcancel", "hidden"):
             # The page itself released the deadman: the edge stopped on a released command, before any timeout.
             assert stopped_by == "echo deadman_released", stopped_by
-        with contextlib.suppress(Exception):
-            page.context.close()
     finally:
+        # The page holds control until it goes: a failure above must not leave it holding control for the tests
+        # after this one (each would then fail to take control, hiding which one failed first).
+        if page is not None:
+            with contextlib.suppress(Exception):
+                page.context.close()
         if relay is not None:
             relay.close()
     # Nothing resumes by itself: the robot stays still afterwards.
