@@ -20,9 +20,7 @@ message's ``mac`` is its last entry (:mod:`iorthand.security.auth` signs the byt
 from __future__ import annotations
 
 import dataclasses
-import functools
 import inspect
-import itertools
 import math
 import sys
 import threading
@@ -33,6 +31,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
+from operator import attrgetter
 from typing import Annotated, Any, ClassVar, Literal, Self
 
 import msgpack
@@ -202,15 +201,6 @@ def _encode_hook(value: Any) -> Any:
 _ENCODER = msgspec.msgpack.Encoder(enc_hook=_encode_hook)
 
 
-def _map_header(entries: int) -> bytes:
-    """The msgpack header of a map with ``entries`` entries (the spec's smallest form, as msgspec writes it)."""
-    if entries < 16:
-        return bytes([0x80 | entries])
-    if entries < 2**16:
-        return b"\xde" + entries.to_bytes(2, "big")
-    return b"\xdf" + entries.to_bytes(4, "big")
-
-
 def _wire_type(hint: Any, meta: dict[str, Any]) -> Any:
     """The msgspec type of one field: the declared type with its bounds (the same the checkers apply)."""
     origin = typing.get_origin(hint)
@@ -247,42 +237,48 @@ class Struct:
     # before) decodes with the field's default. Every other field must be present.
     ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset()
 
-    # What follows is derived from a class's declarations once, on first use, and cached per class: a cached
-    # classmethod is a lookup in C, with no Python frame on the hot path (a cold CPU pays for every one).
-
     @classmethod
-    @functools.cache
     def _fields(cls) -> list[tuple[str, Any, dict[str, Any]]]:
-        hints = typing.get_type_hints(cls)
-        return [(f.name, hints[f.name], dict(f.metadata)) for f in dataclasses.fields(cls)]
+        cache = cls.__dict__.get("_field_cache")
+        if cache is None:
+            hints = typing.get_type_hints(cls)
+            cache = [(f.name, hints[f.name], dict(f.metadata)) for f in dataclasses.fields(cls)]
+            cls._field_cache = cache  # type: ignore[attr-defined]
+        return cache
 
     @classmethod
-    @functools.cache
     def _checkers(cls) -> tuple[frozenset[str], list[tuple[str, Checker]]]:
-        known = frozenset(name for name, _, _ in cls._fields()) | {"v", "seq", "t"}
-        return known, [(name, _compile(hint, meta)) for name, hint, meta in cls._fields()]
+        cache = cls.__dict__.get("_checker_cache")
+        if cache is None:
+            known = frozenset(name for name, _, _ in cls._fields()) | {"v", "seq", "t"}
+            cache = known, [(name, _compile(hint, meta)) for name, hint, meta in cls._fields()]
+            cls._checker_cache = cache  # type: ignore[attr-defined]
+        return cache
 
     def _to_map(self) -> dict[str, Any]:
         return {name: _to_wire(getattr(self, name)) for name, _, _ in self._fields()}
 
     @classmethod
-    @functools.cache
     def _wire_struct(cls) -> type[msgspec.Struct]:
-        """The fast decoder's schema of this class: every field required but those in ``ADDED_FIELDS`` (with
-        the class's default), no unknown field, each value within its bounds."""
-        if hasattr(cls, "__post_init__"):
-            raise TypeError(f"{cls.__name__}: the fast decoder builds instances without __init__")
-        defaults = {f.name: f for f in dataclasses.fields(cls)}
-        spec_: list[Any] = [("v", Literal[cls.VERSION])] if issubclass(cls, Message) else []
-        for name, hint, meta in cls._fields():
-            wire = _wire_type(hint, meta)
-            if name not in cls.ADDED_FIELDS:
-                spec_.append((name, wire))
-            elif defaults[name].default_factory is not dataclasses.MISSING:
-                spec_.append((name, wire, msgspec.field(default_factory=defaults[name].default_factory)))
-            else:
-                spec_.append((name, wire, defaults[name].default))
-        return msgspec.defstruct(f"{cls.__name__}Wire", spec_, kw_only=True, forbid_unknown_fields=True)
+        """The fast decoder's schema of this class (built once): every field required but those in
+        ``ADDED_FIELDS`` (with the class's default), no unknown field, each value within its bounds."""
+        cache = cls.__dict__.get("_wire_cache")
+        if cache is None:
+            if hasattr(cls, "__post_init__"):
+                raise TypeError(f"{cls.__name__}: the fast decoder builds instances without __init__")
+            defaults = {f.name: f for f in dataclasses.fields(cls)}
+            spec_: list[Any] = [("v", Literal[cls.VERSION])] if issubclass(cls, Message) else []
+            for name, hint, meta in cls._fields():
+                wire = _wire_type(hint, meta)
+                if name not in cls.ADDED_FIELDS:
+                    spec_.append((name, wire))
+                elif defaults[name].default_factory is not dataclasses.MISSING:
+                    spec_.append((name, wire, msgspec.field(default_factory=defaults[name].default_factory)))
+                else:
+                    spec_.append((name, wire, defaults[name].default))
+            cache = msgspec.defstruct(f"{cls.__name__}Wire", spec_, kw_only=True, forbid_unknown_fields=True)
+            cls._wire_cache = cache  # type: ignore[attr-defined]
+        return cache
 
     @classmethod
     def _from_wire(cls, wire: msgspec.Struct) -> Self:
@@ -296,11 +292,14 @@ class Struct:
         return msg
 
     @classmethod
-    @functools.cache
     def _nested(cls) -> list[tuple[str, type[Struct]]]:
         """The fields that hold lists of nested maps, with their class."""
-        return [(name, typing.get_args(hint)[0]) for name, hint, _ in cls._fields()
-                if typing.get_origin(hint) is list and dataclasses.is_dataclass(typing.get_args(hint)[0])]
+        cache = cls.__dict__.get("_nested_cache")
+        if cache is None:
+            cache = [(name, typing.get_args(hint)[0]) for name, hint, _ in cls._fields()
+                     if typing.get_origin(hint) is list and dataclasses.is_dataclass(typing.get_args(hint)[0])]
+            cls._nested_cache = cache  # type: ignore[attr-defined]
+        return cache
 
     @classmethod
     def _from_map(cls, data: Any, mtype: str | None = None) -> Self:
@@ -351,20 +350,29 @@ class Message(Struct):
         if "mac" in annotations and list(annotations)[-1] != "mac":
             raise TypeError(f"{cls.__name__}: mac must be the last field (a signature covers the bytes before it)")
 
+    @classmethod
+    def _encoding(cls) -> tuple[tuple[str, ...], Callable[[Any], tuple[Any, ...]]]:
+        cache = cls.__dict__.get("_encoding_cache")
+        if cache is None:
+            names = tuple(name for name, _, _ in cls._fields())
+            cache = ("v", *names), attrgetter(*names)
+            cls._encoding_cache = cache  # type: ignore[attr-defined]
+        return cache
+
     def encode(self) -> bytes:
-        # msgspec encodes the dataclass itself, with no Python-level copy of its values: a dict built per
-        # message cost more than the encoding on a cold CPU (the 60 Hz command path).
-        body = _ENCODER.encode(self)
-        head, start = _WIRE_HEADS.get(type(self)) or _wire_head(type(self), body)
-        payload = b"".join((head, memoryview(body)[start:]))  # one copy, whatever the size (video frames)
+        names, values = self._encoding()
+        payload = _ENCODER.encode(dict(zip(names, (self.VERSION, *values(self)), strict=True)))
         if len(payload) > self.MAX_BYTES:
             raise ValueError(f"{type(self).__name__}: encoded size {len(payload)} exceeds {self.MAX_BYTES} bytes")
         return payload
 
     @classmethod
-    @functools.cache
     def _decoder(cls) -> msgspec.msgpack.Decoder:
-        return msgspec.msgpack.Decoder(cls._wire_struct())
+        cache = cls.__dict__.get("_decoder_cache")
+        if cache is None:
+            cache = msgspec.msgpack.Decoder(cls._wire_struct())
+            cls._decoder_cache = cache  # type: ignore[attr-defined]
+        return cache
 
     @classmethod
     def decode(cls, payload: bytes | bytearray | memoryview) -> Self:
@@ -396,31 +404,17 @@ class Message(Struct):
         return cls._from_map(data)
 
 
-_WIRE_HEADS: dict[type[Message], tuple[bytes, int]] = {}
-
-
-def _wire_head(cls: type[Message], body: bytes) -> tuple[bytes, int]:
-    """msgspec's encoding of a message's dataclass (``body``) is a map of its fields, in declaration order; the
-    wire map has one entry more, ``v``, first. Returns (and keeps in ``_WIRE_HEADS``) the head that replaces
-    msgspec's map header (the header for one more entry, then ``v``) and the length of the header it replaces.
-    Both depend on the class alone (msgspec sizes the header by the class's dataclass fields, ClassVars
-    included: a map16 for the larger ones)."""
-    if body[0] & 0xF0 == 0x80:
-        entries, start = body[0] & 0x0F, 1
-    elif body[0] == 0xDE:
-        entries, start = int.from_bytes(body[1:3], "big"), 3
-    else:
-        raise TypeError(f"{cls.__name__}: msgspec did not encode a map ({body[0]:#x})")
-    head = _WIRE_HEADS[cls] = _map_header(entries + 1) + _ENCODER.encode("v") + _ENCODER.encode(cls.VERSION), start
-    return head
-
-
 class Sequencer:
-    """Per-publisher sequence numbers, starting at 1. Thread-safe without a lock: ``itertools.count`` steps in
-    one C call, which the GIL does not split (a Python-level lock cost the command path a few µs per echo)."""
+    """Per-publisher sequence numbers: thread-safe, starting at 1."""
 
     def __init__(self) -> None:
-        self.next: Callable[[], int] = itertools.count(1).__next__
+        self._lock = threading.Lock()
+        self._n = 0
+
+    def next(self) -> int:
+        with self._lock:
+            self._n += 1
+            return self._n
 
 
 class RejectCounter:

@@ -540,7 +540,7 @@ class EdgeAgent:
                 self._rlog.warning(f"refused:{decision.status}", f"refused command {cmd.seq} from {cmd.operator!r}: {decision.reason}")
             return AppliedCommand(
                 operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns,
-                applied=self._commanded.tolist() if decision.accepted else [0.0] * 6,
+                applied=self._commanded if decision.accepted else np.zeros(6),
                 accepted=decision.accepted, status=decision.status, reason=decision.reason,
             ).stamp(self._seq["applied"].next())
 

@@ -502,7 +502,7 @@ class Supervisor:
         if self._latched:
             self.counters.rejected += 1
             return self._decide([0.0] * 6, False, self._latched, self._latch_reason)
-        manual = list(map(float, (*cmd.linear, *cmd.angular)))
+        manual = [float(v) for v in (*cmd.linear, *cmd.angular)]
         if cmd.frame == "tool":  # the probe's frame about its tip → the base frame, where every limit applies
             manual = [*rotate(tcp_pose[3:], manual[:3]), *rotate(tcp_pose[3:], manual[3:])]
         took_over = goto_twist is not None and any(manual)
@@ -634,13 +634,13 @@ class Supervisor:
         reason = ""
         if self.contact_target is not None:  # the axial motion is the admittance's, then every limit applies
             status, reason = Status.CONTACT, self._hold_contact(twist, _floats(tcp_pose), now)
-        lin_speed = math.hypot(twist[0], twist[1], twist[2])
+        lin_speed = math.hypot(*twist[:3])
         if lin_speed > limits.linear:
             scale = limits.linear / lin_speed
             twist[:3] = [v * scale for v in twist[:3]]
             hit.append("linear_speed")
             status, reason = Status.SPEED_LIMITED, f"linear speed {1000 * lin_speed:.1f} mm/s clipped to {1000 * limits.linear:.1f} mm/s ({self.profile})"
-        ang_speed = math.hypot(twist[3], twist[4], twist[5])
+        ang_speed = math.hypot(*twist[3:])
         if ang_speed > limits.angular:
             scale = limits.angular / ang_speed
             twist[3:] = [v * scale for v in twist[3:]]
@@ -664,7 +664,7 @@ class Supervisor:
             hit.append("workspace")
             status, reason = Status.WORKSPACE, "velocity leaving the workspace box removed"
         self.limits_hit = hit
-        self.moving = max(map(abs, twist)) > 1e-9
+        self.moving = any(abs(v) > 1e-9 for v in twist)
         self._set(status, reason)
         return self._decide(twist, True, status, reason, hit)
 

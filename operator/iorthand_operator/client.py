@@ -475,21 +475,17 @@ class OperatorClient:
 
     def _send(self, state_t: int | None = None) -> TwistCommand | None:
         """What the command stream sends now (the thread sender's tick, or one send_now), sent."""
-        assert self._pub_twist is not None, "the thread sender's publisher"
         with self._lock:
             out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
                                     self._muted, self._heartbeat, self._state_t if state_t is None else state_t,
                                     self._key_gen, self._key, self._pressed_at, self._key_at, self._halted_at,
                                     self._frame)
-            if out is None:
-                return None
-            cmd, payload = out
-            self._sent[cmd.seq] = cmd.t  # what the echo's handler matches, in place before the echo can come
-        # Sent, then counted: only the signature lies between the command's stamp and its send. Never a Zenoh
-        # call under _lock: Zenoh may hold its own locks while a callback of ours waits for _lock.
-        mono = time.monotonic()
+        if out is None:
+            return None
+        cmd, payload = out
+        self._record_send(cmd.seq, cmd.t, time.monotonic())
+        assert self._pub_twist is not None, "the thread sender's publisher"
         self._pub_twist.put(payload)
-        self._record_send(cmd.seq, cmd.t, mono)
         return cmd
 
     @property
@@ -517,7 +513,6 @@ class OperatorClient:
         return self._send(state_t)
 
     def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
-        """One command sent, for matching its echo and for the figures."""
         with self._lock:
             self._sent[seq] = t_ns
             while len(self._sent) > 4096:

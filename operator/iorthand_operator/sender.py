@@ -123,15 +123,14 @@ class CommandStream:
             return None  # quiet
         if not deadman:
             self._release_sent_at = now
-        lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
-        cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, frame=frame)
         self.seq += 1
-        # Stamped last, then signed: the command's time is when it leaves (the edge's age check and the echo's
-        # round trip count from it), so as little as possible runs between the stamp and the send.
         t = time.time_ns()
         # The age of the newest robot state this operator has, on the edge's clock as the state was stamped
         # (-1: none yet, and the edge refuses motion).
-        cmd.state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
+        state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
+        lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
+        cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age,
+                           frame=frame)
         return cmd, auth.seal(key, self.ctx, cmd.stamp(self.seq, t))
 
 
