@@ -120,3 +120,33 @@ def test_thread_sender_unchanged_without_config(edge_factory, operator_factory) 
     op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
     wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
     wait_until(lambda: len(op.echoes) > 5, timeout=5, message="echoes")
+
+
+def test_a_slow_lease_reply_does_not_read_as_a_frozen_ui(edge_factory, operator_factory) -> None:
+    """The lease renewal is a query that can wait on the network; the heartbeat that says "this process is
+    alive" must not wait with it. Each renewal here takes 0.8 s (longer than ui_timeout): with the heartbeat on
+    the renewal's thread the sender released the deadman ("operator UI silent") and the robot stopped. The edge's
+    command timeout is long so that only a release by the operator's side can stop the robot in this test."""
+    edge = edge_factory(safety={"profile": "local", "command_timeout": 1.0})
+    op = operator_factory(ui_timeout=0.5)  # the thread sender
+    renewals: list[float] = []
+    acquire = op.acquire
+
+    def slow_acquire(profile: str = ""):
+        if op.owner:  # a renewal, not the first acquire
+            time.sleep(0.8)
+            renewals.append(time.monotonic())
+        return acquire(profile)
+
+    op.acquire = slow_acquire
+    driving(op)
+    op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
+    wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
+    still: list[bool] = []
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end:
+        still.append(bool(np.any(commanded(edge))))
+        time.sleep(0.02)
+    assert renewals, f"no renewal in 3 s (lease {op.lease} s)"
+    assert all(still), f"the robot stopped in {still.count(False)} of {len(still)} samples while the lease renewed"
+    assert op.owner

@@ -232,12 +232,15 @@ def browser(stack) -> Any:
         b.close()
 
 
-def phone(browser, url: str) -> Any:
+def phone(browser, url: str, clock: bool = False) -> Any:
     """A page on a phone's viewport with a touch screen, not yet logged in. The test's own probes
     (``wait_for_function``) are evaluated scripts, which the console's Content-Security-Policy forbids: the context
-    lets Playwright past it (``test_the_console_is_served_with_its_security_headers`` checks the policy itself)."""
+    lets Playwright past it (``test_the_console_is_served_with_its_security_headers`` checks the policy itself).
+    ``clock``: the page's timers run on Playwright's clock, which the test can pause (``page.clock``)."""
     ctx = browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True, is_mobile=True,
                               device_scale_factor=2, bypass_csp=True)
+    if clock:
+        ctx.clock.install()
     page = ctx.new_page()
     page.goto(url + "/")
     return page
@@ -249,8 +252,8 @@ def log_in(page, user: str, password: str) -> None:
     page.click("#login-button")
 
 
-def open_console(browser, url: str, user: str = "physician", control: bool = True) -> Any:
-    page = phone(browser, url)
+def open_console(browser, url: str, user: str = "physician", control: bool = True, clock: bool = False) -> Any:
+    page = phone(browser, url, clock)
     log_in(page, user, PASSWORDS[user])
     page.wait_for_url(url + "/")
     page.wait_for_function("window.iorthand && window.iorthand.socket === 'open'")
@@ -412,6 +415,47 @@ def test_every_way_a_page_lets_go_stops_the_robot_within_the_timeout(stack, brow
     # Nothing resumes by itself: the robot stays still afterwards.
     time.sleep(0.3)
     assert not any(stack.watch.states[-1].commanded)
+
+
+@pytest.mark.parametrize("how", ["lift", "hidden"])
+def test_a_page_sends_its_release_at_once_not_on_its_next_tick(stack, browser, how) -> None:
+    """A browser runs a busy page's timers late, and throttles a hidden page's to once a second or less: the
+    release must not wait for the stream's next tick. The page's clock is paused while the robot moves (no tick
+    runs), then the deadman is let go: the released twist leaves the page at once, still on the paused clock."""
+    page = None
+    try:
+        page = open_console(browser, stack.url, clock=True)
+        page.evaluate("""() => {
+            window.sentTwists = [];
+            const send = WebSocket.prototype.send;
+            WebSocket.prototype.send = function (data) {
+                if (typeof data === 'string' && data.includes('"twist"')) window.sentTwists.push(JSON.parse(data));
+                return send.call(this, data);
+            };
+        }""")
+        fingers = Fingers(page)
+        w = stack.watch
+        since = time.time_ns()
+        drive(page, fingers, 0.0, 1.0)
+        w.wait(lambda: len(w.moving_echoes(since)) > 20, 5.0, "the robot moving")
+        page.clock.pause_at(page.evaluate("Date.now()") + 20)
+        before = page.evaluate("window.sentTwists.length")
+        assert page.evaluate("window.sentTwists[window.sentTwists.length - 1].deadman"), "held before letting go"
+        if how == "lift":
+            fingers.lift(0)
+        else:
+            _hide(page)
+        deadline = time.monotonic() + 2.0  # real time: the page's own clock stands still
+        while page.evaluate("window.sentTwists.length") == before and time.monotonic() < deadline:
+            time.sleep(0.01)
+        sent = page.evaluate(f"window.sentTwists.slice({before})")
+        assert len(sent) == 1, f"{how}: {len(sent)} twists left the paused page after letting go: {sent}"
+        assert sent[0]["deadman"] is False and not any(sent[0]["linear"]) and not any(sent[0]["angular"]), sent[0]
+        w.wait(lambda: w.states and not any(w.states[-1].commanded), 3.0, "the robot stopped")
+    finally:
+        if page is not None:
+            with contextlib.suppress(Exception):
+                page.context.close()
 
 
 def test_a_viewer_sees_the_robot_and_cannot_move_it(stack, browser) -> None:

@@ -139,7 +139,7 @@ class OperatorClient:
         # (recovery.REPRESS, recovery.REACQUIRE): a press after it is fresh intent (CommandStream).
         self._halted_at = -math.inf
         self._acquire_lock = threading.Lock()
-        self._heartbeat = time.monotonic()  # the UI is alive (see CommandStream): beaten by the link thread
+        self._heartbeat = time.monotonic()  # the UI is alive (see CommandStream): beaten by the heartbeat thread
         self._state_t = 0  # source time (ns) of the newest robot state: each command states its age
         # One sequence per key suffix: the edge and the recorder count gaps per key, and the edge checks a signed
         # message's sequence per suffix (a counter shared between control verbs would jump on each of them).
@@ -432,8 +432,8 @@ class OperatorClient:
                                         pressed_at=self._pressed_at)
 
     def start(self) -> None:
-        """Start the fixed-rate sender and, while we own the robot, the lease renewal."""
-        fns: list[tuple[str, Any]] = [("lease", self._renew_lease)]
+        """Start the fixed-rate sender, the heartbeat and, while we own the robot, the lease renewal."""
+        fns: list[tuple[str, Any]] = [("heartbeat", self._beat), ("lease", self._renew_lease)]
         if self._proc_sender is not None:
             if self.gil_switch_interval is not None and sys.getswitchinterval() > self.gil_switch_interval:
                 sys.setswitchinterval(self.gil_switch_interval)  # keeps the heartbeat and echo matching prompt
@@ -524,16 +524,15 @@ class OperatorClient:
                 del self.send_times[:100_000]
         self.link.sent(seq, t_ns)
 
-    def _renew_lease(self) -> None:
-        """The client's heartbeat (every 50 ms: this process is alive and running Python, see CommandStream)
-        and, while we own the robot, the lease renewal every lease/3."""
-        renew_at = time.monotonic()
+    def _beat(self) -> None:
+        """The client's heartbeat, every 50 ms: this process is alive and running Python (see CommandStream). A
+        thread of its own that never waits on the network: a slow lease reply must not read as a frozen UI."""
         while not self._stop.wait(0.05):
             self.beat()
-            now = time.monotonic()
-            if now < renew_at:
-                continue
-            renew_at = now + (max(0.2, self.lease / 3.0) if self.lease else 0.5)
+
+    def _renew_lease(self) -> None:
+        """While we own the robot, the lease renewal every lease/3 (a query: it may wait up to query_timeout)."""
+        while not self._stop.wait(max(0.2, self.lease / 3.0) if self.lease else 0.5):
             if self.owner:
                 try:
                     self.acquire()

@@ -3,7 +3,8 @@
 //   forwards each one at once and never repeats one, so if this page stops (closed, frozen, offline) the edge's
 //   own timeout stops the robot;
 // - the deadman is held only while a finger (or the mouse, Space, a gamepad shoulder button) is on it: lifting
-//   it, a touchcancel, the page hidden, the window losing focus or the socket closing all release it.
+//   it, a touchcancel, the page hidden, the window losing focus or the socket closing all release it, and the
+//   release is sent at once, not on the next tick (a browser throttles the timers of a hidden or busy page).
 // Velocities: left stick right = +x, up = +y; right stick up = +z, sideways = turn about z (base frame), scaled
 // to the speed profile's limits that the edge reports (it clips them anyway).
 import { createViewer } from "/static/viewer.js";
@@ -51,6 +52,7 @@ function releaseAll(why) {
   input.keys.clear();
   for (const s of sticks) s.centre();
   ui.deadman.classList.remove("held");
+  if (was) sendTwist();
   if (was && why) logEvent({ kind: "input", status: "deadman_released", reason: `deadman released: ${why}` });
 }
 
@@ -113,6 +115,7 @@ for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) {
     deadmanPointer = null;
     input.deadman.pointer = false;
     ui.deadman.classList.remove("held");
+    if (!deadmanHeld()) sendTwist();
   });
 }
 // A touch the browser cancels (a system gesture, a call) ends every hold, whichever element it was on.
@@ -132,7 +135,10 @@ window.addEventListener("keydown", (e) => {
   else if (KEYS[e.code]) input.keys.add(e.code);
 });
 window.addEventListener("keyup", (e) => {
-  if (e.code === "Space") input.deadman.key = false;
+  if (e.code === "Space" && input.deadman.key) {
+    input.deadman.key = false;
+    if (!deadmanHeld()) sendTwist();
+  }
   input.keys.delete(e.code);
 });
 window.addEventListener("gamepaddisconnected", () => releaseAll("gamepad disconnected"));
@@ -164,8 +170,8 @@ function twistNow() {
   };
 }
 
-// The fixed-rate stream: a timer, never input events.
-setInterval(() => {
+// One twist, sent now: the fixed-rate stream's tick, and a deadman let go (sent at once by the release).
+function sendTwist() {
   const held = deadmanHeld() && !document.hidden;
   ui.deadman.classList.toggle("held", held);
   if (!ws || ws.readyState !== WebSocket.OPEN || !mine) return;
@@ -177,7 +183,9 @@ setInterval(() => {
   ws.send(JSON.stringify({ type: "twist", id: seq, linear: round(t.linear), angular: round(t.angular), deadman: held,
     seen: lastState?.t || 0, frame }));
   stats.sent += 1;
-}, 1000 / RATE_HZ);
+}
+// The fixed-rate stream: a timer, never input events (a release aside).
+setInterval(sendTwist, 1000 / RATE_HZ);
 
 // ---------------------------------------------------------------------------------------------- the socket
 
