@@ -19,10 +19,10 @@ same link, router and CPUs. Phases alternate (plain, video, plain, video, ...) o
 Writes ``benchmarks/results/command_path.json``: p50/p99/max of bare and iorthand per variant, their
 difference, the video/plain p99 ratio and the targets of issue 20 (PASS/MISS).
 
-Variants of the edge's code: ``--edge-pythonpath LABEL=DIR ...`` runs the edge from other source trees (a copy
-of the repository with another agent.py), taking turns in every round, or with ``--side-by-side`` all at once
-(robot ``bench-<LABEL>`` each, one OperatorClient each, their ticks spread over the period, their slots rotating
-from round to round): the fairest comparison on a noisy machine. An edge that writes per-command stamps gets a
+Variants of the code: ``--edge-pythonpath LABEL=DIR ...`` runs the edge and the operator's client from other
+source trees (copies of the repository: their core, edge and operator code), taking turns in every round, or with
+``--side-by-side`` all at once (robot ``bench-<LABEL>`` each, a client process each, their ticks spread over the
+period from one instant, their slots rotating from round to round): the fairest comparison on a noisy machine. An edge that writes per-command stamps gets a
 per-hop breakdown (the JSON's ``hops``): at shutdown it writes to ``$IORTHAND_HOPS_OUT`` a JSON map
 ``{cmd_seq: {stamp name: wall-clock ns, ...}}`` in path order (``"router"``: the router's HLC timestamp on the
 sample, ``sample.timestamp.get_time_as_ntp64().as_nanos()``); the shipped edge writes none.
@@ -116,9 +116,10 @@ def role_video_sub(args: argparse.Namespace) -> int:
 
 
 def role_client(args: argparse.Namespace) -> int:
-    """OperatorClient twists at ``--rate`` and bare pings half a period after each, on one session. With
-    several robots (``--robots a,b``: edges of different code, side by side), one OperatorClient each, their
-    ticks spread evenly over the period, and the bare ping in the last slot."""
+    """OperatorClient twists at ``--rate`` and bare pings half a period after each, on one session. Side by side
+    (``--slots N``: N trees, one client process each, this one's robots from ``--first-slot``), every client's
+    ticks spread evenly over the period from a common instant (the orchestrator writes it to ``--start-file`` once
+    every client holds control), and the bare pings (only the process with ``--bare``) in the last slot."""
     import numpy as np
 
     from iorthand import keys
@@ -128,8 +129,8 @@ def role_client(args: argparse.Namespace) -> int:
     stop = _stop_on_signals()
     session = _session(args.connect)
     robots = args.robots.split(",")
-    # Several senders in one process: sleeping ones (a spinning sender holds the GIL the others' echoes need).
-    extra: dict[str, Any] = {"spin": False} if len(robots) > 1 else {}
+    # Several senders: sleeping ones (a spinning sender holds a CPU the others' echoes need, or their GIL).
+    extra: dict[str, Any] = {"spin": False} if args.slots > 1 else {}
     clients = [OperatorClient(session, r, OPERATOR, rate_hz=args.rate, **extra) for r in robots]
     bare: list[tuple[int, int]] = []  # (t1, t4) ns
     pad = b"\0" * max(0, args.size - 16)
@@ -142,7 +143,7 @@ def role_client(args: argparse.Namespace) -> int:
     ping_pub = publisher(session, PING_KEY, QOS_BY_KEY[keys.CMD_TWIST])
     pong_sub = session.declare_subscriber(PONG_KEY, on_pong)
     period = 1.0 / args.rate
-    slot = period / (len(clients) + 1)
+    slot = period / (args.slots + 1)
     speed = 0.005
     try:
         for client in clients:
@@ -157,7 +158,14 @@ def role_client(args: argparse.Namespace) -> int:
                         raise
                     stop.wait(0.3)
         t_start = time.monotonic()
-        for i, client in enumerate(clients):
+        print(f"client code: {Path(sys.modules[OperatorClient.__module__].__file__).parent}", flush=True)
+        if args.start_file:
+            print("client acquired", flush=True)
+            start_file = Path(args.start_file)
+            while not start_file.exists() and not stop.is_set() and time.monotonic() - t_start < 120.0:
+                time.sleep(0.005)
+            t_start = float(start_file.read_text())  # CLOCK_MONOTONIC: one clock for every process of this host
+        for i, client in enumerate(clients, start=args.first_slot):
             client.set_twist([0.0, speed, 0.0], np.zeros(3), deadman=True)
             delay = t_start + i * slot - time.monotonic()
             if delay > 0:
@@ -166,9 +174,9 @@ def role_client(args: argparse.Namespace) -> int:
         send_times = getattr(clients[0], "send_times", None)
         while send_times is not None and not send_times and time.monotonic() - t_start < 2.0:
             time.sleep(0.001)
-        t0 = send_times[0] if send_times else t_start
+        t0 = (send_times[0] if send_times else t_start + args.first_slot * slot) - args.first_slot * slot
         # The bare ping: half a period after the tick with one robot, else in the slot after the last robot's.
-        offset = 0.5 * period if len(clients) == 1 else len(clients) * slot
+        offset = 0.5 * period if args.slots == 1 else args.slots * slot
         measure_from = time.time_ns() + int(args.warmup * 1e9)
         end = time.monotonic() + args.warmup + args.duration
         n, flip = 0, time.monotonic() + 2.0
@@ -183,7 +191,8 @@ def role_client(args: argparse.Namespace) -> int:
                 continue
             if delay > 0:
                 stop.wait(delay)
-            ping_pub.put(struct.pack("<qq", n, time.time_ns()) + pad)
+            if args.bare:
+                ping_pub.put(struct.pack("<qq", n, time.time_ns()) + pad)
             if time.monotonic() > flip:  # back and forth along y, as an operator would
                 speed, flip = -speed, time.monotonic() + 2.0
                 for client in clients:
@@ -287,18 +296,20 @@ def run_phase(group_dir: Path, variant: str, endpoint: str, args: argparse.Names
     group_dir.mkdir(parents=True, exist_ok=True)
     robots = {tree: ROBOT if len(trees) == 1 else f"{ROBOT}-{tree}" for tree in trees}
     me = [sys.executable, str(Path(__file__).resolve())]
-    out = group_dir / "client.json"
     robot_list = ",".join(robots.values())
+
+    def tree_env(path: str) -> list[str]:
+        """The tree's code first on the path (the whole of it: core, edge and operator)."""
+        pp = [path, f"{path}/edge", f"{path}/operator"]
+        return ["PYTHONPATH=" + os.pathsep.join([*pp, os.environ.get("PYTHONPATH", "")])] if path else []
+
     with Group(group_dir) as g:
         edges = []
         for tree, path in trees.items():
             cfg_path = group_dir / f"edge-{tree}.yaml"
             cfg_path.write_text(yaml.safe_dump(edge_config(variant, endpoint, robots[tree], args.cpu_latency_us),
                                               sort_keys=False))
-            env = [f"IORTHAND_HOPS_OUT={group_dir / f'hops-{tree}.json'}"]
-            if path:
-                pp = [path, f"{path}/edge", f"{path}/operator"]
-                env.append("PYTHONPATH=" + os.pathsep.join([*pp, os.environ.get("PYTHONPATH", "")]))
+            env = [f"IORTHAND_HOPS_OUT={group_dir / f'hops-{tree}.json'}", *tree_env(path)]
             edges.append(g.start(f"edge-{tree}", ["env", *env, *iorthand_argv("edge", "--config", str(cfg_path))],
                                  ready="edge agent", timeout=60.0))
         video_robots = robot_list
@@ -314,16 +325,37 @@ def run_phase(group_dir: Path, variant: str, endpoint: str, args: argparse.Names
             g.start("video-sub", [*me, "--role", "video-sub", "--connect", endpoint, "--robots", video_robots,
                                   "--out", str(group_dir / "video.json"), "--max-seconds", str(args.duration + 120)],
                     ready="video-sub ready")
-        client = g.start("client", [*me, "--role", "client", "--connect", endpoint, "--duration", str(args.duration),
-                                    "--warmup", str(args.warmup), "--rate", str(args.rate), "--size", str(size),
-                                    "--robots", robot_list, "--out", str(out)])
-        client.wait(args.duration + args.warmup + 120.0)
+        # Side by side, each tree's own client code in a process of its own (the first one also pings bare), their
+        # ticks spread over the period from one instant; else one client process for every robot.
+        start_file = group_dir / "start"
+        client_argv = [*me, "--role", "client", "--connect", endpoint, "--duration", str(args.duration),
+                       "--warmup", str(args.warmup), "--rate", str(args.rate), "--size", str(size),
+                       "--slots", str(len(trees))]
+        runs = ([(tree, i, robots[tree], tree_env(path)) for i, (tree, path) in enumerate(trees.items())]
+                if args.side_by_side else [("all", 0, robot_list, tree_env(next(iter(trees.values()))))])
+        clients = []
+        for name, slot, robot, env in runs:
+            extra = ["--start-file", str(start_file)] if len(runs) > 1 else []
+            clients.append(g.start(f"client-{name}", ["env", *env, *client_argv, "--robots", robot, "--first-slot",
+                                                      str(slot), *([] if slot else ["--bare"]), *extra,
+                                                      "--out", str(group_dir / f"client-{name}.json")],
+                                   ready="client acquired" if extra else None, timeout=120.0))
+        if len(runs) > 1:
+            start_file.with_suffix(".tmp").write_text(repr(time.monotonic() + 0.5))
+            start_file.with_suffix(".tmp").rename(start_file)  # whole, never half written
+        for client in clients:
+            client.wait(args.duration + args.warmup + 120.0)
         for edge in edges:
             edge.stop()  # SIGTERM: an instrumented edge writes its stamps on the way out
         g.stop()
-    if not out.exists():
-        raise RuntimeError(f"{variant}: the client wrote nothing; log {group_dir / 'client.log'}")
-    data = json.loads(out.read_text())
+    data: dict[str, Any] = {"bare": [], "robots": {}}
+    for name, _, _, _ in runs:
+        out = group_dir / f"client-{name}.json"
+        if not out.exists():
+            raise RuntimeError(f"{variant}: a client wrote nothing; log {group_dir / f'client-{name}.log'}")
+        got = json.loads(out.read_text())
+        data["bare"] += got["bare"]
+        data["robots"].update(got["robots"])
     data["loadavg"] = os.getloadavg()[0]
     video = None
     with contextlib.suppress(OSError, ValueError):
@@ -463,9 +495,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="plain: no video; video: 30 fps video + perception in the edge; video-apart: the same load "
                         "from a second edge process (robot bench-media), commands through a plain edge")
     p.add_argument("--edge-pythonpath", nargs="+", default=[], metavar="[LABEL=]DIR",
-                   help="run the edge from these source trees (agent.py variants), taking turns in every round")
+                   help="run the edge and the client from these source trees (their whole code), taking turns in "
+                        "every round")
     p.add_argument("--side-by-side", action="store_true",
-                   help="with several --edge-pythonpath trees: run their edges at once, commands interleaved")
+                   help="with several --edge-pythonpath trees: run each tree's edge and client (its own code) at once, "
+                        "commands interleaved")
     p.add_argument("--cpu-latency-us", type=int, default=None, metavar="US",
                    help="the edge's cpu_latency_us (a PM QoS request while the client holds control, machine-wide: "
                         "the bare echo has it too); default: the edge configuration's")
@@ -477,6 +511,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connect", help=argparse.SUPPRESS)
     p.add_argument("--size", type=int, default=120, help=argparse.SUPPRESS)
     p.add_argument("--robots", default=ROBOT, help=argparse.SUPPRESS)
+    p.add_argument("--slots", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument("--first-slot", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--bare", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--start-file", default="", help=argparse.SUPPRESS)
     p.add_argument("--max-seconds", type=float, default=600.0, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.role is None:
