@@ -60,7 +60,7 @@ from teleop_stack import (
 from iorthand.config import load
 from iorthand.protocol import RobotState, SafetyStatus, Status
 from iorthand.stats import summary
-from iorthand.transport import REALTIME_PRIORITY, free_port
+from iorthand.transport import free_port
 from iorthand_edge.config import EdgeConfig
 from iorthand_edge.ur_emulator.process import EmulatorProcess
 from iorthand_operator.bench.procs import Group, Unavailable
@@ -68,7 +68,6 @@ from iorthand_operator.bench.report import machine, write_json
 from iorthand_operator.client import OperatorClient
 
 SPEED = 0.005  # m/s: under the remote profile's 8 mm/s
-EMULATOR_PRIORITY = max(1, REALTIME_PRIORITY - 5)  # the stand-in controller's threads: under the edge's own
 ROBOTS = {"sim": ("sim1", "edge-sim.yaml"), "ur": ("ur1", "edge-ur.yaml")}
 
 
@@ -177,26 +176,6 @@ def arm(sock: Path) -> None:
         raise RuntimeError(f"arming refused: {answer}")
 
 
-def raise_emulator(pid: int, nice: int = -10) -> str:
-    """The emulator stands for a UR controller, a computer of its own that the edge's CPU hogs cannot slow
-    down. Without help, the hogs starve the emulator, and the edge rightly reports the frozen controller: a fault
-    of the test rig, not a false one. All its threads run real-time (SCHED_FIFO, below the edge's own real-time
-    threads, so the emulator never delays the edge's control loop either), or at ``nice`` where real time is
-    refused. Measured (benchmarks/README.md): at nice -10 alone, the emulator's RTDE watchdog saw 100 ms without
-    a kick in 1, 2 and 0 runs of 60 s on a noisy host, and in none of two runs at SCHED_FIFO."""
-    got = f"SCHED_FIFO {EMULATOR_PRIORITY}"
-    try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            try:
-                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(EMULATOR_PRIORITY))
-            except PermissionError:
-                os.setpriority(os.PRIO_PROCESS, int(tid), nice)
-                got = f"nice {nice}"
-    except OSError as exc:
-        return f"nice 0 ({exc.strerror})"
-    return got
-
-
 def run_robot(kind: str, workdir: Path, duration: float, silence: float, hogs: int,
               emulator_hz: float) -> dict[str, Any]:
     robot_id, base = ROBOTS[kind]
@@ -210,7 +189,7 @@ def run_robot(kind: str, workdir: Path, duration: float, silence: float, hogs: i
             overrides: dict[str, Any] = {"safety": {"auto_arm": True}}
             if kind == "ur":
                 emu = EmulatorProcess(frequency=emulator_hz).wait_ready()
-                emulator_priority = raise_emulator(emu.proc.pid)
+                emulator_priority = emu.raise_priority()  # a controller is a computer of its own
                 overrides = {"robot": {"host": emu.host}, "safety": {"auto_arm": False},
                              "local_socket": str(workdir / "edge.sock")}
             cfg_path = edge_config(CONFIGS / base, workdir / "edge.yaml", endpoint, overrides)

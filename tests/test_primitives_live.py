@@ -143,6 +143,7 @@ def test_the_same_sweep_through_ur_rtde_against_the_emulator(router_endpoint, tw
     from tests.test_ur_stack import ur_config_dict
 
     with EmulatorProcess(frequency=250.0) as emu:
+        emu.raise_priority()  # the controller is a computer of its own: this test run's load must not starve it
         emu.call("set_phantom", phantom={**CYLINDER, "stiffness": 4000.0})
         emu.call("set_pose", pose=START_ABOVE)
         cfg = ur_config_dict(router_endpoint, emu.host)

@@ -12,6 +12,7 @@ import contextlib
 import importlib.util
 import json
 import math
+import os
 import queue
 import socket
 import struct
@@ -527,3 +528,21 @@ def test_tool_model_profiles() -> None:
     for _ in range(1000):
         m.step(0.002)
     assert m.mode.value == "idle" and m.pose == pytest.approx(target, abs=1e-9)
+
+
+def test_raised_priority_covers_every_thread_of_the_emulator_and_those_it_starts(emulator: EmulatorProcess,
+                                                                                 worker: RtdeWorker) -> None:
+    """raise_priority makes the stand-in controller real-time (root): its threads now, and the threads it starts
+    afterwards for each client (the RTDE and script connections of ur_rtde, connected after the raise)."""
+    from iorthand_edge.ur_emulator.process import EMULATOR_PRIORITY
+
+    got = emulator.raise_priority()
+    if not got.startswith("SCHED_FIFO"):
+        pytest.skip(f"real time refused here ({got}): needs root or CAP_SYS_NICE")
+    before = set(os.listdir(f"/proc/{emulator.proc.pid}/task"))
+    worker.request(op="new_receive", host=emulator.host, timeout=10)
+    worker.request(op="new_control", host=emulator.host, timeout=15)
+    threads = set(os.listdir(f"/proc/{emulator.proc.pid}/task"))
+    assert threads - before, "connecting started no thread in the emulator"
+    policies = {tid: (os.sched_getscheduler(int(tid)), os.sched_getparam(int(tid)).sched_priority) for tid in threads}
+    assert all(p == (os.SCHED_FIFO, EMULATOR_PRIORITY) for p in policies.values()), policies
