@@ -99,9 +99,10 @@ class Watch:
             time.sleep(0.01)
         raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
-    def stop_after(self, since_ns: int) -> tuple[float, str]:
+    def stop_after(self, since_ns: int) -> tuple[float, str, str]:
         """Once the robot has stopped: (s from the page's last moving command, as the edge received it, to the
-        first robot state commanding zero; how it stopped)."""
+        first robot state commanding zero; how it stopped; the status of the first command after the last moving
+        one, whenever it came within 1 s, "" if none)."""
         def stopped() -> tuple[AppliedCommand, RobotState] | None:
             with self.lock:
                 moving = [a for a in self.applied if a.recv_t >= since_ns and a.accepted and any(a.applied)]
@@ -112,10 +113,17 @@ class Watch:
                 return (last, zero[0]) if zero else None
 
         last, zero = self.wait(stopped, 3.0, "the robot to stop")
-        with self.lock:
-            after = [a for a in self.applied if a.recv_t > last.recv_t]
-        how = f"echo {after[0].status}" if after and after[0].recv_t <= zero.t else "no further command: a release or the timeout"
-        return (zero.t - last.recv_t) / 1e9, how
+
+        def next_echo() -> AppliedCommand | None:
+            with self.lock:
+                return next((a for a in self.applied if a.recv_t > last.recv_t), None)
+
+        # The echo of the command that stopped the robot travels on its own key: it may arrive after the state.
+        deadline = time.monotonic() + 1.0
+        while (after := next_echo()) is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        how = f"echo {after.status}" if after and after.recv_t <= zero.t else "no further command: a release or the timeout"
+        return (zero.t - last.recv_t) / 1e9, how, after.status if after else ""
 
 
 class Relay:
@@ -398,12 +406,17 @@ def test_every_way_a_page_lets_go_stops_the_robot_within_the_timeout(stack, brow
         else:
             assert relay is not None
             relay.cut.set()
-        elapsed, stopped_by = w.stop_after(since)
+        elapsed, stopped_by, next_status = w.stop_after(since)
         print(f"{how}: stopped {1000 * elapsed:.1f} ms after the last moving command ({stopped_by})")
         assert elapsed <= STOP_BOUND_S, f"{how}: stopped {1000 * elapsed:.1f} ms after the last command ({stopped_by})"
         if how in ("lift", "touchcancel", "hidden"):
-            # The page itself released the deadman: the edge stopped on a released command, before any timeout.
-            assert stopped_by == "echo deadman_released", stopped_by
+            # The page itself released the deadman: its release is the next command the edge got. It stops the
+            # robot before the edge's timeout, unless the page's main thread stalled past the timeout between its
+            # last tick and the event (software WebGL on a loaded 2-core machine: seen in 1 of ~10 runs); then the
+            # timeout stopped the robot and the release came after it. That the release leaves the page at once,
+            # never on a later tick, is test_a_page_sends_its_release_at_once_not_on_its_next_tick's to show.
+            assert next_status == "deadman_released", (stopped_by, next_status)
+            assert stopped_by == "echo deadman_released" or elapsed >= TIMEOUT_S, (elapsed, stopped_by)
     finally:
         # The page holds control until it goes: a failure above must not leave it holding control for the tests
         # after this one (each would then fail to take control, hiding which one failed first).
