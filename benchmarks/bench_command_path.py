@@ -22,9 +22,9 @@ difference, the video/plain p99 ratio and the targets of issue 20 (PASS/MISS).
 Variants of the code: ``--edge-pythonpath LABEL=DIR ...`` runs the edge and the operator's client from other
 source trees (copies of the repository: their core, edge and operator code), taking turns in every round, or with
 ``--side-by-side`` all at once (robot ``bench-<LABEL>`` each, a client process each, their ticks spread over the
-period from one instant, their slots rotating from round to round): the fairest comparison on a noisy machine. An edge that writes per-command stamps gets a
-per-hop breakdown (the JSON's ``hops``): at shutdown it writes to ``$IORTHAND_HOPS_OUT`` a JSON map
-``{cmd_seq: {stamp name: wall-clock ns, ...}}`` in path order (``"router"``: the router's HLC timestamp on the
+period from one instant, their slots rotating from round to round): the fairest comparison on a noisy machine.
+An edge that writes per-command stamps gets a per-hop breakdown (the JSON's ``hops``): at shutdown it writes to
+``$IORTHAND_HOPS_OUT`` a JSON map ``{cmd_seq: {stamp name: wall-clock ns, ...}}`` in path order (``"router"``: the router's HLC timestamp on the
 sample, ``sample.timestamp.get_time_as_ntp64().as_nanos()``); the shipped edge writes none.
 
     .venv/bin/python benchmarks/bench_command_path.py            # ~2.5 min: 2 rounds x 2 variants x 25 s
@@ -174,7 +174,7 @@ def role_client(args: argparse.Namespace) -> int:
         send_times = getattr(clients[0], "send_times", None)
         while send_times is not None and not send_times and time.monotonic() - t_start < 2.0:
             time.sleep(0.001)
-        t0 = (send_times[0] if send_times else t_start + args.first_slot * slot) - args.first_slot * slot
+        t0 = send_times[0] - args.first_slot * slot if send_times else t_start  # slot 0's first tick
         # The bare ping: half a period after the tick with one robot, else in the slot after the last robot's.
         offset = 0.5 * period if args.slots == 1 else args.slots * slot
         measure_from = time.time_ns() + int(args.warmup * 1e9)

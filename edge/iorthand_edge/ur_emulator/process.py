@@ -88,7 +88,9 @@ class EmulatorProcess:
         busy test run) must not starve it, or its RTDE watchdog stops the program for want of kicks that were sent
         (a fault of the rig, which the edge rightly reports). All its threads, and those they start, at SCHED_FIFO
         :data:`EMULATOR_PRIORITY` (root or CAP_SYS_NICE), else at ``nice``, else as they are; returns what they
-        got. Measured: benchmarks/README.md, "the UR emulator at real-time priority"."""
+        got. Measured: benchmarks/README.md, "the UR emulator at real-time priority". Not
+        :func:`iorthand.transport.raise_priority`: it resets real time on fork, and the emulator's connection threads,
+        started later, must inherit it."""
         got = f"SCHED_FIFO {EMULATOR_PRIORITY}"
         try:
             for tid in os.listdir(f"/proc/{self.proc.pid}/task"):
