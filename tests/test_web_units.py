@@ -90,6 +90,32 @@ def test_nan_and_infinity_never_pass() -> None:
             messages.parse(twist().replace("[0.001, 0, 0]", f"[{bad}, 0, 0]"))
 
 
+def _held(i: int, deadman: bool = True) -> messages.Twist:
+    return messages.Twist(i, (0.001, 0.0, 0.0) if deadman else (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), deadman, 0)
+
+
+def test_a_page_at_its_rate_is_never_held_back_even_with_late_ticks() -> None:
+    budget = messages.TwistBudget(60.0)
+    t, passed = 100.0, 0
+    for i in range(6000):  # 100 s; every tenth tick 50 ms late, the next ones close behind (a busy browser)
+        t += 0.05 if i % 10 == 0 else 1 / 60 - 0.0037
+        passed += budget.allow(_held(i), t)
+    assert passed == 6000
+
+
+def test_a_flooding_page_gets_twice_its_rate_through_and_still_lets_go() -> None:
+    budget = messages.TwistBudget(60.0)
+    sent = [budget.allow(_held(i), 10.0 + i * 1e-4) for i in range(10_000)]  # 10 000 a second, for 1 s
+    # A quarter second's worth at once, then 120 a second.
+    assert 30 + 120 - 2 <= sum(sent) <= 30 + 120 + 1, sum(sent)
+    assert not sent[-1]
+    # Over budget, the first release after a held twist still goes (letting go must reach the robot) ...
+    assert budget.allow(_held(10_001, deadman=False), 11.0)
+    # ... but not a stream of releases: once released, the budget holds for them too.
+    assert not any(budget.allow(_held(10_002 + i, deadman=False), 11.0) for i in range(100))
+    assert budget.allow(_held(20_000), 12.0)  # a second later the page has its budget back
+
+
 def test_a_console_reachable_from_the_network_needs_tls() -> None:
     WebConfig(listen="127.0.0.1:8443").check()
     WebConfig(listen="[::1]:8443").check()

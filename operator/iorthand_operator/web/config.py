@@ -29,6 +29,10 @@ class WebConfig:
     )
     session_hours: float = setting(12.0, lo=0.01, hi=24 * 30, help="how long a log-in lasts")
     state_hz: float = setting(20.0, lo=1.0, hi=60.0, help="robot state pushed to each page per second")
+    twist_hz: float = setting(
+        60.0, lo=20.0, hi=120.0, help="twists per second a controlling page sends (its hello says so); the server "
+        "forwards at most twice that, a quarter second's worth at once, and drops and reports the rest",
+    )
     arm_model: str = setting("ur3e", choices=("ur3e", "ur5e"), help="the arm drawn in the 3D view")
     arm_models: dict[str, str] = setting(default_factory=dict, help="robot id → ur3e | ur5e, where not arm_model")
     release_tail: float = setting(0.3, lo=0.0, hi=5.0, help="s of released-deadman commands forwarded after a release")

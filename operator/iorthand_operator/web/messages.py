@@ -3,8 +3,9 @@
 A page message is one JSON object with a ``type``. Every problem raises :class:`PageError` with a reason the page
 shows (the field that was wrong and what was expected); nothing that fails here reaches Zenoh.
 
-The twist is what the page sends 60 times a second from its timer while it is open, deadman held or not: one
-message, one command (the server never repeats, stores or invents one). Velocities are SI (m/s, rad/s) in the
+The twist is what the page sends ``twist_hz`` times a second (the server's setting, in its hello) from its timer
+while it is open, deadman held or not: one message, one command (the server never repeats, stores or invents one).
+:class:`TwistBudget` bounds how fast a page may send them. Velocities are SI (m/s, rad/s) in the
 robot's base frame; the edge clips them to its limits. ``seen`` is the source time (ns) of the newest robot state
 the page has drawn, so the edge can refuse motion from a screen that shows an old picture.
 """
@@ -112,6 +113,33 @@ def parse(data: str | bytes) -> PageMessage:
     raise PageError(f"type: unknown message type {str(kind)[:30]!r}")
 
 
+class TwistBudget:
+    """How many twists a page may have forwarded: ``twist_hz`` a second on average with a quarter second's worth
+    at once, both twice what a well-behaved page sends (a busy browser runs late timer ticks close together). A
+    page that sends faster, a hostile script or a broken one, has the excess dropped, which bounds what it can
+    push through the server to the edge. The first release after a held twist always passes: letting go must
+    reach the robot."""
+
+    def __init__(self, twist_hz: float) -> None:
+        self.rate = 2.0 * twist_hz
+        self.burst = 0.25 * self.rate
+        self._tokens = self.burst
+        self._at: float | None = None
+        self._held = False  # the deadman of the last twist forwarded
+
+    def allow(self, twist: Twist, now: float) -> bool:
+        """Whether ``twist``, arriving at ``now`` (s, monotonic), is forwarded."""
+        if self._at is not None:
+            self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
+        self._at = now
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+        elif twist.deadman or not self._held:
+            return False
+        self._held = twist.deadman
+        return True
+
+
 def _only(obj: dict[str, Any], allowed: set[str]) -> None:
     extra = set(obj) - allowed
     if extra:
@@ -161,4 +189,4 @@ def _name(obj: dict[str, Any], name: str, required: bool = True) -> str:
     return v
 
 
-__all__ = ["MAX_MESSAGE_BYTES", "Camera", "Control", "PageError", "PageMessage", "Pose", "Twist", "View", "parse"]
+__all__ = ["MAX_MESSAGE_BYTES", "Camera", "Control", "PageError", "PageMessage", "Pose", "Twist", "TwistBudget", "View", "parse"]

@@ -306,6 +306,7 @@ class Page:
         self._pending: dict[int, int] = {}  # command seq → the page's message id
         self._last_events: dict[str, Event | None] = {"watch": None, "client": None}
         self._refused_at: dict[str, float] = {}
+        self._twists = messages.TwistBudget(bridge.config.twist_hz)
         self.refused = 0
 
     # ------------------------------------------------------------- from the page
@@ -338,6 +339,10 @@ class Page:
         client = self.client
         if client is None:
             return await self.refuse("not_controlling", "take control before moving the robot")
+        if not self._twists.allow(msg, time.monotonic()):
+            return await self.refuse("too_fast", f"twists beyond {self._twists.rate:.0f} a second are dropped: the "
+                                     f"page sends {self.bridge.config.twist_hz:.0f} (more comes from a script, or "
+                                     "from a stalled link delivering its backlog at once)")
         newest = self.feed.watch.robot_state
         # The page can say it showed an older state, never a newer one than this server had.
         seen = min(msg.seen, newest.t) if newest is not None else 0
@@ -718,7 +723,8 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
     page = Page(bridge, ws, grant, feed, request.transport)
     feed.pages.add(page)
     await page.send({"type": "hello", "user": grant.user, "role": str(grant.role), "robot": robot,
-                     "robots": list(grant.robots), "may_command": grant.may_command(robot)})
+                     "robots": list(grant.robots), "may_command": grant.may_command(robot),
+                     "twist_hz": bridge.config.twist_hz})
     pusher = asyncio.create_task(page.push())
     try:
         async for msg in ws:

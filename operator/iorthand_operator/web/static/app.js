@@ -1,7 +1,7 @@
 // The iorthand console in a browser. The deadman, end to end:
-// - a timer sends one twist 60 times a second while this page holds control, deadman held or not; the server
-//   forwards each one at once and never repeats one, so if this page stops (closed, frozen, offline) the edge's
-//   own timeout stops the robot;
+// - a timer sends one twist at the server's rate (its hello's twist_hz) while this page holds control, deadman
+//   held or not; the server forwards each one at once and never repeats one, so if this page stops (closed,
+//   frozen, offline) the edge's own timeout stops the robot;
 // - the deadman is held only while a finger (or the mouse, Space, a gamepad shoulder button) is on it: lifting
 //   it, a touchcancel, the page hidden, the window losing focus or the socket closing all release it, and the
 //   release is sent at once, not on the next tick (a browser throttles the timers of a hidden or busy page).
@@ -9,7 +9,6 @@
 // to the speed profile's limits that the edge reports (it clips them anyway).
 import { createViewer } from "/static/viewer.js";
 
-const RATE_HZ = 60;
 const STATE_STALE_MS = 500; // no state for this long: the force light and the status go grey
 const DEADZONE = 0.08;
 const $ = (id) => document.getElementById(id);
@@ -184,8 +183,12 @@ function sendTwist() {
     seen: lastState?.t || 0, frame }));
   stats.sent += 1;
 }
-// The fixed-rate stream: a timer, never input events (a release aside).
-setInterval(sendTwist, 1000 / RATE_HZ);
+// The fixed-rate stream: a timer at the server's rate, never input events (a release aside).
+let stream = null;
+function startStream(hz) {
+  clearInterval(stream);
+  stream = setInterval(sendTwist, 1000 / hz);
+}
 
 // ---------------------------------------------------------------------------------------------- the socket
 
@@ -212,6 +215,7 @@ function onMessage(m) {
   switch (m.type) {
     case "hello":
       hello = m;
+      startStream(m.twist_hz);
       ui.robot.textContent = m.robot;
       ui.who.textContent = `${m.user} (${m.role})`;
       document.body.classList.toggle("viewer", !m.may_command);
