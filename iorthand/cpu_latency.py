@@ -29,7 +29,7 @@ def _checked_us(max_us: int) -> int:
 class CpuLatencyHold:
     """One PM QoS request: while it is open, no CPU of this machine enters an idle state that takes longer than
     ``max_us`` µs to leave. The request is machine-wide and ends on :meth:`close` or when the process exits.
-    Best effort, like :func:`iorthand.transport.raise_priority`: it needs root, and ``state`` says what it got."""
+    Best effort, like :func:`iorthand.process.raise_priority`: it needs root, and ``state`` says what it got."""
 
     def __init__(self, max_us: int, path: Path = CPU_DMA_LATENCY) -> None:
         self.max_us = _checked_us(max_us)

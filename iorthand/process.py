@@ -1,15 +1,42 @@
 """Child processes that never outlive their parent: Linux's PR_SET_PDEATHSIG and the start of a spawned child,
 in one place for every role (the demo's processes, the twin's viewer, the operator's sender, the edge's media
-process, the benchmarks' roles)."""
+process, the benchmarks' roles); and the real-time priority of the few threads that get one. No Zenoh here: the
+UR driver's child process imports this and must start fast."""
 
 from __future__ import annotations
 
 import contextlib
 import ctypes
+import logging
 import os
 import signal
+import threading
+
+log = logging.getLogger(__name__)
 
 _PR_SET_PDEATHSIG = 1
+
+
+# The SCHED_FIFO priority of the few threads that get one. A service user needs no root for it: an
+# RLIMIT_RTPRIO of at least this much is enough (deploy/systemd/iorthand-edge.service: LimitRTPRIO).
+REALTIME_PRIORITY = 10
+
+
+def raise_priority(realtime: bool, priority: int = REALTIME_PRIORITY) -> str:
+    """Best effort SCHED_FIFO at ``priority`` for the calling thread (root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ it); returns
+    what it got. Only for threads that block between short bursts of work (a fixed-rate sender, a control loop):
+    a spinning one would starve others, so a process must never run real-time as a whole."""
+    if not realtime or not hasattr(os, "sched_setscheduler"):
+        return "normal"
+    try:
+        # SCHED_RESET_ON_FORK: a thread or process this thread starts (the UR driver, restarted by the control
+        # loop after a fault) begins at normal priority instead of inheriting real time.
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
+                              os.sched_param(priority))
+        return "SCHED_FIFO"
+    except (PermissionError, OSError) as exc:
+        log.debug("thread stays at normal priority: %s", exc)
+        return f"normal ({exc.strerror or exc})"
 
 
 def die_with_parent(sig: int = signal.SIGTERM) -> None:
@@ -32,4 +59,4 @@ def enter_child(parent_pid: int, pdeathsig: bool = True) -> None:
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
 
 
-__all__ = ["die_with_parent", "enter_child"]
+__all__ = ["REALTIME_PRIORITY", "die_with_parent", "enter_child", "raise_priority"]

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import queue
 import re
 import threading
@@ -28,6 +27,7 @@ import zenoh
 
 from iorthand import channels, keys
 from iorthand.config import ConfigError, setting
+from iorthand.process import REALTIME_PRIORITY, raise_priority
 from iorthand.protocol import MAX_PAYLOAD, MAX_VIDEO_PAYLOAD, RejectCounter
 
 log = logging.getLogger(__name__)
@@ -429,28 +429,6 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox, max_payload: int =
         inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()), size)
 
     return session.declare_subscriber(key, on_sample)
-
-
-# The SCHED_FIFO priority of the few threads that get one. A service user needs no root for it: an
-# RLIMIT_RTPRIO of at least this much is enough (deploy/systemd/iorthand-edge.service: LimitRTPRIO).
-REALTIME_PRIORITY = 10
-
-
-def raise_priority(realtime: bool, native_id: int | None = None) -> str:
-    """Best effort SCHED_FIFO for one thread (root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ REALTIME_PRIORITY); returns
-    what it got. Only for threads that block between short bursts of work (a fixed-rate sender, a control loop):
-    a spinning one would starve others, so a process must never run real-time as a whole."""
-    if not realtime or not hasattr(os, "sched_setscheduler"):
-        return "normal"
-    try:
-        # SCHED_RESET_ON_FORK: a thread or process this thread starts (the UR driver, restarted by the control
-        # loop after a fault) begins at normal priority instead of inheriting real time.
-        os.sched_setscheduler(threading.get_native_id() if native_id is None else native_id,
-                              os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(REALTIME_PRIORITY))
-        return "SCHED_FIFO"
-    except (PermissionError, OSError) as exc:
-        log.debug("thread stays at normal priority: %s", exc)
-        return f"normal ({exc.strerror or exc})"
 
 
 class Worker(threading.Thread):

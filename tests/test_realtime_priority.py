@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from iorthand.transport import REALTIME_PRIORITY
+from iorthand.process import REALTIME_PRIORITY
 from tests.conftest import ROOT
 
 EDGE_UNIT = ROOT / "deploy" / "systemd" / "iorthand-edge.service"
@@ -23,7 +23,7 @@ EDGE_UNIT = ROOT / "deploy" / "systemd" / "iorthand-edge.service"
 # restarted from the control loop): both normal, not real time.
 PROBE = """
 import os, subprocess, sys, threading
-from iorthand.transport import raise_priority
+from iorthand.process import raise_priority
 got = raise_priority(True)
 other = {}
 t = threading.Thread(target=lambda: other.update(policy=os.sched_getscheduler(0)))

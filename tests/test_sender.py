@@ -150,3 +150,20 @@ def test_a_slow_lease_reply_does_not_read_as_a_frozen_ui(edge_factory, operator_
     assert renewals, f"no renewal in 3 s (lease {op.lease} s)"
     assert all(still), f"the robot stopped in {still.count(False)} of {len(still)} samples while the lease renewed"
     assert op.owner
+
+
+def test_a_client_started_a_while_after_it_was_made_does_not_read_as_a_frozen_ui(edge_factory, operator_factory,
+                                                                                  caplog) -> None:
+    """A client made, then started later than ``ui_timeout`` (a script that waits for the robot and takes control
+    first, a benchmark that starts its load): starting it is a sign of life. Its first tick used to find the
+    construction's heartbeat stale and log "operator UI silent" (once per run of bench_cpu_hogs.py)."""
+    edge_factory()
+    op = operator_factory(ui_timeout=0.5)  # the thread sender
+    op.wait_for_state()
+    op.acquire()
+    op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
+    time.sleep(0.7)
+    with caplog.at_level("WARNING", logger="iorthand.operator"):
+        op.start()
+        wait_until(lambda: op.sent_count >= 10, timeout=5, message="ten commands")
+    assert not [r.getMessage() for r in caplog.records if "UI silent" in r.getMessage()]

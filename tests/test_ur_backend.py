@@ -8,6 +8,7 @@ time bound asserted is the issue's link-loss detection (100 ms, against ~10 ms m
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
 
@@ -18,7 +19,7 @@ pytest.importorskip("rtde_control", reason="ur-rtde is not installed on this pla
 
 from iorthand_edge.robots.base import RobotFault, RobotReading
 from iorthand_edge.robots.config import URRobotConfig
-from iorthand_edge.robots.ur import URRobot
+from iorthand_edge.robots.ur import DRIVER_PRIORITY, URRobot
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator import HOME_POSE, HOME_Q, ControllerConfig, EmulatorConfig, UREmulator
 from iorthand_edge.ur_emulator.process import UR_PORTS, free_loopback_host
@@ -255,3 +256,37 @@ def test_connect_during_protective_stop_says_why(emu: UREmulator, make_robot: Ca
     robot = make_robot()
     with pytest.raises(RobotFault, match="protective stop"):
         robot.connect()
+
+
+def test_the_drivers_command_thread_alone_runs_real_time(emu: UREmulator) -> None:
+    """The driver's main thread writes the commands and kicks the controller's watchdog: real time, under the
+    edge's control loop (at normal priority, two CPU hogs delayed a kick past the 100 ms watchdog in 2 of 3
+    minutes of bench_cpu_hogs.py). Its other threads, the reader and ur_rtde's own, stay normal: with them real
+    time too the command path's p99 under the hogs rose from 9-25 to 29-67 ms. ``realtime: false`` leaves it all
+    normal."""
+    def policies(robot: URRobot) -> dict[int, tuple[int, int]]:
+        assert robot._proc is not None
+        pid = robot._proc.pid
+        return {int(t): (os.sched_getscheduler(int(t)) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(int(t)).sched_priority)
+                for t in os.listdir(f"/proc/{pid}/task")}
+
+    safety = SafetyConfig()
+    robot = URRobot(URRobotConfig(host=emu.config.host), safety.stop_deceleration)
+    robot.connect()
+    try:
+        if not robot.driver_priority.startswith("SCHED_FIFO"):
+            pytest.skip(f"real time not allowed here: {robot.driver_priority}")
+        assert robot._proc is not None
+        got = policies(robot)
+        assert got.pop(robot._proc.pid) == (os.SCHED_FIFO, DRIVER_PRIORITY)
+        assert len(got) >= 2 and set(got.values()) == {(os.SCHED_OTHER, 0)}, got  # the reader and ur_rtde's threads
+    finally:
+        robot.disconnect()
+    plain = URRobot(URRobotConfig(host=emu.config.host), safety.stop_deceleration, realtime=False)
+    plain.connect()
+    try:
+        assert plain.driver_priority == "normal"
+        assert set(policies(plain).values()) == {(os.SCHED_OTHER, 0)}
+    finally:
+        plain.disconnect()
+

@@ -112,7 +112,8 @@ class EdgeAgent:
     def __init__(self, config: EdgeConfig, robot: Robot | None = None) -> None:
         self.config = config
         self.keys = keys.RobotKeys(config.robot_id)
-        self.robot = robot if robot is not None else make_robot(config.robot, config.safety.stop_deceleration)
+        self.robot = robot if robot is not None else make_robot(config.robot, config.safety.stop_deceleration,
+                                                                config.realtime)
         self.period = self.robot.control_period
         self.supervisor = Supervisor(config.safety, period=self.period, force_required=config.force is not None,
                                      robot=config.robot_id)

@@ -47,7 +47,8 @@ class EdgeConfig:
     require_operator_alive: bool = setting(
         True, help="acquire only for an operator whose liveliness token is present (ACL-bound to its certificate)"
     )
-    realtime: bool = setting(True, help="SCHED_FIFO for the control loop thread when allowed")
+    realtime: bool = setting(True, help="SCHED_FIFO for the control loop thread, and the UR driver's command "
+                             "thread, when allowed")
     cpu_latency_us: int | None = setting(
         None, lo=0, help="while an operator holds control, no CPU of this host enters an idle state slower than this "
         "to leave (PM QoS, root; 0: idle cores poll, which costs power): every thread wake-up on the command path is "

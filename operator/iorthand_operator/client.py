@@ -32,6 +32,7 @@ import numpy as np
 import zenoh
 
 from iorthand import keys
+from iorthand.process import raise_priority
 from iorthand.protocol import (
     TWIST_FRAMES,
     AppliedCommand,
@@ -57,7 +58,7 @@ from iorthand.protocol import (
     superseded_news,
 )
 from iorthand.security import auth
-from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query, raise_priority
+from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query
 from iorthand_operator import recovery
 from iorthand_operator.link import LinkQuality, LinkWindow
 from iorthand_operator.sender import CommandStream, ProcessSender, run_fixed_rate
@@ -433,6 +434,9 @@ class OperatorClient:
 
     def start(self) -> None:
         """Start the fixed-rate sender, the heartbeat and, while we own the robot, the lease renewal."""
+        # Being started is a sign of life: the heartbeat from construction may be older than ui_timeout by now, and
+        # the heartbeat thread's first beat comes one period after the sender's first tick.
+        self.beat()
         fns: list[tuple[str, Any]] = [("heartbeat", self._beat), ("lease", self._renew_lease)]
         if self._proc_sender is not None:
             if self.gil_switch_interval is not None and sys.getswitchinterval() > self.gil_switch_interval:

@@ -38,10 +38,9 @@ from collections.abc import Callable
 from typing import Any
 
 from iorthand import keys
-from iorthand.process import enter_child
+from iorthand.process import enter_child, raise_priority
 from iorthand.protocol import TWIST_FRAMES, TwistCommand
 from iorthand.security import auth
-from iorthand.transport import raise_priority
 
 log = logging.getLogger("iorthand.operator.sender")
 

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from iorthand.process import REALTIME_PRIORITY, raise_priority
 from iorthand_edge.robots.base import Robot, RobotFault, RobotReading, Vector
 from iorthand_edge.robots.config import URRobotConfig
 
@@ -54,6 +55,10 @@ SAFETY_NAMES = {3: "protective stop", 4: "recovery", 5: "safeguard stop", 6: "sy
                 7: "robot e-stop", 8: "violation", 9: "safety fault"}
 ROBOT_MODE_RUNNING = 7
 MODE_MAX, FAULT_MAX = 40, 200  # the lengths RobotState accepts: a longer text would make its encode() fail
+# The driver's command thread (it kicks the controller's watchdog) at real time, under the edge's control loop and
+# under the UR emulator that stands for the controller in tests and benchmarks (EMULATOR_PRIORITY). At normal
+# priority, two CPU hogs delayed a kick past the 100 ms watchdog in 2 of 3 one-minute runs of bench_cpu_hogs.py.
+DRIVER_PRIORITY = max(1, REALTIME_PRIORITY - 6)
 SPAWN_TIMEOUT = 15.0  # s for the driver child to start Python and import ur_rtde (not the controller's fault)
 ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
                4: "power on", 5: "idle", 6: "backdrive", 7: "running", 8: "updating firmware"}
@@ -141,8 +146,12 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                 step()
         os._exit(0)
 
-    send(("ready", ""))
+    # This thread only (reset on fork): ur_rtde's threads, started before, and the reader, started after, stay
+    # normal, or their work at the RTDE rate would take the CPU from the edge's command path.
+    send(("ready", raise_priority(cfg["realtime"], DRIVER_PRIORITY)))
     threading.Thread(target=reader, name="ur-driver-reader", daemon=True).start()
+    with contextlib.suppress(OSError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(4))
     parent_timeout = cfg["parent_timeout"]
     last_parent = time.monotonic()
     moving = False
@@ -200,9 +209,11 @@ class URRobot(Robot):
     Every method returns at once; a fault sends the phase back to ``down`` and schedules a reconnect with
     back-off (0.5 s doubling to ``reconnect_max_s``)."""
 
-    def __init__(self, config: URRobotConfig, stop_deceleration: float) -> None:
+    def __init__(self, config: URRobotConfig, stop_deceleration: float, realtime: bool = True) -> None:
         self.config = config
         self.stop_deceleration = stop_deceleration  # the safety config's, for the child's own stops
+        self.realtime = realtime  # the edge's setting: real time for the driver's command thread where allowed
+        self.driver_priority = ""  # what the driver's command thread got, once connected
         self._ctx = mp.get_context("spawn")  # never fork a process that holds Zenoh threads
         self._proc: mp.process.BaseProcess | None = None
         self._conn: Connection | None = None
@@ -229,6 +240,7 @@ class URRobot(Robot):
         parent, child = self._ctx.Pipe()
         cfg = {k: v for k, v in asdict(self.config).items() if k in ("host", "rtde_frequency", "watchdog_hz")}
         cfg["stop_deceleration"] = self.stop_deceleration
+        cfg["realtime"] = self.realtime
         # The agent heartbeats every control cycle; silence for two watchdog periods means it is frozen.
         cfg["parent_timeout"] = max(2.0 / self.config.watchdog_hz, 3 * self.control_period)
         self._proc = self._ctx.Process(target=_driver_main, args=(child, cfg), name="ur-driver", daemon=True)
@@ -283,7 +295,9 @@ class URRobot(Robot):
         self._stopped_since = None
         self._state_at = self._stamp_changed_at = now
         self._backoff = 0.5
-        log.info("connected to UR controller at %s (watchdog %.0f Hz)", self.config.host, self.config.watchdog_hz)
+        log.info("connected to UR controller at %s (watchdog %.0f Hz; the driver's command thread at %s priority)",
+                 self.config.host, self.config.watchdog_hz, text)
+        self.driver_priority = text
 
     def connect(self) -> None:
         """Connect, waiting up to ``connect_timeout``; raise RobotFault with the reason otherwise."""

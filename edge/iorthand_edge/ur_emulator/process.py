@@ -17,7 +17,7 @@ import sys
 import threading
 from typing import Any
 
-from iorthand.transport import REALTIME_PRIORITY
+from iorthand.process import REALTIME_PRIORITY
 
 from .emulator import DEFAULT_CONTROL_PORT
 from .faults import ControlClient
@@ -89,7 +89,7 @@ class EmulatorProcess:
         (a fault of the rig, which the edge rightly reports). All its threads, and those they start, at SCHED_FIFO
         :data:`EMULATOR_PRIORITY` (root or CAP_SYS_NICE), else at ``nice``, else as they are; returns what they
         got. Measured: benchmarks/README.md, "the UR emulator at real-time priority". Not
-        :func:`iorthand.transport.raise_priority`: it resets real time on fork, and the emulator's connection threads,
+        :func:`iorthand.process.raise_priority`: it resets real time on fork, and the emulator's connection threads,
         started later, must inherit it."""
         got = f"SCHED_FIFO {EMULATOR_PRIORITY}"
         try:
