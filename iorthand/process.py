@@ -23,9 +23,9 @@ REALTIME_PRIORITY = 10
 
 
 def raise_priority(realtime: bool, priority: int = REALTIME_PRIORITY) -> str:
-    """Best effort SCHED_FIFO at ``priority`` for the calling thread (root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ it); returns
-    what it got. Only for threads that block between short bursts of work (a fixed-rate sender, a control loop):
-    a spinning one would starve others, so a process must never run real-time as a whole."""
+    """Best effort SCHED_FIFO at ``priority`` for the calling thread (root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ it);
+    returns what it got. Only for threads that block between short bursts of work (a fixed-rate sender, a control
+    loop): a spinning one would starve others, so a process must never run real-time as a whole."""
     if not realtime or not hasattr(os, "sched_setscheduler"):
         return "normal"
     try:

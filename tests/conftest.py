@@ -199,4 +199,3 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     system's own processes hold a small fraction of that. Garbage in cycles among frozen objects stays until
     the run ends: a bounded cost for a test process."""
     gc.freeze()
-

@@ -273,6 +273,7 @@ def test_the_drivers_command_thread_alone_runs_real_time(emu: UREmulator) -> Non
     safety = SafetyConfig()
     robot = URRobot(URRobotConfig(host=emu.config.host), safety.stop_deceleration)
     robot.connect()
+    cycle(robot, 0.2)  # the driver's loop has run: what it set after saying ready counts too
     try:
         if not robot.driver_priority.startswith("SCHED_FIFO"):
             pytest.skip(f"real time not allowed here: {robot.driver_priority}")
@@ -284,6 +285,7 @@ def test_the_drivers_command_thread_alone_runs_real_time(emu: UREmulator) -> Non
         robot.disconnect()
     plain = URRobot(URRobotConfig(host=emu.config.host), safety.stop_deceleration, realtime=False)
     plain.connect()
+    cycle(plain, 0.2)
     try:
         assert plain.driver_priority == "normal"
         assert set(policies(plain).values()) == {(os.SCHED_OTHER, 0)}

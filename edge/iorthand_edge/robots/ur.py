@@ -150,8 +150,6 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     # normal, or their work at the RTDE rate would take the CPU from the edge's command path.
     send(("ready", raise_priority(cfg["realtime"], DRIVER_PRIORITY)))
     threading.Thread(target=reader, name="ur-driver-reader", daemon=True).start()
-    with contextlib.suppress(OSError):
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(4))
     parent_timeout = cfg["parent_timeout"]
     last_parent = time.monotonic()
     moving = False

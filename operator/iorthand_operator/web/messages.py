@@ -124,13 +124,12 @@ class TwistBudget:
         self.rate = 2.0 * twist_hz
         self.burst = 0.25 * self.rate
         self._tokens = self.burst
-        self._at: float | None = None
+        self._at = -math.inf  # the previous twist's arrival
         self._held = False  # the deadman of the last twist forwarded
 
     def allow(self, twist: Twist, now: float) -> bool:
         """Whether ``twist``, arriving at ``now`` (s, monotonic), is forwarded."""
-        if self._at is not None:
-            self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
+        self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
         self._at = now
         if self._tokens >= 1.0:
             self._tokens -= 1.0
