@@ -8,9 +8,15 @@ time bound asserted is the issue's link-loss detection (100 ms, against ~10 ms m
 
 from __future__ import annotations
 
+import json
 import os
+import shlex
+import shutil
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -292,3 +298,30 @@ def test_the_drivers_command_thread_alone_runs_real_time(emu: UREmulator) -> Non
     finally:
         plain.disconnect()
 
+
+
+def test_ur_rtdes_threads_stay_normal_on_a_real_time_kernel() -> None:
+    """On a PREEMPT_RT kernel (a Pi's, say) ur_rtde by default puts its receive threads, and the thread that calls
+    its constructors, at SCHED_FIFO 90: above the edge's control loop and the driver's command thread. The driver
+    asks it not to, so the order measured here (the command thread alone at real time) holds on any kernel. This
+    kernel is not real time: the probe runs in a mount namespace whose /sys/kernel/realtime reads 1, which is what
+    ur_rtde 1.6.5 checks. It shows first that a bare ur_rtde is fooled, so the check on the driver is not vacuous.
+    (Without the driver's request, two of its threads ran at SCHED_FIFO 90.)"""
+    if os.geteuid() != 0 or shutil.which("unshare") is None:
+        pytest.skip("needs root and unshare (a mount namespace)")
+    repo = Path(__file__).resolve().parents[1]
+    script = ("mount -t tmpfs iorthand-fake-rt /sys/kernel && echo 1 > /sys/kernel/realtime && "
+              f"exec {shlex.quote(sys.executable)} -m tests.ur_rt_kernel_probe")
+    r = subprocess.run(["unshare", "--mount", "--propagation", "private", "sh", "-c", script], cwd=repo,
+                       capture_output=True, text=True, timeout=90)
+    if r.returncode != 0 and r.stderr.startswith(("unshare:", "mount:")):
+        pytest.skip(f"no mount namespace here: {r.stderr.strip()[:200]}")
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    # ur_rtde's default: its receive thread and the thread that called its constructor at real time, high.
+    fooled = [v for v in got["bare_ur_rtde"].values() if v[0] == os.SCHED_FIFO and v[1] > DRIVER_PRIORITY]
+    assert len(fooled) >= 2, got
+    driver = {int(tid): tuple(v) for tid, v in got["driver"].items()}
+    assert got["driver_priority"].startswith("SCHED_FIFO"), got
+    assert driver.pop(got["driver_pid"]) == (os.SCHED_FIFO, DRIVER_PRIORITY)
+    assert len(driver) >= 3 and set(driver.values()) == {(os.SCHED_OTHER, 0)}, driver  # reader + ur_rtde's two

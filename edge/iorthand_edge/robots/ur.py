@@ -59,6 +59,12 @@ MODE_MAX, FAULT_MAX = 40, 200  # the lengths RobotState accepts: a longer text w
 # under the UR emulator that stands for the controller in tests and benchmarks (EMULATOR_PRIORITY). At normal
 # priority, two CPU hogs delayed a kick past the 100 ms watchdog in 2 of 3 one-minute runs of bench_cpu_hogs.py.
 DRIVER_PRIORITY = max(1, REALTIME_PRIORITY - 6)
+# ur_rtde's own threads stay normal on every kernel. On a PREEMPT_RT kernel (a Pi's, say) ur_rtde 1.6.5 otherwise
+# puts its receive threads, and the thread calling its constructors, at SCHED_FIFO 90: above the control loop and
+# the command thread (seen with a faked /sys/kernel/realtime, tests/test_ur_backend.py). With the driver's other
+# threads at real time the command path was slower under load (benchmarks/README.md). A negative value is
+# ur_rtde's "not on purpose"; it then logs a "Failed to set realtime priority" warning that means just that.
+UR_RTDE_RT_PRIORITY = -1
 SPAWN_TIMEOUT = 15.0  # s for the driver child to start Python and import ur_rtde (not the controller's fault)
 ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
                4: "power on", 5: "idle", 6: "backdrive", 7: "running", 8: "updating firmware"}
@@ -86,12 +92,12 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     # nothing about the controller.
     conn.send(("connecting", ""))
     try:
-        recv = rtde_receive.RTDEReceiveInterface(cfg["host"], cfg["rtde_frequency"])
+        recv = rtde_receive.RTDEReceiveInterface(cfg["host"], cfg["rtde_frequency"], rt_priority=UR_RTDE_RT_PRIORITY)
         # No script can run in a protective stop (or worse): say so instead of a confusing upload failure.
         safety_mode = recv.getSafetyMode()
         if safety_mode in SAFETY_MODES:
             raise RuntimeError(f"controller in {SAFETY_MODES[safety_mode]}")
-        ctrl = rtde_control.RTDEControlInterface(cfg["host"], cfg["rtde_frequency"])
+        ctrl = rtde_control.RTDEControlInterface(cfg["host"], cfg["rtde_frequency"], rt_priority=UR_RTDE_RT_PRIORITY)
         # The constructor uploads the control script. The controller's input registers outlive a program, and a
         # re-uploaded script executes whatever command is still in them (the stale speedL of a driver that died
         # mid-motion). So the first command of every connection is a stop; it also clears that register.
