@@ -16,19 +16,24 @@ Matrix = NDArray[np.float64]
 _SMALL = 1e-12
 
 
-def skew(v: ArrayLike) -> Matrix:
-    x, y, z = np.asarray(v, dtype=float)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+def _rotation_rows(rx: float, ry: float, rz: float) -> tuple[tuple[float, float, float], ...]:
+    """Rodrigues' formula on plain floats (a few numpy calls on 3-vectors cost more than the maths; the edge's
+    kinematic guard converts a pose every control cycle)."""
+    theta = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if theta < _SMALL:  # first order: I + [rv]×
+        return (1.0, -rz, ry), (rz, 1.0, -rx), (-ry, rx, 1.0)
+    kx, ky, kz = rx / theta, ry / theta, rz / theta
+    c, s = math.cos(theta), math.sin(theta)
+    v = 1.0 - c  # R = I + s·K + (1 − c)·K², K² = k·kᵀ − I
+    return ((c + kx * kx * v, kx * ky * v - kz * s, kx * kz * v + ky * s),
+            (ky * kx * v + kz * s, c + ky * ky * v, ky * kz * v - kx * s),
+            (kz * kx * v - ky * s, kz * ky * v + kx * s, c + kz * kz * v))
 
 
 def rotvec_to_matrix(rv: ArrayLike) -> Matrix:
     """Rodrigues' formula: rotation vector (rad) → 3×3 rotation matrix."""
-    rv = np.asarray(rv, dtype=float)
-    theta = float(np.linalg.norm(rv))
-    if theta < _SMALL:
-        return np.eye(3) + skew(rv)
-    k = skew(rv / theta)
-    return np.eye(3) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
+    rx, ry, rz = np.asarray(rv, dtype=float).tolist()
+    return np.array(_rotation_rows(rx, ry, rz))
 
 
 def rotate(rv: Sequence[float], v: Sequence[float]) -> tuple[float, float, float]:
@@ -52,10 +57,11 @@ def rotate(rv: Sequence[float], v: Sequence[float]) -> tuple[float, float, float
 def matrix_to_rotvec(r: ArrayLike) -> NDArray[np.float64]:
     """3×3 rotation matrix → rotation vector with angle in [0, π]; stable near 0 and π."""
     r = np.asarray(r, dtype=float)
-    cos_theta = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
-    theta = math.acos(cos_theta)
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r.tolist()
+    theta = math.acos(min(1.0, max(-1.0, (r00 + r11 + r22 - 1.0) / 2.0)))
+    wx, wy, wz = r21 - r12, r02 - r20, r10 - r01  # 2·sin θ · axis
     if theta < 1e-6:
-        return np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+        return np.array([wx / 2.0, wy / 2.0, wz / 2.0])
     if math.pi - theta < 1e-4:
         # Near π the antisymmetric part vanishes: take the axis from the symmetric part instead.
         b = (r + np.eye(3)) / 2.0
@@ -63,12 +69,11 @@ def matrix_to_rotvec(r: ArrayLike) -> NDArray[np.float64]:
         axis = b[:, i] / math.sqrt(max(b[i, i], _SMALL))
         axis /= np.linalg.norm(axis)
         # Resolve the sign with what little antisymmetric part remains.
-        w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-        if np.dot(w, axis) < 0:
+        if wx * axis[0] + wy * axis[1] + wz * axis[2] < 0:
             axis = -axis
         return axis * theta
-    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    return w * (theta / (2.0 * math.sin(theta)))
+    k = theta / (2.0 * math.sin(theta))
+    return np.array([wx * k, wy * k, wz * k])
 
 
 def make_transform(rotation: ArrayLike | None = None, translation: ArrayLike | None = None) -> Matrix:
@@ -85,7 +90,9 @@ def pose_to_matrix(pose: ArrayLike) -> Matrix:
     p = np.asarray(pose, dtype=float)
     if p.shape != (6,):
         raise ValueError(f"a UR pose has 6 numbers [x,y,z,rx,ry,rz], got shape {p.shape}")
-    return make_transform(rotvec_to_matrix(p[3:]), p[:3])
+    x, y, z, rx, ry, rz = p.tolist()
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = _rotation_rows(rx, ry, rz)
+    return np.array([[r00, r01, r02, x], [r10, r11, r12, y], [r20, r21, r22, z], [0.0, 0.0, 0.0, 1.0]])
 
 
 def matrix_to_pose(t: ArrayLike) -> NDArray[np.float64]:

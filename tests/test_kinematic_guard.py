@@ -15,7 +15,7 @@ import pytest
 
 from iorthand import geometry, kinematics
 from iorthand.protocol import Status, TwistCommand
-from iorthand_edge.kinematic_guard import KinematicGuard, KinematicLimits
+from iorthand_edge.kinematic_guard import SAME_POSE, KinematicGuard, KinematicLimits
 from iorthand_edge.supervisor import SafetyConfig, Supervisor
 from tests.conftest import wait_until
 from tests.test_supervisor import Clock
@@ -86,6 +86,26 @@ def test_the_guard_tracks_the_joints_from_the_pose_alone() -> None:
         got = guard.update(geometry.matrix_to_pose(kinematics.forward(MODEL, q)), kinematics.HOME_Q)
         assert np.allclose(got.q, q, atol=1e-6)
     assert 0.0 < got.manipulability < 1.0 and got.reach_left > 0.05
+
+
+def test_an_arm_at_rest_is_assessed_once_and_a_creeping_one_never_lags_further_than_same_pose() -> None:
+    """The assessment is remade only once the pose has moved SAME_POSE from where it was made (not from the
+    previous cycle): an arm creeping in steps smaller than that is still followed, never more than SAME_POSE
+    behind, and one at rest costs one assessment."""
+    guard = KinematicGuard(KinematicLimits(), MODEL.name)
+    start = geometry.matrix_to_pose(kinematics.forward(MODEL, START_Q))
+    first = guard.update(start, START_Q)
+    assert all(guard.update(start.copy(), START_Q.copy()) is first for _ in range(50))
+    made = [first]  # the assessments made (kept alive: an id could otherwise be reused)
+    for i in range(1, 300):
+        pose = start.copy()
+        pose[0] += 4e-6 * i  # 0.5 mm/s at 125 Hz
+        got = guard.update(pose)  # the pose alone (reported angles within 0.1 mm of it would be taken as they are)
+        if got is not made[-1]:
+            made.append(got)
+        assessed = kinematics.forward(MODEL, got.q)
+        assert geometry.translation_distance(assessed, geometry.pose_to_matrix(pose)) <= SAME_POSE + 1e-7
+    assert 300 * 4e-6 / SAME_POSE / 2 < len(made) < 150  # remade every few cycles, not every cycle
 
 
 def test_a_twist_into_the_wrist_singularity_slows_then_halts() -> None:

@@ -65,3 +65,25 @@ def test_default_solution_is_elbow_up_tool_down():
     assert q[1] == pytest.approx(-math.pi / 2, abs=0.3) and q[2] > 0  # shoulder up, elbow bent like home
     pts = kinematics.link_points(kinematics.UR3E, q)
     assert pts.shape == (9, 3) and pts[-1] == pytest.approx([0.30, 0.0, 0.20], abs=1e-6)
+
+
+@pytest.mark.parametrize("name", ["ur3e", "ur5e"])
+def test_the_jacobian_is_the_derivative_of_the_forward_kinematics(name):
+    """Central differences of the TCP pose, per joint, against each column: the linear rows are the TCP's velocity,
+    the angular rows the rotation's (R(q+h)·R(q-h)ᵀ as a rotation vector over 2h)."""
+    m = kinematics.model(name)
+    rng = np.random.default_rng(7)
+    h = 1e-6
+    for i in range(20):
+        q = rng.uniform(-math.pi, math.pi, 6)
+        offset = [0.01, -0.02, 0.15, 0.1, 0.0, 0.2] if i % 2 else None
+        jac, tcp = kinematics.jacobian(m, q, offset)
+        assert np.allclose(tcp, kinematics.forward(m, q, offset), atol=1e-12)
+        for j in range(6):
+            dq = np.zeros(6)
+            dq[j] = h
+            ahead, behind = kinematics.forward(m, q + dq, offset), kinematics.forward(m, q - dq, offset)
+            linear = (ahead[:3, 3] - behind[:3, 3]) / (2 * h)
+            angular = geometry.matrix_to_rotvec(ahead[:3, :3] @ behind[:3, :3].T) / (2 * h)
+            assert np.allclose(jac[:3, j], linear, atol=1e-6), (i, j)
+            assert np.allclose(jac[3:, j], angular, atol=1e-6), (i, j)
