@@ -122,8 +122,9 @@ class KinematicGuard:
     def update(self, tcp_pose: ArrayLike, reported_q: ArrayLike | None = None) -> Assessment:
         """The joint angles for ``tcp_pose`` and what is near at them. An arm at rest costs nothing: while the pose
         and the reported angles stay within :data:`SAME_POSE` of those of the last assessment, it stands."""
-        pose = np.asarray(tcp_pose, dtype=float)
-        reported = None if reported_q is None else np.asarray(reported_q, dtype=float)
+        # Copies: what is kept here must not change with the caller's arrays.
+        pose = np.array(tcp_pose, dtype=float)
+        reported = None if reported_q is None else np.array(reported_q, dtype=float)
         if self._assessed_at is not None and _within(self._assessed_at, (pose, reported)):
             return self.state
         self._assessed_at = (pose, reported)
