@@ -29,6 +29,7 @@ from iorthand_edge.robots.ur import DRIVER_PRIORITY, URRobot
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator import HOME_POSE, HOME_Q, ControllerConfig, EmulatorConfig, UREmulator
 from iorthand_edge.ur_emulator.process import UR_PORTS, free_loopback_host
+from tests.ur_rt_kernel_probe import policies
 
 
 @pytest.fixture
@@ -270,12 +271,6 @@ def test_the_drivers_command_thread_alone_runs_real_time(emu: UREmulator) -> Non
     minutes of bench_cpu_hogs.py). Its other threads, the reader and ur_rtde's own, stay normal: with them real
     time too the command path's p99 under the hogs rose from 9-25 to 29-67 ms. ``realtime: false`` leaves it all
     normal."""
-    def policies(robot: URRobot) -> dict[int, tuple[int, int]]:
-        assert robot._proc is not None
-        pid = robot._proc.pid
-        return {int(t): (os.sched_getscheduler(int(t)) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(int(t)).sched_priority)
-                for t in os.listdir(f"/proc/{pid}/task")}
-
     safety = SafetyConfig()
     robot = URRobot(URRobotConfig(host=emu.config.host), safety.stop_deceleration)
     robot.connect()
@@ -284,8 +279,8 @@ def test_the_drivers_command_thread_alone_runs_real_time(emu: UREmulator) -> Non
         if not robot.driver_priority.startswith("SCHED_FIFO"):
             pytest.skip(f"real time not allowed here: {robot.driver_priority}")
         assert robot._proc is not None
-        got = policies(robot)
-        assert got.pop(robot._proc.pid) == (os.SCHED_FIFO, DRIVER_PRIORITY)
+        got = policies(robot._proc.pid)
+        assert got.pop(str(robot._proc.pid)) == (os.SCHED_FIFO, DRIVER_PRIORITY)
         assert len(got) >= 2 and set(got.values()) == {(os.SCHED_OTHER, 0)}, got  # the reader and ur_rtde's threads
     finally:
         robot.disconnect()
@@ -294,7 +289,8 @@ def test_the_drivers_command_thread_alone_runs_real_time(emu: UREmulator) -> Non
     cycle(plain, 0.2)
     try:
         assert plain.driver_priority == "normal"
-        assert set(policies(plain).values()) == {(os.SCHED_OTHER, 0)}
+        assert plain._proc is not None
+        assert set(policies(plain._proc.pid).values()) == {(os.SCHED_OTHER, 0)}
     finally:
         plain.disconnect()
 
