@@ -110,3 +110,20 @@ def test_histogram_counts_everything() -> None:
 def test_ratio() -> None:
     assert stats.ratio(1.0, 2.0) == 0.5
     assert math.isnan(stats.ratio(1.0, 0.0)) and math.isnan(stats.ratio(math.nan, 1.0))
+
+
+def test_median_is_numpys_to_the_last_bit_and_refuses_no_values() -> None:
+    """iorthand.stats.median stands in for np.median in the perception pipeline: the same value, odd and even
+    counts, ties and negative numbers included."""
+    import numpy as np
+
+    from iorthand.stats import median
+
+    rng = np.random.default_rng(7)
+    for n in range(1, 40):
+        values = rng.normal(0.0, 3.0, n)
+        values[: n // 3] = values[-1]  # ties
+        assert median(values) == float(np.median(values)), n
+    assert median([2.0, 1.0]) == 1.5 and median([[3.0], [1.0], [2.0]]) == 2.0
+    with pytest.raises(ValueError, match="no values"):
+        median([])

@@ -108,6 +108,22 @@ def test_an_arm_at_rest_is_assessed_once_and_a_creeping_one_never_lags_further_t
     assert 300 * 4e-6 / SAME_POSE / 2 < len(made) < 150  # remade every few cycles, not every cycle
 
 
+def test_a_pose_that_is_not_a_number_halts_every_twist_until_a_real_one_comes() -> None:
+    """A broken reading (NaN) is never "the same pose" as the last: the guard does not keep its old assessment
+    but has no angles at all, and halts every twist with its reason, until a finite pose is assessed again."""
+    guard = KinematicGuard(KinematicLimits(), MODEL.name)
+    start = geometry.matrix_to_pose(kinematics.forward(MODEL, START_Q))
+    assert guard.update(start, START_Q).q is not None
+    broken_pose = [math.nan, *start[1:]]
+    broken_angles = [*START_Q[:5], math.nan]
+    for pose, q in ((broken_pose, START_Q), (start, broken_angles)):
+        assert guard.update(pose, q).q is None, (pose, q)
+        twist = [0.01, 0.0, 0.0, 0.0, 0.0, 0.0]
+        status, reason = guard.limit(twist)
+        assert status == Status.REACH_LIMIT and twist == [0.0] * 6 and "no joint solution" in reason
+        assert guard.update(start, START_Q).q is not None  # a finite pose again: assessed anew
+
+
 def test_a_twist_into_the_wrist_singularity_slows_then_halts() -> None:
     q0 = START_Q.copy()
     q0[4] = -math.radians(45)  # wrist 2 at 45° from straight

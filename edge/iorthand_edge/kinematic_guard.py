@@ -39,13 +39,16 @@ _DAMPING = 1e-3  # of the pseudo-inverse: joint speeds stay finite at a singular
 SAME_POSE = 1e-5
 
 
-def _within(a: tuple[np.ndarray, np.ndarray | None], b: tuple[np.ndarray, np.ndarray | None]) -> bool:
+def _within(a: tuple[tuple[float, ...], tuple[float, ...] | None],
+            b: tuple[tuple[float, ...], tuple[float, ...] | None]) -> bool:
+    """Whether two (pose, reported angles) are within SAME_POSE of each other, in plain floats (numpy's per-call
+    cost was most of an arm at rest's cycle here). A NaN is never within: the arm is assessed again."""
     (pose_a, q_a), (pose_b, q_b) = a, b
-    if float(np.max(np.abs(pose_a - pose_b))) > SAME_POSE:
+    if not all(abs(x - y) <= SAME_POSE for x, y in zip(pose_a, pose_b, strict=True)):
         return False
     if q_a is None or q_b is None:
         return q_a is None and q_b is None
-    return float(np.max(np.abs(q_a - q_b))) <= SAME_POSE
+    return all(abs(x - y) <= SAME_POSE for x, y in zip(q_a, q_b, strict=True))
 
 
 def _distance(a: np.ndarray, b: np.ndarray) -> float:
@@ -114,7 +117,7 @@ class KinematicGuard:
         self.scale = self.model.reach  # m per rad: weighs rotations like the motion of the arm's far end
         self.state = Assessment()
         self._q: np.ndarray | None = None
-        self._assessed_at: tuple[np.ndarray, np.ndarray | None] | None = None  # (pose, reported q) of self.state
+        self._assessed_at: tuple[tuple[float, ...], tuple[float, ...] | None] | None = None  # (pose, reported q) of self.state
         self._disagreed: np.ndarray | None = None  # reported angles that did not give the pose
 
     # ------------------------------------------------------------------ per control cycle
@@ -123,12 +126,14 @@ class KinematicGuard:
         """The joint angles for ``tcp_pose`` and what is near at them. An arm at rest costs nothing: while the pose
         and the reported angles stay within :data:`SAME_POSE` of those of the last assessment, it stands."""
         # Copies: what is kept here must not change with the caller's arrays.
-        pose = np.array(tcp_pose, dtype=float)
-        reported = None if reported_q is None else np.array(reported_q, dtype=float)
-        if self._assessed_at is not None and _within(self._assessed_at, (pose, reported)):
+        at = (tuple(map(float, tcp_pose)), None if reported_q is None else tuple(map(float, reported_q)))
+        if self._assessed_at is not None and _within(self._assessed_at, at):
             return self.state
-        self._assessed_at = (pose, reported)
-        q, jac = self._track(pose, reported)
+        if not all(map(math.isfinite, at[0] + (at[1] or ()))):  # a broken reading: no angles, every motion halts
+            self._assessed_at, self._q, self.state = None, None, Assessment()
+            return self.state
+        self._assessed_at = at
+        q, jac = self._track(np.array(at[0]), None if at[1] is None else np.array(at[1]))
         self._q = q
         if q is None:
             self.state = Assessment()

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from iorthand.geometry import Matrix, make_transform
+from iorthand.stats import median
 
 from .config import CORNER_REFINEMENTS, DetectorConfig
 
@@ -280,7 +281,7 @@ def _border_shift(
     edge, good, _ = _profile_edges(roi, base - origin, directions, _offsets(half_width), groups=1)
     if np.count_nonzero(good) < _MIN_BORDER_PROFILES:
         return None
-    shift = -float(np.median(edge[good])) / (2.0 * (1.0 - cell))
+    shift = -median(edge[good]) / (2.0 * (1.0 - cell))
     return shift if abs(shift) <= _MAX_BORDER_SHIFT else None
 
 
@@ -313,7 +314,7 @@ def _edge_points(
     if np.any(valid.sum(axis=1) < _MIN_POINTS_PER_SIDE):
         return None
     points = base + np.where(valid, edge.reshape(4, count), 0.0)[:, :, None] * normals[:, None, :]
-    return points, valid, float(np.median(spread[good]))
+    return points, valid, median(spread[good])
 
 
 def _profile_edges(
@@ -334,7 +335,8 @@ def _profile_edges(
     dark = profiles[:, :plateau].mean(axis=1)
     light = profiles[:, -plateau:].mean(axis=1)
     contrast = light - dark
-    typical = np.median(contrast.reshape(groups, -1), axis=1).repeat(len(contrast) // groups)
+    rows = contrast.reshape(groups, -1)
+    typical = _row_medians(rows, np.ones(rows.shape, dtype=bool)).repeat(len(contrast) // groups)
     good = contrast > np.maximum(_MIN_CONTRAST, 0.3 * typical)
     step = offsets[1] - offsets[0]
     above = profiles - dark[:, None]

@@ -26,6 +26,7 @@ from collections import deque
 import numpy as np
 
 from iorthand.geometry import Matrix, is_rigid, make_transform, orthonormalize
+from iorthand.stats import median
 
 from .config import FilterConfig
 
@@ -49,7 +50,7 @@ def _distances_to(rotation: np.ndarray, translation: np.ndarray, rotations: np.n
 
 
 def _gate(distances: np.ndarray, config: FilterConfig, low: float, high: float) -> float:
-    return float(np.clip(config.inlier_spread * float(np.median(distances)), low, high))
+    return min(max(config.inlier_spread * median(distances), low), high)
 
 
 def _inliers(rotation: np.ndarray, translation: np.ndarray, rotations: np.ndarray, translations: np.ndarray,
