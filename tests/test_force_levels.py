@@ -70,6 +70,8 @@ def test_quantities() -> None:
     w = [3.0, 4.0, -2.0, 0.0, 0.0, 0.0]
     assert quantity_value(w, "fz") == 2.0
     assert quantity_value(w, "norm") == pytest.approx(math.sqrt(29.0))
+    assert math.isnan(quantity_value([0, 0, math.nan, 0, 0, 0], "fz"))  # one sample too: NaN is never a value
+    assert next_level(ForceLevel.SAFE, quantity_value([0, 0, math.nan, 0, 0, 0], "fz"), CFG) == ForceLevel.DANGER
     norm_cfg = LevelConfig(quantity="norm")
     assert next_level(ForceLevel.SAFE, quantity_value(w, "norm"), norm_cfg) == ForceLevel.SAFE
     assert next_level(ForceLevel.SAFE, quantity_value([6, 0, 0, 0, 0, 0], "norm"), norm_cfg) == ForceLevel.CAUTION

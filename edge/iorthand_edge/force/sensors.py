@@ -93,6 +93,8 @@ class SimForceSensor(ForceSensor):
         self._reading = reading
         self._rng = np.random.default_rng(config.seed)
         self._offset = np.zeros(6)
+        self._bias = np.asarray(config.bias, dtype=float)
+        self._noise_scale = np.array([1.0, 1.0, 1.0, 0.1, 0.1, 0.1])  # torque noise in N·m for force noise in N
         self._lock = threading.Lock()
         self.silent = False
 
@@ -104,8 +106,8 @@ class SimForceSensor(ForceSensor):
         if r is None:
             return None
         contact = np.zeros(6) if self.phantom is None else contact_wrench(self.phantom, r.tcp_pose, r.tcp_speed)
-        noise = self._rng.normal(0.0, self.config.noise, 6) * np.array([1, 1, 1, 0.1, 0.1, 0.1])
-        return contact + np.asarray(self.config.bias, dtype=float) + noise
+        noise = self._rng.normal(0.0, self.config.noise, 6) * self._noise_scale
+        return contact + self._bias + noise
 
     def read(self, timeout: float) -> WrenchSample | None:
         if self.silent:
