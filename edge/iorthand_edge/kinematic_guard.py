@@ -94,10 +94,16 @@ class Assessment:
     reach_left: float = 0.0  # m of elbow span left
     nearest_joint: int = -1  # the joint closest to its limit
     joint_margin: float = math.inf  # rad from that limit
-    pinv: list[list[float]] = field(default_factory=list)  # rows: joint speed per scaled twist component
+    pinv: list[list[float]] = field(default_factory=list)  # rows: joint speed per scaled twist component (only
+    # when near_joints or reach_near: nothing else reads it)
     toward: list[float] | None = None  # the scaled twist direction into the singularity (when near one)
     near_joints: list[tuple[int, int, float]] = field(default_factory=list)  # (joint, +1 max / -1 min, margin)
     reach_near: bool = False
+
+
+def _manipulability(singular_values: np.ndarray) -> float:
+    """The inverse condition number σmin/σmax (singular values in decreasing order, as numpy gives them)."""
+    return float(singular_values[-1] / singular_values[0])
 
 
 def _fraction(left: float, halt: float, slow: float) -> float:
@@ -139,30 +145,40 @@ class KinematicGuard:
             self.state = Assessment()
             return self.state
         lim = self.limits
-        u, s, vt, m = self._svd(q, jac)
-        pinv = vt.T @ np.diag(s / (s * s + _DAMPING**2)) @ u.T
-        toward = None
-        if m < lim.slow_manipulability:
-            direction = u[:, -1]
-            step = pinv @ direction
-            probe = q + 1e-3 * step / max(float(np.linalg.norm(step)), 1e-12)  # 1 mrad along it
-            toward = (direction if self._svd(probe)[3] < m else -direction).tolist()
         margins = [(float(q[i] - lim.joint_min[i]), float(lim.joint_max[i] - q[i])) for i in range(6)]
         near_joints = [(i, side, margin) for i, pair in enumerate(margins)
                        for side, margin in zip((-1, 1), pair, strict=True) if margin < lim.joint_slow_margin]
         nearest = min(range(6), key=lambda i: min(margins[i]))
         full = abs(self.model.a[1]) + abs(self.model.a[2])
         reach_left = full - kinematics.elbow_span(self.model, float(q[2]))
-        self.state = Assessment([float(v) for v in q], m, reach_left, nearest, min(margins[nearest]), pinv.tolist(),
-                                toward, near_joints, reach_left < lim.reach_slow_margin)
+        reach_near = reach_left < lim.reach_slow_margin
+        scaled = self._scaled_jacobian(q, jac)
+        m = _manipulability(np.linalg.svd(scaled, compute_uv=False))
+        pinv: list[list[float]] = []
+        toward = None
+        # The singular vectors only where they are used (a third of a driven cycle's cost otherwise): the joint
+        # speeds a twist asks for near a joint limit or the edge of reach, the direction into a singularity near one.
+        if near_joints or reach_near or m < lim.slow_manipulability:
+            u, s, vt = np.linalg.svd(scaled)
+            m = _manipulability(s)
+            inverse = vt.T @ np.diag(s / (s * s + _DAMPING**2)) @ u.T
+            if near_joints or reach_near:
+                pinv = inverse.tolist()
+            if m < lim.slow_manipulability:
+                direction = u[:, -1]
+                step = inverse @ direction
+                probe = q + 1e-3 * step / max(float(np.linalg.norm(step)), 1e-12)  # 1 mrad along it
+                probed = _manipulability(np.linalg.svd(self._scaled_jacobian(probe), compute_uv=False))
+                toward = (direction if probed < m else -direction).tolist()
+        self.state = Assessment([float(v) for v in q], m, reach_left, nearest, min(margins[nearest]), pinv,
+                                toward, near_joints, reach_near)
         return self.state
 
-    def _svd(self, q: np.ndarray, jac: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """The SVD of the reach-scaled Jacobian at ``q`` (``jac``: the Jacobian at ``q``, if already computed)."""
-        jac = kinematics.jacobian(self.model, q, self.tcp_offset)[0] if jac is None else jac.copy()
-        jac[3:] *= self.scale
-        u, s, vt = np.linalg.svd(jac)
-        return u, s, vt, float(s[-1] / s[0])
+    def _scaled_jacobian(self, q: np.ndarray, jac: np.ndarray | None = None) -> np.ndarray:
+        """The Jacobian at ``q`` (``jac``: already computed there) with its angular rows scaled by the reach."""
+        scaled = kinematics.jacobian(self.model, q, self.tcp_offset)[0] if jac is None else jac.copy()
+        scaled[3:] *= self.scale
+        return scaled
 
     def _track(self, pose: np.ndarray, reported: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Joint angles at ``pose``, and the Jacobian there when it came with them: the reported angles if they
@@ -179,11 +195,11 @@ class KinematicGuard:
         if q is not None:
             for _ in range(4):
                 jac, tcp = kinematics.jacobian(self.model, q, self.tcp_offset)
-                err = np.concatenate([target[:3, 3] - tcp[:3, 3],
-                                      geometry.matrix_to_rotvec(target[:3, :3] @ tcp[:3, :3].T)])
-                if np.linalg.norm(err[:3]) + 0.1 * np.linalg.norm(err[3:]) < 1e-7:
+                ex, ey, ez = (target[:3, 3] - tcp[:3, 3]).tolist()
+                wx, wy, wz = geometry.matrix_to_rotvec(target[:3, :3] @ tcp[:3, :3].T).tolist()
+                if math.sqrt(ex * ex + ey * ey + ez * ez) + 0.1 * math.sqrt(wx * wx + wy * wy + wz * wz) < 1e-7:
                     return q, jac
-                q = q + np.linalg.lstsq(jac, err, rcond=1e-6)[0]
+                q = q + np.linalg.lstsq(jac, np.array([ex, ey, ez, wx, wy, wz]), rcond=1e-6)[0]
             if _distance(kinematics.forward(self.model, q, self.tcp_offset), target) < 1e-5:
                 return q, None
         return kinematics.solve_near(self.model, pose, self._q, self.tcp_offset), None
