@@ -39,8 +39,10 @@ _DAMPING = 1e-3  # of the pseudo-inverse: joint speeds stay finite at a singular
 SAME_POSE = 1e-5
 
 
-def _within(a: tuple[tuple[float, ...], tuple[float, ...] | None],
-            b: tuple[tuple[float, ...], tuple[float, ...] | None]) -> bool:
+_Reading = tuple[tuple[float, ...], tuple[float, ...] | None]  # a TCP pose and the reported joint angles, if any
+
+
+def _within(a: _Reading, b: _Reading) -> bool:
     """Whether two (pose, reported angles) are within SAME_POSE of each other, in plain floats (numpy's per-call
     cost was most of an arm at rest's cycle here). A NaN is never within: the arm is assessed again."""
     (pose_a, q_a), (pose_b, q_b) = a, b
@@ -94,8 +96,9 @@ class Assessment:
     reach_left: float = 0.0  # m of elbow span left
     nearest_joint: int = -1  # the joint closest to its limit
     joint_margin: float = math.inf  # rad from that limit
-    pinv: list[list[float]] = field(default_factory=list)  # rows: joint speed per scaled twist component (only
-    # when near_joints or reach_near: nothing else reads it)
+    # Rows: joint speed per scaled twist component. Only near a joint limit or the edge of reach (empty elsewhere):
+    # nothing else reads it.
+    pinv: list[list[float]] = field(default_factory=list)
     toward: list[float] | None = None  # the scaled twist direction into the singularity (when near one)
     near_joints: list[tuple[int, int, float]] = field(default_factory=list)  # (joint, +1 max / -1 min, margin)
     reach_near: bool = False
@@ -123,7 +126,7 @@ class KinematicGuard:
         self.scale = self.model.reach  # m per rad: weighs rotations like the motion of the arm's far end
         self.state = Assessment()
         self._q: np.ndarray | None = None
-        self._assessed_at: tuple[tuple[float, ...], tuple[float, ...] | None] | None = None  # (pose, reported q) of self.state
+        self._assessed_at: _Reading | None = None  # where self.state was made
         self._disagreed: np.ndarray | None = None  # reported angles that did not give the pose
 
     # ------------------------------------------------------------------ per control cycle
