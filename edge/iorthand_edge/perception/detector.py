@@ -248,8 +248,8 @@ def _border_shift(
     cells = bits.shape[0]
     cell = 1.0 / cells
     to_image = _homography(_UNIT_SQUARE, corners)
-    outer = _distort(corners, camera_matrix, dist_coeffs)
-    side_px = float(np.mean(np.linalg.norm(outer[_NEXT] - outer, axis=1)))
+    corners_px = _distort(corners, camera_matrix, dist_coeffs)
+    side_px = float(np.mean(np.linalg.norm(corners_px[_NEXT] - corners_px, axis=1)))
     cell_px = side_px / cells
     # As wide as the outer profiles, so that the plateaus of both edges are cut alike, and inside the border
     # and the white cell.
@@ -261,10 +261,10 @@ def _border_shift(
     spread = np.linspace(-0.2, 0.2, max(3, round(0.4 * cell_px)))
     ks = np.arange(1, cells - 1)
     across = (ks[:, None] + 0.5 + spread) * cell  # k × spread
-    inner, outer = np.full_like(across, cell), np.full_like(across, 1.0 - cell)
+    near, far = np.full_like(across, cell), np.full_like(across, 1.0 - cell)  # the top or left edge, the other
     # Per k and side (top, bottom, left, right: _INWARDS's order), the points and whether the cell there is white.
-    xs = np.stack([across, across, inner, outer], axis=1)
-    ys = np.stack([inner, outer, across, across], axis=1)
+    xs = np.stack([across, across, near, far], axis=1)
+    ys = np.stack([near, far, across, across], axis=1)
     white = ~np.stack([bits[1, ks], bits[cells - 2, ks], bits[ks, 1], bits[ks, cells - 2]], axis=1)
     if not white.any():
         return None
@@ -523,7 +523,8 @@ def estimate_marker_pose(
     chosen, ambiguous, other_weight = choose_ippe_solution(
         rotations, squared, corner_sigma, expected_normal_camera, normal_sigma
     )
-    sides = np.linalg.norm(corners - corners[_NEXT], axis=1)
+    quad = image_points.reshape(4, 2)
+    sides = np.linalg.norm(quad - quad[_NEXT], axis=1)
     rms = math.sqrt(squared[chosen] / 8.0)
     return MarkerPoseEstimate(
         make_transform(rotations[chosen], translations[chosen]), rms, float(sides.mean()), ambiguous, other_weight
