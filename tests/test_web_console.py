@@ -33,7 +33,7 @@ import zenoh
 
 from iorthand import keys
 from iorthand.protocol import AppliedCommand, RobotState, SafetyStatus, Status
-from iorthand.transport import client_config, free_port, open_session, router_json5
+from iorthand.transport import client_config, free_port, open_session
 from iorthand_operator.web import users
 from tests.conftest import ROOT, iorthand_cmd, stop_process, wait_until
 
@@ -157,8 +157,10 @@ class Stack:
     def __init__(self, tmp: Path) -> None:
         self.tmp = tmp
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-        self.router = zenoh.open(zenoh.Config.from_json5(router_json5(self.endpoint)))
         self.procs: list[subprocess.Popen[bytes]] = []
+        # The router too: in this process it would share Zenoh's threads with the watcher below, whose callbacks
+        # wait for this interpreter's GIL (which a test's own flood of websocket messages holds).
+        self.start("router", iorthand_cmd("router", "--listen", self.endpoint), "router ready")
         edge = yaml.safe_load((ROOT / "configs" / "edge-sim.yaml").read_text())
         edge["zenoh"]["connect"] = [self.endpoint]
         edge["video"]["camera"]["fps"] = 10  # software rendering: keep the machine for the command path
@@ -205,7 +207,6 @@ class Stack:
         self.session.close()
         for proc in reversed(self.procs):
             stop_process(proc)
-        self.router.close()
 
 
 @pytest.fixture(scope="module")
