@@ -75,7 +75,7 @@ def _chain(m: URModel, q: ArrayLike) -> list[tuple[float, ...]]:
     most of the cost (a Jacobian took ~100 µs that way, ~25 µs this way)."""
     frames: list[tuple[float, ...]] = []
     r00, r01, r02, x, r10, r11, r12, y, r20, r21, r22, z = 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0
-    for theta, d, a, alpha in zip(q, m.d, m.a, m.alpha, strict=True):
+    for theta, d, a, alpha in zip(np.asarray(q, dtype=float).tolist(), m.d, m.a, m.alpha, strict=True):
         ct, st = math.cos(theta), math.sin(theta)
         ca, sa = math.cos(alpha), math.sin(alpha)
         # The DH step's columns: (ct, st, 0), (-st·ca, ct·ca, sa), (st·sa, -ct·sa, ca); its origin (a·ct, a·st, d).
@@ -95,13 +95,13 @@ def _matrix(rows: tuple[float, ...]) -> Matrix:
 
 def joint_frames(m: URModel, q: ArrayLike) -> list[Matrix]:
     """The base frame and the frames after each joint (7 transforms in the base frame; the last is the flange)."""
-    return [np.eye(4), *(_matrix(f) for f in _chain(m, [float(v) for v in np.asarray(q, dtype=float)]))]
+    return [np.eye(4), *(_matrix(f) for f in _chain(m, q))]
 
 
 def jacobian(m: URModel, q: ArrayLike, tcp_offset: ArrayLike | None = None) -> tuple[Matrix, Matrix]:
     """The geometric Jacobian at ``q`` (6×6: rows vx, vy, vz of the TCP and wx, wy, wz, in the base frame, per
     joint speed) and the TCP pose (4×4)."""
-    chain = _chain(m, [float(v) for v in np.asarray(q, dtype=float)])
+    chain = _chain(m, q)
     tcp = _matrix(chain[-1])
     if tcp_offset is not None:
         tcp = tcp @ geometry.pose_to_matrix(tcp_offset)
