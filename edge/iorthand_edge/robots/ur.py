@@ -103,6 +103,12 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
         # mid-motion). So the first command of every connection is a stop; it also clears that register.
         if not ctrl.speedStop(cfg["stop_deceleration"]):
             raise RuntimeError("speedStop after connecting was refused (control script not running)")
+        # This thread only (reset on fork): ur_rtde's threads, started before, and the reader, started after, stay
+        # normal, or their work at the RTDE rate would take the CPU from the edge's command path. Raised before
+        # the watchdog is set: from then on the program lives on this thread's kicks, and at normal priority a
+        # loaded machine delayed the first one past the watchdog's 100 ms (the emulator stopped the program
+        # 0.103 s after the watchdog was set, 1 connection in 20 beside stress-ng --cpu 2).
+        priority = raise_priority(cfg["realtime"], DRIVER_PRIORITY)
         # The watchdog lives in the program: every new script needs it set again.
         if not ctrl.setWatchdog(cfg["watchdog_hz"]):
             raise RuntimeError("setWatchdog was refused (control script not running)")
@@ -152,9 +158,7 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                 step()
         os._exit(0)
 
-    # This thread only (reset on fork): ur_rtde's threads, started before, and the reader, started after, stay
-    # normal, or their work at the RTDE rate would take the CPU from the edge's command path.
-    send(("ready", raise_priority(cfg["realtime"], DRIVER_PRIORITY)))
+    send(("ready", priority))
     threading.Thread(target=reader, name="ur-driver-reader", daemon=True).start()
     parent_timeout = cfg["parent_timeout"]
     last_parent = time.monotonic()
