@@ -40,7 +40,13 @@ ROBOT_ID = "ur1"
 def emulator() -> Iterator[EmulatorProcess]:
     # 250 Hz: the e-Series protocol at half the emulator's CPU (2-core runners).
     with EmulatorProcess(frequency=250.0) as emu:
+        # The controller is a computer of its own: this run's load (and the edge driver's real-time command
+        # thread) must not starve it, or its watchdog stops the program for want of kicks that were sent.
+        emu.raise_priority()
         yield emu
+        # pytest shows this only for a failed test: what the controller saw (watchdog, program stops).
+        with contextlib.suppress(OSError, RuntimeError):
+            print("emulator events:", *emu.status()["events"], sep="\n  ")
 
 
 def ur_config_dict(endpoint: str, host: str, **safety: Any) -> dict[str, Any]:
