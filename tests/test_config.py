@@ -47,6 +47,8 @@ def test_good_config_loads_with_defaults(tmp_path: Path) -> None:
         (GOOD.replace('connect: ["tcp/127.0.0.1:7447"]', "connect: []"), "zenoh", "router endpoint"),
         (GOOD.replace("kind: sim", "kind: ur") , "", "auto_arm is allowed only"),
         (GOOD + "safety: {command_timeout: .nan}\n", "safety.command_timeout", "finite"),
+        (GOOD + "perception: {camera: {kind: synthetic, fps: 15}}\nvideo: {camera: {source: perception, fps: 30}}\n",
+         "", "video.camera.fps 30 must be perception.camera.fps 15"),
     ],
 )
 def test_errors_name_file_key_and_expectation(tmp_path: Path, text: str, key: str, expected: str) -> None:

@@ -5,6 +5,7 @@ router on the video session."""
 from __future__ import annotations
 
 import os
+import random
 import re
 import threading
 import time
@@ -13,8 +14,12 @@ import numpy as np
 import pytest
 
 from iorthand import keys
+from iorthand.config import from_dict
 from iorthand.protocol import VideoFrame
 from iorthand.transport import VIDEO
+from iorthand_edge.perception.camera import CameraError, CameraSource, Frame
+from iorthand_edge.perception.config import PerceptionConfig
+from iorthand_edge.perception.pipeline import PerceptionPipeline
 from iorthand_edge.video import (
     FrameSource,
     LatestSlot,
@@ -301,3 +306,61 @@ def test_the_bitrate_falls_at_once_on_congestion_and_climbs_back_slowly() -> Non
     for t in range(14, 80, 2):  # ×1.1 every 2 s: the floor to the ceiling (×10) in about 50 s
         c.decide(float(t))
     assert c.target == s.max  # climbs back, never past the ceiling
+
+
+class IrregularCamera(CameraSource):
+    """A perception camera whose clock is not the stream's: ``count`` images, each numbered by its grey level (5
+    per number: JPEG keeps that), 5 to 45 ms apart, then nothing until interrupted."""
+
+    description = "the irregular test camera"
+
+    def __init__(self, count: int) -> None:
+        self.count, self.index = count, 0
+        self._gaps = random.Random(5)
+        self._interrupted = threading.Event()
+
+    def open(self) -> None:
+        pass
+
+    def read(self) -> Frame:
+        if self.index >= self.count:
+            self._interrupted.wait()
+            raise CameraError("interrupted")
+        time.sleep(self._gaps.uniform(0.005, 0.045))
+        image = np.full((48, 64, 3), 5 * self.index, np.uint8)
+        self.index += 1
+        return Frame(image, time.time_ns(), self.index - 1)
+
+    def close(self) -> None:
+        pass
+
+    def interrupt(self) -> None:
+        self._interrupted.set()
+
+
+def test_the_camera_video_sends_each_perception_image_once_whatever_its_rate() -> None:
+    """The stream takes the perception camera's images as they arrive: none twice, none skipped, in order, even
+    when the camera's rate is irregular and above the stream's. (Polling at the stream's own rate sent some twice
+    or dropped some, and each up to a period late.)"""
+    perception = from_dict({"camera": {"kind": "synthetic", "width": 64, "height": 48, "fps": 30.0}}, PerceptionConfig)
+    camera = IrregularCamera(40)
+    pipeline = PerceptionPipeline(perception, lambda _t: None, lambda _t: None, lambda _m: None, camera=camera)
+    config = StreamConfig(width=64, height=48, fps=30, codec="jpeg", source="perception")
+    stream = VideoStream("camera", keys.VIDEO_CAMERA, config, make_source(config, lambda: 0.0, pipeline.next_image))
+    pub = Recorder()
+    stop = threading.Event()
+    stream.start_with(pub, stop)
+    pipeline.start()
+    try:
+        wait_until(lambda: stream.captured == 40 and len(pub.frames) + stream.dropped == 40, timeout=10.0,
+                   message="the camera's 40 images through the stream")
+        time.sleep(0.1)  # nothing more comes
+    finally:
+        pipeline.stop()
+        stop.set()
+        stream.join()
+    assert stream.captured == 40
+    numbers = [round(float(decode_frame(f).mean()) / 5) for f in pub.frames]
+    assert numbers == sorted(set(numbers)), numbers  # never one twice, never out of order
+    assert len(numbers) + stream.dropped == 40  # what was not sent, the sender dropped and counted (a slow encode)
+    assert not stream.error

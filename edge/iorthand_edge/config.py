@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -73,6 +74,14 @@ class EdgeConfig:
                              " none (use kind sim with a phantom)")
         if self.phantom is not None and not simulated:
             raise ValueError("phantom: a simulated phantom only makes sense with the simulated robot (robot.kind sim)")
+        stream = self.video.camera if self.video is not None else None
+        # (A video file as the perception camera has no rate of its own to compare.)
+        camera_fps = getattr(self.perception.camera, "fps", None) if self.perception is not None else None
+        if stream is not None and stream.source == "perception" and camera_fps is not None \
+                and not math.isclose(stream.fps, camera_fps):
+            # The stream sends each image that camera captures: its encoder and bitrate must plan for that rate.
+            raise ValueError(f"video.camera.fps {stream.fps:g} must be perception.camera.fps {camera_fps:g}: the "
+                             "camera video sends each image the perception camera captures (set both alike)")
 
     def warnings(self) -> list[tuple[str, str]]:
         """Settings that load but that leave the agent unable to do its job: (setting, why). ``iorthand check``

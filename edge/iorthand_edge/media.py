@@ -120,7 +120,7 @@ class MediaService:
             self.perception = PerceptionPipeline(p, self.pose_at, self.servo_angles_at, self._publish_markers)
         self.video: list[VideoStream] = []
         if config.video is not None:
-            shared = self._camera_image if self.perception is not None else None
+            shared = self.perception.next_image if self.perception is not None else None
             for name, suffix, stream in (("camera", keys.VIDEO_CAMERA, config.video.camera),
                                          ("ultrasound", keys.VIDEO_ULTRASOUND, config.video.ultrasound)):
                 if stream is not None:
@@ -133,10 +133,6 @@ class MediaService:
             self._handlers[self.keys.key(keys.STATE_SERVO)] = self._on_servo
         if simulated_us and config.force is not None:
             self._handlers[self.keys.key(keys.STATE_FORCE_LEVEL)] = self._on_force_level
-
-    def _camera_image(self) -> np.ndarray | None:
-        """The perception camera's newest image: one camera serves both the markers and the video."""
-        return self.perception.latest_image if self.perception is not None else None
 
     # -- what the control process tells us, through Zenoh ---------------------------------------------------
 

@@ -86,8 +86,9 @@ class PerceptionPipeline:
         self._bits: dict[int, np.ndarray] = {}  # each seen marker's printed pattern, for the edge refinement
         self.filters = MarkerFilters(config.filter)
         self.stats = PipelineStats()
-        # The newest camera image (shared with the video stream, so one camera serves both).
+        # The newest camera image (shared with the video stream, so one camera serves both; see next_image).
         self.latest_image: np.ndarray | None = None
+        self._image_arrived = threading.Condition()
         self.failure: str | None = None
         self._camera = camera
         self._sequencer = Sequencer()
@@ -223,6 +224,15 @@ class PerceptionPipeline:
         n = r_camera_base @ np.asarray(normal, dtype=float)
         return n / np.linalg.norm(n)
 
+    def next_image(self, after: np.ndarray | None, timeout: float) -> np.ndarray | None:
+        """The camera's newest image once it is another than ``after``, waiting up to ``timeout`` s for it (None
+        if none came). The video stream takes each image as it arrives, before the markers are looked for."""
+        with self._image_arrived:
+            self._image_arrived.wait_for(lambda: self.latest_image is not None and self.latest_image is not after,
+                                         timeout)
+            image = self.latest_image
+        return image if image is not after else None
+
     def _fps(self) -> float:
         times = self._recent_frame_times
         if len(times) < 2 or times[-1] <= times[0]:
@@ -289,7 +299,9 @@ class PerceptionPipeline:
         log.info("perception: %s open", camera.description)
         while not self._stop.is_set():
             frame = camera.read()
-            self.latest_image = frame.image
+            with self._image_arrived:
+                self.latest_image = frame.image
+                self._image_arrived.notify_all()
             self._publish(self.process(frame))
             if self.failure is not None:  # cleared only once frames flow again, so a flapping camera stays failed
                 log.info("perception: %s delivers frames again", camera.description)

@@ -28,6 +28,8 @@ class VideoError(RuntimeError):
 
 class FrameSource(ABC):
     description = "a frame source"  # what the operator reads when it fails: "no frame from <description> …"
+    # True: grab() itself waits for the source's next frame, and the stream runs at the source's rate, not its own.
+    paced = False
 
     @abstractmethod
     def open(self) -> None: ...
@@ -183,28 +185,32 @@ class UltrasoundSimSource(FrameSource):
 
 
 class SharedFrameSource(FrameSource):
-    """The newest image another component already captured (the perception camera): one camera device feeds
-    both the marker detection and the video stream. Returns None until a new image arrives."""
+    """Each image another component captured (the perception camera), as it arrives: one camera device feeds
+    both the marker detection and the video stream. grab() waits up to :data:`WAIT` s for the next image and
+    returns None if none came. Paced by the camera: polling it at the stream's own rate sent each image up to a
+    period late, and at the camera's rate, with the two clocks drifting, would skip some and find none at others."""
 
     description = "the perception camera"
+    paced = True
+    WAIT = 0.2  # s: how soon a stop (or a stalled camera) is noticed
 
-    def __init__(self, latest: Callable[[], Image | None]) -> None:
-        self._latest = latest
+    def __init__(self, next_image: Callable[[Image | None, float], Image | None]) -> None:
+        self._next_image = next_image
         self._last: Image | None = None
 
     def open(self) -> None:
         pass
 
     def grab(self) -> Image | None:
-        image = self._latest()
-        if image is None or image is self._last:
-            return None
-        self._last = image
+        image = self._next_image(self._last, self.WAIT)
+        if image is not None:
+            self._last = image
         return image
 
 
 def make_source(
-    config: StreamConfig, contact_force: Callable[[], float], shared_frame: Callable[[], Image | None] | None = None
+    config: StreamConfig, contact_force: Callable[[], float],
+    shared_frame: Callable[[Image | None, float], Image | None] | None = None,
 ) -> FrameSource:
     if config.source == "perception":
         if shared_frame is None:

@@ -212,6 +212,8 @@ class VideoStream:
                     self.error = ""
             elif time.monotonic() - last_frame > self.config.stall_timeout:
                 raise VideoError(f"no frame from {self.source.description} for {self.config.stall_timeout:g} s")
+            if self.source.paced:
+                continue  # its grab() waited for the frame
             next_tick += period
             delay = next_tick - time.monotonic()
             if delay > 0:
