@@ -1,12 +1,12 @@
 """Video streams: capture at a fixed rate, encode (H.264 or JPEG), publish on the video session (DATA_LOW, BLOCK).
 
-Two named threads per stream. The capture thread grabs frames on schedule and stamps each with its capture
-time and a sequence number; it hands them over through a one-frame slot. The sender takes the newest frame,
-encodes it and ``put()``s it. When encoding or the network is slower than the camera, the frame waiting in
-the slot is replaced — dropped before it costs any encoding — so nothing queues and latency stays one
-frame. ``seq`` numbers the frames *sent*: a gap at a receiver is a frame lost on the way (an H.264 decoder then
-waits for a keyframe, a recorder counts it missing); a frame skipped at the source was never encoded, so the
-stream stays whole, and the stream counts it (``dropped``).
+Two named threads per stream. The capture thread grabs frames on schedule (or, from a source that paces itself,
+the perception camera's images, each as it arrives) and stamps each with its capture time and a sequence number;
+it hands them over through a one-frame slot. The sender takes the newest frame, encodes it and ``put()``s it. When
+encoding or the network is slower than the camera, the frame waiting in the slot is replaced — dropped before it
+costs any encoding — so nothing queues and latency stays one frame. ``seq`` numbers the frames *sent*: a gap at a
+receiver is a frame lost on the way (an H.264 decoder then waits for a keyframe, a recorder counts it missing); a
+frame skipped at the source was never encoded, so the stream stays whole, and the stream counts it (``dropped``).
 
 H.264 (:mod:`iorthand_edge.video.h264`) follows the link: video is published with ``CongestionControl.BLOCK`` so
 that a full uplink shows as a slow ``put`` (and frames the slot replaced) rather than as frames lost in transit —
