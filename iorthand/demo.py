@@ -110,6 +110,7 @@ def web_console(workdir: Path, robot: str, endpoint: str) -> tuple[Child, list[t
 def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, twin_url: str) -> None:
     rtt = result["command_to_echo_ms"]
     stops = result.get("deadman_stops_ms") or [float("nan")]
+    received = result.get("deadman_stops_after_receipt_ms") or [float("nan")]
     index = report.get("robots", {}).get(result["robot"], {}).get("index", {})
     gaps = report.get("recording", {})
     # Which streams lost messages (the report says): a video frame dropped by its latest-frame QoS is not a lost command.
@@ -121,7 +122,8 @@ def print_summary(result: dict, report: dict, workdir: Path, report_path: Path, 
         f"  robot {result['robot']} (simulated), operator {result['operator']}, profile {result['profile']}",
         f"  commands sent/accepted/refused  {result['commands_sent']} / {result['commands_accepted']} / {result['commands_refused']}",
         f"  command→applied latency   p50 {rtt['p50']:.2f} ms, p99 {rtt['p99']:.2f} ms (through the router, echo)",
-        f"  deadman stop (dead link)  {stops[0]:.0f} ms after the last command",
+        f"  deadman stop (dead link)  {stops[0]:.0f} ms after the last command was sent, {received[0]:.0f} ms after "
+        "the edge received it",
         f"  force                     peak level {result['peak_force_level']} ({levels.get(result['peak_force_level'], '?')})",
         f"  session index φ           {index.get('phi', float('nan')):.1f} % (contact {index.get('tau', 0):.1f} s of "
         f"{index.get('t_t', 0):.1f} s, warnings red {index.get('omega_R', 0)}, yellow {index.get('omega_Y', 0)})",

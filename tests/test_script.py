@@ -63,3 +63,22 @@ def test_script_command_line(edge_factory, router_endpoint: str, tmp_path: Path)
     assert out.returncode == 0, out.stderr
     summary = json.loads(out.stdout)
     assert summary["operator"] == "scripter" and summary["steps"][0]["moved_mm"] > 1.5
+
+
+def test_a_silent_link_in_a_script_reports_the_stop_from_the_send_and_from_the_edge(edge_factory, operator_factory,
+                                                                                    tmp_path: Path) -> None:
+    """The demo's dead-link line: the stop timed from the last command sent (with its transit) and from when the
+    edge received it, where the edge's bound (timeout + one control period) runs from."""
+    edge = edge_factory()
+    client = operator_factory()
+    (tmp_path / "s.yaml").write_text("steps:\n  - {twist: [0.005, 0, 0, 0, 0, 0], duration: 0.5}\n"
+                                     "  - {action: silence, duration: 0.6}\n")
+    script = load(tmp_path / "s.yaml", Script)
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    summary = run_script(client, script)
+    [after_sent], [after_receipt] = summary["deadman_stops_ms"], summary["deadman_stops_after_receipt_ms"]
+    timeout_ms = 1000 * edge.config.safety.command_timeout
+    assert timeout_ms - 1.0 <= after_receipt <= timeout_ms + 1000 * edge.period, summary["steps"][1]
+    assert after_sent >= after_receipt  # the command left before it arrived

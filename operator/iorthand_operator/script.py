@@ -31,6 +31,7 @@ import numpy as np
 
 from iorthand import stats
 from iorthand.config import setting
+from iorthand.protocol import RobotState
 from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.scripted import drive_for
 
@@ -95,7 +96,7 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
     start, sent0, echo0, ev0 = _pos(client), client.sent_count, client.echo_count, client.event_count
     t0 = time.monotonic()
     zero = np.zeros(3)
-    stop_ms: float | None = None
+    silence: dict[str, float | None] = {}
     recoveries: list[str] = []
     if step.twist is not None:
         tw = np.asarray(step.twist, float)
@@ -132,7 +133,8 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
             client.log_event("refused", "contact", f"contact mode: {exc}")
         time.sleep(step.duration)
     elif step.action == "silence":
-        stop_ms = _silence(client, step.duration)
+        after_sent, after_receipt = _silence(client, step.duration) or (None, None)
+        silence = {"deadman_stop_ms": after_sent, "deadman_stop_after_receipt_ms": after_receipt}
     end = _pos(client)
     echoes = client.echoes_since(echo0)
     return {
@@ -147,26 +149,30 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
         "refused": sum(not e.accepted for e in echoes),
         "events": [f"{e.kind} {e.status}: {e.reason}" for e in client.events_since(ev0)],
         **({"recoveries": recoveries} if recoveries else {}),
-        **({"deadman_stop_ms": stop_ms} if step.action == "silence" else {}),
+        **silence,
     }
 
 
-def _silence(client: OperatorClient, duration: float) -> float | None:
-    """Mute the sender with the deadman held (a dead link) for ``duration``. Returns the ms from the last
-    command sent to the edge's first state with a zero commanded twist (edge time stamps; one host clock in
-    the demo and tests), or None if the robot was not stopped within the silence."""
+def _silence(client: OperatorClient, duration: float) -> tuple[float, float] | None:
+    """Mute the sender with the deadman held (a dead link) for ``duration``. Returns the ms to the edge's first
+    state with a zero commanded twist from the last command sent, and from when the edge received it (the
+    edge's bound, timeout + one control period, runs from there; the first also holds the command's transit).
+    Edge time stamps, one host clock in the demo and tests. None if the robot was not stopped within the
+    silence."""
     client.muted = True
     time.sleep(2.0 / client.rate_hz)  # a send may still be under way
     last_sent = client.last_sent_ns
     deadline = time.monotonic() + duration
-    stop_ns = None
+    stop: RobotState | None = None
     while time.monotonic() < deadline:
         state = client.robot_state
-        if stop_ns is None and state is not None and state.t > last_sent and not np.any(state.commanded):
-            stop_ns = state.t
+        if stop is None and state is not None and state.t > last_sent and not np.any(state.commanded):
+            stop = state
         time.sleep(0.002)
     client.muted = False
-    return None if stop_ns is None else round((stop_ns - last_sent) / 1e6, 1)
+    if stop is None:
+        return None
+    return round((stop.t - last_sent) / 1e6, 1), round((stop.t - stop.cmd_recv_t) / 1e6, 1)
 
 
 def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
@@ -202,6 +208,8 @@ def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
         },
         "peak_force_level": client.peak_force_level,
         "deadman_stops_ms": [s["deadman_stop_ms"] for s in steps if s.get("deadman_stop_ms") is not None],
+        "deadman_stops_after_receipt_ms": [s["deadman_stop_after_receipt_ms"] for s in steps
+                                           if s.get("deadman_stop_after_receipt_ms") is not None],
         "final_status": {"status": safety.status, "reason": safety.reason, "owner": safety.owner} if safety else {},
         "edge_counters": {
             "received": safety.received, "applied": safety.applied, "rejected": safety.rejected,
