@@ -12,12 +12,16 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 import zenoh
 
 from iorthand.config import from_dict
 from iorthand.transport import free_port, open_session, router_json5
+
+if TYPE_CHECKING:
+    from iorthand_edge.ur_emulator.process import EmulatorProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -172,6 +176,22 @@ def twin_factory(router_endpoint, tmp_path):
     yield make
     for t in twins:
         t.shutdown()
+
+
+@contextlib.contextmanager
+def ur_controller() -> Iterator[EmulatorProcess]:
+    """The UR emulator as the controller it stands for: a computer of its own. It runs in a process at real-time
+    priority (``EmulatorProcess.raise_priority``), so that neither this run's load nor the edge driver's real-time
+    command thread starves it into stopping the program for want of kicks that were sent. At 250 Hz (the
+    emulator's default), not the e-Series' 500: the same protocol at half the CPU on a 2-core runner. At exit it
+    prints its event log (watchdog, program stops), which pytest shows only for a failed test."""
+    from iorthand_edge.ur_emulator.process import EmulatorProcess
+
+    with EmulatorProcess() as emulator:
+        emulator.raise_priority()
+        yield emulator
+        with contextlib.suppress(OSError, RuntimeError):
+            print("emulator events:", *emulator.status()["events"], sep="\n  ")
 
 
 def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01, message: str = "condition") -> None:

@@ -16,7 +16,7 @@ from iorthand.protocol import ForceSample, RobotState
 from iorthand_cloud.recorder import client as recorder
 from iorthand_cloud.recorder.config import ReportConfig
 from iorthand_cloud.recorder.report import build_report
-from tests.conftest import wait_until
+from tests.conftest import ur_controller, wait_until
 from tests.sim_loop import CYLINDER, START_ABOVE
 from tests.test_recorder import recorder_factory  # noqa: F401  (a fixture)
 
@@ -148,11 +148,9 @@ def test_the_same_sweep_through_ur_rtde_against_the_emulator(router_endpoint, tw
     from iorthand.config import from_dict
     from iorthand_edge.agent import EdgeAgent
     from iorthand_edge.config import EdgeConfig
-    from iorthand_edge.ur_emulator.process import EmulatorProcess
     from tests.test_ur_stack import ur_config_dict
 
-    with EmulatorProcess(frequency=250.0) as emu:
-        emu.raise_priority()  # the controller is a computer of its own: this test run's load must not starve it
+    with ur_controller() as emu:
         emu.call("set_phantom", phantom={**CYLINDER, "stiffness": 4000.0})
         emu.call("set_pose", pose=START_ABOVE)
         cfg = ur_config_dict(router_endpoint, emu.host)

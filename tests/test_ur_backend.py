@@ -31,6 +31,7 @@ from iorthand_edge.robots.ur import DRIVER_PRIORITY, URRobot
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator import HOME_POSE, HOME_Q
 from iorthand_edge.ur_emulator.process import UR_PORTS, EmulatorProcess, free_loopback_host
+from tests.conftest import ur_controller
 from tests.ur_rt_kernel_probe import policies
 
 
@@ -50,9 +51,7 @@ class Emulator:
 
 @pytest.fixture
 def emu() -> Iterator[Emulator]:
-    # 250 Hz instead of the e-Series' 500: the same protocol and behaviour at half the CPU on a 2-core runner.
-    with EmulatorProcess(frequency=250.0, unlock_delay=0.3) as process:
-        process.raise_priority()
+    with ur_controller() as process:
         yield Emulator(process)
 
 

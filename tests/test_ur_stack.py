@@ -30,7 +30,7 @@ from iorthand.protocol import Status
 from iorthand_edge.ur_emulator import HOME_POSE
 from iorthand_edge.ur_emulator.process import EmulatorProcess
 
-from .conftest import stop_process, wait_until
+from .conftest import stop_process, ur_controller, wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT_ID = "ur1"
@@ -39,14 +39,8 @@ ROBOT_ID = "ur1"
 @pytest.fixture
 def emulator() -> Iterator[EmulatorProcess]:
     # 250 Hz: the e-Series protocol at half the emulator's CPU (2-core runners).
-    with EmulatorProcess(frequency=250.0) as emu:
-        # The controller is a computer of its own: this run's load (and the edge driver's real-time command
-        # thread) must not starve it, or its watchdog stops the program for want of kicks that were sent.
-        emu.raise_priority()
+    with ur_controller() as emu:
         yield emu
-        # pytest shows this only for a failed test: what the controller saw (watchdog, program stops).
-        with contextlib.suppress(OSError, RuntimeError):
-            print("emulator events:", *emu.status()["events"], sep="\n  ")
 
 
 def ur_config_dict(endpoint: str, host: str, **safety: Any) -> dict[str, Any]:

@@ -86,8 +86,8 @@ class PerceptionPipeline:
         self._bits: dict[int, np.ndarray] = {}  # each seen marker's printed pattern, for the edge refinement
         self.filters = MarkerFilters(config.filter)
         self.stats = PipelineStats()
-        # The newest camera image (shared with the video stream, so one camera serves both; see next_image).
-        self.latest_image: np.ndarray | None = None
+        # The newest camera image (shared with the video stream through next_image, so one camera serves both).
+        self._image: np.ndarray | None = None
         self._image_arrived = threading.Condition()
         self.failure: str | None = None
         self._camera = camera
@@ -228,9 +228,8 @@ class PerceptionPipeline:
         """The camera's newest image once it is another than ``after``, waiting up to ``timeout`` s for it (None
         if none came). The video stream takes each image as it arrives, before the markers are looked for."""
         with self._image_arrived:
-            self._image_arrived.wait_for(lambda: self.latest_image is not None and self.latest_image is not after,
-                                         timeout)
-            image = self.latest_image
+            self._image_arrived.wait_for(lambda: self._image is not None and self._image is not after, timeout)
+            image = self._image
         return image if image is not after else None
 
     def _fps(self) -> float:
@@ -300,7 +299,7 @@ class PerceptionPipeline:
         while not self._stop.is_set():
             frame = camera.read()
             with self._image_arrived:
-                self.latest_image = frame.image
+                self._image = frame.image
                 self._image_arrived.notify_all()
             self._publish(self.process(frame))
             if self.failure is not None:  # cleared only once frames flow again, so a flapping camera stays failed
