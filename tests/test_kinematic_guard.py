@@ -218,3 +218,27 @@ def test_the_edge_slows_and_halts_a_twist_at_the_edge_of_reach(edge_factory, ope
     op.set_twist([-0.03, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)  # back in: at once, at full speed
     wait_until(lambda: op.robot_state.tcp_pose[0] < x_halted - 0.01, 2.0, message="moving back in")
     op.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+
+
+@pytest.mark.slow
+def test_the_simulated_arm_is_published_with_the_joint_angles_of_its_pose(edge_factory, operator_factory) -> None:
+    """The simulator measures no joint angles: ``state/robot`` carries the ones the guard tracks, which put the TCP
+    where the pose says and move with it (the twin, the recordings and their exports draw and store them)."""
+    edge_factory(safety={"profile": "local"})
+    op = operator_factory()
+    op.wait_for_state()
+    still = op.robot_state
+    start = [list(still.tcp_pose), list(still.q)]
+    assert float(np.max(np.abs(kinematics.forward(MODEL, still.q)[:3, 3] - still.tcp_pose[:3]))) < 1e-5
+    assert still.q != pytest.approx(list(kinematics.HOME_Q), abs=1e-3)  # not the simulator's placeholder
+    op.start()
+    op.acquire()
+    op.set_twist([0.0, 0.03, 0.0], [0.0, 0.0, 0.0], deadman=True)
+    wait_until(lambda: op.robot_state.tcp_pose[1] > start[0][1] + 0.015, 5.0, message="moving along y")
+    op.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+    wait_until(lambda: not any(op.robot_state.tcp_speed), 2.0, message="at rest")
+    st = op.robot_state
+    fk = kinematics.forward(MODEL, st.q)
+    assert float(np.max(np.abs(fk[:3, 3] - st.tcp_pose[:3]))) < 1e-5
+    assert geometry.rotation_angle(fk, geometry.pose_to_matrix(st.tcp_pose)) < 1e-5
+    assert st.q[0] - start[1][0] > 0.03, (st.q, start[1])  # the base turned toward +y

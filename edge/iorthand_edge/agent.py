@@ -130,6 +130,7 @@ class EdgeAgent:
         self.reading: RobotReading | None = None
         self._seq = {name: Sequencer() for name in ("robot", "safety", "applied")}
         self._commanded = np.zeros(6)
+        self._tracked_q: list[float] | None = None  # the guard's joint angles, for a robot that measures none
         self._last_cmd_seq = 0
         self._last_cmd_recv = 0
         self._last_safety: tuple[Any, ...] | None = None
@@ -176,8 +177,21 @@ class EdgeAgent:
         """The robot's state before the first control cycle, assessed for the kinematic guard: without it the
         guard knows no joint angles and would halt a command sent before the first cycle as beyond reach."""
         self.reading = self.robot.read_state()
-        if self.supervisor.kinematics is not None:
-            self.supervisor.kinematics.update(self.reading.tcp_pose, self.reading.q)
+        self._assess(self.reading)
+
+    def _assess(self, reading: RobotReading) -> None:
+        """The kinematic guard's assessment of a new reading, with the joint angles it tracks from the pose."""
+        guard = self.supervisor.kinematics
+        if guard is not None:
+            measured = reading.q if self.robot.measures_joints else None
+            self._tracked_q = guard.update(reading.tcp_pose, measured).q or self._tracked_q
+
+    def _joint_angles(self, reading: RobotReading) -> np.ndarray | list[float]:
+        """The arm's joint angles: as measured, or for a robot that measures none (the simulator) as the kinematic
+        guard tracks them (the last it had while beyond reach; the robot's placeholder without a guard)."""
+        if self.robot.measures_joints or self._tracked_q is None:
+            return reading.q
+        return self._tracked_q
 
     def start(self) -> None:
         self.robot.connect()
@@ -381,20 +395,22 @@ class EdgeAgent:
                 self._cancel_goto(decision.reason or decision.status.message)
             self._drive(decision)
             self._log_interventions()
-            state = RobotState(
-                tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=reading.q,
-                commanded=self._commanded, mode=reading.mode, connected=reading.connected,
-                fault=fault, robot_time=reading.robot_time,
-                cmd_seq=self._last_cmd_seq, cmd_recv_t=self._last_cmd_recv,
-            ).stamp(self._seq["robot"].next(), reading.timestamp_ns)
+        # The kinematic guard measures the new pose outside the lock, before the next commands. A robot that does
+        # not measure its joint angles is published with the ones the guard tracks: the twin, the recordings and
+        # their exports see the arm move.
+        self._assess(reading)
+        state = RobotState(
+            tcp_pose=reading.tcp_pose, tcp_speed=reading.tcp_speed, q=self._joint_angles(reading),
+            commanded=self._commanded, mode=reading.mode, connected=reading.connected,
+            fault=fault, robot_time=reading.robot_time,
+            cmd_seq=self._last_cmd_seq, cmd_recv_t=self._last_cmd_recv,
+        ).stamp(self._seq["robot"].next(), reading.timestamp_ns)
         if self._cpu_latency is not None:  # fast wake-ups while somebody drives, the host's own idle otherwise
             self._cpu_latency.need(bool(self.supervisor.owner))
         for hook in self.cycle_hooks:
             hook(reading)
         self._pub_robot.put(state.encode())
         self._publish_safety()
-        if self.supervisor.kinematics is not None:  # outside the lock: the next commands see the new assessment
-            self.supervisor.kinematics.update(reading.tcp_pose, reading.q)
 
     def _feed_contact_force(self) -> None:
         """Contact mode: the newest force along the probe's axis (pressing positive) to the supervisor (caller
@@ -582,7 +598,7 @@ class EdgeAgent:
             return
         # Planning (IK along the path) takes up to ~0.2 s: outside the lock, on this control-plane thread.
         pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
-                               self._fresh_markers(), reading.q, params)
+                               self._fresh_markers(), self._joint_angles(reading), params)
         (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")
         self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", detail=json.dumps(pv.detail()))
 

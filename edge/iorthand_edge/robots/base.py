@@ -64,3 +64,9 @@ class Robot(ABC):
     def control_period(self) -> float:
         """The period (s) at which the agent should run its control loop for this robot."""
         return 1.0 / 125.0
+
+    @property
+    def measures_joints(self) -> bool:
+        """Whether ``RobotReading.q`` is measured. A robot that has no joint angles of its own (the simulator)
+        reports a placeholder there, and the agent publishes the angles the kinematic guard tracks from the pose."""
+        return True

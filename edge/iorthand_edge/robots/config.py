@@ -7,7 +7,7 @@ from typing import ClassVar
 
 from iorthand.config import setting
 
-# UR3e "home" joint angles (rad): the simulated robot reports these while it has no inverse kinematics.
+# UR3e "home" joint angles (rad): the simulated robot's placeholder for the joint angles it does not measure.
 UR3E_HOME_Q = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
 
 

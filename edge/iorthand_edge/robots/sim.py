@@ -2,8 +2,9 @@
 
 The tool velocity follows the commanded twist with the commanded acceleration (a ramp), and the pose is
 integrated from it, in the base frame. Time comes from the monotonic clock at each call, so the model needs no
-thread of its own and is exact whatever the caller's rate. Joint angles are not computed: ``q`` stays at the
-UR3e home posture (documented in robots/config.py); the tool pose is what every consumer uses.
+thread of its own and is exact whatever the caller's rate. Joint angles are not computed here: ``q`` is the UR3e
+home posture, a placeholder (:attr:`measures_joints` is False); the agent publishes the angles its kinematic
+guard tracks from the pose instead.
 """
 
 from __future__ import annotations
@@ -38,6 +39,10 @@ class SimRobot(Robot):
     @property
     def control_period(self) -> float:
         return 1.0 / self.config.control_rate_hz
+
+    @property
+    def measures_joints(self) -> bool:
+        return False
 
     def connect(self) -> None:
         with self._lock:
