@@ -128,6 +128,9 @@ class KinematicGuard:
         self._q: np.ndarray | None = None
         self._assessed_at: _Reading | None = None  # where self.state was made
         self._disagreed: np.ndarray | None = None  # reported angles that did not give the pose
+        # The Jacobian and TCP pose at self._q, where the last assessment computed them: the next Newton step starts
+        # from them (one forward kinematics and Jacobian fewer per cycle of a moving arm).
+        self._at_q: tuple[np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ per control cycle
 
@@ -139,7 +142,7 @@ class KinematicGuard:
         if self._assessed_at is not None and _within(self._assessed_at, at):
             return self.state
         if not all(map(math.isfinite, at[0] + (at[1] or ()))):  # a broken reading: no angles, every motion halts
-            self._assessed_at, self._q, self.state = None, None, Assessment()
+            self._assessed_at, self._q, self._at_q, self.state = None, None, None, Assessment()
             return self.state
         self._assessed_at = at
         q, jac = self._track(np.array(at[0]), None if at[1] is None else np.array(at[1]))
@@ -191,10 +194,10 @@ class KinematicGuard:
         if reported is not None and not (self._disagreed is not None and np.array_equal(reported, self._disagreed)):
             jac, tcp = kinematics.jacobian(self.model, reported, self.tcp_offset)
             if _distance(tcp, target) < 1e-4:
-                self._disagreed = None
+                self._disagreed, self._at_q = None, (jac, tcp)
                 return reported, jac
             self._disagreed = reported
-        q = self._q
+        q, at_q, self._at_q = self._q, self._at_q, None
         if q is not None:
             # Far from a singularity (the last assessment's manipulability, of a Jacobian scaled within a factor
             # of 2 of this one, is above the slow margin: a condition number under ~70) the least-squares step
@@ -202,10 +205,12 @@ class KinematicGuard:
             # guard). Near a singularity the least-squares step keeps the joint speeds bounded.
             exact = self.state.q is not None and self.state.manipulability >= self.limits.slow_manipulability
             for _ in range(4):
-                jac, tcp = kinematics.jacobian(self.model, q, self.tcp_offset)
+                jac, tcp = at_q or kinematics.jacobian(self.model, q, self.tcp_offset)
+                at_q = None
                 ex, ey, ez = (target[:3, 3] - tcp[:3, 3]).tolist()
                 wx, wy, wz = geometry.matrix_to_rotvec(target[:3, :3] @ tcp[:3, :3].T).tolist()
                 if math.sqrt(ex * ex + ey * ey + ez * ez) + 0.1 * math.sqrt(wx * wx + wy * wy + wz * wz) < 1e-7:
+                    self._at_q = (jac, tcp)
                     return q, jac
                 error = np.array([ex, ey, ez, wx, wy, wz])
                 q = q + (np.linalg.solve(jac, error) if exact else np.linalg.lstsq(jac, error, rcond=1e-6)[0])
