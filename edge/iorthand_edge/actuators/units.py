@@ -137,7 +137,7 @@ class ServoUnit:
             if dirty or moved or now - last_pub >= 1.0 / self.config.publish_hz:
                 last_pub = now
                 self._publish(pan, tilt, outcome)
-            stop.wait(period)
+            time.sleep(period)  # not stop.wait: see the force monitor's loop (a stop is seen within a period)
 
     def _publish(self, pan: float, tilt: float, outcome: ServoOutcome) -> None:
         reason = outcome.reason
