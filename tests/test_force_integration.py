@@ -11,7 +11,15 @@ import numpy as np
 import pytest
 
 from iorthand import keys
-from iorthand.protocol import ControlReply, ControlRequest, ForceLevelState, ForceSample, SafetyStatus, Status
+from iorthand.protocol import (
+    ControlReply,
+    ControlRequest,
+    ForceLevelState,
+    ForceSample,
+    RobotState,
+    SafetyStatus,
+    Status,
+)
 from iorthand.security import auth
 from iorthand.transport import query
 from tests.conftest import wait_until
@@ -127,6 +135,34 @@ def _zero(session, operator: str, key: bytes = b"", seq: int = 1) -> ControlRepl
     if key:
         auth.sign(key, auth.context("sim1", keys.CONTROL_FORCE_ZERO), req)
     return ControlReply.decode(query(session, keys.RobotKeys("sim1").key(keys.CONTROL_FORCE_ZERO), req.encode())[0])
+
+
+def test_a_sensor_read_from_the_robot_state_gives_one_sample_per_state(edge_factory, session_factory) -> None:
+    """The simulated sensor's force is computed from the robot's state, so the control loop samples it with each
+    state it reads, before the supervisor's cycle, and no thread of its own polls that state at another rate (at
+    100 Hz against 125 states a second, which repeated some states' force and skipped others'): each state/force
+    sample carries the time of one state/robot, and no state's twice."""
+    edge_factory(**FORCE_CONFIG)
+    assert "edge-force" not in [t.name for t in threading.enumerate()]
+    k = keys.RobotKeys("sim1")
+    robot_t: list[int] = []
+    force_t: list[int] = []
+    s = session_factory()
+    subs = [
+        s.declare_subscriber(k.key(keys.STATE_ROBOT), lambda x: robot_t.append(RobotState.decode(x.payload.to_bytes()).t)),
+        s.declare_subscriber(k.key(keys.STATE_FORCE), lambda x: force_t.append(ForceSample.decode(x.payload.to_bytes()).t)),
+    ]
+    wait_until(lambda: len(robot_t) > 150, 5.0, message="robot states")
+    for sub in subs:
+        sub.undeclare()
+    time.sleep(0.05)
+    states = set(robot_t)
+    window = [t for t in force_t if robot_t[0] <= t <= robot_t[-1]]
+    assert len(window) > 100
+    assert all(t in states for t in window), [t for t in window if t not in states][:3]
+    assert len(set(window)) == len(window)  # no state's force twice
+    # Every state between the first and the last force sample has its force (none skipped).
+    assert len(window) == len([t for t in robot_t if window[0] <= t <= window[-1]])
 
 
 def test_zeroing_on_request_only_by_the_owner_and_out_of_contact(edge_factory, operator_factory) -> None:

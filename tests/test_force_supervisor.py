@@ -12,8 +12,8 @@ import pytest
 from iorthand.protocol import ForceLevel, Status, TwistCommand
 from iorthand_edge.force.contact import PhantomConfig, contact_wrench
 from iorthand_edge.force.levels import LevelConfig, LevelTracker
-from iorthand_edge.force.monitor import ForceMonitor
-from iorthand_edge.force.sensors import ForceSensor, WrenchSample
+from iorthand_edge.force.monitor import RETRY_S, ForceMonitor
+from iorthand_edge.force.sensors import ForceSensor, SensorError, WrenchSample
 from iorthand_edge.robots.config import SimRobotConfig
 from iorthand_edge.robots.sim import SimRobot
 from iorthand_edge.supervisor import Action, ForceReaction, SafetyConfig, Supervisor
@@ -192,3 +192,52 @@ def test_monitor_flags_stale_at_the_first_tick_past_the_limit() -> None:
         monitor.tick(None, t)
     assert 0.1 < t <= 0.1 + 0.01 + 1e-9
     assert changes[-1].stale and monitor.stale_since == t
+
+
+class _Flaky(ForceSensor):
+    """Read from the robot state (paced by the robot); fails to start once, and fails its reads on request."""
+
+    paced_by_robot = True
+
+    def __init__(self) -> None:
+        self.starts = self.closed = 0
+        self.failing_start, self.failing_read = True, False
+
+    def start(self) -> None:
+        self.starts += 1
+        if self.failing_start:
+            self.failing_start = False
+            raise SensorError("no state from the robot driver")
+
+    def read(self, timeout: float) -> WrenchSample | None:
+        if self.failing_read:
+            raise SensorError("robot link lost")
+        return WrenchSample(np.zeros(6), 0)
+
+    def zero(self) -> None: ...
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+def test_a_sensor_paced_by_the_robot_is_started_retried_and_restarted_by_the_control_cycle() -> None:
+    from iorthand_edge.force.config import ForceConfig
+
+    sensor = _Flaky()
+    monitor = ForceMonitor(ForceConfig(), sensor, [].append)
+    assert monitor.paced_by_robot
+    monitor.on_robot_state(10.0)  # the start fails: no sample
+    assert (sensor.starts, monitor.samples) == (1, 0)
+    monitor.on_robot_state(10.0 + RETRY_S / 2)  # not retried before RETRY_S
+    assert sensor.starts == 1
+    assert not monitor.on_robot_state(10.0 + RETRY_S).stale  # retried: started, sampled
+    assert (sensor.starts, monitor.samples) == (2, 1)
+    sensor.failing_read = True
+    t = 12.0
+    monitor.on_robot_state(t)  # the read fails: the sensor is closed, to be restarted
+    assert (sensor.closed, monitor.samples) == (1, 1)
+    assert monitor.on_robot_state(t + 0.2).stale  # no sample for longer than stale_after: a stop
+    sensor.failing_read = False
+    monitor.on_robot_state(t + RETRY_S / 2)
+    assert sensor.starts == 2
+    assert not monitor.on_robot_state(t + RETRY_S).stale and sensor.starts == 3 and monitor.samples == 2

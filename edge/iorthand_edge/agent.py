@@ -11,7 +11,9 @@ Threads (all named):
   force-zero request, in arrival order (only the owner's signed requests may move the servos, switch the torch,
   zero the sensor or start a move).
 - Optional components, each from its own config section and with its own named thread(s): ``edge-force``
-  (sensor, warning levels; a change goes straight to the supervisor), ``edge-servos``, ``edge-torch``.
+  (sensor, warning levels; a change goes straight to the supervisor), ``edge-servos``, ``edge-torch``. A force
+  sensor whose samples come from the robot state (the simulator's, the arm's wrist sensor) has no thread: the
+  control loop samples it once per robot state, before the supervisor's cycle.
 - Perception and video run in a child process (:mod:`iorthand_edge.media`: camera, ArUco, the simulators,
   JPEG, on its own Zenoh session), so they cannot take this process's CPU or GIL. ``edge-media`` watches it and
   restarts it after a crash. Its markers come back on the ``markers`` key, the newest kept by Zenoh and decoded
@@ -183,8 +185,8 @@ class EdgeAgent:
         """The kinematic guard's assessment of a new reading, with the joint angles it tracks from the pose."""
         guard = self.supervisor.kinematics
         if guard is not None:
-            measured = reading.q if self.robot.measures_joints else None
-            self._tracked_q = guard.update(reading.tcp_pose, measured).q or self._tracked_q
+            reported = reading.q if self.robot.measures_joints else None
+            self._tracked_q = guard.update(reading.tcp_pose, reported).q or self._tracked_q
 
     def _joint_angles(self, reading: RobotReading) -> np.ndarray | list[float]:
         """The arm's joint angles: as measured, or for a robot that measures none (the simulator) as the kinematic
@@ -385,6 +387,8 @@ class EdgeAgent:
         with self.lock:
             reading = self.robot.read_state()
             self.reading = reading
+            if self.force is not None and self.force.paced_by_robot:  # this state's force, before the supervisor
+                self.force.on_robot_state(now)
             self._feed_contact_force()
             before = self.supervisor.fault
             fault = self.supervisor.on_reading(reading.fault, reading.connected)
@@ -450,11 +454,13 @@ class EdgeAgent:
     # ------------------------------------------------------------------ components
 
     def _on_force_change(self, state: LevelState) -> None:
-        """From the force thread: a new level or staleness goes to the supervisor, and the control loop wakes
-        to drive it at once (not at its next tick)."""
+        """A new level or staleness goes to the supervisor. From the force thread, the control loop wakes to drive
+        it at once (not at its next tick); a sensor paced by the robot is sampled by the control cycle that then
+        drives it."""
         with self.lock:
             self.supervisor.update_force(state.level, state.stale, time.monotonic())
-        self._wake()
+        if self.force is not None and not self.force.paced_by_robot:
+            self._wake()
         self._publish_safety(force=True)
 
     @property

@@ -55,5 +55,6 @@ ForceSensorConfig.VARIANTS = {c.KIND: c for c in (SimForceSensorConfig, NetFTSen
 class ForceConfig:
     sensor: ForceSensorConfig = field(default_factory=SimForceSensorConfig)
     levels: LevelConfig = field(default_factory=LevelConfig)
-    rate_hz: float = setting(100.0, lo=10.0, hi=1000.0, help="sampling and state/force rate")
+    rate_hz: float = setting(100.0, lo=10.0, hi=1000.0, help="sampling and state/force rate of a sensor with a "
+                             "stream of its own (netft); sim and robot: one sample per robot state")
     level_rate_hz: float = setting(10.0, lo=1.0, hi=100.0, help="state/force_level heartbeat (also sent on change)")

@@ -1,10 +1,12 @@
 """The force worker: samples the sensor, tracks the warning level, publishes, and tells the agent.
 
-Runs in its own named thread at ``force.rate_hz``. Each tick it reads the newest sample (waiting at most one
-period), updates the :class:`LevelTracker`, publishes ``state/force``, and publishes ``state/force_level`` on
-every change of level or staleness and at ``level_rate_hz``. Changes go to ``on_change`` (the agent, which
-passes them to the supervisor) at once, from this thread. A sensor that fails to start or dies is retried
-every second; meanwhile it is stale, which the supervisor treats as a stop.
+Each tick reads the newest sample, updates the :class:`LevelTracker`, publishes ``state/force``, and publishes
+``state/force_level`` on every change of level or staleness and at ``level_rate_hz``. Changes go to
+``on_change`` (the agent, which passes them to the supervisor) at once. A sensor with a stream of its own (Net
+F/T) is ticked by a named thread of its own at ``force.rate_hz`` (each read waits at most half a period); a
+sensor paced by the robot (its samples come from the robot state) by the agent's control loop, once per robot
+state (:meth:`ForceMonitor.on_robot_state`). A sensor that fails to start or dies is retried every second;
+meanwhile it is stale, which the supervisor treats as a stop.
 """
 
 from __future__ import annotations
@@ -47,12 +49,19 @@ class ForceMonitor:
         self._pub_level: zenoh.Publisher | None = None
         self._last_level_pub = 0.0
         self._reported_errors = 0
+        self._next_retry = 0.0
 
     def start(self, session: zenoh.Session, robot_keys: keys.RobotKeys, stop: threading.Event) -> None:
         self._pub_force = publisher(session, robot_keys.key(keys.STATE_FORCE))
         self._pub_level = publisher(session, robot_keys.key(keys.STATE_FORCE_LEVEL))
-        self._worker = Worker("edge-force", self._loop, stop)
-        self._worker.start()
+        if not self.paced_by_robot:
+            self._worker = Worker("edge-force", self._loop, stop)
+            self._worker.start()
+
+    @property
+    def paced_by_robot(self) -> bool:
+        """Ticked by the agent's control loop at each robot state (:meth:`on_robot_state`), not by a thread."""
+        return self.sensor.paced_by_robot
 
     def join(self, timeout: float = 2.0) -> None:
         if self._worker is not None:
@@ -77,23 +86,32 @@ class ForceMonitor:
         log.info("force sensor %s started", type(self.sensor).__name__)
         return True
 
+    def on_robot_state(self, now: float) -> LevelState:
+        """One tick of a sensor paced by the robot, from the control loop, with the robot state just read."""
+        sample = self._read(now, timeout=0.0)
+        self._report_errors()
+        return self.tick(sample, now)
+
+    def _read(self, now: float, timeout: float) -> WrenchSample | None:
+        """The newest sample, starting (or restarting, every RETRY_S) the sensor as needed; None if none."""
+        if not self._started and now >= self._next_retry and not self._ensure_started(now):
+            self._next_retry = now + RETRY_S
+        if not self._started:
+            return None
+        try:
+            return self.sensor.read(timeout=timeout)
+        except SensorError as exc:
+            log.error("force sensor failed: %s — restarting it in %.0f s", exc, RETRY_S)
+            self.sensor.close()
+            self._started = False
+            self._next_retry = now + RETRY_S
+            return None
+
     def _loop(self, stop: threading.Event) -> None:
-        next_retry = 0.0
         next_tick = time.monotonic()
         while not stop.is_set():
-            now = time.monotonic()
-            sample = None
-            if not self._started and now >= next_retry and not self._ensure_started(now):
-                next_retry = now + RETRY_S
-            if self._started:
-                try:
-                    # Wait at most half a period for a sample so the schedule (and stale detection) holds.
-                    sample = self.sensor.read(timeout=self.period / 2)
-                except SensorError as exc:
-                    log.error("force sensor failed: %s — restarting it in %.0f s", exc, RETRY_S)
-                    self.sensor.close()
-                    self._started = False
-                    next_retry = now + RETRY_S
+            # Wait at most half a period for a sample so the schedule (and stale detection) holds.
+            sample = self._read(time.monotonic(), timeout=self.period / 2)
             self._report_errors()
             self.tick(sample, time.monotonic())
             next_tick += self.period

@@ -49,10 +49,15 @@ class WrenchSample:
 
 
 class ForceSensor(ABC):
-    """A force/torque sensor. One thread (the force worker) calls everything but :meth:`zero`."""
+    """A force/torque sensor. One thread calls everything but :meth:`zero`: the force worker's, or for a sensor
+    paced by the robot, the control loop's."""
 
     errors: int = 0  # samples rejected as invalid (garbage, bad status)
     last_error: str = ""
+    # Its samples come from the robot's state (the simulator's contact, the arm's own wrist sensor): the control
+    # loop reads it once per robot state, right after the robot, instead of a thread of its own polling that state
+    # at another rate (which repeated or skipped states, and cost a wake-up per sample).
+    paced_by_robot: bool = False
 
     @abstractmethod
     def start(self) -> None:
@@ -82,6 +87,8 @@ class SimForceSensor(ForceSensor):
     ``silent`` makes it stop answering, as an unplugged sensor would (tests, demos).
     """
 
+    paced_by_robot = True
+
     def __init__(
         self,
         config: SimForceSensorConfig,
@@ -96,6 +103,7 @@ class SimForceSensor(ForceSensor):
         self._bias = np.asarray(config.bias, dtype=float)
         self._noise_scale = np.array([1.0, 1.0, 1.0, 0.1, 0.1, 0.1])  # torque noise in N·m for force noise in N
         self._lock = threading.Lock()
+        self._sampled_at_ns = 0
         self.silent = False
 
     def start(self) -> None:
@@ -105,6 +113,7 @@ class SimForceSensor(ForceSensor):
         r = self._reading()
         if r is None:
             return None
+        self._sampled_at_ns = r.timestamp_ns  # the force of the robot state it was computed from
         contact = np.zeros(6) if self.phantom is None else contact_wrench(self.phantom, r.tcp_pose, r.tcp_speed)
         noise = self._rng.normal(0.0, self.config.noise, 6) * self._noise_scale
         return contact + self._bias + noise
@@ -116,7 +125,7 @@ class SimForceSensor(ForceSensor):
         if raw is None:
             return None
         with self._lock:
-            return WrenchSample(raw - self._offset, time.time_ns())
+            return WrenchSample(raw - self._offset, self._sampled_at_ns)
 
     def zero(self) -> None:
         raws = [w for w in (self._raw() for _ in range(16)) if w is not None]
@@ -284,6 +293,8 @@ class RobotForceSensor(ForceSensor):
     """The arm's built-in wrist sensor: a UR e-Series reports it over RTDE (``getActualTCPForce``) in the base
     frame at the TCP; this turns it into the tool frame, as a wrist sensor reads. One sample per new robot state;
     none from a state that is old or from a robot that is not connected (the levels then go stale)."""
+
+    paced_by_robot = True
 
     def __init__(self, config: RobotForceSensorConfig, reading: Callable[[], RobotReading | None]) -> None:
         self.config = config
