@@ -648,7 +648,8 @@ def superseded_news(before: int, now: int) -> str | None:
 
 @dataclass(kw_only=True)
 class ForceSample(Message):
-    """Edge → all at 100 Hz: the wrench at the tool, N and N·m, in the sensor frame."""
+    """Edge → all with each robot state (a sensor read from it) or at ``force.rate_hz`` (one with a stream of its
+    own): the wrench at the tool, N and N·m, in the sensor frame."""
 
     KEY: ClassVar[str] = keys.STATE_FORCE
     force: list[float] = vec(3, lo=-1e5, hi=1e5)
