@@ -118,7 +118,7 @@ class ForceMonitor:
             delay = next_tick - time.monotonic()
             if delay > 0:
                 # A plain sleep, not stop.wait: a stop is seen within a period, and at 100 Hz an Event's Condition
-                # (a new lock and a waiter list in Python per wait) cost ~30 µs of CPU a tick on the project's VM.
+                # (a new lock and a waiter list in Python per wait) cost ~40 µs more CPU a tick on the project's VM.
                 time.sleep(delay)
             else:
                 next_tick = time.monotonic()

@@ -103,34 +103,30 @@ class SimForceSensor(ForceSensor):
         self._bias = np.asarray(config.bias, dtype=float)
         self._noise_scale = np.array([1.0, 1.0, 1.0, 0.1, 0.1, 0.1])  # torque noise in N·m for force noise in N
         self._lock = threading.Lock()
-        self._sampled_at_ns = 0
         self.silent = False
 
     def start(self) -> None:
         pass
 
-    def _raw(self) -> Wrench | None:
-        r = self._reading()
-        if r is None:
-            return None
-        self._sampled_at_ns = r.timestamp_ns  # the force of the robot state it was computed from
+    def _raw(self, r: RobotReading) -> Wrench:
+        """The wrench the sensor measures in robot state ``r``: contact with the phantom, bias and noise."""
         contact = np.zeros(6) if self.phantom is None else contact_wrench(self.phantom, r.tcp_pose, r.tcp_speed)
         noise = self._rng.normal(0.0, self.config.noise, 6) * self._noise_scale
         return contact + self._bias + noise
 
     def read(self, timeout: float) -> WrenchSample | None:
-        if self.silent:
+        r = None if self.silent else self._reading()
+        if r is None:
             return None
-        raw = self._raw()
-        if raw is None:
-            return None
-        with self._lock:
-            return WrenchSample(raw - self._offset, self._sampled_at_ns)
+        raw = self._raw(r)
+        with self._lock:  # stamped with the robot state it was computed from
+            return WrenchSample(raw - self._offset, r.timestamp_ns)
 
     def zero(self) -> None:
-        raws = [w for w in (self._raw() for _ in range(16)) if w is not None]
-        if not raws:
+        r = self._reading()
+        if r is None:
             raise SensorError("simulated force sensor: no robot state yet, nothing to zero")
+        raws = [self._raw(r) for _ in range(16)]
         with self._lock:
             self._offset = np.mean(raws, axis=0)
 
