@@ -10,7 +10,7 @@ The stop bound is the edge's: ``command_timeout`` (150 ms) + one control period 
 command, measured on the edge's own clock (the echo's receive time, the state's source time).
 
 Headless Chromium here draws WebGL in software, and the page's 3D view then holds its main thread: measured over
-8 s of dragging (11 runs), its 60 Hz stream of twists left with gaps of 26-62 ms at p50, 88-151 ms at p99 and up
+8 s of dragging (13 runs), its 60 Hz stream of twists left with gaps of 26-62 ms at p50, 88-151 ms at p99 and up
 to 215 ms, some over the edge's 150 ms timeout (16 ms at p50 and 19-29 ms at p99 with the 3D view off). The tests
 allow for it: a stop by the timeout is a stop.
 """
