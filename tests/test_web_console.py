@@ -66,6 +66,11 @@ def _require_browser() -> Any:
     return sync_playwright
 
 
+def _moved(a: AppliedCommand) -> bool:
+    """Whether the edge accepted this command and moved the robot with it."""
+    return a.accepted and any(a.applied)
+
+
 @dataclass
 class Watch:
     """What the robot did, from Zenoh: every robot state and every command echo, with their arrival."""
@@ -93,7 +98,7 @@ class Watch:
 
     def moving_echoes(self, since_ns: int) -> list[AppliedCommand]:
         with self.lock:
-            return [a for a in self.applied if a.recv_t >= since_ns and a.accepted and any(a.applied)]
+            return [a for a in self.applied if a.recv_t >= since_ns and _moved(a)]
 
     def wait(self, predicate, timeout: float, what: str) -> Any:
         deadline = time.monotonic() + timeout
@@ -110,7 +115,7 @@ class Watch:
         one, whenever it came within 1 s, "" if none)."""
         def stopped() -> tuple[AppliedCommand, RobotState] | None:
             with self.lock:
-                moving = [a for a in self.applied if a.recv_t >= since_ns and a.accepted and any(a.applied)]
+                moving = [a for a in self.applied if a.recv_t >= since_ns and _moved(a)]
                 if not moving:
                     return None
                 last = moving[-1]
@@ -147,14 +152,14 @@ class Watch:
         def stopped() -> tuple[AppliedCommand, RobotState] | None:
             with self.lock:
                 moving = [a for a in self.applied
-                          if since_ns <= a.recv_t < release.recv_t and a.accepted and any(a.applied)]
+                          if since_ns <= a.recv_t < release.recv_t and _moved(a)]
                 zero = [s for s in self.states if s.t > moving[-1].recv_t and not any(s.commanded)]
                 return (moving[-1], zero[0]) if zero else None
 
         last, zero = self.wait(stopped, 3.0, "the robot to stop")
         time.sleep(0.2)  # what the edge does with commands that follow the release
         with self.lock:
-            moving_after = sum(1 for a in self.applied if a.recv_t > release.recv_t and a.accepted and any(a.applied))
+            moving_after = sum(1 for a in self.applied if a.recv_t > release.recv_t and _moved(a))
             stopper = next((a.status for a in self.applied if last.recv_t < a.recv_t <= zero.t), "")
         return (zero.t - last.recv_t) / 1e9, stopper, moving_after
 
