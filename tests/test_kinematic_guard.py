@@ -141,6 +141,30 @@ def test_a_twist_into_the_wrist_singularity_slows_then_halts() -> None:
     assert all(s == Status.SINGULARITY for s in statuses[first_halt:])  # holds while the operator pushes into it
 
 
+def test_the_manipulability_bound_decides_as_the_exact_value_and_spares_most_decompositions(monkeypatch) -> None:
+    """Outside the slow margin the guard may take a lower bound of the manipulability from its last decomposition
+    (Weyl). Along a drive into the wrist singularity, every cycle's status, reason and scaled twist must equal those
+    of a guard that decomposes at every cycle, while far from the singularity it decomposes only now and then."""
+    q0 = START_Q.copy()
+    q0[4] = -math.radians(45)
+    intent = joint_motion(4, +0.1)
+    decompositions = []
+    real_svd = np.linalg.svd
+    monkeypatch.setattr(np.linalg, "svd", lambda *a, **k: decompositions.append(1) or real_svd(*a, **k))
+    bounded = drive(q0, intent)
+    with_bound = len(decompositions)
+    monkeypatch.setattr(KinematicGuard, "_bounded", lambda self, scaled: None)  # decompose at every cycle
+    exact = drive(q0, intent)
+    assert len(bounded) == len(exact) == 1500
+    for (_, twist, status, reason), (_, twist_e, status_e, reason_e) in zip(bounded, exact, strict=True):
+        assert (status, reason) == (status_e, reason_e)
+        assert np.array_equal(twist, twist_e)
+    statuses = [s for _, _, s, _ in bounded]
+    assert Status.NEAR_SINGULARITY in statuses and Status.SINGULARITY in statuses  # the drive went in
+    far = statuses.index(Status.NEAR_SINGULARITY)  # cycles before the slow margin
+    assert far > 100 and with_bound < len(decompositions) - far / 2
+
+
 def test_motion_away_from_a_singularity_is_not_slowed() -> None:
     q0 = START_Q.copy()
     q0[4] = -math.radians(6)  # inside the slow margin

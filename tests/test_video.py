@@ -286,6 +286,25 @@ def test_h264_frames_decode_in_order_and_start_at_a_keyframe() -> None:
     assert encode_frame("camera", Captured(103, 5, source.grab()), config, enc).keyframe
 
 
+def test_a_grey_picture_reaches_x264_as_pyav_would_have_converted_it_and_decodes_back() -> None:
+    """The encoder converts a grey picture (the ultrasound) to x264's planes itself, not through PyAV's swscale: the
+    planes must be swscale's for every grey level, and the picture must survive x264 and the decoder."""
+    import av
+    import cv2
+
+    from iorthand_edge.video.h264 import grey_to_yuv420p
+
+    grey = np.tile(np.arange(256, dtype=np.uint8), (4, 1))  # every level, 4 × 256
+    swscale = av.VideoFrame.from_ndarray(grey, format="gray").reformat(format="yuv420p").to_ndarray()
+    assert np.array_equal(grey_to_yuv420p(grey), swscale)
+    image = render_ultrasound(160, 120, 5.0, np.random.default_rng(3))
+    enc, dec = H264Encoder(160, 120, 30, 2_000_000, keyframe_interval=1.0), H264Decoder()
+    (data, key), = enc.encode(image, 0)
+    (back,) = dec.decode(data, key)
+    assert key and np.abs(back.astype(int) - cv2.cvtColor(image, cv2.COLOR_GRAY2BGR).astype(int)).mean() < 3
+    assert np.abs(back[..., 0].astype(int) - back[..., 2].astype(int)).max() <= 2  # still grey: no colour cast
+
+
 def test_the_bitrate_falls_at_once_on_congestion_and_climbs_back_slowly() -> None:
     s = BitrateSettings(start=1_000_000, min=200_000, max=2_000_000, hold=2.0)
     c = BitrateController(s, frame_period=1 / 30)

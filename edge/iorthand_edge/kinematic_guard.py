@@ -92,6 +92,7 @@ class Assessment:
     thread sees one consistent assessment."""
 
     q: list[float] | None = None  # None: no joint solution for the pose (beyond reach)
+    # σmin/σmax; outside the slow margin it may be a lower bound of it, one that is still outside (see _bounded).
     manipulability: float = 0.0
     reach_left: float = 0.0  # m of elbow span left
     nearest_joint: int = -1  # the joint closest to its limit
@@ -131,6 +132,8 @@ class KinematicGuard:
         # The Jacobian and TCP pose at self._q, where the last assessment computed them: the next Newton step starts
         # from them (one forward kinematics and Jacobian fewer per cycle of a moving arm).
         self._at_q: tuple[np.ndarray, np.ndarray] | None = None
+        # The scaled Jacobian of the last singular value decomposition, with its largest and smallest singular value.
+        self._svd_at: tuple[np.ndarray, float, float] | None = None
 
     # ------------------------------------------------------------------ per control cycle
 
@@ -142,7 +145,7 @@ class KinematicGuard:
         if self._assessed_at is not None and _within(self._assessed_at, at):
             return self.state
         if not all(map(math.isfinite, at[0] + (at[1] or ()))):  # a broken reading: no angles, every motion halts
-            self._assessed_at, self._q, self._at_q, self.state = None, None, None, Assessment()
+            self._assessed_at, self._q, self._at_q, self._svd_at, self.state = None, None, None, None, Assessment()
             return self.state
         self._assessed_at = at
         q, jac = self._track(np.array(at[0]), None if at[1] is None else np.array(at[1]))
@@ -159,14 +162,16 @@ class KinematicGuard:
         reach_left = full - kinematics.elbow_span(self.model, float(q[2]))
         reach_near = reach_left < lim.reach_slow_margin
         scaled = self._scaled_jacobian(q, jac)
-        m = _manipulability(np.linalg.svd(scaled, compute_uv=False))
+        m = self._bounded(scaled)
+        if m is None:
+            m = self._decomposed(scaled, np.linalg.svd(scaled, compute_uv=False))
         pinv: list[list[float]] = []
         toward = None
         # The singular vectors only where they are used (a third of a driven cycle's cost otherwise): the joint
         # speeds a twist asks for near a joint limit or the edge of reach, the direction into a singularity near one.
         if near_joints or reach_near or m < lim.slow_manipulability:
             u, s, vt = np.linalg.svd(scaled)
-            m = _manipulability(s)
+            m = self._decomposed(scaled, s)
             inverse = vt.T @ np.diag(s / (s * s + _DAMPING**2)) @ u.T
             if near_joints or reach_near:
                 pinv = inverse.tolist()
@@ -179,6 +184,26 @@ class KinematicGuard:
         self.state = Assessment([float(v) for v in q], m, reach_left, nearest, min(margins[nearest]), pinv,
                                 toward, near_joints, reach_near)
         return self.state
+
+    def _bounded(self, scaled: np.ndarray) -> float | None:
+        """A lower bound of the manipulability at ``scaled`` (a scaled Jacobian) from the last decomposition, if it
+        proves the arm outside the slow margin; else None (decompose). By Weyl's inequality no singular value moves
+        by more than the matrix does (its 2-norm, at most its Frobenius norm), so σmin/σmax is at least
+        (σmin₀ − ε)/(σmax₀ + ε). What the guard decides is the same as with the exact value: above the slow margin
+        nothing reads it but that comparison. The decomposition, a sixth of a moving arm's assessment, is then made
+        about once a centimetre of motion instead of at every cycle."""
+        if self._svd_at is None:
+            return None
+        at, largest, smallest = self._svd_at
+        change = scaled - at
+        eps = math.sqrt(float(np.vdot(change, change)))
+        bound = (smallest - eps) / (largest + eps)
+        return bound if bound >= self.limits.slow_manipulability else None
+
+    def _decomposed(self, scaled: np.ndarray, singular_values: np.ndarray) -> float:
+        """The manipulability from a decomposition of ``scaled``, kept for :meth:`_bounded`."""
+        self._svd_at = (scaled, float(singular_values[0]), float(singular_values[-1]))
+        return _manipulability(singular_values)
 
     def _scaled_jacobian(self, q: np.ndarray, jac: np.ndarray | None = None) -> np.ndarray:
         """The Jacobian at ``q`` (``jac``: already computed there) with its angular rows scaled by the reach."""

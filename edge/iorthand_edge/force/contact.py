@@ -58,7 +58,7 @@ class PhantomConfig:
 
     def _surface(self, point: ArrayLike) -> tuple[float, tuple[float, float, float]]:
         """Depth below the surface (m, ≥ 0) and the outward unit normal there (base frame)."""
-        x, y, z = (float(v) for v in np.asarray(point, dtype=float)[:3])
+        x, y, z = float(point[0]), float(point[1]), float(point[2])
         (x0, x1), (y0, y1) = self.x_range, self.y_range
         if self.shape == "flat":
             inside = x0 <= x <= x1 and y0 <= y <= y1
@@ -138,24 +138,29 @@ def _ellipsoid_foot(semi_axes: list[float], p: tuple[float, float, float]) -> tu
     return [s[i] * s[i] * a[i] / (s[i] * s[i] + t) * sign[i] for i in range(3)], inside
 
 
+def _force(phantom: PhantomConfig, point: ArrayLike, tcp_speed: ArrayLike) -> tuple[float, float, float] | None:
+    """The force (N, base frame) on a tool tip at ``point`` moving at ``tcp_speed``; None out of contact. Plain
+    floats: the simulated sensor calls this in every control cycle, where numpy's per-call cost on 3-vectors was
+    most of its cost."""
+    depth, (nx, ny, nz) = phantom._surface(point)
+    if depth <= 0.0:
+        return None
+    v_normal = float(tcp_speed[0]) * nx + float(tcp_speed[1]) * ny + float(tcp_speed[2]) * nz  # < 0: pressing in
+    magnitude = max(0.0, phantom.stiffness * depth - phantom.damping * v_normal)
+    return magnitude * nx, magnitude * ny, magnitude * nz
+
+
 def contact_force(phantom: PhantomConfig, tcp_pose: ArrayLike, tcp_speed: ArrayLike) -> NDArray[np.float64]:
     """The force ``[Fx, Fy, Fz]`` (N) the phantom exerts on the tool, in the base frame."""
-    depth, normal = phantom._surface(tcp_pose)
-    if depth <= 0.0:
-        return np.zeros(3)
-    v = np.asarray(tcp_speed, dtype=float)
-    v_normal = float(v[0] * normal[0] + v[1] * normal[1] + v[2] * normal[2])  # < 0 is pressing in
-    magnitude = max(0.0, phantom.stiffness * depth - phantom.damping * v_normal)
-    return magnitude * np.array(normal)
+    force = _force(phantom, tcp_pose, tcp_speed)
+    return np.zeros(3) if force is None else np.array(force)
 
 
 def contact_wrench(phantom: PhantomConfig, tcp_pose: ArrayLike, tcp_speed: ArrayLike) -> NDArray[np.float64]:
     """The wrench ``[Fx, Fy, Fz, Tx, Ty, Tz]`` the phantom exerts on the tool, in the tool (sensor) frame."""
-    x, y, z, rx, ry, rz = np.asarray(tcp_pose, dtype=float).tolist()
-    fx, fy, fz = contact_force(phantom, (x, y, z), tcp_speed).tolist()
-    if not (fx or fy or fz):
+    force = _force(phantom, tcp_pose, tcp_speed)
+    if force is None or not any(force):
         return np.zeros(6)
-    # The sensor's frame is the tool's: the inverse of the tool's rotation. In plain floats: the simulated sensor
-    # calls this at 100 Hz, where numpy's per-call overhead was most of its cost. The contact is at the TCP, so it
-    # exerts no torque about it.
-    return np.array([*rotate((-rx, -ry, -rz), (fx, fy, fz)), 0.0, 0.0, 0.0])
+    # The sensor's frame is the tool's: the inverse of the tool's rotation. The contact is at the TCP, so it exerts
+    # no torque about it.
+    return np.array([*rotate((-float(tcp_pose[3]), -float(tcp_pose[4]), -float(tcp_pose[5])), force), 0.0, 0.0, 0.0])

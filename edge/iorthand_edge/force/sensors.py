@@ -15,7 +15,7 @@ import struct
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,6 +81,10 @@ class ForceSensor(ABC):
 # Simulated
 
 
+NOISE_BLOCK = 256  # samples of the simulated sensor's noise drawn at once (2 s at 125 Hz)
+_NOISE_SCALE = np.array([1.0, 1.0, 1.0, 0.1, 0.1, 0.1])  # torque noise in N·m for force noise in N
+
+
 class SimForceSensor(ForceSensor):
     """Reads the simulated robot's latest state (``reading``) and the phantom; adds bias and noise.
 
@@ -99,20 +103,32 @@ class SimForceSensor(ForceSensor):
         self.phantom = phantom
         self._reading = reading
         self._rng = np.random.default_rng(config.seed)
-        self._offset = np.zeros(6)
-        self._bias = np.asarray(config.bias, dtype=float)
-        self._noise_scale = np.array([1.0, 1.0, 1.0, 0.1, 0.1, 0.1])  # torque noise in N·m for force noise in N
+        self._offset = [0.0] * 6
+        self._bias = [float(v) for v in config.bias]
+        self._noise: Iterator[list[float]] = iter(())
         self._lock = threading.Lock()
         self.silent = False
 
     def start(self) -> None:
         pass
 
-    def _raw(self, r: RobotReading) -> Wrench:
+    def _next_noise(self) -> list[float]:
+        """The next sample's white noise. Drawn NOISE_BLOCK samples at a time: one numpy call per block instead of
+        one (and the arithmetic on its array) per control cycle."""
+        noise = next(self._noise, None)
+        if noise is None:
+            block = self._rng.normal(0.0, self.config.noise, (NOISE_BLOCK, 6)) * _NOISE_SCALE
+            self._noise = iter(block.tolist())
+            noise = next(self._noise)
+        return noise
+
+    def _raw(self, r: RobotReading) -> list[float]:
         """The wrench the sensor measures in robot state ``r``: contact with the phantom, bias and noise."""
-        contact = np.zeros(6) if self.phantom is None else contact_wrench(self.phantom, r.tcp_pose, r.tcp_speed)
-        noise = self._rng.normal(0.0, self.config.noise, 6) * self._noise_scale
-        return contact + self._bias + noise
+        noise = self._next_noise()
+        if self.phantom is None:
+            return [b + n for b, n in zip(self._bias, noise, strict=True)]
+        contact = contact_wrench(self.phantom, r.tcp_pose, r.tcp_speed).tolist()
+        return [c + b + n for c, b, n in zip(contact, self._bias, noise, strict=True)]
 
     def read(self, timeout: float) -> WrenchSample | None:
         r = None if self.silent else self._reading()
@@ -120,7 +136,7 @@ class SimForceSensor(ForceSensor):
             return None
         raw = self._raw(r)
         with self._lock:  # stamped with the robot state it was computed from
-            return WrenchSample(raw - self._offset, r.timestamp_ns)
+            return WrenchSample(np.array([v - o for v, o in zip(raw, self._offset, strict=True)]), r.timestamp_ns)
 
     def zero(self) -> None:
         r = self._reading()
@@ -128,7 +144,7 @@ class SimForceSensor(ForceSensor):
             raise SensorError("simulated force sensor: no robot state yet, nothing to zero")
         raws = [self._raw(r) for _ in range(16)]
         with self._lock:
-            self._offset = np.mean(raws, axis=0)
+            self._offset = np.mean(raws, axis=0).tolist()
 
     def close(self) -> None:
         pass
