@@ -124,8 +124,6 @@ class VideoStream:
         self._seq = 0  # every item handed to the sender: frames and failure notices
         self.sent = 0
         self.bytes_sent = 0
-        self.encode_s = 0.0
-        self.put_s = 0.0
         self.error = ""
         self._pub: Any = None
         self._workers: list[Worker] = []
@@ -242,18 +240,14 @@ class VideoStream:
                 if self.bitrate.reason:
                     log.info("video %s: %s", self.name, self.bitrate.reason)
                     self.bitrate.reason = ""
-            t0 = time.perf_counter()
             frame = encode_frame(self.name, item, self.config, self.h264)
             if frame is None:
                 continue
             frame.seq = self.sent + 1  # frames sent, not captured: see the module's docstring
             payload = frame.encode()
-            t1 = time.perf_counter()
-            self.encode_s += t1 - t0
+            t0 = time.perf_counter()
             self._pub.put(payload)  # BLOCK: a full uplink shows here
-            put = time.perf_counter() - t1
-            self.put_s += put
             if self.bitrate is not None:
-                self.bitrate.on_put(put)
+                self.bitrate.on_put(time.perf_counter() - t0)
             self.sent += 1
             self.bytes_sent += len(payload)
