@@ -503,6 +503,33 @@ def test_a_page_sends_its_release_at_once_not_on_its_next_tick(stack, browser, h
                 page.context.close()
 
 
+def test_a_page_whose_stream_runs_late_says_so_and_what_helps(stack, browser) -> None:
+    """A busy page (slow drawing on a weak phone) runs its stream's timer late, and the edge stops the robot at every
+    gap over its timeout. The page measures its own pace while it holds control and says when it falls behind. On
+    Playwright's clock: a second of ticks on time shows nothing; ticks 120 ms apart (a timer that fires late, once
+    per jump) show the pace and a warning in the event log; ticks on time again clear it."""
+    page = None
+    try:
+        page = open_console(browser, stack.url, clock=True)
+        page.clock.pause_at(page.evaluate("Date.now()") + 20)
+        page.clock.run_for(1500)  # the stream at its rate (60 Hz) on the page's clock
+        on_time = page.evaluate("window.iorthand.pace")
+        assert on_time is not None and not on_time["slow"] and on_time["rate"] >= 55, on_time
+        assert page.is_hidden("#pace")
+        for _ in range(12):  # ~1.4 s of a page whose timer fires every 120 ms
+            page.clock.fast_forward(120)
+        late = page.evaluate("window.iorthand.pace")
+        assert late["slow"] and late["rate"] <= 10 and late["gap"] >= 119, late
+        assert page.is_visible("#pace") and "/60 per s" in page.inner_text("#pace")
+        assert "slow page" in page.inner_text("#events") and "3D view" in page.inner_text("#events")
+        page.clock.run_for(1500)
+        assert not page.evaluate("window.iorthand.pace")["slow"] and page.is_hidden("#pace")
+    finally:
+        if page is not None:
+            with contextlib.suppress(Exception):
+                page.context.close()
+
+
 def test_a_viewer_sees_the_robot_and_cannot_move_it(stack, browser) -> None:
     page = open_console(browser, stack.url, "student", control=False)
     page.wait_for_function("document.body.classList.contains('viewer')")

@@ -17,7 +17,7 @@ const ui = {
   robot: $("robot"), link: $("link"), who: $("who"), force: $("force"), forceLabel: $("force-label"),
   forceDetail: $("force-detail"), status: $("status"), reason: $("reason"), control: $("control"), vitals: $("vitals"),
   profile: $("profile"), estop: $("estop"), deadman: $("deadman"), events: $("events"), camera: $("camera"),
-  ultrasound: $("ultrasound"), poseList: $("pose-list"), verdict: $("pose-verdict"), goto: $("goto"),
+  ultrasound: $("ultrasound"), poseList: $("pose-list"), verdict: $("pose-verdict"), goto: $("goto"), pace: $("pace"),
 };
 
 // What tests and benchmarks read (window.iorthand): the page's own view of its round trips and video delays.
@@ -119,7 +119,10 @@ for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) {
 }
 // A touch the browser cancels (a system gesture, a call) ends every hold, whichever element it was on.
 window.addEventListener("touchcancel", () => releaseAll("touch cancelled"), { capture: true });
-document.addEventListener("visibilitychange", () => { if (document.hidden) releaseAll("page hidden"); });
+document.addEventListener("visibilitychange", () => {
+  if (document.hidden) releaseAll("page hidden");
+  else pace.restart(); // a hidden page's timers were throttled on purpose: watch its pace anew
+});
 window.addEventListener("pagehide", () => releaseAll("page closed"));
 window.addEventListener("blur", () => releaseAll("window lost focus"));
 document.addEventListener("contextmenu", (e) => e.preventDefault()); // a long press is not a menu
@@ -187,7 +190,47 @@ function sendTwist() {
 let stream = null;
 function startStream(hz) {
   clearInterval(stream);
-  stream = setInterval(sendTwist, 1000 / hz);
+  pace.restart();
+  stream = setInterval(() => { pace.tick(); sendTwist(); }, 1000 / hz);
+}
+
+// The page's own pace. A busy page (slow drawing on a weak phone) runs the stream's timer late, and the edge stops
+// the robot at every gap longer than its command timeout (150 ms by default): the operator sees motion stop and
+// start. Over the last second of holding control, fewer than PACE_SLOW of the configured ticks, or a gap of
+// PACE_GAP_MS or more, says so on the page, with what helps.
+const PACE_WINDOW_MS = 1000;
+const PACE_SLOW = 0.75;
+const PACE_GAP_MS = 100;
+const pace = {
+  ticks: [], since: 0, slow: false,
+  restart() { this.ticks = []; this.since = performance.now(); },
+  tick() {
+    const now = performance.now();
+    this.ticks.push(now);
+    while (this.ticks.length > 1 && now - this.ticks[1] > PACE_WINDOW_MS) this.ticks.shift(); // one before the window
+  },
+  // Ticks a second and the longest gap (ms, the one still open included), once a whole window was watched.
+  measure(now) {
+    if (!mine || document.hidden || now - this.since < PACE_WINDOW_MS) return null;
+    const inWindow = this.ticks.filter((t) => now - t <= PACE_WINDOW_MS).length;
+    let gap = this.ticks.length ? now - this.ticks[this.ticks.length - 1] : now - this.since;
+    for (let i = 1; i < this.ticks.length; i++) gap = Math.max(gap, this.ticks[i] - this.ticks[i - 1]);
+    return { rate: (inWindow * 1000) / PACE_WINDOW_MS, gap };
+  },
+};
+function showPace() {
+  const hz = hello?.twist_hz || 0;
+  const m = hz ? pace.measure(performance.now()) : null;
+  const slow = !!m && (m.rate < PACE_SLOW * hz || m.gap >= PACE_GAP_MS);
+  stats.pace = m ? { rate: m.rate, gap: m.gap, slow } : null;
+  ui.pace.hidden = !slow;
+  if (slow) ui.pace.textContent = `page ${Math.round(m.rate)}/${Math.round(hz)} per s · gaps ≤ ${Math.round(m.gap)} ms`;
+  if (slow && !pace.slow) {
+    logEvent({ kind: "warning", status: "slow page", reason: `this device sends ${Math.round(m.rate)} of ${Math.round(hz)} `
+      + `commands a second (gaps up to ${Math.round(m.gap)} ms): the robot stops at every gap over the edge's timeout. `
+      + "Turning off the 3D view or the video helps." });
+  }
+  pace.slow = slow;
 }
 
 // ---------------------------------------------------------------------------------------------- the socket
@@ -345,6 +388,7 @@ function setStatus(code, reason, colour) {
 function onState(s) {
   lastState = s;
   lastStateAt = performance.now();
+  if (!!s.control?.mine !== mine) pace.restart();
   mine = !!s.control?.mine;
   const sf = s.safety;
   if (!s.online) setStatus("edge offline", "the robot's edge agent is not connected", "grey");
@@ -382,6 +426,7 @@ const HALTS = new Set(["disarmed", "command_timeout", "force_danger", "force_sta
 
 // Never green without fresh data: with no state for STATE_STALE_MS the light and the status go grey.
 setInterval(() => {
+  showPace();
   if (lastStateAt && performance.now() - lastStateAt > STATE_STALE_MS) {
     ui.force.className = "force grey";
     ui.forceLabel.textContent = "STALE";
