@@ -224,7 +224,11 @@ function showPace() {
   const slow = !!m && (m.rate < PACE_SLOW * hz || m.gap >= PACE_GAP_MS);
   stats.pace = m ? { rate: m.rate, gap: m.gap, slow } : null;
   ui.pace.hidden = !slow;
-  if (slow) ui.pace.textContent = `page ${Math.round(m.rate)}/${Math.round(hz)} per s · gaps ≤ ${Math.round(m.gap)} ms`;
+  if (slow) { // short on a phone's bar; the details in its title and in the event log
+    ui.pace.textContent = `page ${Math.round(m.rate)}/${Math.round(hz)}`;
+    ui.pace.title = `this page sent ${Math.round(m.rate)} of ${Math.round(hz)} commands in the last second, with gaps `
+      + `up to ${Math.round(m.gap)} ms: the robot stops at every gap over the edge's timeout`;
+  }
   if (slow && !pace.slow) {
     logEvent({ kind: "warning", status: "slow page", reason: `this device sends ${Math.round(m.rate)} of ${Math.round(hz)} `
       + `commands a second (gaps up to ${Math.round(m.gap)} ms): the robot stops at every gap over the edge's timeout. `
