@@ -503,12 +503,14 @@ def test_a_page_sends_its_release_at_once_not_on_its_next_tick(stack, browser, h
                 page.context.close()
 
 
-def test_a_page_whose_stream_runs_late_says_so_and_what_helps(stack, browser) -> None:
+def test_a_page_whose_stream_runs_late_says_so_and_draws_its_3d_view_with_fewer_pixels(stack, browser) -> None:
     """A busy page (slow drawing on a weak phone) runs its stream's timer late, and the edge stops the robot at every
-    gap over its timeout. The page measures its own pace while it holds control and says when it falls behind. On
-    Playwright's clock: a second of ticks on time shows nothing; ticks 120 ms apart (a timer that fires late, once
-    per jump) show the pace and a warning in the event log; ticks on time again clear it."""
+    gap over its timeout. The page measures its own pace while it holds control and says when it falls behind; late
+    for 2 s, it draws its 3D view at one pixel per CSS pixel (this phone's screen has 2). On Playwright's clock:
+    ticks on time show nothing; ticks 120 ms apart (a timer that fires late, once per jump) show the pace and a
+    warning in the event log, then lower the view's resolution; ticks on time again clear the pace."""
     page = None
+    view_width = "(() => { const c = document.getElementById('view3d'); return c.width / c.clientWidth; })()"
     try:
         page = open_console(browser, stack.url, clock=True)
         page.clock.pause_at(page.evaluate("Date.now()") + 20)
@@ -516,6 +518,7 @@ def test_a_page_whose_stream_runs_late_says_so_and_what_helps(stack, browser) ->
         on_time = page.evaluate("window.iorthand.pace")
         assert on_time is not None and not on_time["slow"] and on_time["rate"] >= 55, on_time
         assert page.is_hidden("#pace")
+        assert page.evaluate(view_width) == pytest.approx(2.0, abs=0.02)  # the screen's own pixels
         for _ in range(12):  # ~1.4 s of a page whose timer fires every 120 ms
             page.clock.fast_forward(120)
         late = page.evaluate("window.iorthand.pace")
@@ -523,7 +526,12 @@ def test_a_page_whose_stream_runs_late_says_so_and_what_helps(stack, browser) ->
         assert page.is_visible("#pace") and page.inner_text("#pace").endswith("/60")
         assert "gaps up to 1" in page.get_attribute("#pace", "title")
         assert "slow page" in page.inner_text("#events") and "3D view" in page.inner_text("#events")
+        assert "lower resolution" not in page.inner_text("#events")  # not yet: late for less than 2 s
+        for _ in range(8):  # late for more than 2 s
+            page.clock.fast_forward(120)
         page.clock.run_for(1500)
+        assert "lower resolution" in page.inner_text("#events")
+        assert page.evaluate(view_width) == pytest.approx(1.0, abs=0.02)
         assert not page.evaluate("window.iorthand.pace")["slow"] and page.is_hidden("#pace")
     finally:
         if page is not None:

@@ -201,8 +201,11 @@ function startStream(hz) {
 const PACE_WINDOW_MS = 1000;
 const PACE_SLOW = 0.75;
 const PACE_GAP_MS = 100;
+// Late this long without a break, the page draws its 3D view at one pixel per CSS pixel: on a phone's 2–3× screen
+// that is a quarter to a ninth of the pixels, and what made the page late in the measurements (README).
+const PACE_LOWER_3D_MS = 2000;
 const pace = {
-  ticks: [], since: 0, slow: false,
+  ticks: [], since: 0, slow: false, slowSince: 0, lowered: false,
   restart() { this.ticks = []; this.since = performance.now(); },
   tick() {
     const now = performance.now();
@@ -228,6 +231,14 @@ function showPace() {
     ui.pace.textContent = `page ${Math.round(m.rate)}/${Math.round(hz)}`;
     ui.pace.title = `this page sent ${Math.round(m.rate)} of ${Math.round(hz)} commands in the last second, with gaps `
       + `up to ${Math.round(m.gap)} ms: the robot stops at every gap over the edge's timeout`;
+  }
+  if (slow && !pace.slow) pace.slowSince = performance.now();
+  if (slow && !pace.lowered && viewer && want3d.checked && (window.devicePixelRatio || 1) > 1
+      && performance.now() - pace.slowSince >= PACE_LOWER_3D_MS) {
+    pace.lowered = true;
+    viewer.setPixelRatio(1);
+    logEvent({ kind: "warning", status: "slow page", reason: "the 3D view is now drawn at a lower resolution, "
+      + "to keep the commands on time" });
   }
   if (slow && !pace.slow) {
     logEvent({ kind: "warning", status: "slow page", reason: `this device sends ${Math.round(m.rate)} of ${Math.round(hz)} `

@@ -149,5 +149,10 @@ export function createViewer(canvas) {
     requestAnimationFrame(frame);
   }
   requestAnimationFrame(frame);
-  return { update };
+  // Fewer pixels a frame (the page's choice, when drawing makes it late): the next frame is drawn at that ratio.
+  function setPixelRatio(ratio) {
+    renderer.setPixelRatio(ratio);
+    dirty = true;
+  }
+  return { update, setPixelRatio };
 }
