@@ -223,27 +223,28 @@ const pace = {
 };
 function showPace() {
   const hz = hello?.twist_hz || 0;
-  const m = hz ? pace.measure(performance.now()) : null;
+  const now = performance.now();
+  const m = hz ? pace.measure(now) : null;
   const slow = !!m && (m.rate < PACE_SLOW * hz || m.gap >= PACE_GAP_MS);
   stats.pace = m ? { rate: m.rate, gap: m.gap, slow } : null;
   ui.pace.hidden = !slow;
-  if (slow) { // short on a phone's bar; the details in its title and in the event log
-    ui.pace.textContent = `page ${Math.round(m.rate)}/${Math.round(hz)}`;
-    ui.pace.title = `this page sent ${Math.round(m.rate)} of ${Math.round(hz)} commands in the last second, with gaps `
-      + `up to ${Math.round(m.gap)} ms: the robot stops at every gap over the edge's timeout`;
-  }
-  if (slow && !pace.slow) pace.slowSince = performance.now();
-  if (slow && !pace.lowered && viewer && want3d.checked && (window.devicePixelRatio || 1) > 1
-      && performance.now() - pace.slowSince >= PACE_LOWER_3D_MS) {
-    pace.lowered = true;
-    viewer.setPixelRatio(1);
-    logEvent({ kind: "warning", status: "slow page", reason: "the 3D view is now drawn at a lower resolution, "
-      + "to keep the commands on time" });
-  }
-  if (slow && !pace.slow) {
-    logEvent({ kind: "warning", status: "slow page", reason: `this device sends ${Math.round(m.rate)} of ${Math.round(hz)} `
-      + `commands a second (gaps up to ${Math.round(m.gap)} ms): the robot stops at every gap over the edge's timeout. `
-      + "Turning off the 3D view or the video helps." });
+  if (slow) {
+    const sent = `${Math.round(m.rate)} of ${Math.round(hz)} commands`;
+    const gaps = `gaps up to ${Math.round(m.gap)} ms: the robot stops at every gap over the edge's timeout`;
+    ui.pace.textContent = `page ${Math.round(m.rate)}/${Math.round(hz)}`; // short on a phone's bar; details in its title
+    ui.pace.title = `this page sent ${sent} in the last second, with ${gaps}`;
+    if (!pace.slow) {
+      pace.slowSince = now;
+      logEvent({ kind: "warning", status: "slow page", reason: `this device sends ${sent} a second (${gaps}). `
+        + "Turning off the 3D view or the video helps." });
+    }
+    if (!pace.lowered && viewer && want3d.checked && (window.devicePixelRatio || 1) > 1
+        && now - pace.slowSince >= PACE_LOWER_3D_MS) {
+      pace.lowered = true;
+      viewer.setPixelRatio(1);
+      logEvent({ kind: "warning", status: "slow page", reason: "the 3D view is now drawn at a lower resolution, "
+        + "to keep the commands on time" });
+    }
   }
   pace.slow = slow;
 }
