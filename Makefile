@@ -33,8 +33,14 @@ install-test: $(VENV)/.installed-test $(VENV)/.installed-lerobot
 demo: install
 	$(BIN)/iorthand demo
 
+# The tests in two passes. First all but the serial ones, a file per worker, as many workers as CPUs up to two:
+# they mostly wait on routers, processes and links (the suite uses about one core of two). Then the serial ones
+# alone: they need the machine to themselves (pyproject.toml's markers say why). `pytest` alone runs every test
+# in one pass.
 test: install-test
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -m "not serial" -n logical --maxprocesses 2 --dist loadfile; parallel=$$?; \
+	$(BIN)/python -m pytest -m serial; serial=$$?; \
+	[ $$parallel -ne 0 ] && exit $$parallel; exit $$serial
 
 lint: install-test
 	$(BIN)/ruff check .

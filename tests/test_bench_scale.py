@@ -11,6 +11,7 @@ import pytest
 from iorthand_operator.bench.scale import run_scale_point
 
 
+@pytest.mark.serial  # two operators at 60 Hz: no sequence number may be lost
 def test_two_robots_two_operators_through_one_router(tmp_path: Path) -> None:
     point = run_scale_point(tmp_path, n=2, duration=2.0, topology="router")
     assert point["operators"] == "light" and point["edges"] == "light"

@@ -22,6 +22,10 @@ from iorthand_edge.agent import TWIST_QUEUE
 from iorthand_operator.client import ControlRefused
 from tests.conftest import iorthand_cmd, wait_until
 
+# serial: the operator streams at 60 Hz and the robot must go where it sends it, then stop within the deadman
+# timeout plus one period when it lets go.
+pytestmark = pytest.mark.serial
+
 
 class StateLog:
     """Records every RobotState of one robot (callback only appends)."""

@@ -34,6 +34,10 @@ from iorthand_edge.ur_emulator.process import UR_PORTS, EmulatorProcess, free_lo
 from tests.conftest import ur_controller
 from tests.ur_rt_kernel_probe import policies
 
+# serial: the test's own loop is the agent's, and the controller's watchdog stops the program if it misses 100 ms;
+# a lost link must be reported within the driver's 100 ms link timeout.
+pytestmark = pytest.mark.serial
+
 
 class Emulator:
     """The UR emulator in a process of its own at real-time priority: a controller is a computer of its own, and

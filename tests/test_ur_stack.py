@@ -119,6 +119,7 @@ def test_teleop_moves_tool_and_deadman_stops_it(ur_edge: Callable[..., Any], ope
     assert emulator.status()["runtime_state"] == "PLAYING"
 
 
+@pytest.mark.serial
 def test_link_kill_detected_within_100ms_and_motion_refused(ur_edge: Callable[..., Any],
                                                             operator_factory: Callable[..., Any],
                                                             emulator: EmulatorProcess) -> None:

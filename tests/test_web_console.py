@@ -53,7 +53,9 @@ PASSWORDS = {"physician": "physician-pw-1", "student": "student-pw-1"}
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
         "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 
-pytestmark = pytest.mark.slow
+# serial: the page draws in software and streams at 60 Hz; a page letting go must stop the robot within the deadman
+# timeout plus one period.
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 
 def _require_browser() -> Any:
