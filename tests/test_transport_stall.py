@@ -112,6 +112,7 @@ def _received_while_stalled(router_endpoint: str, queues: str) -> set[int]:
 
 
 @needs_stall
+@pytest.mark.serial  # it takes CPU 0 from every other process for 100 ms in every 400 ms
 def test_a_stalled_send_thread_loses_no_twist(router_endpoint: str) -> None:
     # The control run: Zenoh's default queue loses twists under the same stalls, so the stall really happened.
     default = _received_while_stalled(router_endpoint, "default")

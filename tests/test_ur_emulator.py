@@ -295,6 +295,7 @@ def test_speedl_persists_without_watchdog_after_client_disconnects(robot: tuple[
 
 
 @needs_ur_rtde
+@pytest.mark.serial  # the test's own loop kicks the watchdog: a gap of 250 ms stops the program
 def test_watchdog_stops_program_and_tool(robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
     emu, w = robot
     # 4 Hz: generous enough that a loaded machine's scheduling gaps between kicks do not trip it.
