@@ -119,7 +119,7 @@ def test_teleop_moves_tool_and_deadman_stops_it(ur_edge: Callable[..., Any], ope
     assert emulator.status()["runtime_state"] == "PLAYING"
 
 
-@pytest.mark.serial
+@pytest.mark.serial  # the agent must see the dead link within 100 ms
 def test_link_kill_detected_within_100ms_and_motion_refused(ur_edge: Callable[..., Any],
                                                             operator_factory: Callable[..., Any],
                                                             emulator: EmulatorProcess) -> None:
