@@ -11,9 +11,10 @@ phantom (about 5 N, below the caution level), then the run measures two phases o
 
 For each phase: the CPU time (user + system) of the edge process and of all its descendants (psutil), per
 second of wall time in % of one core, and the edge process's own part (the control process: robot, supervisor,
-commands, force, servos, torch). A subscriber here takes every stream, as the twin and the recorder do (so the
-edge has to publish everything), and counts what arrives per key: both trees must deliver the same work for the
-comparison to mean anything.
+commands, force, servos, torch); and each thread's, by the names the kernel shows (``threads``: the edge names
+its threads, Zenoh's are rx-*, tx-*, ...; a tree that does not name them shows "python"). A subscriber here takes
+every stream, as the twin and the recorder do (so the edge has to publish everything), and counts what arrives
+per key: both trees must deliver the same work for the comparison to mean anything.
 
 The operator is each tree's own ``OperatorClient`` (the command protocol may differ between the trees), in a
 driver process of this script (``--drive``) that takes its orders on stdin; its CPU is not the edge's.
@@ -117,12 +118,29 @@ def cpu_seconds(proc: psutil.Process) -> dict[int, float]:
     return out
 
 
+def thread_ticks(proc: psutil.Process) -> dict[tuple[str, str], int]:
+    """user + system clock ticks of every thread of ``proc`` and of its descendants, by (the process's name, the
+    thread's name) as the kernel shows them (the edge names its threads: ``iorthand.process.name_thread``)."""
+    out: dict[tuple[str, str], int] = Counter()
+    for p in (proc, *proc.children(recursive=True)):
+        with contextlib.suppress(OSError, psutil.NoSuchProcess):
+            process = Path(f"/proc/{p.pid}/comm").read_text().strip()
+            for task in Path(f"/proc/{p.pid}/task").iterdir():
+                with contextlib.suppress(OSError):
+                    stat = (task / "stat").read_text()
+                    fields = stat[stat.rindex(")") + 2:].split()  # after the name, which may hold spaces
+                    out[(process, (task / "comm").read_text().strip())] += int(fields[11]) + int(fields[12])
+    return out
+
+
 def measure(edge: psutil.Process, tally: Tally, seconds: float) -> dict[str, Any]:
-    """CPU of the edge and its descendants over ``seconds``."""
+    """CPU of the edge and its descendants over ``seconds``, and of each of their threads."""
     counts0 = tally.snapshot()
+    ticks0 = thread_ticks(edge)
     cpu0, t0 = cpu_seconds(edge), time.monotonic()
     time.sleep(seconds)
     cpu1, t1 = cpu_seconds(edge), time.monotonic()
+    ticks1 = thread_ticks(edge)
     wall = t1 - t0
     spent = {pid: cpu1[pid] - cpu0.get(pid, 0.0) for pid in cpu1}  # a child started meanwhile: all of its time
     control = spent.get(edge.pid, 0.0)
@@ -137,7 +155,20 @@ def measure(edge: psutil.Process, tally: Tally, seconds: float) -> dict[str, Any
         "processes": len(cpu1),
         "children_lost": sorted(set(cpu0) - set(cpu1)),  # a child that ended meanwhile: its time is missing
         "messages_per_s": rates,
+        # % of one core per thread (name as the kernel shows it), by process name; the busiest first, 0.1 % and up.
+        "threads": threads_percent(ticks0, ticks1, wall),
     }
+
+
+def threads_percent(ticks0: dict[tuple[str, str], int], ticks1: dict[tuple[str, str], int], wall: float
+                    ) -> dict[str, dict[str, float]]:
+    hz = os.sysconf("SC_CLK_TCK")
+    out: dict[str, dict[str, float]] = {}
+    for (process, thread), n in sorted(ticks1.items(), key=lambda kv: ticks0.get(kv[0], 0) - kv[1]):
+        percent = round(100 * (n - ticks0.get((process, thread), 0)) / hz / wall, 1)
+        if percent >= 0.1:
+            out.setdefault(process, {})[thread] = percent
+    return out
 
 
 def drive(endpoint: str, surface_z: float) -> int:
@@ -268,6 +299,9 @@ def summarise(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
             }
             for key in ("video/camera", "video/ultrasound", "markers", "state/robot"):
                 out[variant][phase][f"{key} per s"] = statistics.median(p["messages_per_s"].get(key, 0.0) for p in phases)
+            # Where the time went: the threads of the run whose total was the median.
+            ordered = sorted(phases, key=lambda p: p["cpu_percent_total"])
+            out[variant][phase]["threads_of_the_median_run"] = ordered[(len(ordered) - 1) // 2]["threads"]
     if "before" in out and "after" in out:
         out["after_over_before"] = {
             phase: round(out["after"][phase]["cpu_percent_total"] / out["before"][phase]["cpu_percent_total"], 3)

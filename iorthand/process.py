@@ -1,7 +1,8 @@
 """Child processes that never outlive their parent: Linux's PR_SET_PDEATHSIG and the start of a spawned child,
 in one place for every role (the demo's processes, the twin's viewer, the operator's sender, the edge's media
-process, the benchmarks' roles); and the real-time priority of the few threads that get one. No Zenoh here: the
-UR driver's child process imports this and must start fast."""
+process, the benchmarks' roles); the real-time priority of the few threads that get one; and the names the
+kernel shows for threads (``top -H``, ``ps -L``, ``/proc/<pid>/task/*/comm``). No Zenoh here: the UR driver's
+child process imports this and must start fast."""
 
 from __future__ import annotations
 
@@ -15,6 +16,9 @@ import threading
 log = logging.getLogger(__name__)
 
 _PR_SET_PDEATHSIG = 1
+_PR_SET_NAME = 15
+# The kernel keeps 15 bytes of a thread's name (16 with the terminating NUL).
+NATIVE_NAME_BYTES = 15
 
 
 # The SCHED_FIFO priority of the few threads that get one. A service user needs no root for it: an
@@ -39,11 +43,33 @@ def raise_priority(realtime: bool, priority: int = REALTIME_PRIORITY) -> str:
         return f"normal ({exc.strerror or exc})"
 
 
+def native_thread_name(name: str) -> str:
+    """What the kernel can hold of a thread's ``name``: its leading words (``-``-separated) dropped while it is too
+    long and more than two are left, so that what tells threads apart stays ("edge-video-ultrasound-send" →
+    "ultrasound-send"), then cut ("edge-video-ultrasound-capture" → "ultrasound-capt")."""
+    words = name.split("-")
+    while len(words) > 2 and len("-".join(words).encode()) > NATIVE_NAME_BYTES:
+        words.pop(0)
+    return "-".join(words).encode()[:NATIVE_NAME_BYTES].decode(errors="ignore")
+
+
+def name_thread(name: str) -> None:
+    """Give the calling thread ``name`` (shortened by :func:`native_thread_name`) where the kernel shows it, so that
+    ``top -H`` says which of a process's threads takes the CPU; Python 3.11's threads are all "python" there.
+    Linux only: elsewhere nothing happens."""
+    with contextlib.suppress(OSError, AttributeError):
+        _libc().prctl(_PR_SET_NAME, ctypes.c_char_p(native_thread_name(name).encode()))
+
+
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL("libc.so.6", use_errno=True)
+
+
 def die_with_parent(sig: int = signal.SIGTERM) -> None:
     """Ask the kernel for ``sig`` when the thread that started this process ends. Linux only: elsewhere nothing
     happens, and callers keep their own parent-pid checks. Usable as ``subprocess``'s ``preexec_fn``."""
     with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, sig)
+        _libc().prctl(_PR_SET_PDEATHSIG, sig)
 
 
 def enter_child(parent_pid: int, pdeathsig: bool = True) -> None:
@@ -59,4 +85,5 @@ def enter_child(parent_pid: int, pdeathsig: bool = True) -> None:
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
 
 
-__all__ = ["REALTIME_PRIORITY", "die_with_parent", "enter_child", "raise_priority"]
+__all__ = ["NATIVE_NAME_BYTES", "REALTIME_PRIORITY", "die_with_parent", "enter_child", "name_thread",
+           "native_thread_name", "raise_priority"]

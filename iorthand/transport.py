@@ -27,7 +27,7 @@ import zenoh
 
 from iorthand import channels, keys
 from iorthand.config import ConfigError, setting
-from iorthand.process import REALTIME_PRIORITY, raise_priority
+from iorthand.process import REALTIME_PRIORITY, name_thread, raise_priority
 from iorthand.protocol import MAX_PAYLOAD, MAX_VIDEO_PAYLOAD, RejectCounter
 
 log = logging.getLogger(__name__)
@@ -433,7 +433,8 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox, max_payload: int =
 
 class Worker(threading.Thread):
     """A named daemon thread that runs ``target(stop_event)``; logs and records a crash instead of hiding it.
-    ``realtime``: ask for SCHED_FIFO (see :func:`raise_priority`)."""
+    The kernel shows its name too (:func:`~iorthand.process.name_thread`). ``realtime``: ask for SCHED_FIFO (see
+    :func:`raise_priority`)."""
 
     def __init__(self, name: str, target: Callable[[threading.Event], None], stop: threading.Event,
                  realtime: bool = False) -> None:
@@ -445,6 +446,7 @@ class Worker(threading.Thread):
         self.error: BaseException | None = None
 
     def run(self) -> None:
+        name_thread(self.name)
         self.priority = raise_priority(self._realtime)
         if self._realtime and self.priority != "SCHED_FIFO":
             log.info("%s runs at %s priority (LimitRTPRIO=%d or root gives it SCHED_FIFO)",

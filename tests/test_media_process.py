@@ -19,6 +19,7 @@ import yaml
 from iorthand import keys
 from iorthand.protocol import Markers, VideoFrame
 from tests.conftest import ROOT, edge_config, iorthand_cmd, stop_process, wait_until
+from tests.test_thread_names import kernel_thread_names
 
 
 def demo_sections() -> dict:
@@ -76,6 +77,9 @@ def test_markers_and_video_are_published_by_the_media_process(edge_factory, sess
     assert child is not None and child != os.getpid() and psutil.Process(child).ppid() == os.getpid()
     # Not one perception or video thread in the agent's process.
     assert not [t.name for t in threading.enumerate() if "video" in t.name or t.name == "perception"]
+    # Both processes' threads by name where the kernel shows them (top -H): which one takes the CPU is visible.
+    assert "edge-control" in kernel_thread_names(os.getpid())
+    assert {"perception", "camera-send", "ultrasound-capt", "ultrasound-send"} <= set(kernel_thread_names(child))
 
     # Freeze the child: markers and video stop, the robot's state does not; thaw it: they come back.
     os.kill(child, signal.SIGSTOP)

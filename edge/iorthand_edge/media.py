@@ -42,7 +42,7 @@ import numpy as np
 import zenoh
 
 from iorthand import keys
-from iorthand.process import enter_child
+from iorthand.process import enter_child, name_thread
 from iorthand.protocol import (
     DecodeError,
     ForceLevelState,
@@ -265,6 +265,8 @@ def media_main(config: EdgeConfig, parent_pid: int, pdeathsig: bool, stop_flag: 
                log_level: int) -> None:
     """The child's entry point (a fresh interpreter)."""
     enter_child(parent_pid, pdeathsig)  # not Linux: the parent-pid check in run() still ends us
+    # ps and top show the process by this name, and each of its threads that does not name itself (all start later).
+    name_thread("iorthand-media")
     # Before any thread starts, so that every thread of the child (Zenoh's too) inherits it.
     with contextlib.suppress(AttributeError, OSError):
         os.setpriority(os.PRIO_PROCESS, 0, MEDIA_NICE)

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from iorthand.geometry import compose, flatten, pose_to_matrix
+from iorthand.process import name_thread
 from iorthand.protocol import MarkerPose, Markers, Sequencer
 
 from .calibration import CalibrationError, load_handeye, load_intrinsics
@@ -271,6 +272,7 @@ class PerceptionPipeline:
         return self._thread is not None and self._thread.is_alive()
 
     def _run(self) -> None:
+        name_thread("perception")
         camera = self._camera or make_camera(self.config, self.robot_pose_at, self.servo_angles_at)
         self._active_camera = camera
         while not self._stop.is_set():
