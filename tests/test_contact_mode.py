@@ -107,8 +107,7 @@ def _pressing(sample: ForceSample) -> float:
 
 
 @pytest.mark.slow
-# Not serial, although the edge's force loop must hold ±1 N 95 % of the time: all three passed twice beside a
-# one-core CPU hog (stress-ng --cpu 1), more load than a neighbouring test puts on the machine.
+@pytest.mark.serial  # the edge's force loop must hold ±1 N 95 % of the time
 @pytest.mark.parametrize("stiffness_n_per_mm", [2.0, 4.0, 8.0])
 def test_a_tangential_sweep_in_contact_mode_holds_the_force(edge_factory, operator_factory, stiffness_n_per_mm) -> None:
     edge_factory(phantom={"surface_z": 0.195, "stiffness": 1000 * stiffness_n_per_mm, "damping": 20.0},

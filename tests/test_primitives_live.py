@@ -21,10 +21,9 @@ from tests.sim_loop import CYLINDER, START_ABOVE
 from tests.test_recorder import recorder_factory  # noqa: F401  (a fixture)
 
 TARGET = 4.0
-# Not serial, although a sweep must hold its force band 95 % of the time and a release or a dead link must stop it
-# within the deadman timeout plus one period, 20 times of 20: all three passed twice beside a one-core CPU hog
-# (stress-ng --cpu 1), more load than a neighbouring test puts on the machine.
-pytestmark = [pytest.mark.slow]
+# serial: a sweep holds its force band 95 % of the time; a release or a dead link stops it within the deadman
+# timeout plus one period, 20 times of 20.
+pytestmark = [pytest.mark.slow, pytest.mark.serial]
 
 
 def _edge(edge_factory, stiffness: float = 4000.0, command_timeout: float = 0.15):

@@ -217,6 +217,13 @@ def test_malformed_commands_are_counted_and_never_applied(edge_factory, operator
     wait_until(lambda: op.safety is not None and op.safety.malformed == edge.rejects.total, message="malformed count published")
 
 
+@pytest.mark.slow
+def test_demo_exits_zero(tmp_path) -> None:
+    result = subprocess.run(iorthand_cmd("demo", "--workdir", str(tmp_path)), capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stderr + result.stdout
+    assert "summary" in result.stdout and "deadman stop" in result.stdout
+
+
 def test_commands_the_edge_drops_unread_are_counted_and_shown(edge_factory, operator_factory, session_factory) -> None:
     """The edge keeps only the newest TWIST_QUEUE twists while its control loop is busy (here: the test holds the
     agent's lock, as a slow robot call would). The ones it drops are not lost silently: the safety status counts
