@@ -170,7 +170,10 @@ def test_the_media_process_dies_with_a_killed_agent(router_endpoint, tmp_path: P
     children: list[psutil.Process] = []
     try:
         parent = psutil.Process(edge.pid)
-        wait_until(lambda: parent.children(), timeout=20.0, message="the edge's media process")
+        # Both processes by the names ps and top show (the kernel's comm), for the engineer who looks.
+        wait_until(lambda: "iorthand-media" in [c.name() for c in parent.children()], timeout=20.0,
+                   message="the edge's media process, named")
+        assert parent.name() == "iorthand-edge"
         children = parent.children(recursive=True)
         edge.kill()
         edge.wait(5.0)
