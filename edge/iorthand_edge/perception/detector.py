@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -196,7 +197,7 @@ def refine_corners(
 def _intersections(lines: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """Corner i where side i−1 meets side i, in the lines' (normalised) coordinates; None if two are parallel."""
     h = _cross(lines[_PREVIOUS], lines)
-    if np.any(np.abs(h[:, 2]) < 1e-12):
+    if (np.abs(h[:, 2]) < 1e-12).any():
         return None
     return h[:, :2] / h[:, 2:3]
 
@@ -212,12 +213,13 @@ def _distort(normalised: NDArray[np.float64], camera_matrix: NDArray[np.float64]
 def _homography(source: NDArray[np.float64], target: NDArray[np.float64]) -> NDArray[np.float64]:
     """The 3×3 homography taking four source points to four target points (in float64: OpenCV's
     getPerspectiveTransform takes float32 points)."""
-    rows, values = [], []
-    for (x, y), (u, v) in zip(source, target, strict=True):
-        rows.append([x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y])
-        rows.append([0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y])
-        values += [u, v]
-    return np.append(np.linalg.solve(np.array(rows), np.array(values)), 1.0).reshape(3, 3)
+    (x, y), (u, v) = source.T, target.T
+    system = np.zeros((8, 8))
+    system[0::2, 0], system[0::2, 1], system[0::2, 2] = x, y, 1.0  # u = (h0·x + h1·y + h2) / (h6·x + h7·y + 1)
+    system[1::2, 3], system[1::2, 4], system[1::2, 5] = x, y, 1.0  # v likewise with h3, h4, h5
+    system[0::2, 6], system[0::2, 7] = -u * x, -u * y
+    system[1::2, 6], system[1::2, 7] = -v * x, -v * y
+    return np.append(np.linalg.solve(system, target.reshape(-1)), 1.0).reshape(3, 3)
 
 
 _UNIT_SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])  # marker coordinates, x right, y down
@@ -256,25 +258,12 @@ def _border_shift(
     half_width = min(half_width, 0.6 * cell_px)
     if half_width < 1.0:
         return None
-    # Points on the border's inner edge at the middle of each white cell touching it (clear of its
-    # neighbours along the edge, which may be black), and the direction into the cell.
-    spread = np.linspace(-0.2, 0.2, max(3, round(0.4 * cell_px)))
-    ks = np.arange(1, cells - 1)
-    across = (ks[:, None] + 0.5 + spread) * cell  # k × spread
-    near, far = np.full_like(across, cell), np.full_like(across, 1.0 - cell)  # the top or left edge, the other
-    # Per k and side (top, bottom, left, right: _INWARDS's order), the points and whether the cell there is white.
-    xs = np.stack([across, across, near, far], axis=1)
-    ys = np.stack([near, far, across, across], axis=1)
-    white = ~np.stack([bits[1, ks], bits[cells - 2, ks], bits[ks, 1], bits[ks, cells - 2]], axis=1)
-    if not white.any():
+    probes = _border_probes(bits.tobytes(), cells, max(3, round(0.4 * cell_px)))
+    if probes is None:
         return None
-    on_edge = np.stack([xs[white], ys[white]], axis=-1).reshape(-1, 2)
-    ahead = on_edge + 0.1 * cell * np.repeat(_INWARDS[np.nonzero(white)[1]], len(spread), axis=0)
-    mapped = []
-    for points in (on_edge, ahead):
-        h = np.column_stack([points, np.ones(len(points))]) @ to_image.T
-        mapped.append(_distort(h[:, :2] / h[:, 2:3], camera_matrix, dist_coeffs))
-    base, towards_cell = mapped
+    # The probes and the points a little way into their cells, mapped onto the image together.
+    h = probes @ to_image.T
+    base, towards_cell = np.split(_distort(h[:, :2] / h[:, 2:3], camera_matrix, dist_coeffs), 2)
     directions = towards_cell - base
     directions /= np.linalg.norm(directions, axis=1)[:, None]  # dark (the border) at negative offsets
     edge, good, _ = _profile_edges(roi, base - origin, directions, _offsets(half_width), groups=1)
@@ -282,6 +271,33 @@ def _border_shift(
         return None
     shift = -median(edge[good]) / (2.0 * (1.0 - cell))
     return shift if abs(shift) <= _MAX_BORDER_SHIFT else None
+
+
+@lru_cache(maxsize=256)
+def _border_probes(bits: bytes, cells: int, samples: int) -> NDArray[np.float64] | None:
+    """Where :func:`_border_shift` probes a marker's border, in marker coordinates (homogeneous rows): points on
+    the border's inner edge at the middle of each white cell touching it (``samples`` of them across its middle
+    two fifths, clear of its neighbours along the edge, which may be black), then as many a tenth of a cell into
+    those cells. A marker's pattern and its size in cells fix them: computed once per marker (and image size).
+    None when no white cell touches the border."""
+    pattern = np.frombuffer(bits, dtype=np.bool_).reshape(cells, cells)
+    cell = 1.0 / cells
+    spread = np.linspace(-0.2, 0.2, samples)
+    ks = np.arange(1, cells - 1)
+    across = (ks[:, None] + 0.5 + spread) * cell  # k × spread
+    near, far = np.full_like(across, cell), np.full_like(across, 1.0 - cell)  # the top or left edge, the other
+    # Per k and side (top, bottom, left, right: _INWARDS's order), the points and whether the cell there is white.
+    xs = np.stack([across, across, near, far], axis=1)
+    ys = np.stack([near, far, across, across], axis=1)
+    white = ~np.stack([pattern[1, ks], pattern[cells - 2, ks], pattern[ks, 1], pattern[ks, cells - 2]], axis=1)
+    if not white.any():
+        return None
+    on_edge = np.stack([xs[white], ys[white]], axis=-1).reshape(-1, 2)
+    ahead = on_edge + 0.1 * cell * np.repeat(_INWARDS[np.nonzero(white)[1]], samples, axis=0)
+    points = np.concatenate([on_edge, ahead])
+    probes = np.column_stack([points, np.ones(len(points))])
+    probes.flags.writeable = False  # shared by every call with the same marker
+    return probes
 
 
 def _offsets(half_width: float) -> NDArray[np.float64]:
@@ -294,23 +310,24 @@ def _edge_points(
     """Sub-pixel edge points (4 sides × n × 2, ROI px) of the quad's sides, which of them are valid, and
     the edges' blur (px, the median σ of their gradient profiles)."""
     following = quad[_NEXT]
-    lengths = np.linalg.norm(following - quad, axis=1)
-    along = (following - quad) / lengths[:, None]
+    sides = following - quad
+    lengths = np.sqrt((sides * sides).sum(axis=1))
+    along = sides / lengths[:, None]
     normals = np.column_stack([along[:, 1], -along[:, 0]])
     middles = (quad + following) / 2.0
-    outwards = np.einsum("ij,ij->i", normals, middles - quad.mean(axis=0)) > 0
+    outwards = np.einsum("ij,ij->i", normals, middles - quad.sum(axis=0) / 4) > 0
     normals[~outwards] *= -1.0  # dark (the border) at negative offsets, light (the paper) at positive
     margins = np.maximum(2.5, 0.1 * lengths)  # the blurred corner tip and the neighbouring edge stay out
-    count = min(most, round(float(np.min(lengths - 2.0 * margins))))  # about one a pixel
+    count = min(most, round(float((lengths - 2.0 * margins).min())))  # about one a pixel
     if count < _MIN_POINTS_PER_SIDE:
         return None
-    fractions = np.linspace(0.0, 1.0, count)
+    fractions = _spaced(count)
     t = margins[:, None] + fractions[None, :] * (lengths - 2.0 * margins)[:, None]  # 4 × n
     base = quad[:, None, :] + t[:, :, None] * along[:, None, :]  # 4 × n × 2
     directions = np.repeat(normals, count, axis=0)
     edge, good, spread = _profile_edges(roi, base.reshape(-1, 2), directions, offsets, groups=4)
     valid = good.reshape(4, count)
-    if np.any(valid.sum(axis=1) < _MIN_POINTS_PER_SIDE):
+    if (valid.sum(axis=1) < _MIN_POINTS_PER_SIDE).any():
         return None
     points = base + np.where(valid, edge.reshape(4, count), 0.0)[:, :, None] * normals[:, None, :]
     return points, valid, median(spread[good])
@@ -331,8 +348,8 @@ def _profile_edges(
     ys = (base[:, 1, None] + offsets * directions[:, 1, None]).astype(np.float32)
     profiles = cv2.remap(roi, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
     plateau = max(2, offsets.size // 6)
-    dark = profiles[:, :plateau].mean(axis=1)
-    light = profiles[:, -plateau:].mean(axis=1)
+    dark = profiles[:, :plateau].sum(axis=1) / plateau
+    light = profiles[:, -plateau:].sum(axis=1) / plateau
     contrast = light - dark
     by_group = np.sort(contrast.reshape(groups, -1), axis=1)
     n = by_group.shape[1]
@@ -341,11 +358,12 @@ def _profile_edges(
     step = offsets[1] - offsets[0]
     above = profiles - dark[:, None]
     area = step * (above.sum(axis=1) - 0.5 * (above[:, 0] + above[:, -1]))  # trapezoid rule
-    edge = offsets[-1] - area / np.where(good, contrast, 1.0)
+    divisor = np.where(good, contrast, 1.0)
+    edge = offsets[-1] - area / divisor
     good &= np.abs(edge) < offsets[-1] - 0.75  # an edge near the profile's end has no plateau beyond it
-    gradient = np.diff(profiles, axis=1)  # × step⁻¹, and Σ gradient ≈ contrast: the steps cancel below
+    gradient = profiles[:, 1:] - profiles[:, :-1]  # × step⁻¹, and Σ gradient ≈ contrast: the steps cancel below
     middles = (offsets[:-1] + offsets[1:]) / 2.0
-    moment = np.sum(gradient * (middles[None, :] - edge[:, None]) ** 2, axis=1) / np.where(good, contrast, 1.0)
+    moment = (gradient * (middles[None, :] - edge[:, None]) ** 2).sum(axis=1) / divisor
     return edge, good, np.sqrt(np.maximum(moment, 0.0))
 
 
@@ -357,7 +375,7 @@ def _fit_lines(
     keep = valid.copy()
     for _ in range(2):
         used = keep.sum(axis=1).astype(float)
-        if np.any(used < _MIN_POINTS_PER_SIDE):
+        if (used < _MIN_POINTS_PER_SIDE).any():
             return None
         weights = keep / used[:, None]
         centroid = np.einsum("ij,ijk->ik", weights, points)
@@ -371,9 +389,9 @@ def _fit_lines(
         spread = _MAD_TO_SIGMA * _row_medians(np.abs(residuals), keep)
         keep = valid & (np.abs(residuals) <= np.maximum(3.0 * spread, 1e-9)[:, None])
     used = keep.sum(axis=1).astype(float)
-    if np.any(used < _MIN_POINTS_PER_SIDE):
+    if (used < _MIN_POINTS_PER_SIDE).any():
         return None
-    rms = np.sqrt(np.sum(np.where(keep, residuals**2, 0.0), axis=1) / used)
+    rms = np.sqrt(np.where(keep, residuals**2, 0.0).sum(axis=1) / used)
     lines = np.column_stack([normal, -np.einsum("ij,ij->i", normal, centroid)])
     return lines, rms, used
 
@@ -383,6 +401,14 @@ def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64
     return np.column_stack([
         a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2], a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     ])
+
+
+@lru_cache(maxsize=128)
+def _spaced(count: int) -> NDArray[np.float64]:
+    """``count`` fractions evenly spaced from 0 to 1 (read-only: shared by every call)."""
+    fractions = np.linspace(0.0, 1.0, count)
+    fractions.flags.writeable = False
+    return fractions
 
 
 def _row_medians(values: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.float64]:
