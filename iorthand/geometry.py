@@ -162,16 +162,27 @@ def translation_distance(t_a: ArrayLike, t_b: ArrayLike) -> float:
 
 
 def is_rigid(t: ArrayLike, tol: float = 1e-6) -> bool:
-    """True for a proper rigid transform: orthonormal rotation with det +1 and a [0,0,0,1] last row."""
+    """True for a proper rigid transform: orthonormal rotation with det +1 and a [0,0,0,1] last row, each within
+    ``tol`` (as ``np.allclose`` with ``atol=tol`` compares). In plain floats: the perception pipeline checks every
+    marker sample and every robot pose it keeps, and numpy's calls on a 4×4 cost ~10× more."""
     t = np.asarray(t, dtype=float)
-    if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+    if t.shape != (4, 4):
         return False
-    r = t[:3, :3]
-    return (
-        np.allclose(r.T @ r, np.eye(3), atol=tol)
-        and abs(np.linalg.det(r) - 1.0) < tol
-        and np.allclose(t[3], [0, 0, 0, 1], atol=tol)
-    )
+    rows = t.tolist()
+    if not all(map(math.isfinite, rows[0] + rows[1] + rows[2] + rows[3])):
+        return False
+
+    def close(value: float, expected: float) -> bool:  # np.allclose's test: atol=tol, rtol=1e-5
+        return abs(value - expected) <= tol + 1e-5 * abs(expected)
+
+    r = [row[:3] for row in rows[:3]]
+    for i in range(3):  # RᵀR = I: the columns are unit vectors at right angles
+        for j in range(i, 3):
+            if not close(r[0][i] * r[0][j] + r[1][i] * r[1][j] + r[2][i] * r[2][j], 1.0 if i == j else 0.0):
+                return False
+    det = (r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1]) - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+           + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]))
+    return abs(det - 1.0) < tol and all(map(close, rows[3], (0.0, 0.0, 0.0, 1.0)))
 
 
 def orthonormalize(r: ArrayLike) -> Matrix:

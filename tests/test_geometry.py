@@ -26,6 +26,39 @@ def test_rotvec_round_trip(rv: list[float]) -> None:
     assert g.is_rigid(g.make_transform(r))
 
 
+def _rigid_by_numpy(t: np.ndarray, tol: float) -> bool:
+    """The definition, in numpy's terms: what is_rigid computes in plain floats."""
+    r = t[:3, :3]
+    return bool(np.all(np.isfinite(t)) and np.allclose(r.T @ r, np.eye(3), atol=tol)
+                and abs(np.linalg.det(r) - 1.0) < tol and np.allclose(t[3], [0, 0, 0, 1], atol=tol))
+
+
+def test_is_rigid_refuses_what_is_not_a_rigid_transform_and_agrees_with_its_definition() -> None:
+    t = g.make_transform(g.rotvec_to_matrix([0.3, -0.2, 1.1]), [0.4, -0.1, 0.2])
+    assert g.is_rigid(t)
+    mirrored = t.copy()
+    mirrored[:3, 0] *= -1.0  # orthonormal, but det −1: a reflection
+    sheared = t.copy()
+    sheared[0, 1] += 1e-4
+    projective = t.copy()
+    projective[3, 0] = 1e-4
+    broken = t.copy()
+    broken[1, 2] = math.nan
+    for bad in (mirrored, sheared, projective, broken, np.eye(3)):
+        assert not g.is_rigid(bad)
+    assert g.is_rigid(sheared, tol=1e-3)  # within a looser tolerance
+    # Near the tolerance, the same answer as numpy's definition, either way.
+    rng = np.random.default_rng(7)
+    answers = set()
+    for _ in range(2000):
+        noisy = g.make_transform(g.rotvec_to_matrix(rng.normal(0, 1, 3)), rng.normal(0, 1, 3))
+        noisy += rng.normal(0, 10 ** rng.uniform(-8, -5), (4, 4)) * (rng.random((4, 4)) < 0.3)
+        answer = g.is_rigid(noisy, tol=1e-6)
+        assert answer == _rigid_by_numpy(noisy, 1e-6)
+        answers.add(answer)
+    assert answers == {True, False}  # both sides of the tolerance were tried
+
+
 @pytest.mark.parametrize("rv", [[0.0, 0.0, 0.0], [0, 0, 1e-13], [0, 0, 1e-7], [math.pi, 0, 0], [0.1, -0.2, 0.3],
                                 [-1.2, 0.4, 0.9], [0, 2.0, 2.0]])
 def test_rotate_matches_the_matrix(rv: list[float]) -> None:
