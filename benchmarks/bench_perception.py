@@ -75,7 +75,7 @@ def run_case(width: int, height: int, markers: int, frames: int) -> dict[str, ob
         images.append(cv2.cvtColor(camera.capture(0).image, cv2.COLOR_GRAY2BGR))
     current = {"pose": poses[0]}
     pipeline = PerceptionPipeline(config, lambda _t: current["pose"], lambda _t: SERVO, lambda _m: None)
-    stages: dict[str, list[float]] = {k: [] for k in ("convert", "detect", "pose", "chain", "filter", "total")}
+    stages: dict[str, list[float]] = {k: [] for k in ("convert", "detect", "refine", "pose", "chain", "filter", "total")}
     latencies, seen = [], []
     for i in range(frames):
         current["pose"] = poses[i % len(poses)]
@@ -114,7 +114,7 @@ def main() -> None:
         "opencv": cv2.__version__,
         "machine": platform.machine(),
         "threads": 1,
-        "note": "fps and latency are frame stamp → Markers encoded (detection, PnP, chain, filter, encode)",
+        "note": "fps and latency are frame stamp → Markers encoded (detection, edge refinement, PnP, chain, filter, encode)",
         "cases": cases,
     }
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
@@ -124,7 +124,7 @@ def main() -> None:
         print(
             f"{c['width']}×{c['height']} {c['markers']} marker(s): {c['fps']:.0f} fps, p99 {c['latency_ms']['p99']:.2f} ms "
             f"(found {c['markers_found_mean']:.1f}; ms: convert {s['convert']:.2f} detect {s['detect']:.2f} "
-            f"pose {s['pose']:.2f} chain {s['chain']:.3f} filter {s['filter']:.3f})"
+            f"refine {s['refine']:.2f} pose {s['pose']:.2f} chain {s['chain']:.3f} filter {s['filter']:.3f})"
         )
     print(f"wrote {RESULTS}")
 
