@@ -11,6 +11,7 @@ from importlib.metadata import entry_points
 import zenoh
 
 from iorthand.config import ConfigError
+from iorthand.process import name_thread
 from iorthand.security.certs import CertError
 from iorthand.transport import ConnectError
 
@@ -48,6 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.log_level)
+    # ps and top show each service by its command (iorthand-router, iorthand-edge, iorthand-twin, ...), not as
+    # "python" like every other Python program; threads started from here on inherit the name unless they name
+    # themselves (those that the imports started stay "python").
+    name_thread(f"iorthand-{args.command}")
     try:
         return int(args.func(args) or 0)
     except ConfigError as exc:

@@ -3,13 +3,16 @@ CPU is then visible without a Python profiler."""
 
 from __future__ import annotations
 
+import subprocess
 import threading
 from pathlib import Path
 
+import psutil
 import pytest
 
 from iorthand.process import NATIVE_NAME_BYTES, native_thread_name
-from iorthand.transport import Worker
+from iorthand.transport import Worker, free_port
+from tests.conftest import iorthand_cmd, stop_process, wait_until
 
 
 def kernel_thread_names(pid: int | str = "self") -> list[str]:
@@ -47,3 +50,17 @@ def test_a_worker_is_named_in_the_kernel() -> None:
     finally:
         stop.set()
         worker.join(5.0)
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="no /proc: the kernel's thread names are Linux's")
+def test_a_service_shows_as_its_command_in_ps() -> None:
+    """What an engineer sees in ps and top on a host that runs several services: not "python" three times.
+    (The edge agent's name is checked with its media process's, in test_media_process.py.)"""
+    router = subprocess.Popen(iorthand_cmd("router", "--listen", f"tcp/127.0.0.1:{free_port()}"),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        process = psutil.Process(router.pid)
+        wait_until(lambda: process.name() == "iorthand-router", timeout=20.0, message="the router's process name")
+    finally:
+        stop_process(router)
+    assert native_thread_name("iorthand-recorder") == "iorthand-record"  # the kernel's 15 bytes

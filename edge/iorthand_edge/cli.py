@@ -7,7 +7,6 @@ import socket
 import sys
 
 from iorthand.memory import Trimmer
-from iorthand.process import name_thread
 from iorthand_edge.agent import run
 from iorthand_edge.config import load_edge_config
 
@@ -16,9 +15,6 @@ def _edge(args: argparse.Namespace) -> int:
     config = load_edge_config(args.config)
     if args.connect:
         config.zenoh.connect = list(args.connect)
-    # The main thread's name is the process's in ps and top (else "python", like every other Python service);
-    # threads started later inherit it until they name themselves.
-    name_thread("iorthand-edge")
     # What a flood of input made the agent allocate goes back to the system once it is freed (iorthand.memory).
     trimmer = Trimmer()
     trimmer.start()
