@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+import time
 import types
 
 import msgpack
@@ -73,6 +74,60 @@ def test_rate_limit() -> None:
     assert math.degrees(c.angles[0]) == pytest.approx(135.0)
     c.step(1.5)
     assert math.degrees(c.angles[0]) == pytest.approx(180.0)
+
+
+def test_servos_at_rest_start_moving_when_the_command_arrives_not_at_their_last_step() -> None:
+    c = ServoController(ServosConfig(max_rate_deg_s=90.0))
+    c.step(0.0)
+    assert not c.moving
+    c.command(pan=math.radians(180), now=10.0)  # ten seconds without a step (the unit sleeps at rest)
+    assert c.moving
+    c.step(10.5)
+    assert math.degrees(c.angles[0]) == pytest.approx(135.0)  # 0.5 s at 90°/s, not a jump to the target
+    c.command(pan=math.radians(170), now=10.6)  # already moving: its steps keep their own clock
+    c.step(10.7)
+    assert math.degrees(c.angles[0]) == pytest.approx(153.0)
+    c.step(20.0)
+    assert not c.moving and math.degrees(c.angles[0]) == pytest.approx(170.0)
+
+
+class CountingDriver(ActuatorDriver):
+    """Records each angle written, with when (no hardware: a servo board cannot exist here)."""
+
+    def __init__(self) -> None:
+        self.writes: list[tuple[float, int, float]] = []
+
+    def open(self) -> None: ...
+    def set_angle(self, channel: int, degrees: float) -> None:
+        self.writes.append((time.monotonic(), channel, degrees))
+
+    def set_level(self, channel: int, value: float) -> None: ...
+    def close(self) -> None: ...
+
+
+def test_a_servo_unit_at_rest_answers_a_command_at_once_and_moves_at_its_rate() -> None:
+    driver = CountingDriver()
+    unit = ServoUnit(ServosConfig(max_rate_deg_s=90.0, publish_hz=0.5), driver=driver)  # a heartbeat every 2 s
+    stop = threading.Event()
+    unit.start(None, keys.RobotKeys("sim1"), stop)
+    try:
+        wait_until(lambda: len(driver.writes) == 2, message="the home angles written")
+        time.sleep(0.6)  # at rest: the unit sleeps until a command or its heartbeat
+        t_cmd = time.monotonic()
+        unit.command(pan=math.radians(180))
+        wait_until(lambda: len(driver.writes) > 2, timeout=1.0, message="the command written")
+        t_first, channel, degrees = driver.writes[2]
+        # Woken by the command, not by the heartbeat 2 s away; and moving from the command's time, not from the
+        # loop's last step before the rest (that would have been a jump of 54° or more).
+        assert t_first - t_cmd < 0.2
+        assert channel == 0 and 90.0 < degrees <= 90.0 + 90.0 * (t_first - t_cmd) + 1e-6
+        wait_until(lambda: abs(driver.writes[-1][2] - 180.0) < 1e-9, timeout=3.0, message="the target reached")
+        t_end = driver.writes[-1][0]
+        assert t_end - t_cmd >= 1.0 - 0.02  # 90° at 90°/s: about a second, never faster
+    finally:
+        stop.set()
+        unit.join()
+    assert unit._worker is not None and not unit._worker.is_alive()
 
 
 def test_angle_history_interpolates_at_frame_times() -> None:

@@ -59,9 +59,14 @@ class ServoController:
         self.current = dict(self.target)
         self._last_step: float | None = None
 
-    def command(self, pan: Any = None, tilt: Any = None) -> ServoOutcome:
-        """Set new targets (None keeps an axis). Out-of-range angles are clamped and the reason says so."""
+    def command(self, pan: Any = None, tilt: Any = None, now: float | None = None) -> ServoOutcome:
+        """Set new targets (None keeps an axis). Out-of-range angles are clamped and the reason says so.
+
+        ``now`` (monotonic s): when the command arrived. Servos at rest start moving from then, not from their
+        last step, which may be long ago (the unit does not step servos at rest)."""
         values = {"pan": check_angle("pan", pan), "tilt": check_angle("tilt", tilt)}  # validate both first
+        if now is not None and not self.moving:
+            self._last_step = now
         notes = []
         for axis, value in values.items():
             if value is None:
@@ -92,6 +97,11 @@ class ServoController:
             self.current[axis] = self.target[axis] if abs(delta) <= step else self.current[axis] + math.copysign(step, delta)
             moved = moved or step > 0
         return moved
+
+    @property
+    def moving(self) -> bool:
+        """Whether an axis is still on its way to its target."""
+        return any(self.current[a] != self.target[a] for a in AXES)
 
     @property
     def angles(self) -> tuple[float, float]:

@@ -78,6 +78,7 @@ class ServoUnit:
         self._lock = threading.Lock()
         self._outcome = ServoOutcome(*self.controller.angles, clamped=False, reason="")
         self._dirty = True  # publish soon (new command or rejection)
+        self._wake = threading.Event()  # a command or a rejection for the loop, which sleeps while nothing moves
         self._written: dict[str, float] = {}
         self._seq = Sequencer()
         self._pub: zenoh.Publisher | None = None
@@ -91,6 +92,7 @@ class ServoUnit:
         self._worker.start()
 
     def join(self, timeout: float = 2.0) -> None:
+        self._wake.set()
         if self._worker is not None:
             self._worker.join(timeout)
         self.driver.close()
@@ -99,8 +101,9 @@ class ServoUnit:
         """New absolute targets (rad; None keeps an axis). Raises TypeError/ValueError on NaN or a wrong type;
         out-of-range angles are clamped and reported (also on ``state/servo``)."""
         with self._lock:
-            outcome = self.controller.command(pan, tilt)
+            outcome = self.controller.command(pan, tilt, time.monotonic())
             self._outcome, self._dirty = outcome, True
+        self._wake.set()
         if outcome.clamped:
             log.warning("servo command clamped: %s", outcome.reason)
         return outcome
@@ -110,6 +113,7 @@ class ServoUnit:
         with self._lock:
             self._outcome = ServoOutcome(self._outcome.pan_target, self._outcome.tilt_target, False, reason)
             self._dirty = True
+        self._wake.set()
 
     def servo_angles_at(self, t_ns: int) -> tuple[float, float]:
         """(pan, tilt) in rad at wall-clock time ``t_ns`` (for the perception chain)."""
@@ -119,11 +123,12 @@ class ServoUnit:
         period = 1.0 / self.config.rate_hz
         last_pub = -math.inf
         while not stop.is_set():
-            now = time.monotonic()
+            self._wake.clear()  # before reading: what is commanded after this wakes the rest below at once
             with self._lock:
+                now = time.monotonic()
                 self.controller.step(now)
                 pan, tilt = self.controller.angles
-                outcome, dirty = self._outcome, self._dirty
+                outcome, dirty, moving = self._outcome, self._dirty, self.controller.moving
                 self._dirty = False
             self.history.add(time.time_ns(), (pan, tilt))
             if self.driver.ensure(now):
@@ -137,7 +142,12 @@ class ServoUnit:
             if dirty or moved or now - last_pub >= 1.0 / self.config.publish_hz:
                 last_pub = now
                 self._publish(pan, tilt, outcome)
-            time.sleep(period)  # not stop.wait: see the force monitor's loop (a stop is seen within a period)
+            if moving or not self.driver.ready:
+                time.sleep(period)  # not stop.wait: see the force monitor's loop (a stop is seen within a period)
+            else:
+                # At rest, nothing to step or write until a command: sleep until one, or until the heartbeat
+                # is due (50 wake-ups a second less on the control process; join() wakes it to stop).
+                self._wake.wait(max(0.0, last_pub + 1.0 / self.config.publish_hz - time.monotonic()))
 
     def _publish(self, pan: float, tilt: float, outcome: ServoOutcome) -> None:
         reason = outcome.reason
@@ -196,6 +206,7 @@ class TorchUnit:
 
     def _loop(self, stop: threading.Event) -> None:
         while not stop.is_set():
+            self._wake.clear()  # before reading: a command after this ends the wait below at once
             with self._lock:
                 outcome = self._outcome
             if self.driver.ensure(time.monotonic()) and self._written != outcome.output:
@@ -204,7 +215,6 @@ class TorchUnit:
                     self._written = outcome.output
             self._publish(outcome)
             self._wake.wait(1.0 / self.config.publish_hz)
-            self._wake.clear()
 
     def _publish(self, outcome: TorchOutcome) -> None:
         reason = outcome.reason
