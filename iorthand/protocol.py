@@ -238,6 +238,18 @@ class Struct:
     ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset()
 
     @classmethod
+    def max_len(cls, field_name: str) -> int | None:
+        """The most characters, bytes or elements the field carries (None: no bound)."""
+        return next(meta.get("max_len") for name, _, meta in cls._fields() if name == field_name)
+
+    @classmethod
+    def fit(cls, field_name: str, text: str) -> str:
+        """``text`` cut to what the field carries (ending in "…" when cut): for a text built from others, a
+        planner's reasons say, which must still reach its reader rather than make the message malformed."""
+        limit = cls.max_len(field_name)
+        return text if limit is None or len(text) <= limit else text[: limit - 1] + "…"
+
+    @classmethod
     def _fields(cls) -> list[tuple[str, Any, dict[str, Any]]]:
         cache = cls.__dict__.get("_field_cache")
         if cache is None:

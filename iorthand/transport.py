@@ -347,20 +347,22 @@ class Inbox:
         # An empty inbox takes any one item, however large: nothing can be stuck outside forever.
         return self._max_bytes is not None and bool(self._items) and self.nbytes + nbytes > self._max_bytes
 
-    def put(self, item: Any, nbytes: int = 0) -> None:
+    def put(self, item: Any, nbytes: int = 0) -> bool:
+        """Queue ``item``; False when a full ``keep="oldest"`` inbox refused it (counted in ``dropped``)."""
         with self._lock:
             if self._waiting:  # (the queue is empty) straight to the waiting worker, under the lock: see get
                 self._waiting = False
                 self._handover.put(item)
-                return
+                return True
             if self._full(nbytes) and self._keep == "oldest":
                 self.dropped += 1
-                return
+                return False
             while self._items and self._full(nbytes):
                 self._pop()
                 self.dropped += 1
             self._items.append((item, nbytes))
             self.nbytes += nbytes
+            return True
 
     def _pop(self) -> Any:
         item, nbytes = self._items.popleft()
@@ -426,7 +428,9 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox, max_payload: int =
             if rejects is not None:
                 rejects.add(str(sample.key_expr), reason)
             return
-        inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()), size)
+        key = str(sample.key_expr)
+        if not inbox.put((key, sample.payload.to_bytes(), time.time_ns()), size) and rejects is not None:
+            rejects.add(key, f"dropped: the inbox is full ({len(inbox)} waiting)")
 
     return session.declare_subscriber(key, on_sample)
 

@@ -7,13 +7,14 @@ in tests/test_primitives_live.py."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 
 from iorthand import geometry, motion
-from iorthand.protocol import ForceLevel, Status
+from iorthand.protocol import ControlReply, ForceLevel, Status
 from iorthand_edge.force.contact import PhantomConfig
 from iorthand_edge.goto import GotoConfig
 from tests.sim_loop import CONTROL_PERIOD, CYLINDER, START_ABOVE, SimEdge, within
@@ -58,6 +59,19 @@ def test_bad_sweep_parameters_are_refused_by_name(params, named) -> None:
 def test_a_sweep_leaving_the_workspace_is_refused_with_its_lane() -> None:
     route = motion.plan_route(motion.SWEEP, HERE, LIMITS, {}, params={"width": 0.2, "lanes": 2})
     assert not route.ok and "lane 1 of 2" in route.reason and "workspace" in route.reason
+
+
+def test_the_summary_of_the_longest_sweep_fits_a_reply_with_its_corners() -> None:
+    """99 legs: two points each would be ~5 KB, over ControlReply.detail's 4 KB (the preview reached the operator
+    as a malformed reply). The corners, thinned to the summary's 60 points, start and end where the sweep does."""
+    route = motion.plan_route("sweep", HERE, LIMITS, {}, params={"lanes": 50, "width": 0.15, "pitch": 0.001})
+    assert route.ok and len(route.legs) == 99
+    out = route.summary()
+    assert len(json.dumps(out)) <= ControlReply.max_len("detail")
+    assert len(out["path"]) == 60
+    assert out["path"][0] == [round(float(v), 4) for v in HERE[:3]]
+    assert out["path"][-1] == [round(float(v), 4) for v in route.goal[:3]]
+    assert len(motion.plan_route("sweep", HERE, LIMITS, {}, params=SWEEP).summary()["path"]) <= 60
 
 
 def test_approach_and_retreat() -> None:

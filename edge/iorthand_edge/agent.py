@@ -45,6 +45,7 @@ import zenoh
 from iorthand import geometry, keys, motion
 from iorthand.cpu_latency import CpuLatencyWhileNeeded
 from iorthand.protocol import (
+    MAX_PAYLOAD,
     AppliedCommand,
     ControlReply,
     ControlRequest,
@@ -78,6 +79,13 @@ log = logging.getLogger("iorthand.edge")
 # Twists waiting for the command thread: a flood keeps only the newest (each is a whole velocity command); the
 # ones dropped unread are reported as SafetyStatus.superseded.
 TWIST_QUEUE = 64
+# Control requests, liveliness events, servo and torch commands waiting for the control-plane thread; and the
+# planning queries (preview, poses) waiting for the planner, which has a thread of its own because a plan
+# takes up to seconds: behind it, renewals of the owner's lease would time out. Both keep what they hold and
+# answer a query that finds them full at once, with why (a flood costs its sender, not the owner). A stop waits
+# in no queue (EdgeAgent._on_stop_sample).
+CONTROL_QUEUE = 256
+PLANNING_QUEUE = 4
 
 # Put into the twist inbox by a thread that changed the supervisor's state: the control loop wakes and drives
 # the consequence at once (a flood of twists that pushes it out wakes the loop just as well).
@@ -138,7 +146,8 @@ class EdgeAgent:
         self._last_safety: tuple[Any, ...] | None = None
         self._last_safety_pub = 0.0
         self._twists = Inbox(TWIST_QUEUE, keep="newest")
-        self._control = Inbox(256, keep="oldest")
+        self._control = Inbox(CONTROL_QUEUE, keep="oldest")
+        self._planning = Inbox(PLANNING_QUEUE, keep="oldest")
         self._workers: list[Worker] = []
         self._rlog = RateLimitedLog(log)
         self.session: zenoh.Session | None = None
@@ -209,24 +218,27 @@ class EdgeAgent:
         self._declared = [
             subscribe(s, k.key(keys.CMD_TWIST) + bound, self._twists, rejects=self.rejects),
             # A stop is everyone's: on the shared key, or on the sender's own (which names who sent it).
-            subscribe(s, k.key(keys.CMD_STOP), self._control, rejects=self.rejects),
-            subscribe(s, k.key(keys.CMD_STOP) + "/*", self._control, rejects=self.rejects),
+            s.declare_subscriber(k.key(keys.CMD_STOP), self._on_stop_sample),
+            s.declare_subscriber(k.key(keys.CMD_STOP) + "/*", self._on_stop_sample),
             subscribe(s, k.key(keys.CMD_SERVO) + bound, self._control, rejects=self.rejects),
             subscribe(s, k.key(keys.CMD_TORCH) + bound, self._control, rejects=self.rejects),
-            s.declare_queryable(k.key(keys.CONTROL_FORCE_ZERO) + bound, lambda q: self._control.put(("force_zero", q))),
-            s.declare_queryable(k.key(keys.CONTROL_ACQUIRE) + bound, lambda q: self._control.put(("acquire", q))),
-            s.declare_queryable(k.key(keys.CONTROL_RELEASE) + bound, lambda q: self._control.put(("release", q))),
-            s.declare_queryable(k.key(keys.CONTROL_ARM) + bound, lambda q: self._control.put(("arm", q))),
-            s.declare_queryable(k.key(keys.CONTROL_PREVIEW) + bound, lambda q: self._control.put(("preview", q))),
-            s.declare_queryable(k.key(keys.CONTROL_GOTO) + bound, lambda q: self._control.put(("goto", q))),
-            s.declare_queryable(k.key(keys.CONTROL_POSES) + bound, lambda q: self._control.put(("poses", q))),
-            s.declare_queryable(k.key(keys.CONTROL_CONTACT) + bound, lambda q: self._control.put(("contact", q))),
+            *(s.declare_queryable(k.key(suffix) + bound, self._queue_query(inbox, verb)) for suffix, inbox, verb in (
+                (keys.CONTROL_FORCE_ZERO, self._control, "force_zero"),
+                (keys.CONTROL_ACQUIRE, self._control, "acquire"),
+                (keys.CONTROL_RELEASE, self._control, "release"),
+                (keys.CONTROL_ARM, self._control, "arm"),
+                (keys.CONTROL_GOTO, self._control, "goto"),
+                (keys.CONTROL_CONTACT, self._control, "contact"),
+                (keys.CONTROL_PREVIEW, self._planning, "preview"),
+                (keys.CONTROL_POSES, self._planning, "poses"),
+            )),
             s.liveliness().declare_subscriber(k.alive_operators, self._on_operator_liveliness, history=True),
         ]
         self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
         # The control loop (which carries the command path too) runs at real-time priority where allowed (root
         # on the Pi): it blocks between short bursts, so it cannot starve the rest.
-        for name, fn, rt in (("control", self._control_loop, True), ("control-plane", self._control_plane_loop, False)):
+        for name, fn, rt in (("control", self._control_loop, True), ("control-plane", self._control_plane_loop, False),
+                             ("planner", self._planner_loop, False)):
             w = Worker(f"edge-{name}", fn, self.stop_event, realtime=rt and self.config.realtime)
             w.start()
             self._workers.append(w)
@@ -278,6 +290,7 @@ class EdgeAgent:
         self._aux_stop.set()  # the local socket's worker is among the workers joined next
         self._twists.close()
         self._control.close()
+        self._planning.close()
         for w in self._workers:
             w.join(timeout=2.0)
         self._stop_components()
@@ -508,7 +521,7 @@ class EdgeAgent:
                 received=c.received, applied=c.applied, rejected=c.rejected,
                 malformed=self.rejects.total, superseded=self.twists_superseded, stops=c.stops, forged=c.forged,
                 contact_target=-1.0 if sv.contact_target is None else sv.contact_target,
-                task=self.goto.reason[:200] if self.goto.active else "",
+                task=SafetyStatus.fit("task", self.goto.reason) if self.goto.active else "",
             ).stamp(self._seq["safety"].next())
             # Put under the lock: two threads publishing at once must not reorder the sequence numbers.
             self._pub_safety.put(msg.encode())
@@ -539,7 +552,7 @@ class EdgeAgent:
             self._rlog.warning(f"gate:{keys.CMD_TWIST}", f"refused command from {cmd.operator!r}: {why}")
             return AppliedCommand(
                 operator=cmd.operator, cmd_seq=cmd.seq, cmd_t=cmd.t, recv_t=recv_ns, accepted=False,
-                status=Status.NOT_ALLOWED, reason=why[:200],
+                status=Status.NOT_ALLOWED, reason=AppliedCommand.fit("reason", why),
             ).stamp(self._seq["applied"].next())
         with self.lock:
             pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
@@ -633,10 +646,23 @@ class EdgeAgent:
 
     def _on_operator_liveliness(self, sample: zenoh.Sample) -> None:
         operator = keys.operator_from_alive_key(str(sample.key_expr))
-        if sample.kind == zenoh.SampleKind.DELETE:
-            self._control.put(("operator_gone", operator))
-        else:
-            self._control.put(("operator_alive", operator))
+        event = "operator_gone" if sample.kind == zenoh.SampleKind.DELETE else "operator_alive"
+        if not self._control.put((event, operator)):
+            # The owner's lease still ends its control (Supervisor.step), but later than this event would have.
+            self._rlog.warning("control-queue", f"control queue full: {event} of {operator!r} dropped")
+
+    def _queue_query(self, inbox: Inbox, verb: str) -> Callable[[zenoh.Query], None]:
+        """A queryable's callback: the query waits in ``inbox`` for its thread, or, the inbox full, is answered
+        at once that the edge is busy (a querier that is not answered waits out its timeout, not knowing why)."""
+
+        def on_query(query: zenoh.Query) -> None:
+            if not inbox.put((verb, query)):
+                why = f"edge busy: {len(inbox)} requests are waiting before this {verb}; try again"
+                self.rejects.add(str(query.key_expr), why)
+                self._rlog.warning(f"busy:{verb}", f"refused a {verb} query: {why}")
+                self._reply(query, False, why)
+
+        return on_query
 
     def _control_plane_loop(self, stop: threading.Event) -> None:
         handlers: dict[str, Callable[[Any], None]] = {
@@ -646,12 +672,10 @@ class EdgeAgent:
             "operator_gone": self._on_operator_gone,
             "force_zero": self._on_force_zero,
             "operator_alive": self.gate.operator_alive,
-            "preview": self._on_preview,
             "goto": self._on_goto,
-            "poses": self._on_poses,
             "contact": self._on_contact,
         }
-        by_suffix = {keys.CMD_SERVO: self._on_servo, keys.CMD_TORCH: self._on_torch, keys.CMD_STOP: self._on_stop}
+        by_suffix = {keys.CMD_SERVO: self._on_servo, keys.CMD_TORCH: self._on_torch}
         while not stop.is_set():
             item = self._control.get(timeout=0.1)
             if item is None:
@@ -661,6 +685,13 @@ class EdgeAgent:
                 continue
             _, rest = keys.split_key(item[0])  # cmd/<kind>, or cmd/<kind>/<operator> with bound keys
             by_suffix["/".join(rest.split("/")[:2])](item)
+
+    def _planner_loop(self, stop: threading.Event) -> None:
+        handlers = {"preview": self._on_preview, "poses": self._on_poses}
+        while not stop.is_set():
+            item = self._planning.get(timeout=0.1)
+            if item is not None:
+                handlers[item[0]](item[1])
 
     def _request(self, query: zenoh.Query, suffix: str) -> ControlRequest | None:
         """The request of a ``control/<verb>`` query, or None once refused (malformed, or, with bound keys, in
@@ -684,7 +715,8 @@ class EdgeAgent:
     def _reply(self, query: zenoh.Query, ok: bool, reason: str, **extra: Any) -> None:
         """Answer a control query. The reply goes to the querier alone (Zenoh routes it back): the only way
         the acquire's key travels."""
-        reply = ControlReply(ok=ok, reason=reason, owner=self.supervisor.owner, **extra).stamp(0)
+        reply = ControlReply(ok=ok, reason=ControlReply.fit("reason", reason), owner=self.supervisor.owner, **extra)
+        reply.stamp(0)
         try:
             query.reply(query.key_expr, reply.encode())
         except zenoh.ZError as exc:
@@ -836,14 +868,24 @@ class EdgeAgent:
         (log.info if ok else log.warning)("force zero by %r: %s", req.operator, reason)
         self._reply(query, ok, reason)
 
-    def _on_stop(self, item: tuple[str, bytes, int]) -> None:
-        key, payload, _ = item
+    def _on_stop_sample(self, sample: zenoh.Sample) -> None:
+        """A stop, acted on in Zenoh's callback: no queue to wait in behind other requests, none to be dropped
+        from. Any payload on the key is a stop: a garbled or oversized one too (stopping is the safe side)."""
+        key, size = str(sample.key_expr), len(sample.payload)
+        if size > MAX_PAYLOAD:
+            self._on_stop(key, None, f"a stop command of {size} bytes (over the limit of {MAX_PAYLOAD})")
+            return
         try:
-            cmd = StopCommand.decode(payload)
+            cmd = StopCommand.decode(sample.payload.to_bytes())
         except DecodeError as exc:
-            # A garbled stop is still a stop request: stopping is always the safe side.
-            self.rejects.add(key, str(exc))
-            cmd = StopCommand(operator="?", reason=f"malformed stop command ({exc.field})")
+            self._on_stop(key, None, f"malformed stop command ({exc.field}): {exc}")
+            return
+        self._on_stop(key, cmd, "")
+
+    def _on_stop(self, key: str, cmd: StopCommand | None, malformed: str) -> None:
+        if cmd is None:
+            self.rejects.add(key, malformed)
+            cmd = StopCommand(operator="?", reason=StopCommand.fit("reason", malformed))
         # Who sent it: the id in the key where the router binds keys to certificates, else only a claim.
         sender = operator_in_key(key, keys.CMD_STOP)
         who = (f"{sender!r}" if sender == cmd.operator else f"{sender!r} (claiming {cmd.operator!r})") if sender \

@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from iorthand import geometry, motion
 from iorthand.config import setting
+from iorthand.protocol import ControlReply
 
 Vector = NDArray[np.float64]
 
@@ -85,7 +86,10 @@ class Preview:
         return self.plan.ok and bool(self.token)
 
     def detail(self) -> dict[str, Any]:
-        return self.plan.summary(token=self.token, ttl=self.ttl)
+        """The plan for the preview's reply (``ControlReply.detail``): its reason cut to what a reply carries."""
+        out = self.plan.summary(token=self.token, ttl=self.ttl)
+        out["reason"] = ControlReply.fit("reason", out["reason"])
+        return out
 
 
 @dataclass

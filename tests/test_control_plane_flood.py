@@ -1,0 +1,120 @@
+"""A session that holds nothing floods the edge with planning queries (previews), through a real router.
+
+Found by a red-team run of the edge: a third party's stop waited ~10 s behind a flood of costly previews on the
+control-plane thread (or, the queue full, was dropped without a trace), and the owner lost control when its
+lease renewals, queued behind the same previews, timed out. Now a stop waits in no queue, planning has a thread
+and a small queue of its own, and a query that finds its queue full is answered at once that the edge is busy.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from iorthand import keys
+from iorthand.protocol import ControlReply, ControlRequest, Status, StopCommand
+from tests.conftest import wait_until
+
+# The costliest sweep the planner accepts (50 lanes of 15 cm, 1 mm apart): about 1.6 s of CPU on this machine.
+HEAVY_SWEEP = json.dumps({"lanes": 50, "width": 0.15, "pitch": 0.001})
+
+
+class Answers:
+    """Replies to the flood's queries, decoded as they arrive."""
+
+    def __init__(self) -> None:
+        self.replies: list[ControlReply] = []
+        self._lock = threading.Lock()
+
+    def __call__(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            with self._lock:
+                self.replies.append(ControlReply.decode(reply.ok.payload.to_bytes()))
+
+    def reasons(self) -> list[str]:
+        with self._lock:
+            return [r.reason for r in self.replies]
+
+
+def _flood(attacker: zenoh.Session, heavy: int, cheap: int) -> Answers:
+    """``heavy`` costly sweeps, then ``cheap`` previews of unknown poses (refused at once when their turn comes),
+    all in flight at the same time, in the name of nobody who holds control."""
+    answers = Answers()
+    key = keys.RobotKeys("sim1").key(keys.CONTROL_PREVIEW)
+    for i in range(heavy + cheap):
+        name, params = ("sweep", HEAVY_SWEEP) if i < heavy else (f"nowhere{i}", "")
+        req = ControlRequest(operator="mallory", name=name, params=params).stamp(i + 1)
+        attacker.get(key, answers, payload=req.encode(), timeout=60.0)
+    return answers
+
+
+def test_a_stop_acts_at_once_and_the_owner_keeps_control_through_a_preview_flood(
+    edge_factory, operator_factory, session_factory
+) -> None:
+    agent = edge_factory()
+    alice = operator_factory(operator_id="alice")
+    alice.wait_for_state()
+    alice.acquire()
+    alice.start()
+    alice.set_twist([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+    wait_until(lambda: np.any(agent._commanded), 5.0, message="the owner moving the robot")
+
+    answers = _flood(session_factory(), heavy=3, cheap=300)
+    time.sleep(0.3)  # the planner busy with the first sweep, the rest of the flood queued or answered busy
+    bob = session_factory()
+    sent = time.monotonic()
+    bob.put(keys.RobotKeys("sim1").key(keys.CMD_STOP), StopCommand(operator="bob", reason="nurse e-stop").stamp(1).encode())
+    wait_until(lambda: agent.supervisor.status == Status.STOPPED, 2.0, message="the stop acted on")
+    took = time.monotonic() - sent
+    assert took < 0.5, f"the stop took {took:.2f} s"  # ~10 s behind the previews before
+    assert "stop from 'bob'" in agent.supervisor.reason
+    wait_until(lambda: not np.any(agent._commanded), 1.0, message="the robot stopped")
+
+    # The flood is answered, not left to time out: what found the planner's queue full, at once, with why.
+    wait_until(lambda: len(answers.replies) >= 290, 5.0, message="the flood's queries answered")
+    busy = [r for r in answers.reasons() if r.startswith("edge busy")]
+    assert len(busy) >= 290, answers.reasons()[:5]
+
+    # The owner's lease (2 s) is renewed every lease/3 while the costly previews are still being planned: it
+    # keeps control through them, and its renewals are answered.
+    time.sleep(2.5)
+    assert agent.supervisor.owner == "alice"
+    renewed = alice.acquire()
+    assert renewed.ok, renewed.reason
+
+
+def test_a_query_that_finds_the_planner_busy_says_so_and_the_planner_answers_later_ones(
+    edge_factory, session_factory
+) -> None:
+    edge_factory()
+    attacker = session_factory()
+    answers = _flood(attacker, heavy=1, cheap=40)
+    wait_until(lambda: len(answers.replies) >= 36, 5.0, message="the queries that found the queue full answered")
+    busy = [r for r in answers.reasons() if r.startswith("edge busy")]
+    assert busy and all("preview" in r and "try again" in r for r in busy), busy[:3]
+    # Once the queue drains, a preview is planned again.
+    wait_until(lambda: len(answers.replies) == 41, 20.0, message="every query answered")
+    key = keys.RobotKeys("sim1").key(keys.CONTROL_PREVIEW)
+    req = ControlRequest(operator="mallory", name="home").stamp(1000)
+    replies = [ControlReply.decode(r.ok.payload.to_bytes()) for r in attacker.get(key, payload=req.encode(), timeout=10.0)
+               if r.ok is not None]
+    assert replies and not replies[0].reason.startswith("edge busy"), [r.reason for r in replies]
+
+
+def test_a_refusal_longer_than_a_reply_carries_reaches_the_operator_cut(edge_factory, session_factory) -> None:
+    """A sweep whose every lane leaves the workspace has a reason far longer than ControlReply.reason's 200
+    characters: the operator gets it, cut, instead of a reply its decoder refuses as malformed."""
+    edge_factory()
+    s = session_factory()
+    key = keys.RobotKeys("sim1").key(keys.CONTROL_PREVIEW)
+    params = json.dumps({"lanes": 50, "width": 0.15, "pitch": 0.01})
+    req = ControlRequest(operator="alice", name="sweep", params=params).stamp(1)
+    replies = [r.ok.payload.to_bytes() for r in s.get(key, payload=req.encode(), timeout=20.0) if r.ok is not None]
+    assert len(replies) == 1
+    reply = ControlReply.decode(replies[0])  # raised DecodeError before: "length 614 exceeds 200"
+    assert not reply.ok
+    assert len(reply.reason) == 200 and reply.reason.endswith("…"), reply.reason
