@@ -463,9 +463,12 @@ class Worker(threading.Thread):
             self._stop_event.set()
 
 
-def query(session: zenoh.Session, key: str, payload: bytes, timeout: float = 2.0) -> list[bytes]:
-    """Send a query and collect the ok replies' payloads (errors are raised with their text)."""
-    replies = session.get(key, payload=payload, timeout=timeout)
+def query(session: zenoh.Session, key: str, payload: bytes, timeout: float = 2.0, every_answer: bool = False
+          ) -> list[bytes]:
+    """Send a query and collect the ok replies' payloads (errors are raised with their text). ``every_answer``:
+    no consolidation, so that a caller expecting one answerer sees every session that answered."""
+    consolidation = zenoh.ConsolidationMode.NONE if every_answer else None
+    replies = session.get(key, payload=payload, timeout=timeout, consolidation=consolidation)
     out: list[bytes] = []
     for reply in replies:
         if reply.ok is not None:

@@ -94,6 +94,36 @@ def test_forged_owner_on_an_open_router(edge_factory, operator_factory, session_
     _forge_while_alice_holds(edge_factory(), operator_factory(operator_id="alice"), session_factory())
 
 
+def test_a_session_answering_control_queries_in_the_edges_name_is_exposed(edge_factory, operator_factory,
+                                                                        session_factory) -> None:
+    """Found by a red-team run, on an open router: another session acquires in alice's name (a name is only a
+    claim there), then answers alice's own acquire with a forged grant carrying its key, so that both sign with
+    it and it drives the robot while alice believes she does. The edge refuses alice's acquire, so two sessions
+    answer: her client believes neither."""
+    edge_factory()
+    alice = operator_factory(operator_id="alice")
+    alice.wait_for_state()
+    mallory = session_factory()
+    k = keys.RobotKeys("sim1")
+    raw = [r.ok.payload.to_bytes() for r in mallory.get(k.key(keys.CONTROL_ACQUIRE), timeout=5.0,
+                                                        payload=ControlRequest(operator="alice").stamp(1).encode())
+           if r.ok is not None]
+    grant = ControlReply.decode(raw[0])
+    assert grant.ok and grant.key  # open router: the name is all there is to go by
+
+    def forge(query: zenoh.Query) -> None:
+        fake = ControlReply(ok=True, reason="control granted to 'alice'", owner="alice", lease=3.0, key=grant.key)
+        query.reply(query.key_expr, fake.stamp(0).encode())
+        query.drop()
+
+    impostor = mallory.declare_queryable(k.key(keys.CONTROL_ACQUIRE), forge)
+    time.sleep(0.3)
+    with pytest.raises(ControlRefused, match=r"2 sessions answered control/acquire .* another session is answering"):
+        alice.acquire()
+    assert alice._key != grant.key  # she signs nothing with the impostor's key
+    impostor.undeclare()
+
+
 @pytest.fixture(scope="module")
 def shared_robot_lab(tmp_path_factory: pytest.TempPathFactory):
     """mTLS + passwords + ACL as DEPLOY.md generates it, two operators granted the same robot, and operator keys

@@ -237,10 +237,18 @@ class OperatorClient:
         req.stamp(self._next_seq(suffix))
         self._sign(req, suffix)
         payload = req.encode()
+        to_edge = key is None  # (a preview goes through the twin: what it answers, the edge checks again)
         key = key or self.keys.key(suffix) + (f"/{self.operator_id}" if self.bind_keys else "")
-        replies = query(self.session, key, payload, timeout=self.query_timeout)
+        replies = query(self.session, key, payload, timeout=self.query_timeout, every_answer=to_edge)
         if not replies:
             raise ControlRefused(f"no answer from robot {self.keys.robot!r} on {suffix} (is its edge agent online?)")
+        if to_edge and len(replies) > 1:
+            # Only the robot's edge answers here. On a router without access control any session can declare a
+            # queryable on the key and answer first (a forged grant with a key of its own, to drive the robot
+            # in our name while we believe we do): with more than one answer, none is to be believed.
+            raise ControlRefused(f"{len(replies)} sessions answered {suffix} for robot {self.keys.robot!r}, where only "
+                                 "its edge should: another session is answering in its name (a router without "
+                                 "access control, docs/DEPLOY.md); no answer was taken")
         try:
             return ControlReply.decode(replies[0])
         except DecodeError as exc:
