@@ -106,6 +106,24 @@ def test_goto_without_a_valid_token_is_refused():
     assert not ctl.active
 
 
+def test_previews_from_others_never_void_the_owners_tokens():
+    """Found by a red-team run: 16 previews from a session holding nothing evicted the owner's token, and his
+    goto was refused as "unknown or already used"."""
+    ctl, safety = make(token_ttl=30.0)
+    lim = limits_of(ctl, safety)
+    mine = ctl.preview("home", "alice", START, 0.0, lim, owner="alice")
+    for i in range(3 * ctl.max_tokens):
+        assert ctl.preview("home", "mallory", START, 0.1 + i * 0.01, lim, owner="alice").token
+    ok, reason = ctl.start("home", mine.token, "alice", START, 2.0, lim)
+    assert ok, reason
+    # The owner's own previews still bound his tokens: the oldest of them goes.
+    first = ctl.preview("home", "alice", START, 3.0, lim, owner="alice")
+    for i in range(ctl.max_tokens):
+        ctl.preview("home", "alice", START, 3.1 + i * 0.01, lim, owner="alice")
+    ok, reason = ctl.start("home", first.token, "alice", START, 4.0, lim)
+    assert not ok and "unknown" in reason
+
+
 def _drive(ctl: GotoController, safety: SafetyConfig, robot: SimRobot, clock: FakeClock, max_s: float,
            deadman_until: float = math.inf) -> None:
     """The agent's loop in miniature: the operator holds the deadman (a zero twist at 60 Hz), the goto

@@ -119,6 +119,21 @@ def test_command_timeout_zeroes_the_twist() -> None:
     assert not np.any(d.twist) and sv.status == Status.COMMAND_TIMEOUT and "150 ms" in sv.reason
 
 
+def test_the_stops_the_supervisor_decides_alone_are_handed_to_the_log() -> None:
+    """A command timeout and an expired lease stop the robot with no request behind them: each is an
+    intervention the agent logs (a red-team run found them only on state/safety, not in the edge's log)."""
+    sv, c = armed()
+    sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    sv.interventions.clear()
+    sv.step(c.mono + 0.151, POSE)
+    assert [s for s, _ in sv.interventions] == [Status.COMMAND_TIMEOUT]
+    sv.step(c.mono + 0.2, POSE)
+    assert len(sv.interventions) == 1  # once, not at every cycle after it
+    sv.step(c.mono + sv.config.lease + 1.0, POSE)
+    assert sv.interventions[-1][0] == Status.OWNER_LOST and "lease of 'op1' expired" in sv.interventions[-1][1]
+    assert not sv.owner
+
+
 def test_stale_and_out_of_order_commands_dropped() -> None:
     sv, c = armed()
     d = sv.on_command(c.cmd(age=0.6), c.wall, c.mono, POSE)

@@ -605,6 +605,7 @@ class EdgeAgent:
         with self.lock:
             reading = self.reading
             limits = self._limits()
+            owner = self.supervisor.owner
         if reading is None:
             self._reply(query, False, "no robot state yet")
             return
@@ -617,7 +618,7 @@ class EdgeAgent:
             return
         # Planning (IK along the path) takes up to ~0.2 s: outside the lock, on this control-plane thread.
         pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
-                               self._fresh_markers(), self._joint_angles(reading), params)
+                               self._fresh_markers(), self._joint_angles(reading), params, owner)
         (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")
         self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", detail=json.dumps(pv.detail()))
 

@@ -142,9 +142,11 @@ class GotoController:
         markers: Mapping[int, ArrayLike] | None = None,
         current_q: ArrayLike | None = None,
         params: Mapping[str, Any] | None = None,
+        owner: str = "",
     ) -> Preview:
         """Plan ``name`` (a named pose or a primitive with its ``params``: :func:`iorthand.motion.plan_route`)
-        from ``current_pose`` at ``limits``; a token only for an acceptable plan."""
+        from ``current_pose`` at ``limits``; a token only for an acceptable plan. Beyond ``max_tokens`` the
+        oldest token goes, the ``owner``'s (who holds control) last: previews from others do not void his."""
         if not self.config.enabled:
             plan = motion.plan_to(name, current_pose, limits, {}, None)
             plan.inside_workspace = plan.reachable = False
@@ -160,7 +162,8 @@ class GotoController:
         token = secrets.token_hex(12)
         self._tokens[token] = _Issued(name, operator, plan, now, limits)
         while len(self._tokens) > self.max_tokens:
-            self._tokens.popitem(last=False)
+            others = [t for t, issued in self._tokens.items() if issued.operator != owner]
+            del self._tokens[others[0] if others else next(iter(self._tokens))]
         return Preview(plan, token, self.config.token_ttl)
 
     def _expire(self, now: float) -> None:

@@ -421,14 +421,14 @@ class Supervisor:
                           f"({self.contact_ceiling:g} N)"
         self.contact_target = force
         self._contact_integral, self._contact_at = 0.0, -math.inf
-        self.interventions.append((Status.CONTACT, f"contact mode on: holding {force:g} N along the probe"))
+        self._note(Status.CONTACT, f"contact mode on: holding {force:g} N along the probe")
         return True, f"contact mode on: holding {force:g} N along the probe"
 
     def contact_off(self, why: str) -> None:
         """Leave contact mode (if on), with the reason logged and recorded."""
         if self.contact_target is not None:
             self.contact_target = None
-            self.interventions.append((Status.CONTACT, f"contact mode off: {why}"))
+            self._note(Status.CONTACT, f"contact mode off: {why}")
 
     def update_contact_force(self, force: float, at: float) -> None:
         """The newest force along the probe's axis (N, pressing positive), read at monotonic ``at``."""
@@ -517,17 +517,18 @@ class Supervisor:
         """One control cycle: apply the timeout and the limits to the current target."""
         self._now = now
         if self.owner and now >= self._lease_until and now - self._last_accepted > self.config.lease:
-            self.owner_lost(self.owner, f"lease of {self.owner!r} expired")
+            reason = f"lease of {self.owner!r} expired: robot stopped, control released"
+            self.owner_lost(self.owner, reason)
+            self._note(Status.OWNER_LOST, reason)
         if self._latched or not self.armed:
             return self._decide([0.0] * 6, False, self.status, self.reason)
         if self._deadman and now - self._last_accepted > self.config.command_timeout:
             self._deadman = False
             self._target = [0.0] * 6
-            self._halt(
-                Status.COMMAND_TIMEOUT,
-                f"no command for {1000 * (now - self._last_accepted):.0f} ms "
-                f"(timeout {1000 * self.config.command_timeout:.0f} ms)",
-            )
+            reason = (f"no command for {1000 * (now - self._last_accepted):.0f} ms "
+                      f"(timeout {1000 * self.config.command_timeout:.0f} ms)")
+            self._halt(Status.COMMAND_TIMEOUT, reason)
+            self._note(Status.COMMAND_TIMEOUT, reason)
         if not self._deadman:
             return self._retreat_only(tcp_pose, now)
         return self._limit(self._target, tcp_pose, now)
@@ -620,8 +621,12 @@ class Supervisor:
     def _intervene(self, status: Status, reason: str) -> None:
         if status != self._force_active:
             self._force_active = status
-            self.interventions.append((status, reason))
-            del self.interventions[:-64]  # bounded if nobody drains it
+            self._note(status, reason)
+
+    def _note(self, status: Status, reason: str) -> None:
+        """An intervention the agent logs (every stop the supervisor decides on its own has a line of its own)."""
+        self.interventions.append((status, reason))
+        del self.interventions[:-64]  # bounded if nobody drains it
 
     def _limit(self, target: list[float], tcp_pose: Vector, now: float) -> Decision:
         """Speed, force and workspace limits on ``target`` (6 floats). Plain float arithmetic, not numpy: this
