@@ -71,6 +71,7 @@ from iorthand_edge.force.monitor import ForceMonitor
 from iorthand_edge.goto import GotoController
 from iorthand_edge.kinematic_guard import KinematicGuard
 from iorthand_edge.media import MediaProcess, needs_media
+from iorthand_edge.planner import PlannerProcess
 from iorthand_edge.robots import Robot, RobotFault, RobotReading, make_robot
 from iorthand_edge.supervisor import Action, Decision, Supervisor
 
@@ -170,6 +171,8 @@ class EdgeAgent:
         )
         self.goto = GotoController(config.goto, config.safety.workspace.min, config.safety.workspace.max,
                                    config.robot.model)
+        self._planner = PlannerProcess()  # plans off the control process's GIL (its module says why)
+        self.goto.planner = self._planner.plan_route
         # The media process's markers, from this robot's markers key (for above_marker:<id>): the latest filtered
         # T_base_marker per id, and the time of the camera frame they come from (ns since the epoch).
         self._markers: dict[int, np.ndarray] = {}
@@ -293,6 +296,7 @@ class EdgeAgent:
         self._planning.close()
         for w in self._workers:
             w.join(timeout=2.0)
+        self._planner.close()
         self._stop_components()
         with self.lock:
             self.supervisor.disarm("edge agent shutting down")
@@ -616,7 +620,7 @@ class EdgeAgent:
         except ValueError as exc:
             self._reply(query, False, f"preview {req.name!r}: params must be a JSON object ({exc})")
             return
-        # Planning (IK along the path) takes up to ~0.2 s: outside the lock, on this control-plane thread.
+        # Planning (IK along the path, up to ~2 s) runs in the planner's child while this thread waits.
         pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
                                self._fresh_markers(), self._joint_angles(reading), params, owner)
         (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import secrets
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -92,6 +92,14 @@ class Preview:
         return out
 
 
+def _refused(name: str, current_pose: ArrayLike, limits: motion.Limits, reason: str) -> Preview:
+    """A preview refused before any plan: an empty path from where the robot is."""
+    plan = motion.plan_to(name, current_pose, limits, {}, None)
+    plan.inside_workspace = plan.reachable = False
+    plan.reason = reason
+    return Preview(motion.Route(name, [plan]))
+
+
 @dataclass
 class _Issued:
     name: str
@@ -118,6 +126,9 @@ class GotoController:
     workspace_max: Sequence[float]
     model: str = "ur3e"  # the arm's (robot.model): reach and singularities along a path
     max_tokens: int = 16
+    # Plans a route (motion.plan_route's arguments and answer): the edge plans in a process of its own
+    # (iorthand_edge.planner); a TimeoutError refuses the preview.
+    planner: Callable[..., motion.Route] = motion.plan_route
     status: str = "idle"  # idle | moving | done | cancelled
     reason: str = ""
     _tokens: OrderedDict[str, _Issued] = field(default_factory=OrderedDict)
@@ -148,14 +159,14 @@ class GotoController:
         from ``current_pose`` at ``limits``; a token only for an acceptable plan. Beyond ``max_tokens`` the
         oldest token goes, the ``owner``'s (who holds control) last: previews from others do not void his."""
         if not self.config.enabled:
-            plan = motion.plan_to(name, current_pose, limits, {}, None)
-            plan.inside_workspace = plan.reachable = False
-            plan.reason = "preview/goto is disabled in this edge's configuration"
-            return Preview(motion.Route(name, [plan]))
-        plan = motion.plan_route(
-            name, current_pose, limits, self.config.poses, markers,
-            self.config.retract_distance, self.config.marker_standoff, current_q, params,
-        )
+            return _refused(name, current_pose, limits, "preview/goto is disabled in this edge's configuration")
+        try:
+            plan = self.planner(
+                name, current_pose, limits, self.config.poses, markers,
+                self.config.retract_distance, self.config.marker_standoff, current_q, params,
+            )
+        except TimeoutError as exc:
+            return _refused(name, current_pose, limits, f"{exc}: refused")
         if not plan.ok:
             return Preview(plan)
         self._expire(now)

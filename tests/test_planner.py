@@ -1,0 +1,52 @@
+"""Route planning in the edge's planner process (iorthand_edge.planner): the same plans as in-process, a plan
+that overruns refused with why, and the child replaced after it."""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+
+import numpy as np
+import pytest
+
+from iorthand import motion
+from iorthand_edge.goto import GotoConfig, GotoController
+from iorthand_edge.planner import PlannerProcess, PlanningTimeout
+
+LIMITS = motion.Limits(0.03, 0.2, 0.25, (0.1, -0.3, 0.02), (0.45, 0.3, 0.45))
+HERE = np.array([0.30, 0.0, 0.20, math.pi, 0.0, 0.0])
+LONGEST_SWEEP = {"lanes": 50, "width": 0.15, "pitch": 0.001}  # ~1.7 s of planning here
+
+
+@pytest.fixture
+def planner():
+    p = PlannerProcess()
+    yield p
+    p.close()
+
+
+def test_a_plan_from_the_planner_process_is_the_plan_made_here(planner) -> None:
+    params = {"lanes": 3, "width": 0.04, "pitch": 0.01}
+    before = {p.pid for p in multiprocessing.active_children()}
+    there = planner.plan_route("sweep", HERE, LIMITS, {}, None, 0.05, 0.1, None, params)
+    started = [p for p in multiprocessing.active_children() if p.pid not in before]
+    assert len(started) == 1 and started[0].pid != os.getpid()  # the planner's child, started by the first plan
+    here = motion.plan_route("sweep", HERE, LIMITS, {}, None, 0.05, 0.1, None, params)
+    assert there.summary() == here.summary()
+
+
+def test_a_plan_that_overruns_is_refused_and_the_planner_starts_again(planner) -> None:
+    planner.timeout = 0.2
+    with pytest.raises(PlanningTimeout, match=r"planning 'sweep' took longer than 0.2 s"):
+        planner.plan_route("sweep", HERE, LIMITS, {}, None, 0.05, 0.1, None, LONGEST_SWEEP)
+    planner.timeout = 30.0
+    assert planner.plan_route("sweep", HERE, LIMITS, {}, None, 0.05, 0.1, None, {"lanes": 2}).ok
+
+
+def test_the_goto_controller_refuses_a_preview_whose_plan_overran(planner) -> None:
+    planner.timeout = 0.2
+    ctl = GotoController(GotoConfig(), LIMITS.workspace_min, LIMITS.workspace_max, planner=planner.plan_route)
+    pv = ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params=LONGEST_SWEEP)
+    assert not pv.ok and not pv.token
+    assert pv.plan.reason == "planning 'sweep' took longer than 0.2 s: refused"
