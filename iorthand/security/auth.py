@@ -9,7 +9,11 @@ are refused. A replayed command fails the sequence check (the sequence and time 
 every acquire draws a new key, so nothing signed for an earlier owner is valid afterwards.
 
 On a router without TLS the acquire reply itself crosses the network in clear: anyone who can read that
-traffic can read the key. TLS to the router (docs/DEPLOY.md) is what keeps it secret on the wire.
+traffic can read the key. TLS to the router (docs/DEPLOY.md) is what keeps it secret on the wire. Nor does an
+open router say who answers a query: another session can declare a queryable on ``control/acquire`` and answer
+with a grant of its own, a key it also holds. The operator's client believes no answer when more than one
+session answered (the edge always answers too), but while the edge is silent a lone impostor would be believed:
+the deployment's ACL, which lets only the edge's certificate answer under ``control/**``, closes that.
 
 The MAC is BLAKE2s keyed (a standard keyed hash, 16 bytes) over a context (the robot and the key suffix, so a
 signature for one robot or one kind of message is worthless for another) and the message's bytes as they travel,
