@@ -203,6 +203,16 @@ def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01, message:
     raise AssertionError(f"timed out after {timeout} s waiting for {message}")
 
 
+def drive_slowly(agent, client, vx: float = 0.004) -> None:
+    """``client`` takes control of ``agent``'s robot and holds the deadman with a slow twist along x, until the
+    edge drives the robot with it."""
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    client.set_twist([vx, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+    wait_until(lambda: any(agent._commanded), 5.0, message="the owner moving the robot")
+
+
 def iorthand_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "iorthand.cli", *args]
 

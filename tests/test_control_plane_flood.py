@@ -17,7 +17,7 @@ import zenoh
 
 from iorthand import keys
 from iorthand.protocol import ControlReply, ControlRequest, Status, StopCommand
-from tests.conftest import wait_until
+from tests.conftest import drive_slowly, wait_until
 
 # The costliest sweep the planner accepts (50 lanes of 15 cm, 1 mm apart): about 1.6 s of CPU on this machine.
 HEAVY_SWEEP = json.dumps({"lanes": 50, "width": 0.15, "pitch": 0.001})
@@ -57,11 +57,7 @@ def test_a_stop_acts_at_once_and_the_owner_keeps_control_through_a_preview_flood
 ) -> None:
     agent = edge_factory()
     alice = operator_factory(operator_id="alice")
-    alice.wait_for_state()
-    alice.acquire()
-    alice.start()
-    alice.set_twist([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
-    wait_until(lambda: np.any(agent._commanded), 5.0, message="the owner moving the robot")
+    drive_slowly(agent, alice)
 
     answers = _flood(session_factory(), heavy=3, cheap=300)
     time.sleep(0.3)  # the planner busy with the first sweep, the rest of the flood queued or answered busy

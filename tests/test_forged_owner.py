@@ -20,7 +20,7 @@ from iorthand.protocol import AppliedCommand, ControlReply, ControlRequest, Stat
 from iorthand.security.lab import make_lab
 from iorthand.transport import ZenohConfig, free_port, open_session
 from iorthand_operator.client import ControlRefused, OperatorClient
-from tests.conftest import edge_config, wait_until
+from tests.conftest import drive_slowly, edge_config, wait_until
 
 FORGED_SEQ = 2**62
 
@@ -184,11 +184,7 @@ def _moving(alice: OperatorClient) -> bool:
 def test_a_link_gap_with_the_deadman_held(edge_factory, operator_factory, gap: float, resumes: bool) -> None:
     agent = edge_factory()
     alice = operator_factory(operator_id="alice")
-    alice.wait_for_state()
-    alice.acquire()
-    alice.start()
-    alice.set_twist([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
-    wait_until(lambda: _moving(alice), 5.0, message="moving")
+    drive_slowly(agent, alice)
     alice.muted = True  # the link goes dead; the operator keeps holding the deadman
     time.sleep(gap)
     n = alice.echo_count
