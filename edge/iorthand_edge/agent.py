@@ -682,7 +682,7 @@ class EdgeAgent:
         }
         by_suffix = {keys.CMD_SERVO: self._on_servo, keys.CMD_TORCH: self._on_torch}
         while not stop.is_set():
-            item = self._control.get(timeout=0.1)
+            item = self._control.get()  # no polling: shutdown sets stop, then closes the inbox, which ends the wait
             if item is None:
                 continue
             if item[0] in handlers:
@@ -694,7 +694,7 @@ class EdgeAgent:
     def _planner_loop(self, stop: threading.Event) -> None:
         handlers = {"preview": self._on_preview, "poses": self._on_poses}
         while not stop.is_set():
-            item = self._planning.get(timeout=0.1)
+            item = self._planning.get()  # (as the control plane's)
             if item is not None:
                 handlers[item[0]](item[1])
 
