@@ -240,7 +240,7 @@ class Struct:
     @classmethod
     def max_len(cls, field_name: str) -> int | None:
         """The most characters, bytes or elements the field carries (None: no bound)."""
-        return next(meta.get("max_len") for name, _, meta in cls._fields() if name == field_name)
+        return {name: meta.get("max_len") for name, _, meta in cls._fields()}[field_name]
 
     @classmethod
     def fit(cls, field_name: str, text: str) -> str:

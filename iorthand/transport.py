@@ -421,14 +421,13 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox, max_payload: int =
     decoder refuses anyway, and a queue of them holds its maxlen times that size."""
 
     def on_sample(sample: zenoh.Sample) -> None:
-        size = len(sample.payload)
+        key, size = str(sample.key_expr), len(sample.payload)
         if size > max_payload:
             reason = f"payload of {size} bytes exceeds the limit of {max_payload} bytes"
             inbox.refuse(reason)
             if rejects is not None:
-                rejects.add(str(sample.key_expr), reason)
+                rejects.add(key, reason)
             return
-        key = str(sample.key_expr)
         if not inbox.put((key, sample.payload.to_bytes(), time.time_ns()), size) and rejects is not None:
             rejects.add(key, f"dropped: the inbox is full ({len(inbox)} waiting)")
 

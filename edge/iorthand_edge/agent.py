@@ -877,20 +877,18 @@ class EdgeAgent:
         """A stop, acted on in Zenoh's callback: no queue to wait in behind other requests, none to be dropped
         from. Any payload on the key is a stop: a garbled or oversized one too (stopping is the safe side)."""
         key, size = str(sample.key_expr), len(sample.payload)
-        if size > MAX_PAYLOAD:
-            self._on_stop(key, None, f"a stop command of {size} bytes (over the limit of {MAX_PAYLOAD})")
-            return
-        try:
-            cmd = StopCommand.decode(sample.payload.to_bytes())
-        except DecodeError as exc:
-            self._on_stop(key, None, f"malformed stop command ({exc.field}): {exc}")
-            return
-        self._on_stop(key, cmd, "")
+        problem = f"a stop command of {size} bytes (over the limit of {MAX_PAYLOAD})" if size > MAX_PAYLOAD else ""
+        if not problem:
+            try:
+                cmd = StopCommand.decode(sample.payload.to_bytes())
+            except DecodeError as exc:
+                problem = f"malformed stop command ({exc.field}): {exc}"
+        if problem:
+            self.rejects.add(key, problem)
+            cmd = StopCommand(operator="?", reason=StopCommand.fit("reason", problem))
+        self._on_stop(key, cmd)
 
-    def _on_stop(self, key: str, cmd: StopCommand | None, malformed: str) -> None:
-        if cmd is None:
-            self.rejects.add(key, malformed)
-            cmd = StopCommand(operator="?", reason=StopCommand.fit("reason", malformed))
+    def _on_stop(self, key: str, cmd: StopCommand) -> None:
         # Who sent it: the id in the key where the router binds keys to certificates, else only a claim.
         sender = operator_in_key(key, keys.CMD_STOP)
         who = (f"{sender!r}" if sender == cmd.operator else f"{sender!r} (claiming {cmd.operator!r})") if sender \
