@@ -62,8 +62,12 @@ class KeyExprError(ValueError):
     """A robot or operator id that cannot be part of a key expression."""
 
 
+def is_robot_id(robot: str) -> bool:
+    return isinstance(robot, str) and ROBOT_ID_PATTERN.match(robot) is not None
+
+
 def check_robot_id(robot: str) -> str:
-    if not isinstance(robot, str) or not ROBOT_ID_PATTERN.match(robot):
+    if not is_robot_id(robot):
         raise KeyExprError(f"robot id {robot!r} is invalid: expected 1-64 characters of [a-z0-9_-]")
     return robot
 

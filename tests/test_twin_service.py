@@ -200,3 +200,16 @@ def test_preview_without_an_edge_is_refused_with_the_reason(twin_factory, sessio
     (payload,) = query(s, key, ControlRequest(operator="op1", name="home").stamp(1).encode(), timeout=6)
     reply = ControlReply.decode(payload)
     assert not reply.ok and "no answer" in reply.reason
+
+
+def test_a_preview_for_an_invalid_robot_id_is_refused_and_the_twin_stays_up(twin_factory, session_factory):
+    """Anyone who may query the twin names the robot in the key: a malformed id is refused with why, and the
+    twin goes on answering (it crashed before, and exited 0: systemd's Restart=on-failure left it down)."""
+    twin = twin_factory()
+    s = session_factory()
+    bad = keys.service_key(keys.TWIN, "BAD", keys.TWIN_PREVIEW)
+    (payload,) = query(s, bad, ControlRequest(operator="op1", name="home").stamp(1).encode(), timeout=5)
+    reply = ControlReply.decode(payload)
+    assert not reply.ok and "robot id 'BAD' is invalid" in reply.reason
+    assert not twin.stop_event.is_set()
+    assert not snapshot(s, "sim1").known  # the snapshot queryable still answers

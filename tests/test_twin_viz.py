@@ -12,7 +12,16 @@ import rerun as rr
 
 from iorthand import geometry, keys, kinematics
 from iorthand.config import from_dict
-from iorthand.protocol import ForceLevelState, ForceSample, MarkerPose, Markers, RobotState, ServoState, VideoFrame
+from iorthand.protocol import (
+    ForceLevelState,
+    ForceSample,
+    MarkerPose,
+    Markers,
+    RobotState,
+    SafetyStatus,
+    ServoState,
+    VideoFrame,
+)
 from iorthand.transport import Inbox
 from iorthand_cloud.twin import model
 from iorthand_cloud.twin.config import RobotView, TwinConfig
@@ -94,6 +103,20 @@ def test_store_events_on_changes_only():
     assert msg is None and store.robots["r1"].streams[keys.STATE_ROBOT].rejected == 1
 
 
+def test_the_store_follows_at_most_max_robots_besides_the_configured_ones():
+    store = TwinStore(max_robots=3, configured=["ward1"])
+    safety = SafetyStatus().stamp(1).encode()
+    for i in range(1000):  # a flood of new robot ids
+        store.ingest(keys.RobotKeys(f"z{i}").key(keys.STATE_SAFETY), safety, 0)
+    assert sorted(store.robots) == ["z0", "z1", "z2"]
+    assert store.refused_robots == 997 and store.last_refused == "z999"
+    robot, _, msg, _, new = store.ingest(keys.RobotKeys("ward1").key(keys.STATE_SAFETY), safety, 0)
+    assert (robot, new) == ("ward1", True) and msg is not None  # a configured robot is never crowded out
+    assert store.add_event("z5", "WARN", "preview refused") is None and store.set_online("z6", True) == (None, False)
+    assert store.set_online("Not A Robot", True) == (None, False) and "Not A Robot" not in store.robots
+    assert store.add_event("z1", "INFO", "kept") is not None  # robots it follows go on as before
+
+
 def test_every_handler_logs_without_error_to_a_memory_recording():
     cfg = config(pose_hz=500.0, image_fps=60.0, markers_hz=100.0, force_batch_s=0.01)
     rec = rr.RecordingStream("iorthand-twin-test")
@@ -139,8 +162,6 @@ def test_blueprint_lists_each_robots_images():
 
 def test_store_says_when_the_edge_drops_commands_unread():
     """The edge's count of twists dropped unread is news only when it grows, and the line says by how much."""
-    from iorthand.protocol import SafetyStatus
-
     store = TwinStore()
     key = keys.RobotKeys("r1").key(keys.STATE_SAFETY)
     for i, count in enumerate([5, 5, 12, 12]):  # 5 before the twin joined: not news

@@ -23,9 +23,8 @@ def _twin(args: argparse.Namespace) -> int:
         config.viewer.web_port = args.web_port
     if args.grpc_port is not None:
         config.viewer.grpc_port = args.grpc_port
-    TwinService(config, save=Path(args.save) if args.save else None,
-                log_dir=Path(args.log_dir) if args.log_dir else None).run_forever()
-    return 0
+    return TwinService(config, save=Path(args.save) if args.save else None,
+                       log_dir=Path(args.log_dir) if args.log_dir else None).run_forever()
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -158,6 +158,8 @@ class TwinConfig:
     state_timeout: float = setting(1.0, lo=0.05, hi=60.0, help="s without state/robot: shown as stale")
     preview_timeout: float = setting(3.0, lo=0.1, hi=60.0, help="s to wait for the edge's preview answer")
     snapshot_images: bool = setting(False, help="include the latest JPEGs in snapshots (also: ?images=1)")
+    max_robots: int = setting(64, lo=1, hi=10_000, help="robots followed besides those under robots: (each costs "
+                              "memory here and in the viewer); samples of more are refused, counted and logged")
     foxglove: FoxgloveLiveConfig = field(default_factory=FoxgloveLiveConfig)
 
     def check(self) -> None:

@@ -55,6 +55,7 @@ STATE_SUFFIXES = (
 )
 VIDEO_SUFFIXES = (keys.VIDEO_CAMERA, keys.VIDEO_ULTRASOUND)
 LAZY_SUFFIX = "/" + keys.STATE_ROBOT
+REFUSED_ROBOTS_LOG_S = 10.0  # a flood of new robot ids is logged once per this, not once per sample
 
 
 def _param(query: zenoh.Query, name: str) -> str:
@@ -69,7 +70,7 @@ def _param(query: zenoh.Query, name: str) -> str:
 class TwinService:
     def __init__(self, config: TwinConfig, save: Path | None = None, log_dir: Path | None = None) -> None:
         self.config = config
-        self.store = TwinStore()
+        self.store = TwinStore(max_robots=config.max_robots, configured=config.robots)
         self.stop_event = threading.Event()
         self.session: zenoh.Session | None = None
         self._state_inbox = Inbox(4096, keep="newest")
@@ -89,6 +90,7 @@ class TwinService:
             self.viz = Visualizer(config, self.rec, on_drawn=self.store.set_q_drawn)
         self.foxglove: FoxgloveLive | None = None  # with foxglove.enabled (foxglove-sdk is imported only then)
         self.ingested = 0
+        self._refused_logged, self._refused_logged_at = 0, -REFUSED_ROBOTS_LOG_S
         self.previews = 0
         self.snapshots = 0
 
@@ -137,7 +139,9 @@ class TwinService:
         log.info("twin up: %s; viewer %s", ", ".join(self.config.zenoh.connect) or self.config.zenoh.mode,
                  self.url or ("file only" if self.viz else "off"))
 
-    def run_forever(self) -> None:
+    def run_forever(self) -> int:
+        """Serve until SIGINT/SIGTERM (0) or until a worker crashes (1: a supervisor such as systemd's
+        ``Restart=on-failure`` must start the twin again, not take the crash for a requested stop)."""
         self.start()
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stop_event.set())
@@ -148,6 +152,10 @@ class TwinService:
         print("twin ready", flush=True)
         self.stop_event.wait()
         self.shutdown()
+        crashed = [w.name for w in self._workers if w.error is not None]
+        if crashed:
+            log.error("twin stopped because %s crashed (see above)", ", ".join(crashed))
+        return 1 if crashed else 0
 
     def shutdown(self) -> None:
         self.stop_event.set()
@@ -214,6 +222,16 @@ class TwinService:
                 for ev in events:
                     viz.feeder.event(ev)
                 viz.feeder.offer(robot, suffix, msg, now)
+            self._warn_of_refused_robots(now)
+
+    def _warn_of_refused_robots(self, now: float) -> None:
+        """Log, at most every REFUSED_ROBOTS_LOG_S, that samples of robots beyond ``max_robots`` were refused."""
+        refused = self.store.refused_robots
+        if refused > self._refused_logged and now - self._refused_logged_at >= REFUSED_ROBOTS_LOG_S:
+            log.warning("twin follows %d robots besides the configured ones (max_robots): %d samples of other robots "
+                        "refused so far, the last of robot %r", self.store.max_robots, refused,
+                        self.store.last_refused)
+            self._refused_logged, self._refused_logged_at = refused, now
 
     # ------------------------------------------------------------------ queries
 
@@ -249,7 +267,11 @@ class TwinService:
         robot = str(query.key_expr).split("/")[2]
         payload = query.payload.to_bytes() if query.payload is not None else b""
         try:
+            keys.check_robot_id(robot)
             req = ControlRequest.decode(payload)
+        except keys.KeyExprError as exc:  # the key's robot segment: anyone may query any of them
+            self._reply(query, ControlReply(ok=False, reason=f"preview refused: {exc}"))
+            return
         except DecodeError as exc:
             self._reply(query, ControlReply(ok=False, reason=f"malformed preview request: {exc}"))
             return
@@ -286,7 +308,7 @@ class TwinService:
         verdict = "accepted" if reply.ok else "REFUSED"
         text = f"preview {req.name!r} {verdict}: {reply.reason}"[:200]
         ev = self.store.add_event(robot, "INFO" if reply.ok else "WARN", text)
-        if self.viz is not None:
+        if self.viz is not None and ev is not None:  # (None: a robot beyond max_robots, never drawn)
             self.viz.feeder.event(ev)
             if detail:
                 self.viz.feeder.preview(robot, detail)
@@ -301,8 +323,8 @@ class TwinService:
             log.warning("could not answer %s: %s", query.key_expr, exc)
 
 
-def run(config: TwinConfig, save: Path | None = None) -> None:
-    TwinService(config, save=save).run_forever()
+def run(config: TwinConfig, save: Path | None = None) -> int:
+    return TwinService(config, save=save).run_forever()
 
 
 __all__ = ["TwinService", "run"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 from iorthand import keys
@@ -86,20 +87,39 @@ class RobotTwin:
 
 
 class TwinStore:
-    """Thread-safe store of :class:`RobotTwin` per robot id."""
+    """Thread-safe store of :class:`RobotTwin` per robot id.
 
-    def __init__(self, clock=time.monotonic) -> None:
+    Any participant that may publish robot state can name new robots, and each one costs memory here and in the
+    viewer (its model, scene and workspace). So the store follows at most ``max_robots`` robots besides the
+    ``configured`` ones, which are always followed: samples of robots beyond that are refused and counted
+    (``refused_robots``, ``last_refused``), never stored. A deployment that lists its robots in the twin's
+    configuration cannot have them crowded out.
+    """
+
+    def __init__(self, clock=time.monotonic, max_robots: int = 64, configured: Collection[str] = ()) -> None:
         self._lock = threading.Lock()
         self._clock = clock
         self.robots: dict[str, RobotTwin] = {}
         self.rejected = 0
+        self.max_robots = max_robots
+        self._configured = frozenset(configured)
+        self._unconfigured = 0
+        self.refused_robots = 0  # samples and events of robots beyond max_robots
+        self.last_refused = ""
 
-    def _robot(self, robot: str) -> tuple[RobotTwin, bool]:
+    def _robot(self, robot: str) -> tuple[RobotTwin | None, bool]:
+        """The robot's twin and whether it is new; None when it would be one robot too many."""
         twin = self.robots.get(robot)
-        if twin is None:
-            twin = self.robots[robot] = RobotTwin(robot, len(self.robots))
-            return twin, True
-        return twin, False
+        if twin is not None:
+            return twin, False
+        configured = robot in self._configured
+        if not configured and self._unconfigured >= self.max_robots:
+            self.refused_robots += 1
+            self.last_refused = robot
+            return None, False
+        self._unconfigured += not configured
+        twin = self.robots[robot] = RobotTwin(robot, len(self.robots))
+        return twin, True
 
     def get(self, robot: str) -> RobotTwin | None:
         with self._lock:
@@ -126,6 +146,8 @@ class TwinStore:
                 reason = str(exc)
         with self._lock:
             twin, new = self._robot(robot)
+            if twin is None:
+                return robot, suffix, None, [], False
             s = twin.stream(suffix)
             if msg is None:
                 s.rejected += 1
@@ -177,8 +199,12 @@ class TwinStore:
 
     def set_online(self, robot: str, online: bool, reason: str = "") -> tuple[Event | None, bool]:
         """Liveliness of the robot's edge changed. Returns the event (if a change) and whether the robot is new."""
+        if not keys.is_robot_id(robot):
+            return None, False
         with self._lock:
             twin, new = self._robot(robot)
+            if twin is None:
+                return None, False
             if twin.online == online and (twin.seen_alive or not online):
                 return None, new
             twin.online = online
@@ -193,9 +219,12 @@ class TwinStore:
             twin.events.append(ev)
             return ev, new
 
-    def add_event(self, robot: str, level: str, text: str) -> Event:
+    def add_event(self, robot: str, level: str, text: str) -> Event | None:
+        """The event, kept in the robot's list; None for a robot beyond ``max_robots``."""
         with self._lock:
             twin, _ = self._robot(robot)
+            if twin is None:
+                return None
             ev = Event(robot, time.time_ns(), level, text)
             twin.events.append(ev)
             return ev
