@@ -144,6 +144,10 @@ def test_acl_policy_by_role() -> None:
     for viewer in ("viewer-eve", "twin", "recorder"):
         assert not [k for k in _allowed(cfg, viewer, "put", "ingress") if not k.startswith("iorthand/_")]
         assert not [k for k in _allowed(cfg, viewer, "query", "ingress") if "/control" in k]
+    # A viewer only reads the services: no starting, stopping or annotating a recording, no previews.
+    assert _allowed(cfg, "viewer-eve", "query", "ingress") == ["iorthand/_twin/*/snapshot", "iorthand/_recorder/status"]
+    assert _allowed(acl.router_config(_dep(services=["twin"])), "viewer-eve", "query", "ingress") == [
+        "iorthand/_twin/*/snapshot"]
     # The replay identity publishes only under the ids reserved for replays, which no edge may take.
     replay_puts = _allowed(cfg, "replay", "put", "ingress")
     assert replay_puts and all(k.startswith("iorthand/$*-replay/") for k in replay_puts), replay_puts

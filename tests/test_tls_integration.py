@@ -222,6 +222,35 @@ def test_the_replay_identity_publishes_only_as_a_replay(lab: Lab, tls_router: st
         replay.close()
 
 
+def test_a_viewer_may_ask_the_recorder_its_status_but_not_stop_or_annotate(lab: Lab, tls_router: str) -> None:
+    """The recorder's queries that change a recording are an operator's: the router drops a viewer's (the
+    generated ACL let viewers query the whole service space before, and a viewer stopped a recording)."""
+    recorder = open_session(lab.client("recorder"))
+    viewer = open_session(lab.client("viewer-eve"))
+    alice = open_session(lab.client("operator-alice"))
+    asked: list[str] = []
+
+    def answer(q: zenoh.Query) -> None:
+        asked.append(str(q.key_expr))
+        q.reply(q.key_expr, b"ok")
+
+    try:
+        qable = recorder.declare_queryable(keys.service_key(keys.RECORDER, "**"), answer)
+        time.sleep(0.3)
+
+        def replies(session: zenoh.Session, verb: str) -> int:
+            return sum(r.ok is not None for r in session.get(keys.service_key(keys.RECORDER, verb), timeout=1.0))
+
+        assert replies(viewer, keys.RECORDER_STATUS) == 1
+        assert replies(viewer, keys.RECORDER_STOP) == 0 and replies(viewer, keys.RECORDER_ANNOTATE) == 0
+        assert replies(alice, keys.RECORDER_STOP) == 1  # an operator still may
+        assert asked == ["iorthand/_recorder/status", "iorthand/_recorder/stop"]
+        qable.undeclare()
+    finally:
+        for s in (alice, viewer, recorder):
+            s.close()
+
+
 def test_bind_operator_keys_acl(tmp_path: Path) -> None:
     """With identity-scoped keys, alice may publish only on cmd/<kind>/alice: a twist in bob's name on
     cmd/twist/bob (or on the plain key) never reaches the edge. A stop is everyone's: on the plain cmd/stop, or

@@ -20,7 +20,9 @@ enough. Which role may write or query which key of a robot is a column of the ta
   only its robots and the cloud services.
 - ``twin``, ``recorder`` (services) and ``viewer-<name>`` (observers): subscribe and query; the services also
   serve their own ``iorthand/_twin/**`` / ``iorthand/_recorder/**`` space. Viewers cannot query a robot's
-  ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership).
+  ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership), and of the
+  services they may ask only what reads (:data:`READ_ONLY_QUERIES`: the twin's snapshots, the recorder's
+  status): a viewer cannot start, stop or annotate a recording, nor have the edge plan a preview.
 - ``web`` (``iorthand web``, with ``web: true``): a trusted bridge. It logs its users in by password
   (:mod:`iorthand_operator.web`) and may send for each operator exactly what that operator's certificate may
   (its bound keys, its token) and watch every robot; its users' grants are the deployment's, as here.
@@ -115,6 +117,14 @@ def _rule(rid: str, messages: list[str], flows: list[str], key_exprs: list[str])
 
 def _service_space(name: str) -> str:
     return f"{keys.ROOT}/_{name}/**"
+
+
+# The services' queries that only read: all a viewer may ask. Starting, stopping or annotating a recording, and
+# previews (the twin has the edge plan them), are an operator's.
+READ_ONLY_QUERIES = {
+    "twin": keys.service_key(keys.TWIN, "*", keys.TWIN_SNAPSHOT),
+    "recorder": keys.service_key(keys.RECORDER, keys.RECORDER_STATUS),
+}
 
 
 def _grants(table: Iterable[Channel], role: Role, kind: Kind, *, query: bool = False,
@@ -215,8 +225,10 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
             _rule(f"{name}-subscribe", SUBSCRIBE, ["ingress"], [everything]),
             _rule(f"{name}-receive", ALL_MESSAGES, ["egress"], [everything]),
         ]
-        if services:
+        if name in SERVICES and services:
             rl.append(_rule(f"{name}-query", ["query"], ["ingress"], services))
+        elif dep.services:
+            rl.append(_rule(f"{name}-query", ["query"], ["ingress"], [READ_ONLY_QUERIES[s] for s in dep.services]))
         if name in SERVICES:
             own = _service_space(name)
             rl.append(_rule(f"{name}-serve", ["put", "delete", "declare_queryable", "reply", "liveliness_token"], ["ingress"], [own]))

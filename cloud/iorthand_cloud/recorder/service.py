@@ -587,7 +587,7 @@ class RecorderService:
             self._refuse(item.query, self._last_error)
             return
         rec.manifest.annotations += 1
-        log.info("annotation by %r: %s", ann.author, ann.text[:80])
+        log.info("annotation by %r: %r", ann.author, ann.text[:80])  # repr: a newline in it forges no log line
         st = self._make_status()
         st.reason = "annotation stored"
         self._reply(item.query, st)
