@@ -160,6 +160,14 @@ def split_key(key: str) -> tuple[str, str]:
     return parts[1], parts[2]
 
 
+def robot_of(key: str) -> str:
+    """The robot id segment of a key under ``iorthand/<robot>/...``, "" where there is none."""
+    try:
+        return split_key(key)[0]
+    except KeyExprError:
+        return ""
+
+
 def operator_from_alive_key(key: str) -> str:
     """The operator id at the end of an ``alive/operator/<id>`` liveliness key."""
     return str(key).rsplit("/", 1)[-1]

@@ -223,3 +223,57 @@ def test_segments_rotate_by_size_and_carry_calibration(recorder_factory, session
     assert [r.sequence for r in iter_records(folder)] == list(range(1, 601))
     assert attachments(folder)["camera.yaml"] == calib.read_bytes()
     assert m.attachments == ["camera.yaml"] and m.keys["iorthand/sim1/state/force"].missing == 0
+
+
+def test_a_flood_of_new_keys_is_counted_as_dropped_and_the_recording_goes_on(recorder_factory, session_factory,
+                                                                              tmp_path: Path) -> None:
+    """Anyone who may publish can name new keys: beyond max_keys they are not recorded but counted, so the writer
+    never falls behind the real streams (30 000 new robot ids put it 70 s behind before, and a shutdown then
+    lost the backlog of the real stream while the manifest said 0 dropped)."""
+    svc = recorder_factory(max_keys=20)
+    s = session_factory()
+    legit = s.declare_publisher("iorthand/sim1/state/force")
+    time.sleep(0.3)
+    assert client.start(s, session_id="flood", robots=["sim1"]).ok
+    for seq in range(1, 101):
+        for i in range(10):
+            s.put(f"iorthand/z{seq}-{i}/state/force", _force(1))
+        legit.put(_force(seq))  # after the flood filled max_keys: the requested robot has a quota of its own
+    wait_until(lambda: svc.status.messages + svc.status.dropped == 1100, 10, message="every sample recorded or counted")
+    assert client.stop(s).ok
+    m = mf.Manifest.read(tmp_path / "rec" / "flood")
+    assert len(m.keys) == 21 and len(m.robots) == 21 and m.keys["iorthand/sim1/state/force"].messages == 100
+    assert m.dropped == 1100 - mf.totals(m.keys)["messages"] == 1100 - 100 - 20
+
+
+def test_a_shutdown_that_cannot_wait_for_the_backlog_counts_it(router_endpoint, session_factory, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """A backlog longer than a shutdown waits is counted as dropped, and one thread closes the files: before, the
+    queued samples vanished (manifest: 0 dropped) and a second thread closed the segments under the writer."""
+    from iorthand_cloud.recorder import service as service_module
+
+    monkeypatch.setattr(service_module, "SHUTDOWN_DRAIN_S", 0.3)
+    svc = RecorderService(recorder_config(router_endpoint, tmp_path / "rec"))
+    write = svc._write_sample
+
+    def slow_disk(*args: object) -> None:  # a disk that takes 5 ms a sample: the backlog takes 10 s to write
+        time.sleep(0.005)
+        write(*args)
+
+    svc._write_sample = slow_disk  # type: ignore[method-assign]
+    svc.start()
+    s = session_factory()
+    pub = s.declare_publisher("iorthand/sim1/state/force")
+    time.sleep(0.3)
+    assert client.start(s, session_id="backlog").ok
+    for seq in range(1, 2001):
+        pub.put(_force(seq))
+    wait_until(lambda: svc.status.messages >= 20, 5, message="the writer under way")
+    time.sleep(0.5)  # every sample queued by now (the router forwards 2 000 small samples in milliseconds)
+    t0 = time.monotonic()
+    svc.shutdown()
+    assert time.monotonic() - t0 < 2.0
+    m = mf.Manifest.read(tmp_path / "rec" / "backlog")
+    recorded = m.keys["iorthand/sim1/state/force"].messages
+    assert m.status == mf.COMPLETE and 0 < recorded < 2000 and m.dropped == 2000 - recorded
+    assert sum(1 for _ in iter_records(tmp_path / "rec" / "backlog")) == recorded  # segments closed, readable

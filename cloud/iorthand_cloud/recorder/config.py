@@ -56,6 +56,9 @@ class RecorderConfig:
     chunk_kb: int = setting(1024, lo=4, help="MCAP chunk size; a flush also ends a chunk")
     inbox_max: int = setting(50_000, lo=100, help="samples queued between Zenoh and the writer thread")
     inbox_max_mb: float = setting(512.0, lo=1.0, help="and at most this many MB of them (video frames are large)")
+    max_keys: int = setting(2000, lo=1, hi=1_000_000, help="distinct keys one recording keeps of the robots its "
+                            "start request names, and as many of the others (each is a channel and a line of the "
+                            "manifest); samples on more are not recorded, counted as dropped")
     status_interval: float = setting(1.0, lo=0.05, help="s between status publications while recording")
     manifest_interval: float = setting(2.0, lo=0.1, help="s between manifest rewrites while recording")
     calibration_files: list[Path] = setting(default_factory=list, help="stored as MCAP attachments")

@@ -64,6 +64,7 @@ log = logging.getLogger("iorthand.recorder")
 
 SESSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 SKIP = "skip"  # a route: not recorded
+SHUTDOWN_DRAIN_S = 10.0  # s a shutdown waits for the writer to record its backlog (and again to close)
 FOXGLOVE = "foxglove"  # the stream of Foxglove channels, and the subfolder of a session it is written into
 
 
@@ -89,6 +90,10 @@ class _Recording:
     seg_info: dict[str, mf.SegmentInfo] = field(default_factory=dict)
     last_manifest: float = 0.0
     foxglove: FoxgloveConverter | None = None  # one per recording: its "on change" state starts afresh
+    robot_ids: set[str] = field(default_factory=set)  # manifest.robots as a set (a new key is checked against it)
+    requested: frozenset[str] = frozenset()  # the robots the start request named: their keys have a quota apart
+    keys_of_others: int = 0  # keys of robots the start request did not name (and of no robot)
+    unrecorded: int = 0  # samples taken off the queue but not recorded: beyond max_keys, or left at shutdown
 
 
 class RecorderError(RuntimeError):
@@ -122,6 +127,7 @@ class RecorderService:
         self._status_bytes = self._status.stamp(self._status_seq.next()).encode()
         self._last_error = ""
         self._dropped_at_start = 0
+        self._abandon = False  # set by a shutdown that can wait no longer for the writer's backlog
         self._worker: Worker | None = None
         self._declared: list[object] = []
         self.repaired: dict[str, list] = {}
@@ -198,8 +204,15 @@ class RecorderService:
         self.stop_event.set()
         self._accepting = False
         if self._worker is not None:
-            self._worker.join(timeout=10.0)
-        if self._rec is not None:  # the worker did not get to it (it crashed or timed out)
+            self._worker.join(timeout=SHUTDOWN_DRAIN_S)  # the writer records what is queued, then closes
+            if self._worker.is_alive():  # a backlog too long to wait for: the writer counts it and closes
+                self._abandon = True
+                self._worker.join(timeout=SHUTDOWN_DRAIN_S)
+        if self._worker is not None and self._worker.is_alive():
+            # Never two threads on one file: the segments keep what reached them, and the next start repairs them.
+            log.error("the recorder's writer did not stop within %g s: its segments are left as they are",
+                      2 * SHUTDOWN_DRAIN_S)
+        elif self._rec is not None:  # the worker crashed before it closed the recording
             self._stop_recording(None, "recorder shutting down")
         for d in self._declared:
             with contextlib.suppress(zenoh.ZError):
@@ -251,7 +264,7 @@ class RecorderService:
         next_flush = time.monotonic() + cfg.flush_interval
         next_status = time.monotonic()
         while True:
-            if stop.is_set() and (self._rec is None or len(self._inbox) == 0):
+            if stop.is_set() and (self._rec is None or len(self._inbox) == 0 or self._abandon):
                 break
             now = time.monotonic()
             timeout = min(next_flush, next_status) - now if self._rec is not None else min(0.2, next_status - now)
@@ -268,7 +281,21 @@ class RecorderService:
                 self._publish_status()
                 next_status = now + cfg.status_interval
         if self._rec is not None:
+            if self._abandon:
+                self._abandon_queue(self._rec)
             self._stop_recording(None, "recorder shutting down")
+
+    def _abandon_queue(self, rec: _Recording) -> None:
+        """At a shutdown that could not wait for the backlog: what is still queued is counted, not recorded."""
+        left = 0
+        for item in self._inbox.drain():
+            if isinstance(item, _Control):
+                self._refuse(item.query, "recorder shutting down")
+            elif self._routing(item[0]) != SKIP:  # (what is never recorded is no loss)
+                left += 1
+        rec.unrecorded += left
+        log.error("session %s: %d queued samples not recorded at shutdown (counted as dropped)",
+                  rec.manifest.session_id, left)
 
     def _handle_control(self, item: _Control) -> None:
         if item.action == keys.RECORDER_START:
@@ -321,7 +348,8 @@ class RecorderService:
             start_t=now, start_iso=mf.iso(now), software=mf.software_versions(), config=to_dict(self.config),
             attachments=[a.name for a in attachments], error="; ".join(warnings),
         )
-        rec = _Recording(folder, manifest, {}, started_t=now)
+        rec = _Recording(folder, manifest, {}, started_t=now, robot_ids=set(manifest.robots),
+                         requested=frozenset(manifest.robots))
         try:
             folder.mkdir(parents=True, exist_ok=False)
             rec.streams = {
@@ -420,7 +448,7 @@ class RecorderService:
         closed = time.time_ns()
         m = rec.manifest
         m.status, m.stop_t, m.stop_iso = mf.COMPLETE, closed, mf.iso(closed)
-        m.dropped = self._inbox.dropped - self._dropped_at_start
+        m.dropped = self._dropped(rec)
         st = self._make_status()
         st.closed_t, st.reason = closed, reason
         self._rec = None
@@ -478,6 +506,8 @@ class RecorderService:
                     route = TELEMETRY
             except zenoh.ZError:
                 route = TELEMETRY
+            if len(self._route) >= 2 * self.config.max_keys:  # a cache: keys named by a flood must not pile up
+                self._route.clear()
             self._route[key] = route
         return route
 
@@ -491,6 +521,8 @@ class RecorderService:
                 spec = ChannelSpec(key, RAW_ENCODING, malformed=malformed)
             else:
                 spec = ChannelSpec(key, MESSAGE_ENCODING, cls.__name__, SCHEMA_ENCODING, schema_bytes(cls))
+            if len(self._specs) >= 4 * self.config.max_keys:  # a cache too (two per key), across recordings
+                self._specs.clear()
             self._specs[(key, malformed)] = spec
         return spec
 
@@ -500,6 +532,13 @@ class RecorderService:
         route = self._routing(key)
         if route == SKIP:
             return
+        stats = rec.manifest.keys.get(key)
+        if stats is None:
+            robot = keys.robot_of(key)
+            requested = robot in rec.requested
+            if (len(rec.manifest.keys) - rec.keys_of_others if requested else rec.keys_of_others) >= self.config.max_keys:
+                self._unrecorded(rec, key)
+                return
         cls = message_type_for(key)
         seq: int | None = None
         t = recv_ns
@@ -511,17 +550,14 @@ class RecorderService:
                 seq, t = msg.seq, msg.t or recv_ns
             except DecodeError as exc:
                 malformed = True
-                if rec.manifest.keys.get(key) is None or rec.manifest.keys[key].malformed == 0:
+                if stats is None or stats.malformed == 0:
                     log.warning("malformed payload on %s stored raw: %s", key, exc)
-        stats = rec.manifest.keys.get(key)
         if stats is None:
             stats = rec.manifest.keys[key] = mf.KeyStats(type=cls.__name__ if cls else "")
-            try:
-                robot, _ = keys.split_key(key)
-                if robot not in rec.manifest.robots:
-                    rec.manifest.robots = sorted({*rec.manifest.robots, robot})
-            except keys.KeyExprError:
-                pass
+            rec.keys_of_others += not requested
+            if robot and robot not in rec.robot_ids:
+                rec.robot_ids.add(robot)
+                rec.manifest.robots = sorted(rec.robot_ids)
         stats.observe(len(payload), recv_ns, seq, malformed)
         stream = rec.streams[route]
         try:
@@ -538,6 +574,22 @@ class RecorderService:
                     self._write_foxglove(rec.foxglove, stream, key, msg, recv_ns, seq or 0)
         except OSError as exc:
             self._fail(f"cannot write {stream.current.path if stream.current else rec.folder}: {_describe(exc)}")
+
+    def _unrecorded(self, rec: _Recording, key: str) -> None:
+        """A sample on a key beyond ``max_keys``: counted among the dropped, never recorded. Anyone who may
+        publish can name new keys, and each one costs memory, a channel in the file and a line in the manifest.
+        The robots the start request named have a quota of their own, so that a flood of other keys before
+        their edges publish cannot leave them out."""
+        rec.unrecorded += 1
+        if rec.unrecorded == 1 or rec.unrecorded % 10_000 == 0:
+            log.warning("session %s records at most %d keys (max_keys): %d samples on other keys not recorded, "
+                        "counted as dropped (latest on %r)", rec.manifest.session_id, self.config.max_keys,
+                        rec.unrecorded, key[:200])
+
+    def _dropped(self, rec: _Recording) -> int:
+        """The samples of this recording that the recorder lost: its queue full, keys beyond max_keys, and
+        what was still queued when a shutdown could wait no longer."""
+        return self._inbox.dropped - self._dropped_at_start + rec.unrecorded
 
     def _skip_foxglove(self, key: str) -> None:
         self.foxglove_skipped += 1
@@ -600,7 +652,7 @@ class RecorderService:
             for stream in rec.streams.values():
                 stream.flush(self.config.fsync)
             if time.monotonic() - rec.last_manifest >= self.config.manifest_interval:
-                rec.manifest.dropped = self._inbox.dropped - self._dropped_at_start
+                rec.manifest.dropped = self._dropped(rec)
                 rec.manifest.write(rec.folder, fsync=self.config.fsync)
                 rec.last_manifest = time.monotonic()
         except OSError as exc:
@@ -617,7 +669,7 @@ class RecorderService:
         return RecorderStatus(
             ok=True, reason="recording", recording=True, session=rec.manifest.session_id, path=str(rec.folder),
             messages=t["messages"], bytes=t["bytes"], malformed=t["malformed"], gaps=t["missing"],
-            dropped=self._inbox.dropped - self._dropped_at_start, started_t=rec.started_t,
+            dropped=self._dropped(rec), started_t=rec.started_t,
             first_message_t=rec.first_message_t,
         )
 
