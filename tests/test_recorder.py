@@ -12,12 +12,12 @@ from mcap.reader import make_reader
 
 from iorthand import keys
 from iorthand.config import from_dict
-from iorthand.protocol import Annotation, ForceSample, RecorderStatus, VideoFrame
+from iorthand.protocol import Annotation, ForceSample, RecorderStatus, TwistCommand, VideoFrame
 from iorthand_cloud.recorder import client
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
 from iorthand_cloud.recorder.reader import iter_records, segment_files
-from iorthand_cloud.recorder.report import build_report, missing_where
+from iorthand_cloud.recorder.report import build_report, md_text, missing_where
 from iorthand_cloud.recorder.segments import VIDEO
 from iorthand_cloud.recorder.service import RecorderService
 from tests.conftest import wait_until
@@ -277,3 +277,42 @@ def test_a_shutdown_that_cannot_wait_for_the_backlog_counts_it(router_endpoint, 
     recorded = m.keys["iorthand/sim1/state/force"].messages
     assert m.status == mf.COMPLETE and 0 < recorded < 2000 and m.dropped == 2000 - recorded
     assert sum(1 for _ in iter_records(tmp_path / "rec" / "backlog")) == recorded  # segments closed, readable
+
+
+def test_text_from_the_wire_is_inert_in_markdown() -> None:
+    assert md_text("a | b\n## Robot x") == "a \\| b\\\\n\\#\\# Robot x"
+    assert md_text("<script>alert(1)</script> [x](y) **b**") == (
+        "&lt;script&gt;alert(1)&lt;/script&gt; \\[x\\](y) \\*\\*b\\*\\*")
+    assert md_text("bell\x07 esc\x1b[31m") == "bell\\\\x07 esc\\\\x1b\\[31m"
+    assert len(md_text("x" * 10_000)) == 501
+
+
+def test_a_hostile_session_cannot_write_into_its_report(recorder_factory, session_factory, tmp_path: Path) -> None:
+    """What a participant put on the wire (operator name, annotations, robot ids, a forged source time) is text
+    in report.md, and neither breaks the report nor its figures (found by a red-team run: a fake status line
+    and a <script> in the report, a 300-character robot id that failed the report with "File name too long",
+    and one twist stamped 2^62 ns that made a 3 s teleoperation last 89 years)."""
+    svc = recorder_factory()
+    s = session_factory()
+    time.sleep(0.3)
+    assert client.start(s, session_id="hostile", operator="eve\n- status: **complete** <script>alert(1)</script>").ok
+    twist = s.declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_TWIST))
+    t0 = time.time_ns()
+    for seq in range(1, 31):
+        twist.put(TwistCommand(operator="alice", deadman=True).stamp(seq, t0 + seq * 100_000_000).encode())
+    twist.put(TwistCommand(operator="alice", deadman=True).stamp(31, 2**62).encode())
+    s.put("iorthand/" + "r" * 300 + "/state/force", _force(1))
+    s.put("iorthand/Robot <img src=x onerror=alert(1)>/state/force", _force(1))
+    assert client.annotate(s, "ok | **100 %** |\n## Robot sim1 — corrected\x1b[2J", author="dr <b>x</b>").ok
+    wait_until(lambda: svc.status.messages >= 33, message="every message recorded")  # (and the annotation)
+    assert client.stop(s).ok
+    data = build_report(tmp_path / "rec" / "hostile", ReportConfig(plots=True), tmp_path / "report")
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert list(data["robots"]) == ["sim1"] and data["recording"]["foreign_keys"] == 2
+    sim1 = data["robots"]["sim1"]
+    assert sim1["implausible_time"] == 1 and sim1["index"]["t_t"] < 5.0
+    assert "<script" not in report and "<img" not in report and "<b>" not in report and "\x1b" not in report
+    headings = [line for line in report.splitlines() if line.startswith("#")]
+    assert headings == ["# Session hostile", "## Robot sim1", "## Annotations"]
+    assert not [line for line in report.splitlines() if line.startswith("- status")][1:]  # no forged status line
+    assert "eve\\\\n\\- status" not in report and "eve\\\\n- status: \\*\\*complete" in report

@@ -2,13 +2,21 @@
 
 Reads the session's messages (validated by their protocol classes; malformed ones are counted, not used),
 extracts per-robot series, and hands them to :mod:`metrics` for the figures. Times are the messages' source
-times (``t``): they measure what happened at the robot, not when the recorder heard of it.
+times (``t``): they measure what happened at the robot, not when the recorder heard of it. A message whose source
+time strays from its receipt by more than :data:`TIME_OUTLIER_S` beyond the robot's usual clock offset is counted,
+not used (one forged command stamped 2^62 ns made a 3 s session last 89 years). Keys whose robot id is invalid are
+counted too (``foreign_keys``): their ids would become headings and file names.
+
+Every text from the wire (operator, robots' refusal reasons, annotations, keys) is written into the Markdown as
+text (:func:`md_text`): no markup, HTML or control character of theirs reaches the report.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
+import statistics
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +41,7 @@ from iorthand_cloud.recorder.reader import iter_records, session_dir
 from iorthand_cloud.recorder.repair import repair_if_crashed
 
 DEADMAN_STATES = {Status.COMMAND_TIMEOUT, Status.NO_DEADMAN}
+TIME_OUTLIER_S = 10.0  # s a source time may stray from its receipt beyond the robot's median clock offset
 
 
 @dataclass
@@ -46,11 +55,32 @@ class RobotSeries:
     safety: list[tuple[float, str]] = field(default_factory=list)
     pose: list[tuple[float, list[float]]] = field(default_factory=list)
     malformed: int = 0
+    implausible_time: int = 0  # messages whose source time strays from their receipt (TIME_OUTLIER_S)
+    # (series, entry, source − receive time in ns) until the robot's clock offset is known: see _settle
+    timed: list[tuple[list[Any], tuple[Any, ...], int]] = field(default_factory=list)
+
+    def add(self, series: list[Any], entry: tuple[Any, ...], t_ns: int, recv_ns: int) -> None:
+        self.timed.append((series, entry, t_ns - recv_ns))
+
+    def settle(self) -> None:
+        """Each message into its series, unless its source time strays from the robot's usual offset."""
+        if self.timed:
+            usual = statistics.median_low(offset for _, _, offset in self.timed)
+            for series, entry, offset in self.timed:
+                if abs(offset - usual) > TIME_OUTLIER_S * 1e9:
+                    self.implausible_time += 1
+                else:
+                    series.append(entry)
+            self.timed = []
+        for series in (self.force, self.levels, self.commands, self.safety, self.pose):
+            series.sort(key=lambda x: x[0])  # merge order is by receive time; the maths wants source-time order
 
 
-def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list[dict[str, Any]]]:
+def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list[dict[str, Any]], int]:
+    """The robots' series, the annotations, and how many messages were on keys with an invalid robot id."""
     robots: dict[str, RobotSeries] = {}
     annotations: list[dict[str, Any]] = []
+    foreign = 0
     ann_key = keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATIONS)
     for rec in iter_records(folder):
         if rec.key == ann_key:
@@ -65,6 +95,9 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
             robot, suffix = keys.split_key(rec.key)
         except keys.KeyExprError:
             continue
+        if not keys.is_robot_id(robot):
+            foreign += 1
+            continue
         s = robots.setdefault(robot, RobotSeries())
         if rec.malformed:
             s.malformed += 1
@@ -72,13 +105,13 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
         try:
             if suffix == keys.STATE_FORCE:
                 m = ForceSample.decode(rec.data)
-                s.force.append((m.t / 1e9, metrics.force_value(m.force, cfg.force_quantity)))
+                s.add(s.force, (m.t / 1e9, metrics.force_value(m.force, cfg.force_quantity)), m.t, rec.log_time)
             elif suffix == keys.STATE_FORCE_LEVEL:
                 lv = ForceLevelState.decode(rec.data)
-                s.levels.append((lv.t / 1e9, lv.level, lv.stale))
+                s.add(s.levels, (lv.t / 1e9, lv.level, lv.stale), lv.t, rec.log_time)
             elif suffix == keys.CMD_TWIST:
                 c = TwistCommand.decode(rec.data)
-                s.commands.append((c.t / 1e9, c.deadman))
+                s.add(s.commands, (c.t / 1e9, c.deadman), c.t, rec.log_time)
             elif suffix == keys.STATE_APPLIED:
                 ap = AppliedCommand.decode(rec.data)
                 s.applied += 1
@@ -88,16 +121,15 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
                     s.refusals[ap.status] += 1
             elif suffix == keys.STATE_SAFETY:
                 sf = SafetyStatus.decode(rec.data)
-                s.safety.append((sf.t / 1e9, sf.status))
+                s.add(s.safety, (sf.t / 1e9, sf.status), sf.t, rec.log_time)
             elif suffix == keys.STATE_ROBOT:
                 rs = RobotState.decode(rec.data)
-                s.pose.append((rs.t / 1e9, rs.tcp_pose))
+                s.add(s.pose, (rs.t / 1e9, rs.tcp_pose), rs.t, rec.log_time)
         except DecodeError:
             s.malformed += 1
-    for s in robots.values():  # merge order is by receive time; the maths wants source-time order
-        for series in (s.force, s.levels, s.commands, s.safety, s.pose):
-            series.sort(key=lambda x: x[0])
-    return robots, annotations
+    for s in robots.values():
+        s.settle()
+    return robots, annotations, foreign
 
 
 def robot_figures(s: RobotSeries, cfg: ReportConfig, session_span: float) -> dict[str, Any]:
@@ -121,6 +153,7 @@ def robot_figures(s: RobotSeries, cfg: ReportConfig, session_span: float) -> dic
         "deadman_stops": len(stops),
         "force_samples": len(s.force),
         "malformed": s.malformed,
+        "implausible_time": s.implausible_time,
     }
 
 
@@ -181,14 +214,14 @@ def build_report(session: str | Path, cfg: ReportConfig | None = None, out_dir: 
     manifest = Manifest.read(folder)
     out = out_dir or folder / "report"
     out.mkdir(parents=True, exist_ok=True)
-    robots, annotations = _load(folder, cfg)
+    robots, annotations, foreign = _load(folder, cfg)
     start = manifest.start_t / 1e9
     stop = (manifest.stop_t or manifest.start_t) / 1e9
     data: dict[str, Any] = {
         "session": manifest.session_id, "status": manifest.status, "operator": manifest.operator,
         "start": manifest.start_iso, "stop": manifest.stop_iso, "duration_s": round(stop - start, 3),
         "recording": {**totals(manifest.keys), "dropped": manifest.dropped, "repaired": manifest.repaired,
-                      "error": manifest.error, "repair": repaired,
+                      "error": manifest.error, "repair": repaired, "foreign_keys": foreign,
                       "missing_by_key": {k: st.missing for k, st in sorted(manifest.keys.items()) if st.missing}},
         "config": {k: getattr(cfg, k) for k in cfg.__dataclass_fields__},
         "robots": {}, "annotations": annotations, "plots": [],
@@ -230,25 +263,43 @@ def missing_where(missing_by_key: dict[str, int], most: int = 3) -> str:
     return shown + (f" and {len(by_key) - most} more keys" if len(by_key) > most else "")
 
 
+# Markdown's inline markup, and the table's cell separator: escaped with a backslash in text from the wire.
+_MARKUP = re.compile(r"([\\`*_\[\]|#!~])")
+
+
+def md_text(value: Any, limit: int = 500) -> str:
+    """``value`` as inert Markdown text on one line: control characters (newlines, terminal escapes) written
+    out as escapes, HTML's ``& < >`` as entities, Markdown's markup escaped; at most ``limit`` characters."""
+    text = str(value)
+    if len(text) > limit:
+        text = text[:limit] + "…"
+    text = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+    text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    return _MARKUP.sub(r"\\\1", text)
+
+
 def render_markdown(data: dict[str, Any]) -> str:
     rec = data["recording"]
+    foreign = rec.get("foreign_keys", 0)
     lines = [
-        f"# Session {data['session']}",
+        f"# Session {md_text(data['session'])}",
         "",
-        f"- status: **{data['status']}**{' (repaired after a crash)' if rec['repaired'] else ''}"
-        f"{' — ' + rec['error'] if rec['error'] else ''}",
-        f"- operator: {data['operator'] or 'n/a'}; {data['start']} → {data['stop']} ({data['duration_s']:.1f} s)",
+        f"- status: **{md_text(data['status'])}**{' (repaired after a crash)' if rec['repaired'] else ''}"
+        f"{' — ' + md_text(rec['error']) if rec['error'] else ''}",
+        f"- operator: {md_text(data['operator']) if data['operator'] else 'n/a'}; {md_text(data['start'])} → "
+        f"{md_text(data['stop'])} ({data['duration_s']:.1f} s)",
         f"- recorded: {rec['messages']} messages, {rec['bytes'] / 1e6:.1f} MB, {rec['malformed']} malformed, "
         f"{rec['missing']} missing by sequence ({rec['gaps']} gaps"
-        f"{'; on ' + rec['missing_where'] if rec['missing_where'] else ''}), "
-        f"{rec['dropped']} dropped by the recorder",
+        f"{'; on ' + md_text(rec['missing_where']) if rec['missing_where'] else ''}), "
+        f"{rec['dropped']} dropped by the recorder"
+        f"{f', {foreign} on keys whose robot id is invalid (not used)' if foreign else ''}",
         "",
     ]
     for robot, r in data["robots"].items():
         ix = r["index"]
         lat = r["command_latency_ms"]
         lines += [
-            f"## Robot {robot}",
+            f"## Robot {md_text(robot)}",
             "",
             "| figure | value |",
             "|---|---|",
@@ -263,10 +314,12 @@ def render_markdown(data: dict[str, Any]) -> str:
             f"| command latency (operator → edge) p50 / p90 / p99 | {_fmt(lat['p50'])} / {_fmt(lat['p90'])} / "
             f"{_fmt(lat['p99'])} ms ({lat['count']} commands) |",
             f"| deadman stops | {r['deadman_stops']} |",
-            f"| refusals | {r['refusals_total']} {r['refusals'] or ''} |",
+            f"| refusals | {r['refusals_total']} {md_text(r['refusals']) if r['refusals'] else ''} |",
             f"| malformed messages | {r['malformed']} |",
+            f"| messages with a source time {TIME_OUTLIER_S:g} s off the robot's clock (not used) | "
+            f"{r.get('implausible_time', 0)} |",
             "",
-            f"Warning levels from {r['levels_source']}.",
+            f"Warning levels from {md_text(r['levels_source'])}.",
             "",
         ]
         for plot in data["plots"]:
@@ -276,6 +329,6 @@ def render_markdown(data: dict[str, Any]) -> str:
     if data["annotations"]:
         lines += ["## Annotations", "", "| time | author | text | tags | score |", "|---|---|---|---|---|"]
         for a in data["annotations"]:
-            lines.append(f"| {a['t']:.3f} | {a['author']} | {a['text']} | {', '.join(a['tags'])} | "
-                         f"{_fmt(a['score'])} |")
+            lines.append(f"| {a['t']:.3f} | {md_text(a['author'])} | {md_text(a['text'])} | "
+                         f"{md_text(', '.join(a['tags']))} | {_fmt(a['score'])} |")
     return "\n".join(lines) + "\n"
