@@ -8,6 +8,7 @@ and a small queue of its own, and a query that finds its queue full is answered 
 
 from __future__ import annotations
 
+import itertools
 import json
 import threading
 import time
@@ -114,3 +115,35 @@ def test_a_refusal_longer_than_a_reply_carries_reaches_the_operator_cut(edge_fac
     reply = ControlReply.decode(replies[0])  # raised DecodeError before: "length 614 exceeds 200"
     assert not reply.ok
     assert len(reply.reason) == 200 and reply.reason.endswith("…"), reply.reason
+
+
+def test_a_flood_of_stops_stops_the_robot_once_and_holds_up_nothing(edge_factory, operator_factory,
+                                                                    session_factory) -> None:
+    """Found by a red-team run of the web console: 107 000 stops in 2 s (a page's STOP button held by a script)
+    each woke the control loop and published the safety state; the edge's state stopped for seconds and the
+    owner's lease expired. A stop that finds the robot held still by a stop already is logged and counted only."""
+    agent = edge_factory()
+    alice = operator_factory(operator_id="alice")
+    drive_slowly(agent, alice)
+    states: list[float] = []
+    watcher = session_factory()
+    watcher.declare_subscriber(keys.RobotKeys("sim1").key(keys.STATE_ROBOT), lambda _s: states.append(time.monotonic()))
+    safety: list[float] = []
+    watcher.declare_subscriber(keys.RobotKeys("sim1").key(keys.STATE_SAFETY), lambda _s: safety.append(time.monotonic()))
+    nurse = session_factory()
+    pub = nurse.declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP))
+    time.sleep(0.3)
+    flood_start = time.monotonic()
+    for i in range(20_000):
+        pub.put(StopCommand(operator="nurse", reason="held").stamp(i + 1).encode())
+    wait_until(lambda: agent.supervisor.status == Status.STOPPED, 2.0, message="the stop acted on")
+    time.sleep(3.0)  # the flood is in and handled (acting on each stop, the edge was still at it 10 s later)
+    during = [b - a for a, b in itertools.pairwise(states) if a >= flood_start]
+    assert during and max(during) < 0.1, f"robot state held up {max(during):.3f} s during the flood"
+    assert agent.supervisor.owner == "alice" and "stop from 'nurse'" in agent.supervisor.reason
+    published = sum(1 for t in safety if t >= flood_start)
+    assert published < 200, f"{published} safety states published for one flood of stops"  # (~50 a second anyway)
+    assert alice.acquire().ok  # the owner's lease is renewed as before
+    assert agent.repeated_stops >= 10_000  # (the rest may have been dropped on the way: a stop is not queued)
+    # The stop still holds after the flood: the robot moves again only on the owner's fresh intent.
+    assert agent.supervisor.stop_in_force

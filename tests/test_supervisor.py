@@ -183,6 +183,20 @@ def test_stop_latches_until_deadman_released() -> None:
     assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
 
 
+def test_a_stop_is_in_force_until_the_deadman_is_released_after_it() -> None:
+    """What lets the edge take a repeated stop as nothing new: only while the first one holds the robot still."""
+    sv, c = armed()
+    assert not sv.stop_in_force
+    sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    sv.stop("e-stop")
+    assert sv.stop_in_force
+    sv.on_command(c.cmd(), c.wall, c.mono, POSE)  # the deadman still held: refused, the stop holds
+    assert sv.stop_in_force
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)  # released: the next press may move
+    assert not sv.stop_in_force
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted and not sv.stop_in_force
+
+
 def test_fault_refuses_and_needs_reacquire() -> None:
     sv, c = armed()
     sv.set_fault("robot link lost")

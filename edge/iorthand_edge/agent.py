@@ -138,6 +138,7 @@ class EdgeAgent:
         self.lock = threading.RLock()
         self.stop_event = threading.Event()
         self.rejects = RejectCounter()
+        self.repeated_stops = 0  # stops that found the robot held still by a stop already (logged, not acted on)
         self.reading: RobotReading | None = None
         self._seq = {name: Sequencer() for name in ("robot", "safety", "applied")}
         self._commanded = np.zeros(6)
@@ -894,10 +895,19 @@ class EdgeAgent:
         who = (f"{sender!r}" if sender == cmd.operator else f"{sender!r} (claiming {cmd.operator!r})") if sender \
             else f"{cmd.operator!r} (unauthenticated)"
         with self.lock:
-            self._cancel_goto(f"stop from {who}")
-            self.supervisor.stop(f"stop from {who}: {cmd.reason}")
+            # A stop on a robot that a stop already holds still changes nothing: it is logged (rate-limited) and
+            # counted, without waking the control loop or publishing again (a page flooding stops, 50 000 a
+            # second, held up the edge's state for seconds and cost the driving operator his lease).
+            repeated = self.supervisor.stop_in_force
+            if not repeated:
+                self._cancel_goto(f"stop from {who}")
+                self.supervisor.stop(f"stop from {who}: {cmd.reason}")
+        self._rlog.warning(f"stop:{sender or cmd.operator}", f"stop from {who} on {key}: {cmd.reason}"
+                           + (" (the robot was stopped already)" if repeated else ""))
+        if repeated:
+            self.repeated_stops += 1
+            return
         self._wake()
-        self._rlog.warning(f"stop:{sender or cmd.operator}", f"stop from {who} on {key}: {cmd.reason}")
         self._publish_safety(force=True)
 
 

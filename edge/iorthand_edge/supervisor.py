@@ -363,6 +363,11 @@ class Supervisor:
         """A stop command: controlled stop, latched until the deadman is released and pressed again."""
         self._halt(Status.STOPPED, reason, latch=True)
 
+    @property
+    def stop_in_force(self) -> bool:
+        """A stop holds the robot still, and nothing has released it yet: another stop would change nothing."""
+        return self._latched is Status.STOPPED and not self.moving and not any(self._target)
+
     def set_fault(self, reason: str) -> None:
         if reason and reason != self.fault:
             self.fault = reason
