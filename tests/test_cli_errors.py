@@ -10,7 +10,7 @@ import pytest
 
 from iorthand.config import ConfigError, cli_number, read_yaml
 from iorthand.transport import check_endpoint
-from tests.conftest import iorthand_cmd
+from tests.conftest import ROOT, iorthand_cmd
 
 
 def test_numbers_on_the_command_line_are_checked_like_settings() -> None:
@@ -58,6 +58,8 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     (["export", "nosuchsession", "--start", "10", "--end", "5"], 2, "--end: 5 s is not after --start 10 s"),
     (["calibrate", "render", "board", "--dictionary", "NOSUCH"], 2, "unknown ArUco dictionary 'NOSUCH'"),
     (["calibrate", "render", "board", "--squares", "0", "0"], 2, "squares_x: expected at least 3, got 0"),
+    (["twin", "--config", str(ROOT / "configs" / "twin.yaml"), "--bind", "0.0.0.0"], 2,
+     "bind 0.0.0.0 is reachable from other machines, and the rerun viewer has no log-in"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_mistakes_are_answered_in_one_line(tmp_path: Path, args: list[str], code: int, said: str) -> None:
     (tmp_path / "binary.yaml").write_bytes(b"\xff\xfe\x00bin")

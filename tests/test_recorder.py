@@ -316,3 +316,22 @@ def test_a_hostile_session_cannot_write_into_its_report(recorder_factory, sessio
     assert headings == ["# Session hostile", "## Robot sim1", "## Annotations"]
     assert not [line for line in report.splitlines() if line.startswith("- status")][1:]  # no forged status line
     assert "eve\\\\n\\- status" not in report and "eve\\\\n- status: \\*\\*complete" in report
+
+
+def test_a_replay_skips_the_keys_of_invalid_robot_ids_and_goes_on(recorder_factory, session_factory,
+                                                                  tmp_path: Path) -> None:
+    """A recording made on an open router may hold anyone's keys: one with an invalid robot id ended the replay
+    with a traceback before (and the exit status said success)."""
+    from iorthand_cloud.recorder.replay import Replayer
+
+    svc = recorder_factory()
+    s = session_factory()
+    time.sleep(0.3)
+    assert client.start(s, session_id="mixed").ok
+    s.put("iorthand/EVIL/state/force", _force(1))
+    for seq in range(1, 6):
+        s.put("iorthand/sim1/state/force", _force(seq))
+    wait_until(lambda: svc.status.messages >= 6, message="every message recorded")
+    assert client.stop(s).ok
+    stats = Replayer(s, tmp_path / "rec" / "mixed", speed=50.0).run()
+    assert stats.published == 5 and set(stats.per_key) == {"iorthand/sim1-replay/state/force"}

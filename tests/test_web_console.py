@@ -791,3 +791,93 @@ def test_screenshots_of_the_console_on_a_phone_and_a_desktop(stack, browser, tmp
     desktop.close()
     for name in ("phone", "desktop"):
         assert (shots / f"web-console-{name}.png").stat().st_size > 20_000
+
+
+def _log_in_over_http(stack: Stack, user: str) -> str:
+    """A log-in as the page's script makes it; returns the session cookie's value."""
+    req = urllib.request.Request(f"{stack.url}/api/login", method="POST",
+                                 data=json.dumps({"user": user, "password": PASSWORDS[user]}).encode(),
+                                 headers={"Origin": stack.url, "Content-Type": "application/json"})
+    with urllib.request.urlopen(req, timeout=10) as r:
+        return r.headers["Set-Cookie"].split(";")[0].split("=", 1)[1]
+
+
+def test_logging_out_ends_the_pages_of_that_log_in_and_their_control(stack) -> None:
+    """Found by a red-team run: a page that was driving went on driving after its user logged out (and after the
+    log-in expired): the log-in was checked only when the page opened. A log-out from another site is refused."""
+    cookie = _log_in_over_http(stack, "physician")
+
+    async def talk() -> tuple[int, int, int | None, list[dict]]:
+        import aiohttp
+
+        headers = {"Origin": stack.url, "Cookie": f"iorthand_session={cookie}"}
+        got: list[dict] = []
+        async with aiohttp.ClientSession() as s, s.ws_connect(f"{stack.url}/ws", headers=headers) as ws:
+            await ws.send_str(json.dumps({"type": "acquire"}))
+            while not any(m.get("to") == "acquire" for m in got):
+                msg = await ws.receive(timeout=10.0)
+                if msg.type == aiohttp.WSMsgType.TEXT:  # (video frames come as binary messages)
+                    got.append(json.loads(msg.data))
+            foreign = {"Origin": "http://evil.example", "Cookie": f"iorthand_session={cookie}"}
+            async with s.post(f"{stack.url}/api/logout", headers=foreign) as r:
+                refused = r.status
+            async with s.post(f"{stack.url}/api/logout", headers=headers) as r:
+                done = r.status
+            while True:
+                msg = await ws.receive(timeout=5.0)
+                if msg.type == aiohttp.WSMsgType.TEXT:
+                    got.append(json.loads(msg.data))
+                elif msg.type == aiohttp.WSMsgType.CLOSE:  # (the server's code, as its close frame says)
+                    return refused, done, msg.data, got
+                elif msg.type in (aiohttp.WSMsgType.CLOSING, aiohttp.WSMsgType.CLOSED):
+                    return refused, done, ws.close_code, got
+
+    refused, done, code, got = in_thread(talk)
+    assert next(m for m in got if m.get("to") == "acquire")["ok"], got
+    assert (refused, done, code) == (403, 200, 4401), (refused, done, code)
+    assert any(m.get("kind") == "ended" and m["reason"] == "logged out" for m in got), got[-3:]  # said why
+    stack.watch.wait(lambda: stack.watch.safety and not stack.watch.safety[-1].owner, 5.0, "control released")
+
+
+def test_a_page_flooding_stops_and_junk_is_paced_and_bounded(stack) -> None:
+    """Found by a red-team run: 107 000 STOPs from an operator's page in 2 s were each forwarded to the edge, and
+    a viewer's million distinct junk messages were each answered and remembered (+155 MiB). Now a page is read
+    at most 500 messages a second, its stops after the first reach the edge at most 5 a second, and the server
+    remembers at most 256 refusals it said (messages.Notices)."""
+    cookie = _log_in_over_http(stack, "physician")
+    stops: list[float] = []
+    # (cmd/stop/** also matches the plain cmd/stop: a stop on either key is counted once)
+    sub = stack.session.declare_subscriber(keys.RobotKeys(ROBOT).key(keys.CMD_STOP) + "/**",
+                                           lambda _s: stops.append(time.monotonic()))
+
+    async def talk() -> list[tuple[float, dict]]:
+        import aiohttp
+
+        headers = {"Origin": stack.url, "Cookie": f"iorthand_session={cookie}"}
+        got: list[tuple[float, dict]] = []
+        async with aiohttp.ClientSession() as s, s.ws_connect(f"{stack.url}/ws", headers=headers) as ws:
+            await ws.receive_json(timeout=5.0)
+            start = time.monotonic()
+            for _ in range(1000):
+                await ws.send_str(json.dumps({"type": "stop"}))
+            for i in range(500):
+                await ws.send_str(json.dumps({"type": f"junk{i}"}))
+            deadline = start + 4.0  # 1 500 messages at 500 a second after a burst of 250: read in 2.5 s
+            with contextlib.suppress(TimeoutError):
+                while time.monotonic() < deadline:  # (the page's state keeps coming, 20 a second)
+                    msg = await ws.receive(timeout=deadline - time.monotonic())
+                    if msg.type == aiohttp.WSMsgType.TEXT:
+                        got.append((time.monotonic() - start, json.loads(msg.data)))
+            return got
+
+    try:
+        got = in_thread(talk)
+    finally:
+        sub.undeclare()
+    refused = [(t, m) for t, m in got if m.get("type") == "refused"]
+    junk = [t for t, m in refused if m["kind"] == "malformed"]
+    assert junk and junk[0] > 1.2, f"the junk behind 1 000 stops was read {junk[:1]} s after they were sent"
+    assert 1 <= len(stops) <= 2 + 5 * 4.0, f"{len(stops)} stops reached Zenoh in 4 s"
+    assert any(m["kind"] == "stop_repeated" for _, m in refused), refused[:3]
+    assert 1 <= len(junk) <= 500  # each different one said (at most once a second), none twice
+    assert stack.stats(cookie)["refused"]["malformed"] >= 500  # every one counted, not every one answered

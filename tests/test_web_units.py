@@ -51,6 +51,44 @@ def test_log_ins_from_an_address_are_refused_after_repeated_failures() -> None:
     assert guard.blocked("1.2.3.4", 161.0) == 0  # the window passed
 
 
+def test_a_valid_log_in_clears_no_other_failures_and_guessing_one_account_is_limited_from_anywhere() -> None:
+    """Found by a red-team run: one viewer's valid log-in cleared its address's failed guesses at another account
+    (24 of 24 guesses checked), the limit was per address only, and 24 attempts sent at once got 9 checks."""
+    guard = users.LoginGuard(max_failures=3, window=60.0, max_user_failures=5)
+    assert guard.attempt("1.2.3.4", "physician", 100.0) == 0
+    assert guard.attempt("1.2.3.4", "student", 100.5) == 0
+    guard.succeeded("1.2.3.4", "student", 100.5)  # the student's own attempt is taken back, nothing else
+    assert guard.attempt("1.2.3.4", "physician", 101.0) == 0
+    assert guard.attempt("1.2.3.4", "physician", 102.0) == 0
+    assert guard.attempt("1.2.3.4", "student", 103.0) == pytest.approx(57.0)  # 3 failures: the address waits
+    # Attempts are counted when let through, before their password is checked: at once, only the limit passes.
+    assert sum(guard.attempt("9.9.9.9", "nurse", 200.0) == 0 for _ in range(24)) == 3
+    # One account guessed at from many addresses: refused from the 6th on, whichever address asks.
+    passed = [guard.attempt(f"10.0.0.{i}", "physician", 300.0 + i) == 0 for i in range(30)]
+    assert passed == [True] * 5 + [False] * 25
+    assert guard.attempt("10.0.0.99", "student", 310.0) == 0  # other accounts are not locked by it
+
+
+def test_deeply_nested_json_is_refused_by_name() -> None:
+    with pytest.raises(messages.PageError, match="nested too deeply"):
+        messages.parse("[" * 1023 + "]" * 1023)
+
+
+def test_rate_budgets_pass_a_burst_then_their_rate_and_pace_without_refusing() -> None:
+    b = messages.RateBudget(rate=5.0, burst=1.0)
+    assert [b.allow(10.0), b.allow(10.05), b.allow(10.25), b.allow(10.3)] == [True, False, True, False]
+    pace = messages.RateBudget(rate=100.0, burst=2.0)
+    waits = [pace.delay(0.0) for _ in range(5)]
+    assert waits[:2] == [0.0, 0.0] and waits[2:] == pytest.approx([0.01, 0.02, 0.03])
+
+
+def test_a_refusal_is_said_once_a_second_and_few_are_remembered() -> None:
+    notices = messages.Notices(remember=3)
+    assert [notices.due("a", 0.0), notices.due("a", 0.5), notices.due("a", 1.0)] == [True, False, True]
+    assert [notices.due(t, 1.1) for t in ("b", "c", "d")] == [True, True, False]  # 3 remembered, all recent
+    assert notices.due("d", 2.2) and len(notices._said) <= 3  # the old ones forgotten, not piled up
+
+
 def twist(**changes: object) -> str:
     data = {"type": "twist", "id": 7, "linear": [0.001, 0, 0], "angular": [0, 0, 0.05], "deadman": True, "seen": 5}
     data.update(changes)

@@ -17,6 +17,7 @@ speak for the twin or the recorder either.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -28,6 +29,8 @@ import zenoh
 from iorthand import keys
 from iorthand.transport import QOS_BY_KEY
 from iorthand_cloud.recorder.reader import Record, iter_records
+
+log = logging.getLogger("iorthand.replay")
 
 
 @dataclass
@@ -128,7 +131,11 @@ class Replayer:
             except keys.KeyExprError:
                 self._target[key] = None
             else:
-                self._target[key] = keys.RobotKeys(self.rename.get(robot) or keys.replay_id(robot)).key(suffix)
+                try:
+                    self._target[key] = keys.RobotKeys(self.rename.get(robot) or keys.replay_id(robot)).key(suffix)
+                except keys.KeyExprError as exc:  # a recording made on an open router may hold anyone's keys
+                    log.warning("messages on %s are not replayed: %s", key[:120], exc)
+                    self._target[key] = None
         return self._target[key]
 
     def run(self) -> ReplayStats:

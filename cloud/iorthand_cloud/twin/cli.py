@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from iorthand.config import cli_number
+from iorthand.config import ConfigError, cli_number
 
 
 def _twin(args: argparse.Namespace) -> int:
@@ -23,6 +23,10 @@ def _twin(args: argparse.Namespace) -> int:
         config.viewer.web_port = args.web_port
     if args.grpc_port is not None:
         config.viewer.grpc_port = args.grpc_port
+    try:
+        config.viewer.check()  # the overrides too (a --bind 0.0.0.0)
+    except ValueError as exc:
+        raise ConfigError("the command line", "viewer", str(exc)) from None
     return TwinService(config, save=Path(args.save) if args.save else None,
                        log_dir=Path(args.log_dir) if args.log_dir else None).run_forever()
 

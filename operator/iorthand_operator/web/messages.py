@@ -83,6 +83,8 @@ def parse(data: str | bytes) -> PageMessage:
         obj = json.loads(data)
     except (ValueError, UnicodeDecodeError) as exc:
         raise PageError(f"not JSON ({type(exc).__name__})") from None
+    except RecursionError:  # ~1 000 nested brackets fit in MAX_MESSAGE_BYTES
+        raise PageError("JSON nested too deeply") from None
     if not isinstance(obj, dict):
         raise PageError(f"expected a JSON object, got {type(obj).__name__}")
     kind = obj.get("type")
@@ -137,6 +139,74 @@ class TwistBudget:
             return False
         self._held = twist.deadman
         return True
+
+
+class RateBudget:
+    """A token bucket: ``rate`` a second on average, ``burst`` at once. Pure: the caller gives the time."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self.rate, self.burst = rate, burst
+        self._tokens = burst
+        self._at = -math.inf
+
+    def _refill(self, now: float) -> None:
+        self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
+        self._at = now
+
+    def allow(self, now: float) -> bool:
+        """Whether one more passes now (if not, it is not counted)."""
+        self._refill(now)
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
+
+    def delay(self, now: float) -> float:
+        """Take one, and say how long to wait before it conforms (0: at once): a pace, nothing refused."""
+        self._refill(now)
+        self._tokens -= 1.0
+        return max(0.0, -self._tokens / self.rate)
+
+
+class Notices:
+    """Which refusals to say to a page: each text at most once a second, and at most ``remember`` texts
+    remembered (a refusal's text may quote the page's own message: a page sending a million different ones grew
+    the table by 155 MiB)."""
+
+    def __init__(self, remember: int = 256) -> None:
+        self.remember = remember
+        self._said: dict[str, float] = {}
+
+    def due(self, text: str, now: float) -> bool:
+        if now - self._said.get(text, -math.inf) < 1.0:
+            return False
+        if len(self._said) >= self.remember and text not in self._said:
+            self._said = {t: at for t, at in self._said.items() if now - at < 1.0}  # the others are due anyway
+            if len(self._said) >= self.remember:
+                return False  # hundreds of different refusals within a second: the page is told of them later
+        self._said[text] = now
+        return True
+
+
+class PageBudgets:
+    """What one page may push through the server, beyond the twists' own :class:`TwistBudget`:
+
+    - ``reading``: the server reads at most 500 messages a second from a page (8 times what the console sends)
+      and waits before reading more: a page that floods (a script, a broken one) is slowed to that pace, at no
+      cost to the other pages (a viewer's flood of 50 000 a second held up the driving page's twists by 0.6 s);
+    - ``camera``: servo steps and torch switches, 20 a second (a held button repeats at 10);
+    - ``stops``: a stop is forwarded at once, and then at most 5 a second (the edge holds a stop until the
+      deadman is released; repeating it a thousand times adds nothing but load).
+    """
+
+    READ_HZ = 500.0
+    CAMERA_HZ = 20.0
+    STOP_HZ = 5.0
+
+    def __init__(self) -> None:
+        self.reading = RateBudget(self.READ_HZ, 0.5 * self.READ_HZ)
+        self.camera = RateBudget(self.CAMERA_HZ, self.CAMERA_HZ)
+        self.stops = RateBudget(self.STOP_HZ, 1.0)
 
 
 def _only(obj: dict[str, Any], allowed: set[str]) -> None:

@@ -32,6 +32,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -180,6 +181,11 @@ class Bridge:
         self.hashes = user_hashes
         self.logins: dict[str, Login] = {}
         self.guard = users.LoginGuard()
+        self._guard_lock = threading.Lock()
+        self._unknown_user_hash = users.hash_password(secrets.token_urlsafe(16))
+        # Log-ins (an scrypt check each, ~50 ms) get threads of their own: a flood of them must not hold up
+        # taking or releasing control, which use the loop's default pool.
+        self.login_pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="web-login")
         self.refusals = Refusals()
         self.session: zenoh.Session | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -194,19 +200,21 @@ class Bridge:
     def log_in(self, user: str, password: str, address: str) -> tuple[str, str]:
         """(token, "") or ("", why not). The same answer for an unknown user and a wrong password."""
         now = time.monotonic()
-        wait = self.guard.blocked(address, now)
+        with self._guard_lock:  # log-ins run on a pool of threads: one check-and-count at a time
+            wait = self.guard.attempt(address, user, now)
         if wait:
-            self.refusals.add("login_blocked", address)
-            return "", f"too many failed log-ins from this address: try again in {math.ceil(wait)} s"
+            self.refusals.add("login_blocked", f"{user[:40]!r} from {address}")
+            return "", f"too many failed log-ins: try again in {math.ceil(wait)} s"
         stored = self.hashes.get(user)
-        ok = user in self.grants and stored is not None and users.check_password(password, stored)
+        # An unknown user costs one scrypt check as a known one does (against a hash made once): no user-name
+        # oracle in the answer's time.
+        ok = users.check_password(password, stored or self._unknown_user_hash) and stored is not None \
+            and user in self.grants
         if not ok:
-            if stored is None:  # spend the same time on an unknown user: no user-name oracle
-                users.check_password(password, users.hash_password("x", b"\0" * 16))
-            self.guard.failed(address, now)
             self.refusals.add("login_failed", f"{user[:40]!r} from {address}")
             return "", "wrong user name or password"
-        self.guard.succeeded(address)
+        with self._guard_lock:
+            self.guard.succeeded(address, user, now)
         self._expire(now)
         token = secrets.token_urlsafe(32)
         self.logins[token] = Login(user, now + 3600 * self.config.session_hours)
@@ -220,10 +228,13 @@ class Bridge:
             self.logins.pop(next(iter(self.logins)))
 
     def user_of(self, request: web.Request) -> users.Grant | None:
-        login = self.logins.get(request.cookies.get(COOKIE, ""))
-        if login is None or login.expires < time.monotonic():
-            return None
-        return self.grants.get(login.user)
+        token = request.cookies.get(COOKIE, "")
+        return self.grants.get(self.logins[token].user) if self.logged_in(token) else None
+
+    def logged_in(self, token: str) -> bool:
+        """Whether ``token`` is a log-in that has not ended (logged out, expired, or evicted for a newer one)."""
+        login = self.logins.get(token)
+        return login is not None and login.expires >= time.monotonic()
 
     def origin_ok(self, request: web.Request) -> bool:
         origin = request.headers.get("Origin", "")
@@ -278,6 +289,7 @@ class Bridge:
                               lost=lost).stamp(seq.next()).encode())
 
     def close(self) -> None:
+        self.login_pool.shutdown(wait=False, cancel_futures=True)
         for feed in self.feeds.values():
             feed.close()
         if self.session is not None:
@@ -288,8 +300,9 @@ class Page:
     """One open page: its websocket, its user's grant, its robot's feed and, while it holds control, its client."""
 
     def __init__(self, bridge: Bridge, ws: web.WebSocketResponse, grant: users.Grant, feed: Feed,
-                 transport: asyncio.BaseTransport | None) -> None:
+                 transport: asyncio.BaseTransport | None, token: str = "") -> None:
         self.bridge = bridge
+        self.token = token  # the log-in this page was opened with: its end (log-out, expiry) closes the page
         self.ws = ws
         self.transport = transport  # the socket under the websocket: how much it holds unsent
         self.grant = grant
@@ -305,13 +318,16 @@ class Page:
         self._feedback_at = dict.fromkeys(VIDEO_STREAMS, 0.0)
         self._pending: dict[int, int] = {}  # command seq → the page's message id
         self._last_events: dict[str, Event | None] = {"watch": None, "client": None}
-        self._refused_at: dict[str, float] = {}
+        self._notices = messages.Notices()
         self._twists = messages.TwistBudget(bridge.config.twist_hz)
+        self.budgets = messages.PageBudgets()
+        self._request: asyncio.Task[None] | None = None  # the request under way (held: the loop keeps tasks weakly)
         self.refused = 0
 
     # ------------------------------------------------------------- from the page
 
     async def on_text(self, data: str) -> None:
+        now = time.monotonic()
         try:
             msg = messages.parse(data)
         except messages.PageError as exc:
@@ -319,15 +335,23 @@ class Page:
         if isinstance(msg, messages.Twist):
             return await self.on_twist(msg)
         if isinstance(msg, messages.Control) and msg.verb == "stop":
-            return await self.on_stop()
+            return await self.on_stop(now)
         if isinstance(msg, messages.View):
             self.video_on = msg.video
             return None
         if not self.grant.may_command(self.robot):
             return await self.refuse("viewer", f"{self.grant.user} may watch {self.robot}, not command it")
+        if isinstance(msg, messages.Camera) and not self.budgets.camera.allow(now):
+            return await self.refuse("too_fast", f"camera steps beyond {self.budgets.CAMERA_HZ:.0f} a second are "
+                                     "dropped")
         if self._busy:
             return await self.refuse("busy", "a control request is still under way")
+        # Run apart from the socket's reading: the page's twists and its STOP go on while a request (a preview,
+        # an acquire) waits up to seconds for its answer.
         self._busy = True
+        self._request = asyncio.create_task(self._run_request(msg))
+
+    async def _run_request(self, msg: messages.PageMessage) -> None:
         try:
             await self.on_request(msg)
         finally:
@@ -352,9 +376,12 @@ class Page:
             while len(self._pending) > 512:
                 self._pending.pop(next(iter(self._pending)))
 
-    async def on_stop(self) -> None:
+    async def on_stop(self, now: float) -> None:
         if not self.grant.may_command(self.robot):
             return await self.refuse("viewer", f"{self.grant.user} may watch {self.robot}, not stop it: ask its operator")
+        if not self.budgets.stops.allow(now):  # the stop just sent holds the robot: a repeat adds only load
+            return await self.refuse("stop_repeated", f"stops beyond {self.budgets.STOP_HZ:.0f} a second are not "
+                                     "sent again: the robot holds the stop already sent")
         reason = f"e-stop from {self.grant.user}'s web console"
         if self.client is not None:
             self.client.emergency_stop(reason)
@@ -441,12 +468,10 @@ class Page:
             self.bridge.loop.call_soon_threadsafe(lambda: asyncio.ensure_future(self.send(reply)))
 
     async def refuse(self, kind: str, reason: str) -> None:
-        """Count a refusal and say it on the page (a repeated one at most once a second)."""
+        """Count a refusal and say it on the page (a repeated one at most once a second: :class:`Notices`)."""
         self.refused += 1
         self.bridge.refusals.add(kind, f"{self.grant.user} on {self.robot}: {reason}")
-        now = time.monotonic()
-        if now - self._refused_at.get(reason, -math.inf) >= 1.0:
-            self._refused_at[reason] = now
+        if self._notices.due(reason, time.monotonic()):
             await self.send({"type": "refused", "kind": kind, "reason": reason})
 
     # ------------------------------------------------------------- to the page
@@ -467,6 +492,9 @@ class Page:
             self.video_ready.clear()
             if time.monotonic() >= next_state:
                 next_state = time.monotonic() + period
+                if not self.bridge.logged_in(self.token):  # its log-in ended: the page ends with it
+                    await self.end(4401, "log-in ended (logged out or expired): log in again")
+                    return
                 if self.client is not None and not self.client.owner and not self._busy:
                     # The lease was lost (a dead link, the edge restarted): the client said why in its events;
                     # the page takes control again on purpose, with a fresh press of the deadman.
@@ -574,6 +602,12 @@ class Page:
             self._last_events[source] = items[-1]
         return items
 
+    async def end(self, code: int, reason: str) -> None:
+        """Close the page's socket, saying why; its handler then releases control (the robot stops)."""
+        await self.send({"type": "refused", "kind": "ended", "reason": reason})
+        with contextlib.suppress(ConnectionError, RuntimeError):
+            await self.ws.close(code=code, message=reason.encode()[:120])
+
     def close(self) -> None:
         self.closed = True
         self.feed.pages.discard(self)
@@ -667,7 +701,7 @@ async def _login(request: web.Request) -> web.StreamResponse:
     except (ValueError, KeyError, TypeError):
         return web.json_response({"ok": False, "reason": "send a user name and a password"}, status=400)
     token, why = await asyncio.get_running_loop().run_in_executor(
-        None, bridge.log_in, user, password, request.remote or "?")
+        bridge.login_pool, bridge.log_in, user, password, request.remote or "?")
     if not token:
         return web.json_response({"ok": False, "reason": why}, status=401)
     response = web.json_response({"ok": True, "user": user})
@@ -677,9 +711,17 @@ async def _login(request: web.Request) -> web.StreamResponse:
 
 
 async def _logout(request: web.Request) -> web.StreamResponse:
+    """Ends the log-in: its pages are closed (a page that holds control releases it, the robot stops)."""
     bridge: Bridge = request.app["bridge"]
-    if bridge.origin_ok(request):
-        bridge.logins.pop(request.cookies.get(COOKIE, ""), None)
+    if not bridge.origin_ok(request):
+        bridge.refusals.add("cross_origin", request.headers.get("Origin", "(none)"))
+        return web.json_response({"ok": False, "reason": "log-out from another site refused"}, status=403)
+    token = request.cookies.get(COOKIE, "")
+    bridge.logins.pop(token, None)
+    for feed in bridge.feeds.values():
+        for page in list(feed.pages):
+            if token and page.token == token:
+                await page.end(4401, "logged out")
     response = web.json_response({"ok": True})
     response.del_cookie(COOKIE, path="/")
     return response
@@ -720,7 +762,7 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
     await ws.prepare(request)
     request.app["pages"].add(ws)
     feed = bridge.feed(robot)
-    page = Page(bridge, ws, grant, feed, request.transport)
+    page = Page(bridge, ws, grant, feed, request.transport, token=request.cookies.get(COOKIE, ""))
     feed.pages.add(page)
     await page.send({"type": "hello", "user": grant.user, "role": str(grant.role), "robot": robot,
                      "robots": list(grant.robots), "may_command": grant.may_command(robot),
@@ -728,6 +770,9 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
     pusher = asyncio.create_task(page.push())
     try:
         async for msg in ws:
+            pause = page.budgets.reading.delay(time.monotonic())
+            if pause:  # a flooding page: read it no faster (the socket's buffers then hold its sender back)
+                await asyncio.sleep(pause)
             if msg.type == WSMsgType.TEXT:
                 await page.on_text(msg.data)
             elif msg.type == WSMsgType.BINARY:

@@ -10,6 +10,7 @@ password in clear, and a stolen file does not open the router.
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import hmac
 import secrets
@@ -94,29 +95,55 @@ def format_users(users: dict[str, str]) -> str:
 
 
 class LoginGuard:
-    """Refuses log-ins from an address after ``max_failures`` failures within ``window`` s, for ``window`` s."""
+    """Refuses log-ins from an address after ``max_failures`` failures within ``window`` s, and to a user name
+    after ``max_user_failures`` (from any address), for ``window`` s.
 
-    def __init__(self, max_failures: int = 5, window: float = 60.0) -> None:
+    An attempt counts as a failure from the moment it is let through (:meth:`attempt`), before its password is
+    checked, so that attempts sent at once cannot all slip in before the first one fails; a success takes back
+    only its own attempt (:meth:`succeeded`), never other failures: a valid log-in of one account does not
+    clear the guesses at another from the same address."""
+
+    def __init__(self, max_failures: int = 5, window: float = 60.0, max_user_failures: int = 20) -> None:
         self.max_failures = max_failures
+        self.max_user_failures = max_user_failures
         self.window = window
-        self._failures: dict[str, list[float]] = {}
+        self._failures: dict[str, list[float]] = {}  # "addr:<address>" / "user:<name>" → failure times
 
-    def blocked(self, address: str, now: float) -> float:
-        """Seconds until ``address`` may try again (0: now)."""
-        recent = [t for t in self._failures.get(address, []) if now - t < self.window]
+    def _recent(self, key: str, now: float) -> list[float]:
+        recent = [t for t in self._failures.get(key, []) if now - t < self.window]
         if recent:
-            self._failures[address] = recent
+            self._failures[key] = recent
         else:
-            self._failures.pop(address, None)
-        return self.window - (now - recent[0]) if len(recent) >= self.max_failures else 0.0
+            self._failures.pop(key, None)
+        return recent
 
-    def failed(self, address: str, now: float) -> None:
-        self._failures.setdefault(address, []).append(now)
-        if len(self._failures) > 10_000:  # a flood from many addresses costs bounded memory
+    def blocked(self, address: str, now: float, user: str = "") -> float:
+        """Seconds until ``address`` (and ``user``) may try again (0: now)."""
+        waits = [0.0]
+        for key, limit in ((f"addr:{address}", self.max_failures), (f"user:{user}", self.max_user_failures)):
+            recent = self._recent(key, now)
+            if len(recent) >= limit:
+                waits.append(self.window - (now - recent[-limit]))
+        return max(waits)
+
+    def attempt(self, address: str, user: str, now: float) -> float:
+        """Let an attempt through (0.0, counted as a failure until it succeeds) or say how long to wait."""
+        wait = self.blocked(address, now, user)
+        if not wait:
+            self.failed(address, now, user)
+        return wait
+
+    def failed(self, address: str, now: float, user: str = "") -> None:
+        for key in (f"addr:{address}", *((f"user:{user}",) if user else ())):
+            self._failures.setdefault(key, []).append(now)
+        while len(self._failures) > 20_000:  # a flood from many addresses and names costs bounded memory
             self._failures.pop(next(iter(self._failures)))
 
-    def succeeded(self, address: str) -> None:
-        self._failures.pop(address, None)
+    def succeeded(self, address: str, user: str, at: float) -> None:
+        """The attempt let through at ``at`` was right: it is not a failure after all."""
+        for key in (f"addr:{address}", f"user:{user}"):
+            with contextlib.suppress(KeyError, ValueError):
+                self._failures[key].remove(at)
 
 
 __all__ = ["Grant", "LoginGuard", "Role", "check_password", "format_users", "grants", "hash_password", "parse_users"]
