@@ -27,6 +27,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.error
 import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -363,6 +364,11 @@ def test_the_console_is_served_with_its_security_headers(stack) -> None:
     assert "script-src 'self'" in headers["Content-Security-Policy"]
     assert "frame-ancestors 'none'" in headers["Content-Security-Policy"]
     assert headers["X-Content-Type-Options"] == "nosniff"
+    # A refusal, a redirect and a missing page carry them too.
+    for path in ("/api/stats", "/nosuch", "/static/../server.py"):
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(f"{stack.url}{path}", timeout=5)
+        assert "frame-ancestors 'none'" in refused.value.headers["Content-Security-Policy"], path
 
 
 def test_a_wrong_password_gets_a_clear_message(stack, browser) -> None:

@@ -659,11 +659,18 @@ def make_app(bridge: Bridge) -> web.Application:
 
 @web.middleware
 async def _headers(request: web.Request, handler: Callable[[web.Request], Any]) -> web.StreamResponse:
-    response = await handler(request)
+    try:
+        response = await handler(request)
+    except web.HTTPException as exc:  # redirects, 401s, 403s and 404s carry the headers too
+        response = exc
     if not response.prepared:
         response.headers.update(SECURITY_HEADERS)
+        if request.secure:  # a browser that came once over HTTPS never tries plain HTTP for this host again
+            response.headers["Strict-Transport-Security"] = "max-age=31536000"
         if request.path.startswith("/api/") or request.path == "/":
             response.headers["Cache-Control"] = "no-store"
+    if isinstance(response, web.HTTPException):
+        raise response
     return response
 
 
@@ -736,12 +743,15 @@ async def _me(request: web.Request) -> web.StreamResponse:
 
 async def _stats(request: web.Request) -> web.StreamResponse:
     bridge: Bridge = request.app["bridge"]
-    if bridge.user_of(request) is None:
+    grant = bridge.user_of(request)
+    if grant is None:
         return web.json_response({"ok": False, "reason": "not logged in"}, status=401)
+    # Who watches and who drives: only for the robots this user may watch (an operator sees his own robots).
     pages = [{"user": p.grant.user, "robot": p.robot, "controlling": p.client is not None}
-             for f in bridge.feeds.values() for p in f.pages]
+             for f in bridge.feeds.values() if grant.may_watch(f.robot) for p in f.pages]
     return web.json_response({"ok": True, "refused": dict(bridge.refusals.counts), "pages": pages,
-                              "controllers": {r: p.grant.user for r, p in bridge.controllers.items()}})
+                              "controllers": {r: p.grant.user for r, p in bridge.controllers.items()
+                                              if grant.may_watch(r)}})
 
 
 async def _websocket(request: web.Request) -> web.StreamResponse:
