@@ -66,7 +66,7 @@ def _check_nothing_forged_applied(agent, alice: OperatorClient, echoes: list[App
     assert moved < 1e-4, f"the robot moved {1000 * moved:.2f} mm"
     # The owner kept control and its stream kept being applied to the end.
     wait_until(lambda: alice.echoes and alice.echoes[-1].accepted, 3.0, message="the owner's latest command applied")
-    assert not [e for e in alice.echoes if not e.accepted and e.status == Status.NOT_OWNER]
+    assert not [e for e in list(alice.echoes) if not e.accepted and e.status == Status.NOT_OWNER]
 
 
 def _forge_while_alice_holds(agent, alice: OperatorClient, attacker: zenoh.Session) -> None:

@@ -213,7 +213,7 @@ def test_operator_keeps_control_while_every_input_is_flooded(edge_factory, opera
     assert op.acquire().ok
     op.start()
     op.set_twist([0.005, 0, 0], [0, 0, 0], deadman=True)
-    wait_until(lambda: any(e.accepted for e in op.echoes), 5.0, message="the operator's commands applied")
+    wait_until(lambda: any(e.accepted for e in list(op.echoes)), 5.0, message="the operator's commands applied")
     attacker = session_factory()
     k = agent.keys
     rng = random.Random(20)

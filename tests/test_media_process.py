@@ -114,7 +114,7 @@ def test_a_killed_media_process_is_restarted_and_the_robot_stays_controllable(
     wait_until(lambda: op.robot_state is not None and op.robot_state.tcp_speed[0] > 0.004, timeout=5.0,
                message="the robot moving")
     x0 = op.robot_state.tcp_pose[0]  # type: ignore[union-attr]
-    refusals = sum(not e.accepted for e in op.echoes)
+    refusals = sum(not e.accepted for e in list(op.echoes))
     n_camera, n_ultrasound = streams.counts()[1:3]
     os.kill(first, signal.SIGKILL)
 
@@ -132,7 +132,7 @@ def test_a_killed_media_process_is_restarted_and_the_robot_stays_controllable(
     # The robot was driven throughout: every command accepted, no fault, and it moved on.
     x1 = op.robot_state.tcp_pose[0]  # type: ignore[union-attr]
     op.set_twist([0, 0, 0], [0, 0, 0], deadman=False)
-    assert sum(not e.accepted for e in op.echoes) == refusals, op.last_refusal
+    assert sum(not e.accepted for e in list(op.echoes)) == refusals, op.last_refusal
     assert edge.supervisor.fault == ""
     assert x1 - x0 > 0.002, (x0, x1)
 

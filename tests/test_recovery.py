@@ -68,7 +68,7 @@ def _blackout_after(emu: LinkEmulator, client: OperatorClient, moved_s: float, s
     """Black the link out for ``seconds`` once the robot has moved for about ``moved_s``."""
     def run() -> None:
         deadline = time.monotonic() + 20
-        while sum(e.accepted and e.status != Status.NO_DEADMAN for e in client.echoes) < 60 * moved_s and \
+        while sum(e.accepted and e.status != Status.NO_DEADMAN for e in list(client.echoes)) < 60 * moved_s and \
                 time.monotonic() < deadline:
             time.sleep(0.01)
         emu.blackout(True)

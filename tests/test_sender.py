@@ -49,7 +49,7 @@ def test_process_sender_moves_the_robot_and_records_echoes(edge_factory, proc_op
     wait_until(lambda: len(op.echoes) > 20, timeout=5, message="echoes")
     assert op.sent_count >= len(op.echoes) > 20
     assert all(e.accepted for e in list(op.echoes)[-10:])
-    assert all(0 < e.rtt_ms < 1000 for e in op.echoes)
+    assert all(0 < e.rtt_ms < 1000 for e in list(op.echoes))
     assert op.last_sent_ns > 0 and len(op.send_times) == op.sent_count
     assert op.link_quality().echoes > 0
     # Release: the tail of deadman=False zero twists, then quiet.

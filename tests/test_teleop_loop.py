@@ -89,7 +89,7 @@ def test_speed_never_exceeds_the_remote_profile(edge_factory, operator_factory, 
     speeds = [np.linalg.norm(s.tcp_speed[:3]) for s in log.since(t_start)]
     assert max(speeds) == pytest.approx(0.008, rel=1e-6)
     assert op.safety.linear_limit == pytest.approx(0.008)
-    assert any(e.status == "speed_limited" for e in op.echoes)
+    assert any(e.status == "speed_limited" for e in list(op.echoes))
 
 
 def _stop_time_ms(log: StateLog, last_cmd_ns: int) -> float:
@@ -194,7 +194,7 @@ def test_workspace_box_stops_outward_motion_at_the_boundary(edge_factory, operat
     print(f"\npushed 60 mm toward a face 10 mm away: stopped at {1000 * (x - 0.31):+.3f} mm from it")
     assert 0.31 - 0.0005 <= x <= 0.31 + 0.0001  # at the face, not past it
     assert x_held == pytest.approx(x, abs=1e-4)
-    assert "workspace" in op.safety.limits_hit or any(e.status == "workspace_limit" for e in op.echoes)
+    assert "workspace" in op.safety.limits_hit or any(e.status == "workspace_limit" for e in list(op.echoes))
     assert edge.supervisor.status in ("workspace_limit", "deadman_released")
 
 
