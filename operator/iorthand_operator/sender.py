@@ -232,6 +232,19 @@ class ProcessSender:
             self.shared.write(heartbeat=time.monotonic())
 
     def start(self, timeout: float = 30.0) -> None:
+        """Start the child and wait until it is ready. A child that ends during start-up without a word (exit code
+        0: it found its parent gone, or was sent SIGTERM) is started once more, and said so; a reason it gives,
+        or a second silent end, is raised."""
+        try:
+            self._start_once(timeout)
+        except _SilentExit as exc:
+            log.warning("%s: starting it once more", exc)
+            self._start_once(timeout)
+
+    def _start_once(self, timeout: float) -> None:
+        with self._lock:
+            self.shared.write(stop=0.0)  # (a failed start stopped the one before)
+        self._stop.clear()
         recv, send = self._ctx.Pipe(duplex=False)
         pdeathsig = threading.current_thread() is threading.main_thread()  # PDEATHSIG follows the *thread*
         self.proc = self._ctx.Process(
@@ -248,7 +261,8 @@ class ProcessSender:
             if left <= 0 or not recv.poll(min(left, 0.2)):
                 if left <= 0 or not self.proc.is_alive():
                     self.stop()
-                    raise RuntimeError(f"sender process did not start (exit code {self.proc.exitcode})")
+                    error = _SilentExit if left > 0 and self.proc.exitcode == 0 else RuntimeError
+                    raise error(f"sender process did not start (exit code {self.proc.exitcode})")
                 continue
             try:
                 msg = recv.recv_bytes()
@@ -317,6 +331,10 @@ class ProcessSender:
             with contextlib.suppress(OSError):
                 self._conn.close()
             self._conn = None
+
+
+class _SilentExit(RuntimeError):
+    """The child ended during start-up with exit code 0 and no reason."""
 
 
 # ---------------------------------------------------------------------- the child
