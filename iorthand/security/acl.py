@@ -225,10 +225,9 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
             _rule(f"{name}-subscribe", SUBSCRIBE, ["ingress"], [everything]),
             _rule(f"{name}-receive", ALL_MESSAGES, ["egress"], [everything]),
         ]
-        if name in SERVICES and services:
-            rl.append(_rule(f"{name}-query", ["query"], ["ingress"], services))
-        elif dep.services:
-            rl.append(_rule(f"{name}-query", ["query"], ["ingress"], [READ_ONLY_QUERIES[s] for s in dep.services]))
+        if services:
+            asked = services if name in SERVICES else [READ_ONLY_QUERIES[s] for s in dep.services]
+            rl.append(_rule(f"{name}-query", ["query"], ["ingress"], asked))
         if name in SERVICES:
             own = _service_space(name)
             rl.append(_rule(f"{name}-serve", ["put", "delete", "declare_queryable", "reply", "liveliness_token"], ["ingress"], [own]))

@@ -56,7 +56,7 @@ class RobotSeries:
     pose: list[tuple[float, list[float]]] = field(default_factory=list)
     malformed: int = 0
     implausible_time: int = 0  # messages whose source time strays from their receipt (TIME_OUTLIER_S)
-    # (series, entry, source − receive time in ns) until the robot's clock offset is known: see _settle
+    # (series, entry, source − receive time in ns) until the robot's clock offset is known: see settle
     timed: list[tuple[list[Any], tuple[Any, ...], int]] = field(default_factory=list)
 
     def add(self, series: list[Any], entry: tuple[Any, ...], t_ns: int, recv_ns: int) -> None:

@@ -95,6 +95,10 @@ class _Recording:
     keys_of_others: int = 0  # keys of robots the start request did not name (and of no robot)
     unrecorded: int = 0  # samples taken off the queue but not recorded: beyond max_keys, or left at shutdown
 
+    def keys_held(self, requested: bool) -> int:
+        """How many keys this recording keeps of the robots its start request named (or, False, of the others)."""
+        return len(self.manifest.keys) - self.keys_of_others if requested else self.keys_of_others
+
 
 class RecorderError(RuntimeError):
     pass
@@ -536,7 +540,7 @@ class RecorderService:
         if stats is None:
             robot = keys.robot_of(key)
             requested = robot in rec.requested
-            if (len(rec.manifest.keys) - rec.keys_of_others if requested else rec.keys_of_others) >= self.config.max_keys:
+            if rec.keys_held(requested) >= self.config.max_keys:
                 self._unrecorded(rec, key)
                 return
         cls = message_type_for(key)

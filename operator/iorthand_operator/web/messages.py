@@ -115,32 +115,6 @@ def parse(data: str | bytes) -> PageMessage:
     raise PageError(f"type: unknown message type {str(kind)[:30]!r}")
 
 
-class TwistBudget:
-    """How many twists a page may have forwarded: ``twist_hz`` a second on average with a quarter second's worth
-    at once, both twice what a well-behaved page sends (a busy browser runs late timer ticks close together). A
-    page that sends faster, a hostile script or a broken one, has the excess dropped, which bounds what it can
-    push through the server to the edge. The first release after a held twist always passes: letting go must
-    reach the robot."""
-
-    def __init__(self, twist_hz: float) -> None:
-        self.rate = 2.0 * twist_hz
-        self.burst = 0.25 * self.rate
-        self._tokens = self.burst
-        self._at = -math.inf  # the previous twist's arrival
-        self._held = False  # the deadman of the last twist forwarded
-
-    def allow(self, twist: Twist, now: float) -> bool:
-        """Whether ``twist``, arriving at ``now`` (s, monotonic), is forwarded."""
-        self._tokens = min(self.burst, self._tokens + (now - self._at) * self.rate)
-        self._at = now
-        if self._tokens >= 1.0:
-            self._tokens -= 1.0
-        elif twist.deadman or not self._held:
-            return False
-        self._held = twist.deadman
-        return True
-
-
 class RateBudget:
     """A token bucket: ``rate`` a second on average, ``burst`` at once. Pure: the caller gives the time."""
 
@@ -166,6 +140,26 @@ class RateBudget:
         self._refill(now)
         self._tokens -= 1.0
         return max(0.0, -self._tokens / self.rate)
+
+
+class TwistBudget:
+    """How many twists a page may have forwarded: ``twist_hz`` a second on average with a quarter second's worth
+    at once, both twice what a well-behaved page sends (a busy browser runs late timer ticks close together). A
+    page that sends faster, a hostile script or a broken one, has the excess dropped, which bounds what it can
+    push through the server to the edge. The first release after a held twist always passes: letting go must
+    reach the robot."""
+
+    def __init__(self, twist_hz: float) -> None:
+        self.rate = 2.0 * twist_hz
+        self._bucket = RateBudget(self.rate, 0.25 * self.rate)
+        self._held = False  # the deadman of the last twist forwarded
+
+    def allow(self, twist: Twist, now: float) -> bool:
+        """Whether ``twist``, arriving at ``now`` (s, monotonic), is forwarded."""
+        if not self._bucket.allow(now) and (twist.deadman or not self._held):
+            return False
+        self._held = twist.deadman
+        return True
 
 
 class Notices:
