@@ -4,6 +4,7 @@ machine delays what the test *sees*, not what it checks)."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -167,3 +168,39 @@ def test_a_client_started_a_while_after_it_was_made_does_not_read_as_a_frozen_ui
         op.start()
         wait_until(lambda: op.sent_count >= 10, timeout=5, message="ten commands")
     assert not [r.getMessage() for r in caplog.records if "UI silent" in r.getMessage()]
+
+
+def test_the_lease_is_renewed_while_the_sender_process_starts(edge_factory, proc_operator, monkeypatch) -> None:
+    """The sender process's start-up can take longer than the edge's lease on a loaded machine (a clone's CI run
+    saw one take seconds). The lease renewal runs meanwhile: the operator never loses control while it starts."""
+    from iorthand_operator.sender import ProcessSender
+
+    edge = edge_factory(safety={"auto_arm": True, "lease": 1.0})
+    op = proc_operator()
+    op.wait_for_state()
+    op.acquire()
+    start_once = ProcessSender._start_once
+
+    def slow_start_once(self, timeout: float) -> None:
+        time.sleep(2.5)  # 2.5 leases
+        start_once(self, timeout)
+
+    monkeypatch.setattr(ProcessSender, "_start_once", slow_start_once)
+    owners: list[str] = []
+    watching = True
+
+    def watch() -> None:
+        while watching:
+            owners.append(edge.supervisor.owner)
+            time.sleep(0.02)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        op.start()
+    finally:
+        watching = False
+        watcher.join(timeout=1)
+    assert owners and all(o == op.operator_id for o in owners), \
+        f"control lost during the start-up in {sum(o != op.operator_id for o in owners)} of {len(owners)} samples"
+    assert op.owner

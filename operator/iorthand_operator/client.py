@@ -445,7 +445,15 @@ class OperatorClient:
         # Being started is a sign of life: the heartbeat from construction may be older than ui_timeout by now, and
         # the heartbeat thread's first beat comes one period after the sender's first tick.
         self.beat()
+        # The heartbeat and the lease renewal first: the sender process's start-up can take seconds on a loaded
+        # machine, and the edge's lease runs out meanwhile if nobody renews it.
         fns: list[tuple[str, Any]] = [("heartbeat", self._beat), ("lease", self._renew_lease)]
+        if self._proc_sender is None and not self.external_sender:
+            fns.insert(0, ("sender", self._sender))
+        for name, fn in fns:
+            t = threading.Thread(target=fn, name=f"operator-{name}", daemon=True)
+            t.start()
+            self._threads.append(t)
         if self._proc_sender is not None:
             if self.gil_switch_interval is not None and sys.getswitchinterval() > self.gil_switch_interval:
                 sys.setswitchinterval(self.gil_switch_interval)  # keeps the heartbeat and echo matching prompt
@@ -456,12 +464,6 @@ class OperatorClient:
                                         halted_at=self._halted_at, frame=TWIST_FRAMES.index(self._frame))
             self._proc_sender.start()
             self.sender_priority = f"{self._proc_sender.priority} (process {self._proc_sender.proc.pid})"
-        elif not self.external_sender:
-            fns.insert(0, ("sender", self._sender))
-        for name, fn in fns:
-            t = threading.Thread(target=fn, name=f"operator-{name}", daemon=True)
-            t.start()
-            self._threads.append(t)
 
     def _on_send_record(self, seq: int, t_ns: int, mono: float) -> None:
         """One send by the sender process (called by its link thread, or by an echo arriving first)."""
