@@ -808,6 +808,32 @@ def _log_in_over_http(stack: Stack, user: str) -> str:
         return r.headers["Set-Cookie"].split(";")[0].split("=", 1)[1]
 
 
+def _log_in_through_proxy(stack: Stack, user: str, password: str, browser_address: str) -> tuple[int, str]:
+    """A log-in as a reverse proxy on this host forwards it (the test's requests come from 127.0.0.1, the
+    console's default trusted proxy); returns the status and the Set-Cookie header."""
+    req = urllib.request.Request(f"{stack.url}/api/login", method="POST",
+                                 data=json.dumps({"user": user, "password": password}).encode(),
+                                 headers={"Origin": stack.url, "Content-Type": "application/json",
+                                          "X-Forwarded-For": browser_address, "X-Forwarded-Proto": "https"})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status, r.headers.get("Set-Cookie", "")
+    except urllib.error.HTTPError as refused:
+        return refused.code, ""
+
+
+def test_behind_a_reverse_proxy_one_browsers_failed_log_ins_lock_out_only_that_browser(stack) -> None:
+    """Behind the proxy every request came from its address: five wrong passwords from one browser locked every
+    user out for a minute. The cookie of a log-in over the proxy's HTTPS is Secure."""
+    statuses = [_log_in_through_proxy(stack, "student", "wrong", "203.0.113.66")[0] for _ in range(6)]
+    assert statuses == [401] * 6, statuses
+    status, cookie = _log_in_through_proxy(stack, "student", PASSWORDS["student"], "203.0.113.66")
+    assert status == 401, "that browser's address waits"
+    status, cookie = _log_in_through_proxy(stack, "student", PASSWORDS["student"], "198.51.100.20")
+    assert status == 200, "another browser behind the same proxy logs in"
+    assert "Secure" in cookie and "HttpOnly" in cookie, cookie
+
+
 def test_logging_out_ends_the_pages_of_that_log_in_and_their_control(stack) -> None:
     """Found by a red-team run: a page that was driving went on driving after its user logged out (and after the
     log-in expired): the log-in was checked only when the page opened. A log-out from another site is refused."""

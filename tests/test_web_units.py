@@ -69,6 +69,43 @@ def test_a_valid_log_in_clears_no_other_failures_and_guessing_one_account_is_lim
     assert guard.attempt("10.0.0.99", "student", 310.0) == 0  # other accounts are not locked by it
 
 
+def test_behind_a_trusted_proxy_the_browser_is_who_the_proxy_says_and_nobody_else_is_believed() -> None:
+    """Behind the reverse proxy DEPLOY.md describes, every request comes from the proxy's address: one user's five
+    wrong passwords locked every user out for a minute, and the session cookie lost its Secure flag."""
+    trusted = ["127.0.0.1", "::1"]
+    proxied = {"X-Forwarded-For": "6.6.6.6, 203.0.113.9", "X-Forwarded-Proto": "https"}
+    # The address the proxy appended (the last one); the ones before it are the client's own claims.
+    assert users.peer_of("127.0.0.1", False, proxied, trusted) == users.Peer("203.0.113.9", True)
+    assert users.peer_of("::1", False, {"X-Forwarded-For": "2001:db8::7"}, trusted) == users.Peer("2001:db8::7", False)
+    # Forwarding headers from anyone else are ignored: nobody can pick the address their failures count against.
+    assert users.peer_of("198.51.100.4", False, proxied, trusted) == users.Peer("198.51.100.4", False)
+    assert users.peer_of("127.0.0.1", True, proxied, []) == users.Peer("127.0.0.1", True)
+    # Garbage for an address keeps the proxy's own (the shared, stricter limit); no header: the connection's.
+    assert users.peer_of("127.0.0.1", False, {"X-Forwarded-For": "<script>"}, trusted).address == "127.0.0.1"
+    assert users.peer_of("127.0.0.1", False, {}, trusted) == users.Peer("127.0.0.1", False)
+    with pytest.raises(ValueError, match=re.escape("trusted_proxies: 'proxy.local' is not an IP address")):
+        WebConfig(trusted_proxies=["proxy.local"]).check()
+
+
+def test_one_users_log_ins_end_only_that_users_oldest_never_anothers(monkeypatch) -> None:
+    """Found by a red-team run: a viewer logging in over and over filled the table of log-ins, and at its size the
+    oldest log-in was evicted whoever it was: the driving physician's page ended, and its control."""
+    from iorthand_operator.web import server
+
+    monkeypatch.setattr(server, "MAX_SESSIONS", 12)
+    monkeypatch.setattr(server, "MAX_LOGINS_PER_USER", 4)
+    dep = Deployment(robots=["r1"], operators={"alice": ["r1"]}, viewers=["sam"])
+    bridge = server.Bridge(WebConfig(), dep, {"alice": users.hash_password("alice-pw"),
+                                              "sam": users.hash_password("sam-pw")})
+    try:
+        alice, _ = bridge.log_in("alice", "alice-pw", "10.0.0.1")
+        sams = [bridge.log_in("sam", "sam-pw", "10.0.0.2")[0] for _ in range(20)]
+        assert all(sams) and bridge.logged_in(alice)
+        assert [bridge.logged_in(t) for t in sams] == [False] * 16 + [True] * 4  # his newest four
+    finally:
+        bridge.login_pool.shutdown()
+
+
 def test_deeply_nested_json_is_refused_by_name() -> None:
     with pytest.raises(messages.PageError, match="nested too deeply"):
         messages.parse("[" * 1023 + "]" * 1023)

@@ -27,6 +27,11 @@ class WebConfig:
     allowed_origins: list[str] = setting(
         default_factory=list, help="origins besides the server's own that may open the console (a reverse proxy's)",
     )
+    trusted_proxies: list[str] = setting(
+        default_factory=lambda: ["127.0.0.1", "::1"],
+        help="addresses of reverse proxies whose X-Forwarded-For and X-Forwarded-Proto are believed: the browser's "
+        "address limits its log-in attempts, and HTTPS there makes the session cookie Secure",
+    )
     session_hours: float = setting(12.0, lo=0.01, hi=24 * 30, help="how long a log-in lasts")
     state_hz: float = setting(20.0, lo=1.0, hi=60.0, help="robot state pushed to each page per second")
     twist_hz: float = setting(
@@ -48,6 +53,11 @@ class WebConfig:
         if self.tls is None and not _loopback(host):
             raise ValueError(f"listen {self.listen!r}: a console reachable from the network needs tls (certificate, "
                              "private_key): passwords and the deadman must not cross a network in clear")
+        for address in self.trusted_proxies:
+            try:
+                ipaddress.ip_address(address)
+            except ValueError:
+                raise ValueError(f"trusted_proxies: {address!r} is not an IP address") from None
         for origin in self.allowed_origins:
             if not origin.startswith(("https://", "http://")) or origin.endswith("/"):
                 raise ValueError(f"allowed_origins: {origin!r} is not an origin like https://host[:port]")

@@ -64,6 +64,9 @@ VIDEO_STREAMS = {"camera": keys.VIDEO_CAMERA, "ultrasound": keys.VIDEO_ULTRASOUN
 VIDEO_BACKLOG_BYTES = 256 * 1024
 WS_MAX_BYTES = 64 * 1024  # aiohttp closes a socket whose message is larger; up to it, messages.parse refuses
 MAX_SESSIONS = 10_000
+# One user's log-ins beyond this end that user's oldest, never another user's: a viewer logging in over and over
+# filled the table and, at MAX_SESSIONS, evicted the physician's log-in (its page ended, and its control).
+MAX_LOGINS_PER_USER = 16
 SECURITY_HEADERS = {
     "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; style-src 'self'; "
                                "script-src 'self'; connect-src 'self'; frame-ancestors 'none'; base-uri 'none'",
@@ -215,14 +218,18 @@ class Bridge:
             return "", "wrong user name or password"
         with self._guard_lock:
             self.guard.succeeded(address, user, now)
-        self._expire(now)
+        self._expire(now, user)
         token = secrets.token_urlsafe(32)
         self.logins[token] = Login(user, now + 3600 * self.config.session_hours)
         log.info("%s logged in from %s (%s)", user, address, self.grants[user].role)
         return token, ""
 
-    def _expire(self, now: float) -> None:
+    def _expire(self, now: float, user: str) -> None:
+        """Room for a new log-in of ``user``: expired log-ins go, then that user's oldest beyond its share."""
         for token in [t for t, s in self.logins.items() if s.expires < now]:
+            del self.logins[token]
+        own = [t for t, s in self.logins.items() if s.user == user]  # oldest first (the dict keeps their order)
+        for token in own[:max(0, len(own) - MAX_LOGINS_PER_USER + 1)]:
             del self.logins[token]
         while len(self.logins) >= MAX_SESSIONS:
             self.logins.pop(next(iter(self.logins)))
@@ -235,6 +242,10 @@ class Bridge:
         """Whether ``token`` is a log-in that has not ended (logged out, expired, or evicted for a newer one)."""
         login = self.logins.get(token)
         return login is not None and login.expires >= time.monotonic()
+
+    def peer(self, request: web.Request) -> users.Peer:
+        """The browser behind ``request`` (through a trusted reverse proxy: what the proxy says)."""
+        return users.peer_of(request.remote, request.secure, request.headers, self.config.trusted_proxies)
 
     def origin_ok(self, request: web.Request) -> bool:
         origin = request.headers.get("Origin", "")
@@ -493,7 +504,8 @@ class Page:
             if time.monotonic() >= next_state:
                 next_state = time.monotonic() + period
                 if not self.bridge.logged_in(self.token):  # its log-in ended: the page ends with it
-                    await self.end(4401, "log-in ended (logged out or expired): log in again")
+                    await self.end(4401, "log-in ended (logged out, expired, or ended by newer log-ins of the same "
+                                         "user): log in again")
                     return
                 if self.client is not None and not self.client.owner and not self._busy:
                     # The lease was lost (a dead link, the edge restarted): the client said why in its events;
@@ -665,7 +677,8 @@ async def _headers(request: web.Request, handler: Callable[[web.Request], Any]) 
         response = exc
     if not response.prepared:
         response.headers.update(SECURITY_HEADERS)
-        if request.secure:  # a browser that came once over HTTPS never tries plain HTTP for this host again
+        # A browser that came once over HTTPS (to us, or to the proxy in front) never tries plain HTTP here again.
+        if request.app["bridge"].peer(request).https:
             response.headers["Strict-Transport-Security"] = "max-age=31536000"
         if request.path.startswith("/api/") or request.path == "/":
             response.headers["Cache-Control"] = "no-store"
@@ -707,12 +720,13 @@ async def _login(request: web.Request) -> web.StreamResponse:
         user, password = str(body["user"])[:64], str(body["password"])[:256]
     except (ValueError, KeyError, TypeError):
         return web.json_response({"ok": False, "reason": "send a user name and a password"}, status=400)
+    peer = bridge.peer(request)
     token, why = await asyncio.get_running_loop().run_in_executor(
-        bridge.login_pool, bridge.log_in, user, password, request.remote or "?")
+        bridge.login_pool, bridge.log_in, user, password, peer.address)
     if not token:
         return web.json_response({"ok": False, "reason": why}, status=401)
     response = web.json_response({"ok": True, "user": user})
-    response.set_cookie(COOKIE, token, httponly=True, samesite="Strict", secure=request.secure, path="/",
+    response.set_cookie(COOKIE, token, httponly=True, samesite="Strict", secure=peer.https, path="/",
                         max_age=int(3600 * bridge.config.session_hours))
     return response
 
@@ -762,7 +776,7 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
         raise web.HTTPForbidden(text="websocket from another origin refused")
     grant = bridge.user_of(request)
     if grant is None:
-        bridge.refusals.add("not_logged_in", request.remote or "?")
+        bridge.refusals.add("not_logged_in", bridge.peer(request).address)
         raise web.HTTPUnauthorized(text="not logged in")
     robot = request.query.get("robot", "") or (grant.robots[0] if grant.robots else "")
     if not grant.may_watch(robot):

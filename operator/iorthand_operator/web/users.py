@@ -13,7 +13,9 @@ import base64
 import contextlib
 import hashlib
 import hmac
+import ipaddress
 import secrets
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 
@@ -147,3 +149,29 @@ class LoginGuard:
 
 
 __all__ = ["Grant", "LoginGuard", "Role", "check_password", "format_users", "grants", "hash_password", "parse_users"]
+
+
+@dataclass(frozen=True)
+class Peer:
+    """Who is on the other end of a request: the browser's address, and whether it came over HTTPS."""
+
+    address: str
+    https: bool
+
+
+def peer_of(remote: str | None, https: bool, headers: Mapping[str, str], trusted_proxies: Collection[str]) -> Peer:
+    """The browser behind a request. From a trusted reverse proxy (its address in ``trusted_proxies``) that is what
+    the proxy says: the last address of X-Forwarded-For (the one the proxy appended: the ones before it are the
+    client's own claims) and X-Forwarded-Proto. Behind a proxy every request comes from the proxy's address, so
+    without this one user's failed log-ins locked every user out, and cookies lost their Secure flag.
+    Anyone else's forwarding headers are ignored."""
+    remote = remote or "?"
+    if remote not in trusted_proxies:
+        return Peer(remote, https)
+    forwarded = headers.get("X-Forwarded-For", "").rsplit(",", 1)[-1].strip()
+    try:
+        address = str(ipaddress.ip_address(forwarded)) if forwarded else remote
+    except ValueError:
+        address = remote  # not an address: the proxy's own stands (the stricter, shared limit)
+    proto = headers.get("X-Forwarded-Proto", "").rsplit(",", 1)[-1].strip().lower()
+    return Peer(address, https or proto == "https")
