@@ -3,12 +3,18 @@ annotations, error reporting, crash repair."""
 
 from __future__ import annotations
 
+import dataclasses
+import io
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 import msgpack
 import pytest
 from mcap.reader import make_reader
+from mcap.records import ChunkIndex
+from mcap.writer import CompressionType, Writer
 
 from iorthand import keys
 from iorthand.config import from_dict
@@ -16,7 +22,13 @@ from iorthand.protocol import Annotation, ForceSample, RecorderStatus, TwistComm
 from iorthand_cloud.recorder import client
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
-from iorthand_cloud.recorder.reader import iter_records, segment_files
+from iorthand_cloud.recorder.reader import (
+    MAX_CHUNK_BYTES,
+    SegmentError,
+    check_chunks,
+    iter_records,
+    segment_files,
+)
 from iorthand_cloud.recorder.report import build_report, md_text, missing_where
 from iorthand_cloud.recorder.segments import VIDEO
 from iorthand_cloud.recorder.service import RecorderService
@@ -316,6 +328,85 @@ def test_a_hostile_session_cannot_write_into_its_report(recorder_factory, sessio
     assert headings == ["# Session hostile", "## Robot sim1", "## Annotations"]
     assert not [line for line in report.splitlines() if line.startswith("- status")][1:]  # no forged status line
     assert "eve\\\\n\\- status" not in report and "eve\\\\n- status: \\*\\*complete" in report
+
+
+def _chunk(start_s: float, end_s: float, mib: int) -> ChunkIndex:
+    return ChunkIndex(message_start_time=int(start_s * 1e9), message_end_time=int(end_s * 1e9),
+                      chunk_start_offset=0, chunk_length=0, message_index_offsets={}, message_index_length=0,
+                      compression="zstd", compressed_size=1, uncompressed_size=mib * 2**20)
+
+
+def test_a_segment_whose_chunks_would_take_more_memory_than_the_recorder_writes_is_refused() -> None:
+    """Chunks one after the other are read one at a time; chunks whose times overlap are decompressed together."""
+    check_chunks(Path("t.mcap"), [_chunk(i, i + 0.9, 60) for i in range(20)])  # 1.2 GiB, 60 MiB at a time
+    check_chunks(Path("t.mcap"), [_chunk(0, 1, 60), _chunk(1, 2, 60), _chunk(0.5, 1.5, 60)])  # 180 MiB at once
+    with pytest.raises(SegmentError, match=r"t.mcap: the chunk at byte 0 declares 65 MiB uncompressed"):
+        check_chunks(Path("t.mcap"), [_chunk(0, 1, 65)])
+    with pytest.raises(SegmentError, match=r"chunks whose times overlap hold 300 MiB"):
+        check_chunks(Path("t.mcap"), [_chunk(0, 10, 60) for _ in range(5)])
+
+
+@pytest.mark.parametrize("footer", [True, False])
+def test_a_decompression_bomb_is_refused_by_name_before_it_is_decompressed(recorder_factory, session_factory,
+                                                                          tmp_path: Path, footer: bool) -> None:
+    """Found by a red-team run: a 20 kB segment whose zstd chunk unpacked to 600 MiB took `iorthand report` to
+    1.33 GB and `export` to 2 GB. A segment with its footer, and one without (which the report repairs first)."""
+    recorder_factory()
+    s = session_factory()
+    time.sleep(0.3)
+    assert client.start(s, session_id="bomb").ok
+    s.put("iorthand/sim1/state/force", _force(1))
+    time.sleep(0.5)
+    assert client.stop(s).ok
+    out = io.BytesIO()
+    w = Writer(out, compression=CompressionType.ZSTD, chunk_size=2**31)
+    w.start("iorthand", "crafted")
+    channel = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
+    w.add_message(channel, time.time_ns(), b"\0" * (300 * 2**20), time.time_ns(), 1)
+    w.finish()
+    data = out.getvalue()
+    assert len(data) < 100_000
+    folder = tmp_path / "rec" / "bomb"
+    baseline = _report_in_child(folder, tmp_path / "baseline")
+    assert baseline.status == 0, baseline.stderr
+    (folder / "telemetry-0099.mcap").write_bytes(data if footer else data[:-200])
+    bombed = _report_in_child(folder, tmp_path / "report")
+    if footer:  # a finished segment: the report refuses the session and says why
+        assert bombed.status == 1, (bombed.stdout, bombed.stderr)
+    else:  # one left unfinished: the repair before the report sets it aside, says so, and reads the rest
+        assert bombed.status == 0 and "report:" in bombed.stdout, (bombed.stdout, bombed.stderr)
+        assert "set aside as telemetry-0099.mcap.refused" in bombed.stderr, bombed.stderr
+        assert (folder / "telemetry-0099.mcap.refused").read_bytes() == data[:-200]
+        assert mf.Manifest.read(folder).status == mf.COMPLETE
+    assert "telemetry-0099.mcap" in bombed.stderr and "declares 300 MiB uncompressed" in bombed.stderr, bombed.stderr
+    assert f"{MAX_CHUNK_BYTES // 2**20} MiB" in bombed.stderr and "Traceback" not in bombed.stderr, bombed.stderr
+    print(f"\npeak RSS of the report: {baseline.peak_mb:.0f} MB, with the bomb {bombed.peak_mb:.0f} MB")
+    assert bombed.peak_mb < baseline.peak_mb + 100  # it decompressed 300 MiB before
+
+
+@dataclasses.dataclass
+class _Run:
+    status: int
+    stdout: str
+    stderr: str
+    peak_mb: float
+
+
+# A child started from this (large) process by vfork inherits its peak RSS at exec; a child forked by a small
+# process starts from that process's size. So a small Python process runs the command and says its peak (kB).
+_PEAK_RSS = ("import os, subprocess, sys\n"
+             "p = subprocess.Popen(sys.argv[1:], preexec_fn=os.getpid)  # (a real fork: no vfork)\n"
+             "_, status, usage = os.wait4(p.pid, 0)\n"
+             "print(f'peak-rss-kb={usage.ru_maxrss}', file=sys.stderr)\n"
+             "sys.exit(os.waitstatus_to_exitcode(status))\n")
+
+
+def _report_in_child(folder: Path, out: Path) -> _Run:
+    """`iorthand report` in a child process, with its peak RSS (the kernel's, for that child alone)."""
+    proc = subprocess.run([sys.executable, "-c", _PEAK_RSS, sys.executable, "-m", "iorthand.cli", "report",
+                           str(folder), "--out", str(out)], capture_output=True, text=True, timeout=120)
+    stderr, _, peak = proc.stderr.rpartition("peak-rss-kb=")
+    return _Run(proc.returncode, proc.stdout, stderr, int(peak) / 1024)
 
 
 def test_a_replay_skips_the_keys_of_invalid_robot_ids_and_goes_on(recorder_factory, session_factory,

@@ -5,17 +5,20 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from iorthand import keys
 from iorthand.config import ConfigError, cli_number, from_dict, load
 from iorthand.transport import ZenohConfig, client_config, open_session
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
+from iorthand_cloud.recorder.reader import SegmentError
 
 log = logging.getLogger("iorthand.recorder")
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -80,6 +83,21 @@ def _cmd_annotate(args: argparse.Namespace) -> int:
     return 0 if st.ok else 1
 
 
+def _reading(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """A command that reads a session's segments: a segment it cannot read safely is said in one line (exit 1)."""
+
+    @functools.wraps(command)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return command(args)
+        except SegmentError as exc:
+            print(f"iorthand {args.command}: {exc}", file=sys.stderr)
+            return 1
+
+    return run
+
+
+@_reading
 def _cmd_replay(args: argparse.Namespace) -> int:
     from iorthand_cloud.recorder.manifest import Manifest
     from iorthand_cloud.recorder.replay import Replayer
@@ -96,10 +114,20 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             return 2
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: rp.stop_event.set())
-        t = threading.Thread(target=rp.run, name="replay", daemon=True)
+        refused: list[SegmentError] = []
+
+        def run() -> None:
+            try:
+                rp.run()
+            except SegmentError as exc:  # a later segment: what went before was replayed
+                refused.append(exc)
+
+        t = threading.Thread(target=run, name="replay", daemon=True)
         t.start()
         while t.is_alive():
             t.join(0.2)
+        if refused:
+            raise refused[0]
         robots = sorted({keys.split_key(k)[0] for k in rp.stats.per_key})
         print(f"replayed {rp.stats.published} messages as {', '.join(robots) or 'no robot'} ({rp.stats.loops} "
               f"pass(es)), at most {rp.stats.max_late_ms:.1f} ms late; {rp.stats.commands_withheld} operator "
@@ -127,6 +155,7 @@ def _report_config(args: argparse.Namespace) -> ReportConfig:
     return cfg
 
 
+@_reading
 def _cmd_report(args: argparse.Namespace) -> int:
     from iorthand_cloud.recorder.report import build_report
 
@@ -139,6 +168,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+@_reading
 def _cmd_export(args: argparse.Namespace) -> int:
     if args.start is not None and args.end is not None and args.end <= args.start:
         raise ConfigError("command line", "--end", f"{args.end:g} s is not after --start {args.start:g} s")

@@ -53,7 +53,7 @@ class RecorderConfig:
     segment_max_s: float = setting(600.0, lo=1.0, help="segment duration before a new file")
     flush_interval: float = setting(0.5, lo=0.02, hi=1.0, help="s: data reaches the file at least this often")
     fsync: bool = setting(True, help="also fsync at each flush (power loss, not only a killed process)")
-    chunk_kb: int = setting(1024, lo=4, help="MCAP chunk size; a flush also ends a chunk")
+    chunk_kb: int = setting(1024, lo=4, hi=32 * 1024, help="MCAP chunk size; a flush also ends a chunk")
     inbox_max: int = setting(50_000, lo=100, help="samples queued between Zenoh and the writer thread")
     inbox_max_mb: float = setting(512.0, lo=1.0, help="and at most this many MB of them (video frames are large)")
     max_keys: int = setting(2000, lo=1, hi=1_000_000, help="distinct keys one recording keeps of the robots its "

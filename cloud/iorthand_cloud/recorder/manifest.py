@@ -100,7 +100,7 @@ class SegmentInfo:
     closed_t: int | None = None
     messages: int = 0
     bytes: int = 0
-    status: str = "open"  # open, closed, repaired, unreadable
+    status: str = "open"  # open, closed, repaired, unreadable, refused (set aside: not written by the recorder)
     recovered_messages: int | None = None
     lost_bytes: int | None = None
 

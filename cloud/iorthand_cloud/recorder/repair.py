@@ -15,11 +15,10 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from iorthand_cloud.recorder import manifest as mf
-from iorthand_cloud.recorder.reader import iter_records, segment_files, stream_of
+from iorthand_cloud.recorder.reader import SegmentError, iter_records, segment_files, stream_of, stream_records
 from iorthand_cloud.recorder.segments import COMPRESSION, LIBRARY, PROFILE
 
 log = logging.getLogger("iorthand.recorder")
@@ -54,7 +53,7 @@ def repair_segment(path: Path) -> RepairResult:
         schemas: dict[int, int] = {}
         channels: dict[int, int] = {}
         try:
-            for record in StreamReader(src, skip_magic=False).records:
+            for record in stream_records(src, path):
                 if isinstance(record, Schema):
                     schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
                 elif isinstance(record, Channel):
@@ -71,6 +70,10 @@ def repair_segment(path: Path) -> RepairResult:
                 elif isinstance(record, Metadata):
                     writer.add_metadata(record.name, record.metadata)
                 good_offset = src.tell()
+        except SegmentError:  # not a torn tail: a file the recorder did not write is left as it is
+            dst.close()
+            tmp.unlink()
+            raise
         except Exception as exc:  # the torn tail: everything before it was taken
             log.info("%s: readable up to byte %d of %d (%s)", path.name, good_offset, size, type(exc).__name__)
         writer.finish()
@@ -101,6 +104,15 @@ def recompute_stats(folder: Path) -> tuple[dict[str, mf.KeyStats], int, int | No
     return stats, annotations, last
 
 
+def set_aside(path: Path, why: SegmentError) -> Path:
+    """A file among the segments that the recorder did not write (:class:`SegmentError`) is renamed, so that the
+    session's other segments can be read, and kept for whoever wants to look at it."""
+    aside = path.with_name(path.name + ".refused")
+    os.replace(path, aside)
+    log.error("%s; set aside as %s", why, aside.name)
+    return aside
+
+
 def repair_session(folder: Path) -> list[RepairResult]:
     """Repair every footer-less segment of one session and bring its manifest up to date."""
     results: list[RepairResult] = []
@@ -123,6 +135,11 @@ def repair_session(folder: Path) -> list[RepairResult]:
             if path.name in by_file:
                 by_file[path.name].status = "unreadable"
             continue
+        except SegmentError as exc:
+            set_aside(path, exc)
+            if path.name in by_file:
+                by_file[path.name].status = "refused"
+            continue
         results.append(res)
         log.warning("repaired %s: %d messages recovered, %d bytes of torn tail dropped",
                     path, res.messages, res.lost_bytes)
@@ -138,7 +155,10 @@ def repair_session(folder: Path) -> list[RepairResult]:
     # The Foxglove copy of the session (iorthand_cloud.foxglove_channels), in its own subfolder: made whole too.
     for path in sorted((folder / "foxglove").glob("*.mcap")):
         if not has_footer(path):
-            repair_segment(path)
+            try:
+                repair_segment(path)
+            except SegmentError as exc:
+                set_aside(path, exc)
     stats, annotations, last = recompute_stats(folder)
     # The dropped counter is the recorder's own and cannot be rebuilt from the files: keep the last one written.
     manifest.keys, manifest.annotations = stats, annotations

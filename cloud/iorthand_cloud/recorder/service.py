@@ -56,7 +56,8 @@ from iorthand.transport import Inbox, Worker, open_session
 from iorthand_cloud.foxglove_channels import FoxgloveChannel, FoxgloveConverter
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig
-from iorthand_cloud.recorder.repair import has_footer, repair_all, repair_segment
+from iorthand_cloud.recorder.reader import SegmentError
+from iorthand_cloud.recorder.repair import has_footer, repair_all, repair_segment, set_aside
 from iorthand_cloud.recorder.schemas import MESSAGE_ENCODING, RAW_ENCODING, SCHEMA_ENCODING, schema_bytes
 from iorthand_cloud.recorder.segments import COMPRESSION, TELEMETRY, VIDEO, Attachment, ChannelSpec, Segment, Stream
 
@@ -194,6 +195,8 @@ class RecorderService:
                         log.warning("repaired %s: %d messages recovered", path, res.messages)
                 except OSError as exc:
                     log.error("%s: cannot repair (%s)", path, exc)
+                except SegmentError as exc:
+                    set_aside(path, exc)
 
     def run_forever(self) -> None:
         self.start()
