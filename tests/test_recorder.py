@@ -409,6 +409,30 @@ def _report_in_child(folder: Path, out: Path) -> _Run:
     return _Run(proc.returncode, proc.stdout, stderr, int(peak) / 1024)
 
 
+def test_a_replay_shortens_a_long_silence_in_the_recording_and_says_so(session_factory, tmp_path: Path) -> None:
+    """Found by a red-team run: a file whose times jump by ten years made the replay wait, without a word."""
+    from iorthand_cloud.recorder.replay import MAX_GAP_S, Replayer
+
+    folder = tmp_path / "gap"
+    folder.mkdir()
+    t0 = time.time_ns()
+    times = [t0 + i * 100_000_000 for i in range(5)] + [t0 + 3600 * 10**9 + i * 100_000_000 for i in range(5)]
+    with (folder / "telemetry-0001.mcap").open("wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD)
+        w.start("iorthand", "crafted")
+        channel = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
+        for seq, t in enumerate(times, 1):
+            w.add_message(channel, t, _force(seq), t, seq)
+        w.finish()
+    sent: list[float] = []
+    rp = Replayer(session_factory(), folder, speed=10.0, on_publish=lambda _r: sent.append(time.monotonic()))
+    stats = rp.run()
+    assert stats.published == 10
+    assert stats.gaps_shortened == pytest.approx(3600 - 0.4 - MAX_GAP_S, abs=0.01)
+    assert sent[5] - sent[4] == pytest.approx(MAX_GAP_S / 10, abs=0.2)  # the silence, shortened
+    assert sent[9] - sent[5] == pytest.approx(0.04, abs=0.2)  # what follows keeps its timing
+
+
 def test_a_replay_skips_the_keys_of_invalid_robot_ids_and_goes_on(recorder_factory, session_factory,
                                                                   tmp_path: Path) -> None:
     """A recording made on an open router may hold anyone's keys: one with an invalid robot id ended the replay

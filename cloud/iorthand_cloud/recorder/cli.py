@@ -131,7 +131,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         robots = sorted({keys.split_key(k)[0] for k in rp.stats.per_key})
         print(f"replayed {rp.stats.published} messages as {', '.join(robots) or 'no robot'} ({rp.stats.loops} "
               f"pass(es)), at most {rp.stats.max_late_ms:.1f} ms late; {rp.stats.commands_withheld} operator "
-              "commands withheld (a replay never drives a robot)")
+              "commands withheld (a replay never drives a robot)"
+              + (f"; {rp.stats.gaps_shortened:.1f} s of silence in the recording not waited for"
+                 if rp.stats.gaps_shortened else ""))
     finally:
         session.close()
     return 0

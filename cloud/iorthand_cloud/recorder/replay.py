@@ -32,6 +32,10 @@ from iorthand_cloud.recorder.reader import Record, iter_records
 
 log = logging.getLogger("iorthand.replay")
 
+# A silence in the recording longer than this (the edge was off, or a file's times jump) is shortened to it, and
+# said: a replay that waits in silence for hours (or years, for a crafted file) looks hung.
+MAX_GAP_S = 5.0
+
 
 @dataclass
 class ReplayStats:
@@ -40,6 +44,7 @@ class ReplayStats:
     commands_withheld: int = 0  # operator commands in the recording, never republished
     loops: int = 0
     max_late_ms: float = 0.0
+    gaps_shortened: float = 0.0  # s of recorded silence not waited for (MAX_GAP_S)
     per_key: dict[str, int] = field(default_factory=dict)  # messages per key they went out on
 
 
@@ -154,6 +159,7 @@ class Replayer:
     def _once(self, start: int | None, end: int | None) -> None:
         t0_rec: int | None = None
         t0_wall = 0.0
+        first = last = 0
         for rec in iter_records(self.folder, start, end):
             if self.stop_event.is_set():
                 return
@@ -162,6 +168,13 @@ class Replayer:
                 continue
             if t0_rec is None:
                 t0_rec, t0_wall = rec.log_time, time.monotonic()
+                first = rec.log_time
+            elif (gap := (rec.log_time - last) / 1e9) > MAX_GAP_S:
+                t0_rec += int((gap - MAX_GAP_S) * 1e9)  # the rest keeps its timing, from MAX_GAP_S on
+                self.stats.gaps_shortened += gap - MAX_GAP_S
+                log.warning("the recording is silent for %.1f s, %.1f s into it: replayed as %g s",
+                            gap, (last - first) / 1e9, MAX_GAP_S)
+            last = rec.log_time
             due = t0_wall + (rec.log_time - t0_rec) / 1e9 / self.speed
             delay = due - time.monotonic()
             if delay > 0:
