@@ -308,7 +308,9 @@ class Inbox:
     """A bounded hand-over from a Zenoh callback to the one worker thread that consumes it.
 
     ``keep="newest"`` drops the oldest items when full (streams: only the latest matters); ``keep="oldest"``
-    refuses new items when full (nothing already queued is lost). Full means ``maxlen`` items, or, with
+    refuses new items when full (nothing already queued is lost); ``keep="newest_per_key"`` holds one item per
+    key (an item's first element), the newest, and drops the oldest key's when ``maxlen`` keys wait (set-point
+    commands: a flood on one key replaces its own, never another key's). Full means ``maxlen`` items, or, with
     ``max_bytes``, that many payload bytes (as given to :meth:`put`): a count alone lets a queue of video
     frames grow to gigabytes while a writer stalls. Dropped items are counted, and so are items refused before
     they were queued (:meth:`refuse`: too large to take at all), with the last reason.
@@ -320,8 +322,8 @@ class Inbox:
     """
 
     def __init__(self, maxlen: int = 256, keep: str = "newest", max_bytes: int | None = None) -> None:
-        if keep not in ("newest", "oldest"):
-            raise ValueError("keep must be 'newest' or 'oldest'")
+        if keep not in ("newest", "oldest", "newest_per_key"):
+            raise ValueError("keep must be 'newest', 'oldest' or 'newest_per_key'")
         self._items: deque[tuple[Any, int]] = deque()
         self._maxlen = maxlen
         self._max_bytes = max_bytes
@@ -357,6 +359,13 @@ class Inbox:
             if self._full(nbytes) and self._keep == "oldest":
                 self.dropped += 1
                 return False
+            if self._keep == "newest_per_key":
+                for i, (queued, queued_bytes) in enumerate(self._items):
+                    if queued[0] == item[0]:
+                        del self._items[i]
+                        self.nbytes -= queued_bytes
+                        self.dropped += 1
+                        break
             while self._items and self._full(nbytes):
                 self._pop()
                 self.dropped += 1

@@ -14,10 +14,11 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import zenoh
 
 from iorthand import keys
-from iorthand.protocol import ControlReply, ControlRequest, Status, StopCommand
+from iorthand.protocol import ControlReply, ControlRequest, ServoCommand, Status, StopCommand, TorchCommand
 from tests.conftest import drive_slowly, wait_until
 
 # The costliest sweep the planner accepts (50 lanes of 15 cm, 1 mm apart): about 1.6 s of CPU on this machine.
@@ -147,3 +148,29 @@ def test_a_flood_of_stops_stops_the_robot_once_and_holds_up_nothing(edge_factory
     assert agent.repeated_stops >= 10_000  # (the rest may have been dropped on the way: a stop is not queued)
     # The stop still holds after the flood: the robot moves again only on the owner's fresh intent.
     assert agent.supervisor.stop_in_force
+
+
+def test_a_flood_of_servo_and_torch_commands_holds_up_no_lease_renewal(edge_factory, operator_factory,
+                                                                       session_factory) -> None:
+    """Found by a red-team run of the edge: servo and torch commands from a session that holds nothing waited in
+    the control requests' queue; a flood of them filled it, the owner's lease renewals were refused "edge busy",
+    and the owner lost control. Now they wait apart, the newest of each key only."""
+    agent = edge_factory(servos={"max_rate_deg_s": 1000.0}, torch={})
+    alice = operator_factory(operator_id="alice")
+    drive_slowly(agent, alice)
+    k = keys.RobotKeys("sim1")
+    mallory = session_factory()
+    servo, torch = mallory.declare_publisher(k.key(keys.CMD_SERVO)), mallory.declare_publisher(k.key(keys.CMD_TORCH))
+    junk = (ServoCommand(operator="mallory", pan=0.1).stamp(1).encode(),
+            TorchCommand(operator="mallory", on=True).stamp(1).encode())
+    owners: list[str] = []
+    for _ in range(5):
+        for _ in range(3000):
+            servo.put(junk[0])
+            torch.put(junk[1])
+        reply = alice.acquire()  # a renewal, while the flood is being worked through (a refusal raises)
+        assert reply.ok and "renewed" in reply.reason, reply.reason
+        owners.append(agent.supervisor.owner)
+    assert owners == ["alice"] * 5 and alice.owner
+    assert agent.rejects.counts.get(k.key(keys.CMD_SERVO), 0) == 0  # well-formed: refused as not the owner's
+    assert agent.servos.servo_angles_at(2**62)[0] != pytest.approx(0.1)  # mallory moved nothing

@@ -230,6 +230,20 @@ def test_inbox_is_bounded_under_a_flood() -> None:
     assert box.drain()[-1] == 99_999
 
 
+def test_a_set_point_inbox_keeps_the_newest_of_each_key_and_a_flood_on_one_key_pushes_out_no_other() -> None:
+    box = Inbox(4, keep="newest_per_key")
+    box.put(("cmd/servo/alice", "alice-1", 0), 10)
+    for i in range(100_000):
+        box.put(("cmd/servo/mallory", f"mallory-{i}", 0), 10)
+    box.put(("cmd/torch/alice", "torch", 0), 10)
+    assert box.drain() == [("cmd/servo/alice", "alice-1", 0), ("cmd/servo/mallory", "mallory-99999", 0),
+                           ("cmd/torch/alice", "torch", 0)]
+    assert box.dropped == 99_999
+    for i in range(6):  # more keys than it holds: the oldest key's goes
+        box.put((f"k{i}", i, 0))
+    assert [item[0] for item in box.drain()] == ["k2", "k3", "k4", "k5"] and box.nbytes == 0
+
+
 def test_inbox_is_bounded_in_bytes_too() -> None:
     """A queue of large items (video frames) is bounded by their bytes, not only by their count."""
     oldest = Inbox(10_000, keep="oldest", max_bytes=1_000_000)

@@ -7,9 +7,11 @@ Threads (all named):
   supervisor's cycle (deadman timeout, limits), drives, publishes ``state/robot`` and ``state/safety``. Other
   threads that change the supervisor's state (a stop, a fault, the owner lost, a force level) wake it, and it
   drives the consequence at once.
-- ``control-plane``: stop commands, ownership queries, operator liveliness, servo and torch commands and the
-  force-zero request, in arrival order (only the owner's signed requests may move the servos, switch the torch,
-  zero the sensor or start a move).
+- ``control-plane``: ownership queries, operator liveliness and the force-zero, arm, goto and contact requests,
+  in arrival order (only the owner's signed requests may zero the sensor or start a move). A stop waits in no
+  queue (its Zenoh callback acts).
+- ``actuators``: servo and torch commands, the newest of each key (only the owner's move the servos or switch
+  the torch), apart from the control requests so that a flood of them cannot delay the owner's lease renewal.
 - Optional components, each from its own config section and with its own named thread(s): ``edge-force``
   (sensor, warning levels; a change goes straight to the supervisor), ``edge-servos``, ``edge-torch``. A force
   sensor whose samples come from the robot state (the simulator's, the arm's wrist sensor) has no thread: the
@@ -87,6 +89,11 @@ TWIST_QUEUE = 64
 # in no queue (EdgeAgent._on_stop_sample).
 CONTROL_QUEUE = 256
 PLANNING_QUEUE = 4
+# Servo and torch commands are set-points: the newest of each key is all that matters, and they wait apart from
+# the control requests (a flood of them filled the control queue and refused the owner's lease renewals "edge
+# busy": the owner lost control). With bound keys each operator's key has its own slot: another's flood cannot
+# push out the owner's command.
+ACTUATOR_KEYS = 16
 
 # Put into the twist inbox by a thread that changed the supervisor's state: the control loop wakes and drives
 # the consequence at once (a flood of twists that pushes it out wakes the loop just as well).
@@ -150,6 +157,7 @@ class EdgeAgent:
         self._twists = Inbox(TWIST_QUEUE, keep="newest")
         self._control = Inbox(CONTROL_QUEUE, keep="oldest")
         self._planning = Inbox(PLANNING_QUEUE, keep="oldest")
+        self._actuators = Inbox(ACTUATOR_KEYS, keep="newest_per_key")
         self._workers: list[Worker] = []
         self._rlog = RateLimitedLog(log)
         self.session: zenoh.Session | None = None
@@ -224,8 +232,8 @@ class EdgeAgent:
             # A stop is everyone's: on the shared key, or on the sender's own (which names who sent it).
             s.declare_subscriber(k.key(keys.CMD_STOP), self._on_stop_sample),
             s.declare_subscriber(k.key(keys.CMD_STOP) + "/*", self._on_stop_sample),
-            subscribe(s, k.key(keys.CMD_SERVO) + bound, self._control, rejects=self.rejects),
-            subscribe(s, k.key(keys.CMD_TORCH) + bound, self._control, rejects=self.rejects),
+            subscribe(s, k.key(keys.CMD_SERVO) + bound, self._actuators, rejects=self.rejects),
+            subscribe(s, k.key(keys.CMD_TORCH) + bound, self._actuators, rejects=self.rejects),
             *(s.declare_queryable(k.key(suffix) + bound, self._queue_query(inbox, verb)) for suffix, inbox, verb in (
                 (keys.CONTROL_FORCE_ZERO, self._control, "force_zero"),
                 (keys.CONTROL_ACQUIRE, self._control, "acquire"),
@@ -242,7 +250,7 @@ class EdgeAgent:
         # The control loop (which carries the command path too) runs at real-time priority where allowed (root
         # on the Pi): it blocks between short bursts, so it cannot starve the rest.
         for name, fn, rt in (("control", self._control_loop, True), ("control-plane", self._control_plane_loop, False),
-                             ("planner", self._planner_loop, False)):
+                             ("planner", self._planner_loop, False), ("actuators", self._actuator_loop, False)):
             w = Worker(f"edge-{name}", fn, self.stop_event, realtime=rt and self.config.realtime)
             w.start()
             self._workers.append(w)
@@ -295,6 +303,7 @@ class EdgeAgent:
         self._twists.close()
         self._control.close()
         self._planning.close()
+        self._actuators.close()
         for w in self._workers:
             w.join(timeout=2.0)
         self._planner.close()
@@ -681,16 +690,18 @@ class EdgeAgent:
             "goto": self._on_goto,
             "contact": self._on_contact,
         }
-        by_suffix = {keys.CMD_SERVO: self._on_servo, keys.CMD_TORCH: self._on_torch}
         while not stop.is_set():
             item = self._control.get()  # no polling: shutdown sets stop, then closes the inbox, which ends the wait
-            if item is None:
-                continue
-            if item[0] in handlers:
+            if item is not None:
                 handlers[item[0]](item[1])
-                continue
-            _, rest = keys.split_key(item[0])  # cmd/<kind>, or cmd/<kind>/<operator> with bound keys
-            by_suffix["/".join(rest.split("/")[:2])](item)
+
+    def _actuator_loop(self, stop: threading.Event) -> None:
+        by_suffix = {keys.CMD_SERVO: self._on_servo, keys.CMD_TORCH: self._on_torch}
+        while not stop.is_set():
+            item = self._actuators.get()  # (as the control plane's)
+            if item is not None:
+                _, rest = keys.split_key(item[0])  # cmd/<kind>, or cmd/<kind>/<operator> with bound keys
+                by_suffix["/".join(rest.split("/")[:2])](item)
 
     def _planner_loop(self, stop: threading.Event) -> None:
         handlers = {"preview": self._on_preview, "poses": self._on_poses}
