@@ -197,6 +197,23 @@ def test_a_stop_is_in_force_until_the_deadman_is_released_after_it() -> None:
     assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted and not sv.stop_in_force
 
 
+def test_a_deadman_held_under_a_latch_times_out_and_the_loop_is_not_woken_for_it_again() -> None:
+    """Found by a red-team run of the edge: the owner held the deadman under a stop (or after a link gap), then
+    its twists ceased while its lease was renewed. timeout_at() stayed in the past, and the control loop, which
+    wakes at it, spun: state/robot at ~20 000 Hz and a core busy, on the Pi at real-time priority."""
+    sv, c = armed()
+    sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    sv.stop("e-stop")
+    sv.on_command(c.cmd(), c.wall, c.mono, POSE)  # held under the stop: refused
+    assert sv.timeout_at() == pytest.approx(c.mono + sv.config.command_timeout)
+    c.mono += sv.config.command_timeout + 0.01  # the twists cease
+    d = sv.step(c.mono, POSE)
+    assert not np.any(d.twist) and sv.timeout_at() == float("inf")
+    assert sv.status == Status.STOPPED and sv.stop_in_force  # the stop, its reason and its latch stand
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)  # and clear as before: release, then press
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+
+
 def test_fault_refuses_and_needs_reacquire() -> None:
     sv, c = armed()
     sv.set_fault("robot link lost")

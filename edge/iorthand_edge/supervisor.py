@@ -525,15 +525,19 @@ class Supervisor:
             reason = f"lease of {self.owner!r} expired: robot stopped, control released"
             self.owner_lost(self.owner, reason)
             self._note(Status.OWNER_LOST, reason)
-        if self._latched or not self.armed:
-            return self._decide([0.0] * 6, False, self.status, self.reason)
+        # The deadman times out also while a latch holds the robot: a deadman left held under a latch made
+        # timeout_at() a time already past, and the control loop woke for it again and again (~20 000 cycles a
+        # second, a core, for as long as the lease was renewed).
         if self._deadman and now - self._last_accepted > self.config.command_timeout:
             self._deadman = False
             self._target = [0.0] * 6
-            reason = (f"no command for {1000 * (now - self._last_accepted):.0f} ms "
-                      f"(timeout {1000 * self.config.command_timeout:.0f} ms)")
-            self._halt(Status.COMMAND_TIMEOUT, reason)
-            self._note(Status.COMMAND_TIMEOUT, reason)
+            if not self._latched and self.armed:
+                reason = (f"no command for {1000 * (now - self._last_accepted):.0f} ms "
+                          f"(timeout {1000 * self.config.command_timeout:.0f} ms)")
+                self._halt(Status.COMMAND_TIMEOUT, reason)
+                self._note(Status.COMMAND_TIMEOUT, reason)
+        if self._latched or not self.armed:
+            return self._decide([0.0] * 6, False, self.status, self.reason)
         if not self._deadman:
             return self._retreat_only(tcp_pose, now)
         return self._limit(self._target, tcp_pose, now)
