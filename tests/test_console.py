@@ -11,10 +11,11 @@ import pytest
 from textual import events
 
 from iorthand import keys
-from iorthand.protocol import ForceLevelState, StopCommand, TwistCommand
+from iorthand.protocol import ForceLevelState, SafetyStatus, StopCommand, TwistCommand
 from iorthand.transport import publisher
 from iorthand_operator.console.app import OperatorConsole
-from iorthand_operator.console.controller import ConsoleController
+from iorthand_operator.console.controller import ConsoleController, ConsoleView
+from iorthand_operator.console.model import printable
 from iorthand_operator.console.settings import ConsoleSettings
 from iorthand_operator.inputs import KeyboardInput, KeymapConfig
 from tests.conftest import ROOT, wait_until
@@ -151,6 +152,47 @@ def test_force_block_colours_and_stale(session_factory, operator_factory) -> Non
         ("NO DATA", "grey50"), ("SAFE", "green"), ("CAUTION", "yellow"), ("DANGER", "red"),
         ("STALE", "grey50"), ("STALE", "grey50"),
     ]
+
+
+ESCAPES = "\x1b[2J\x1b]0;OWNED\x07\n robot OFFLINE \u202e\x9b"
+
+
+def test_printable_shows_every_control_character_as_its_escape() -> None:
+    assert printable("lease of 'op1' renewed for 3 s — ok, 5 °/s") == "lease of 'op1' renewed for 3 s — ok, 5 °/s"
+    assert printable(ESCAPES) == "\\x1b[2J\\x1b]0;OWNED\\x07\\n robot OFFLINE \\u202e\\x9b"
+
+
+def test_text_from_the_wire_cannot_steer_the_terminal(session_factory, operator_factory) -> None:
+    """Found by a red-team run of the operator side: escape sequences in a safety reason, an owner's name or a
+    force quantity reached the terminal raw: they cleared the screen (the force panel went blank), set the
+    window title, and a newline drew a fake "robot OFFLINE" line."""
+    robot = "escbot"  # no edge: only our messages reach this robot's keys
+    _client, ctrl, app = _console(operator_factory, robot=robot)
+    s, k = session_factory(), keys.RobotKeys(robot)
+    safety, force = publisher(s, k.key(keys.STATE_SAFETY)), publisher(s, k.key(keys.STATE_FORCE_LEVEL))
+
+    async def run() -> tuple[str, str, ConsoleView]:
+        async with app.run_test(size=(160, 50)) as pilot:
+            for seq in range(1, 40):
+                safety.put(SafetyStatus(owner="op1\x1b[2J", status="stopped", reason=ESCAPES, task=ESCAPES,
+                                        limits_hit=[ESCAPES[:16]]).stamp(seq).encode())
+                force.put(ForceLevelState(level=2, stale=False, value=9.0, quantity=ESCAPES[:16]).stamp(seq).encode())
+                await pilot.pause(0.05)
+                if app.view_model.edge_reason and app.view_model.force.label == "DANGER":
+                    break
+            await pilot.pause(0.2)
+            status, forces, v = _text(app, "status"), _text(app, "force"), app.view_model
+            await pilot.press("ctrl+c")
+        return status, forces, v
+
+    try:
+        status, forces, v = asyncio.run(run())
+    finally:
+        ctrl.stop()
+    texts = [v.owner, v.edge_reason, v.task, *v.limits_hit, v.force.detail, *v.events]
+    assert all(t.isprintable() for t in texts), [t for t in texts if not t.isprintable()]
+    assert v.edge_reason == printable(ESCAPES) and "\\x1b[2J" in v.owner
+    assert "\\x1b[2J" in status and "\x1b" not in status + forces and "DANGER" in forces
 
 
 def test_a_camera_that_cannot_open_is_shown_with_its_reason(edge_factory, operator_factory) -> None:

@@ -27,6 +27,7 @@ from textual.widgets import Footer, OptionList, RichLog, Static
 
 from iorthand_operator.client import ControlRefused
 from iorthand_operator.console.controller import ConsoleController, ConsoleView
+from iorthand_operator.console.model import printable
 from iorthand_operator.inputs.keyboard import KeyboardInput
 
 
@@ -69,14 +70,15 @@ class PoseScreen(ModalScreen[None]):
             poses = self.controller.client.list_poses()
             text = f"{len(poses)} poses" if poses else "the edge has no safety poses"
         except (ControlRefused, RuntimeError) as exc:
-            poses, text = [], f"cannot list poses: {exc}"
+            poses, text = [], printable(f"cannot list poses: {exc}")
         self.app.call_from_thread(self._show_poses, poses, text)
 
     def _show_poses(self, poses: list[dict[str, Any]], text: str) -> None:
         self.poses = poses
         ol = self.query_one("#pose-list", OptionList)
         ol.clear_options()
-        ol.add_options([str(p.get("name", "?")) + (f" — {p['description']}" if p.get("description") else "") for p in poses])
+        ol.add_options([printable(str(p.get("name", "?")) + (f" — {p['description']}" if p.get("description") else ""))
+                        for p in poses])
         self.query_one("#pose-verdict", Static).update(text)
         ol.focus()
 
@@ -94,14 +96,14 @@ class PoseScreen(ModalScreen[None]):
             token = str(detail.get("token", ""))
             verdict = detail.get("verdict", "ok" if reply.ok else "refused")
             text = Text.assemble(
-                (f"preview {name}: {verdict}", "bold green" if reply.ok else "bold red"),
-                f"\n{reply.reason}" if reply.reason else "",
-                "\n" + ", ".join(f"{k}: {v}" for k, v in detail.items() if k not in ("token", "verdict")),
+                (printable(f"preview {name}: {verdict}"), "bold green" if reply.ok else "bold red"),
+                f"\n{printable(reply.reason)}" if reply.reason else "",
+                "\n" + printable(", ".join(f"{k}: {v}" for k, v in detail.items() if k not in ("token", "verdict"))),
                 ("\npress y to execute" if reply.ok and token else ""),
             )
             ok = reply.ok
         except (ControlRefused, RuntimeError) as exc:
-            text, token, ok = Text(f"preview unavailable: {exc}", style="bold red"), "", False
+            text, token, ok = Text(printable(f"preview unavailable: {exc}"), style="bold red"), "", False
         self.app.call_from_thread(self._previewed, name, token if ok else "", text)
 
     def _previewed(self, name: str, token: str, text: Text) -> None:
@@ -118,10 +120,10 @@ class PoseScreen(ModalScreen[None]):
     def run_goto(self, name: str, token: str) -> None:
         try:
             reply = self.controller.client.goto_pose(name, token)
-            text = Text(f"goto {name}: {'started' if reply.ok else 'refused'} {reply.reason}",
+            text = Text(printable(f"goto {name}: {'started' if reply.ok else 'refused'} {reply.reason}"),
                         style="bold green" if reply.ok else "bold red")
         except (ControlRefused, RuntimeError) as exc:
-            text = Text(f"goto {name} failed: {exc}", style="bold red")
+            text = Text(printable(f"goto {name} failed: {exc}"), style="bold red")
         self.app.call_from_thread(self.query_one("#pose-verdict", Static).update, text)
 
     def action_dismiss_screen(self) -> None:

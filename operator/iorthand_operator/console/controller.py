@@ -29,6 +29,7 @@ from iorthand_operator.console.model import (
     ForceView,
     LinkRow,
     force_view,
+    inert,
     link_rows,
     next_profile,
     sparkline,
@@ -277,5 +278,5 @@ class ConsoleController:
         v.events = [
             f"{time.strftime('%H:%M:%S', time.localtime(e.t))} {e.kind:<7} {e.status}: {e.reason}" for e in list(c.events)[-50:]
         ]
-        return v
+        return inert(v)  # text from the wire cannot steer the terminal
 

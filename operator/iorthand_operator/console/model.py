@@ -7,9 +7,11 @@ that says level 0 and not stale. No message yet → grey "NO DATA"; the edge say
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from iorthand.protocol import FORCE_LEVEL_COLOURS, ForceLevel, ForceLevelState, SensorReading
 from iorthand_operator.link import GRADE_COLOURS, LinkQuality, LinkThresholds
@@ -97,3 +99,26 @@ def next_profile(current: str, profiles: Sequence[str]) -> str:
     if current in profiles:
         return profiles[(list(profiles).index(current) + 1) % len(profiles)]
     return profiles[0]
+
+
+def printable(text: str) -> str:
+    """``text`` as it may reach the terminal: every character Python does not call printable (controls, C1, DEL,
+    format characters such as bidirectional overrides, separators other than the space) is shown as its escape
+    (``\\x1b``, ``\\n``, ``\\u202e``). From the wire, they would steer the terminal (clear the screen, move the
+    cursor, set the window title) or draw lines of their own."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def inert(value: Any) -> Any:
+    """A view (a dataclass of what the screen shows) with every string in it :func:`printable`, through lists,
+    tuples and nested views."""
+    if isinstance(value, str):
+        return printable(value)
+    if isinstance(value, list | tuple):
+        return type(value)(inert(v) for v in value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.replace(value, **{f.name: inert(getattr(value, f.name))
+                                            for f in dataclasses.fields(value) if f.init})
+    return value
