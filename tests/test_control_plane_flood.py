@@ -19,6 +19,7 @@ import zenoh
 
 from iorthand import keys
 from iorthand.protocol import ControlReply, ControlRequest, ServoCommand, Status, StopCommand, TorchCommand
+from iorthand.security import identity
 from tests.conftest import drive_slowly, wait_until
 
 # The costliest sweep the planner accepts (50 lanes of 15 cm, 1 mm apart): about 1.6 s of CPU on this machine.
@@ -174,3 +175,29 @@ def test_a_flood_of_servo_and_torch_commands_holds_up_no_lease_renewal(edge_fact
     assert owners == ["alice"] * 5 and alice.owner
     assert agent.rejects.counts.get(k.key(keys.CMD_SERVO), 0) == 0  # well-formed: refused as not the owner's
     assert agent.servos.servo_angles_at(2**62)[0] != pytest.approx(0.1)  # mallory moved nothing
+
+
+def test_an_acquire_whose_token_the_edge_has_not_seen_is_refused_at_once_and_the_client_asks_again(
+        edge_factory, operator_factory, session_factory) -> None:
+    """Found by a red-team run of the edge: before refusing an acquire whose operator's token it had not seen, the
+    edge asked Zenoh for the token and waited for the answer in the control-plane thread. Over a 100 ms link, 30
+    acquires a second in made-up names queued the owner's lease renewals behind those waits; the owner lost
+    control. Now the edge refuses at once, and a client that has just declared its token asks again shortly (its
+    token and its acquire race through the router)."""
+    agent = edge_factory()
+    answers = Answers()
+    mallory = session_factory()
+    for i in range(20):
+        req = ControlRequest(operator=f"nobody{i}").stamp(i + 1)
+        mallory.get(keys.RobotKeys("sim1").key(keys.CONTROL_ACQUIRE), answers, payload=req.encode(), timeout=5.0)
+    wait_until(lambda: len(answers.reasons()) == 20, 5.0, message="every made-up name answered")
+    assert all(identity.NO_TOKEN in r for r in answers.reasons()), answers.reasons()[:3]
+    alice = operator_factory(operator_id="alice")
+    alice.wait_for_state()
+    agent.gate.operator_gone("alice")  # as if its token were still on its way to the edge
+    late = threading.Timer(0.3, agent.gate.operator_alive, ["alice"])
+    late.start()
+    try:
+        assert alice.acquire().ok and agent.supervisor.owner == "alice"
+    finally:
+        late.cancel()

@@ -746,10 +746,6 @@ class EdgeAgent:
         if req is None:
             return
         ok, reason = self.gate.check_acquire(str(query.key_expr), keys.CONTROL_ACQUIRE, req.operator)
-        if not ok and req.operator not in self.gate.alive and self._operator_token_present(req.operator):
-            # The operator's token and its acquire race through the router: ask Zenoh before refusing.
-            self.gate.operator_alive(req.operator)
-            ok, reason = self.gate.check_acquire(str(query.key_expr), keys.CONTROL_ACQUIRE, req.operator)
         key = b""
         if not ok:
             self.rejects.add(str(query.key_expr), reason)
@@ -761,16 +757,6 @@ class EdgeAgent:
             (log.info if ok else log.warning)("acquire by %r: %s", req.operator, reason)
         self._reply(query, ok, reason, lease=self.config.safety.lease, key=key)
         self._publish_safety(force=True)
-
-    def _operator_token_present(self, operator: str) -> bool:
-        """Whether ``operator``'s liveliness token exists right now (a bounded liveliness query)."""
-        if self.session is None or not self.config.require_operator_alive:
-            return False
-        try:
-            replies = self.session.liveliness().get(self.keys.alive_operator(operator), timeout=0.5)
-            return any(reply.ok is not None for reply in replies)
-        except (zenoh.ZError, keys.KeyExprError):
-            return False
 
     def _on_release(self, query: zenoh.Query) -> None:
         req = self._request(query, keys.CONTROL_RELEASE)

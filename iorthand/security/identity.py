@@ -50,6 +50,13 @@ def operator_in_key(key: str, suffix: str) -> str | None:
     return op if keys.OPERATOR_ID_PATTERN.match(op) else None
 
 
+# The refusal of an acquire whose operator's liveliness token the edge has not seen. A client that has just
+# declared its token may see it: the token and the query race through the router, so it asks again shortly
+# (OperatorClient.acquire). The edge never waits for the token itself: a blocking check per refusal let a few
+# acquires a second in made-up names hold up the owner's lease renewals on a WAN link.
+NO_TOKEN = "holds no liveliness token"
+
+
 @dataclass
 class CommandGate:
     """The edge's own admission checks for control requests and commands.
@@ -90,7 +97,7 @@ class CommandGate:
                 return ok, reason
         if self.require_alive and operator not in self.alive:
             return False, (
-                f"operator {operator!r} holds no liveliness token: only a session authenticated as "
+                f"operator {operator!r} {NO_TOKEN}: only a session authenticated as "
                 f"operator-{operator} can declare it"
             )
         return True, ""

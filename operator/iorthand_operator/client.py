@@ -57,7 +57,7 @@ from iorthand.protocol import (
     source_news,
     superseded_news,
 )
-from iorthand.security import auth
+from iorthand.security import auth, identity
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query
 from iorthand_operator import recovery
 from iorthand_operator.link import LinkQuality, LinkWindow
@@ -98,6 +98,9 @@ class Event:
 # Safety statuses that mean the robot was stopped (worth a line in the log when the edge enters them).
 STOP_STATUSES = frozenset(s for s in Status if s.halts)
 MAX_VITALS = 16
+# An acquire refused because the edge has not seen our liveliness token yet is asked again (identity.NO_TOKEN).
+TOKEN_RETRIES = 4
+TOKEN_RETRY_S = 0.25
 
 class OperatorClient:
     def __init__(
@@ -259,6 +262,11 @@ class OperatorClient:
         ours; from then on every command is signed with it and the sequence starts again."""
         with self._acquire_lock:  # the lease thread and the user: one request at a time, in sequence order
             reply = self._control(keys.CONTROL_ACQUIRE, profile)
+            for _ in range(TOKEN_RETRIES):
+                if reply.ok or identity.NO_TOKEN not in reply.reason or self._token is None:
+                    break
+                time.sleep(TOKEN_RETRY_S)  # our token may still be on its way to the edge
+                reply = self._control(keys.CONTROL_ACQUIRE, profile)
         if not reply.ok:
             self.log_event("control", Status.NOT_OWNER, f"control refused: {reply.reason}")
             raise ControlRefused(reply.reason)
