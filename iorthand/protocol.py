@@ -594,6 +594,7 @@ class RobotState(Message):
     """Edge → all at the control rate. ``cmd_seq``/``cmd_recv_t`` echo the last applied command (latency)."""
 
     KEY: ClassVar[str] = keys.STATE_ROBOT
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac"})
     tcp_pose: list[float] = vec(6, lo=-_POSITION, hi=_POSITION)  # [x,y,z,rx,ry,rz]
     tcp_speed: list[float] = vec(6, lo=-_SPEED, hi=_SPEED)
     q: list[float] = vec(6, lo=-4 * math.pi, hi=4 * math.pi)
@@ -604,6 +605,7 @@ class RobotState(Message):
     robot_time: float = spec(0.0, lo=0.0)  # the robot's own clock, s
     cmd_seq: int = spec(0, lo=0)
     cmd_recv_t: int = spec(0, lo=0)
+    mac: bytes = spec(b"", max_len=MAC_MAX)  # signed with the owner's key while someone holds control (auth)
 
 
 @dataclass(kw_only=True)
@@ -611,6 +613,7 @@ class AppliedCommand(Message):
     """Edge → all for every received twist: what the supervisor did with it, at once (the command echo)."""
 
     KEY: ClassVar[str] = keys.STATE_APPLIED
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac"})
     operator: str = spec("", max_len=64)
     cmd_seq: int = spec(0, lo=0)
     cmd_t: int = spec(0, lo=0)
@@ -619,6 +622,7 @@ class AppliedCommand(Message):
     accepted: bool = False
     status: str = spec(Status.OK, max_len=40)
     reason: str = spec("", max_len=200)
+    mac: bytes = spec(b"", max_len=MAC_MAX)  # signed with the owner's key while someone holds control (auth)
 
 
 @dataclass(kw_only=True)

@@ -16,7 +16,15 @@ import pytest
 import zenoh
 
 from iorthand import keys
-from iorthand.protocol import AppliedCommand, ControlReply, ControlRequest, Status, StopCommand, TwistCommand
+from iorthand.protocol import (
+    AppliedCommand,
+    ControlReply,
+    ControlRequest,
+    RobotState,
+    Status,
+    StopCommand,
+    TwistCommand,
+)
 from iorthand.security.lab import make_lab
 from iorthand.transport import ZenohConfig, free_port, open_session
 from iorthand_operator.client import ControlRefused, OperatorClient
@@ -145,6 +153,38 @@ def _edge_zenoh(lab, name: str) -> dict:
 
 
 @pytest.mark.slow
+def test_the_owner_believes_only_the_robot_state_and_echoes_the_edge_signed(edge_factory, operator_factory,
+                                                                           session_factory) -> None:
+    """Found by a red-team run of the operator side: a third session published robot states stamped "now" (a
+    fake pose) and command echoes in the owner's name. The owner's client took them: its commands told the edge
+    that its screen was live while the real state came 1 s late (the robot moved 18 mm past the stale-view
+    check), and 60 forged echoes a command showed a 200 ms link as 2.5 ms. While someone holds control the edge
+    signs its robot state and echoes with the owner's key; the owner's client ignores what does not verify."""
+    agent = edge_factory()
+    alice = operator_factory(operator_id="alice")
+    drive_slowly(agent, alice)
+    k = keys.RobotKeys("sim1")
+    mallory = session_factory()
+    state_pub, echo_pub = mallory.declare_publisher(k.key(keys.STATE_ROBOT)), mallory.declare_publisher(k.key(keys.STATE_APPLIED))
+    fake = [0.5, 0.5, 0.5, 0.0, 0.0, 0.0]
+    poses: list[list[float]] = []
+    echoes0, sent0 = alice.echo_count, alice.sent_count
+    for i in range(200):
+        now = time.time_ns()
+        state_pub.put(RobotState(tcp_pose=fake).stamp(10**6 + i, now).encode())
+        for seq in range(max(1, alice.sent_count - 5), alice.sent_count + 5):  # echoes for the latest commands
+            echo_pub.put(AppliedCommand(operator="alice", cmd_seq=seq, cmd_t=now, recv_t=now, accepted=True)
+                         .stamp(10**6 + i, now).encode())
+        time.sleep(0.005)
+        if alice.robot_state is not None:
+            poses.append(list(alice.robot_state.tcp_pose))
+    assert poses and fake not in poses, "a forged robot state was taken for the edge's"
+    assert alice.rejects.counts.get(k.key(keys.STATE_ROBOT), 0) >= 150
+    assert alice.rejects.counts.get(k.key(keys.STATE_APPLIED), 0) >= 1000
+    assert alice.echo_count - echoes0 <= alice.sent_count - sent0  # one echo a command at most
+    assert agent.supervisor.owner == "alice" and alice.robot_state.seq < 10**6  # the edge's own states, live
+
+
 def test_forged_owner_from_a_second_granted_certificate(shared_robot_lab) -> None:
     from iorthand_edge.agent import EdgeAgent
 

@@ -400,7 +400,7 @@ class EdgeAgent:
             if item is not None and item is not _WAKE:
                 echo = self.handle_twist(*item)
                 if echo is not None:
-                    self._pub_applied.put(echo.encode())
+                    self._pub_applied.put(self.supervisor.for_owner(keys.STATE_APPLIED, echo))
             now = time.monotonic()
             if item is _WAKE or now >= wake:
                 self._cycle(now)
@@ -440,7 +440,7 @@ class EdgeAgent:
             self._cpu_latency.need(bool(self.supervisor.owner))
         for hook in self.cycle_hooks:
             hook(reading)
-        self._pub_robot.put(state.encode())
+        self._pub_robot.put(self.supervisor.for_owner(keys.STATE_ROBOT, state))
         self._publish_safety()
 
     def _feed_contact_force(self) -> None:

@@ -42,6 +42,7 @@ from iorthand.protocol import (
     ForceLevelState,
     ForceSample,
     Markers,
+    Message,
     RejectCounter,
     RobotState,
     SafetyStatus,
@@ -149,7 +150,7 @@ class OperatorClient:
         # message's sequence per suffix (a counter shared between control verbs would jump on each of them).
         self._seq_other: defaultdict[str, Sequencer] = defaultdict(Sequencer)
         self.bind_keys = bind_keys  # commands and control queries on keys carrying our id (ACL-bound)
-        self._sent: OrderedDict[int, int] = OrderedDict()  # seq → send time (ns), bounded
+        self._sent: OrderedDict[int, int] = OrderedDict()  # seq → send time (ns), bounded; an echo takes its entry
         self.echoes: deque[Echo] = deque(maxlen=100_000)  # the newest (~28 min at 60 Hz): bounded for long sessions
         self.echo_count = 0  # every echo ever appended: marks for echoes_since (the deque drops its oldest)
         self.sent_count = 0
@@ -592,9 +593,21 @@ class OperatorClient:
             self.rejects.add(str(sample.key_expr), str(exc))
             return None
 
+    def _from_the_edge(self, msg: Message, suffix: str, key: str) -> bool:
+        """While we hold control, the edge signs its robot state and command echoes with our key: one that does
+        not verify came from another session (on an open router) and is ignored, counted in ``rejects``. A
+        forged fresh robot state would have told the edge our screen was live while it showed a frozen picture,
+        and forged echoes faked the link's latency and "driving". Without a key (watching, or between grants)
+        nothing can be checked: everything is taken, as before."""
+        own = self._key
+        if not own or auth.verify(own, auth.context(self.keys.robot, suffix), msg):
+            return True
+        self.rejects.add(key, "not signed by the edge for the session that holds control")
+        return False
+
     def _on_robot(self, sample: zenoh.Sample) -> None:
         msg = self._decode(RobotState, sample)
-        if msg is not None:
+        if msg is not None and self._from_the_edge(msg, keys.STATE_ROBOT, str(sample.key_expr)):
             self.robot_state = msg
             self.robot_state_at = time.monotonic()
             self._state_t = msg.t
@@ -669,12 +682,13 @@ class OperatorClient:
     def _on_applied(self, sample: zenoh.Sample) -> None:
         now = time.time_ns()
         msg = self._decode(AppliedCommand, sample)
-        if msg is None or msg.operator != self.operator_id:
+        if msg is None or msg.operator != self.operator_id or \
+                not self._from_the_edge(msg, keys.STATE_APPLIED, str(sample.key_expr)):
             return
         if self._proc_sender is not None:
             self._proc_sender.drain()  # the send record left the child before the command: take it now
         with self._lock:
-            sent = self._sent.get(msg.cmd_seq)
+            sent = self._sent.pop(msg.cmd_seq, None)  # one echo per command: a repeat is not a second answer
             if sent is not None:
                 self.echoes.append(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status))
                 self.echo_count += 1

@@ -6,7 +6,9 @@ whole level of both or of neither: the robot id travels in the topic, never in a
 
 - **out** (Zenoh → MQTT): a robot stream, decoded with its message class and written as a JSON object (its fields,
   ``v``, ``seq`` and ``t``), at most ``max_hz`` per robot and always the newest sample (:class:`LatestThrottle`).
-  Messages with binary fields (video frames) are refused at configuration time: JSON carries no bytes.
+  Messages with binary fields (video frames) are refused at configuration time: JSON carries no bytes. A
+  signature (``mac``, :mod:`iorthand.security.auth`) is left out: it signs the bytes as they travel on Zenoh and
+  means nothing in a JSON copy.
 - **in** (MQTT → Zenoh): a JSON object checked field by field by the key's message class (types, finite numbers,
   bounds), then by the mapping (fixed fields, a plausible range, age), stamped by the bridge and published. Only
   keys whose writers in the table include :attr:`Role.BRIDGE` may be written, and never a command, a control
@@ -121,12 +123,17 @@ def _element(hint: Any) -> Any:
             return hint
 
 
+SIGNATURE = "mac"  # a signed message's MAC (iorthand.security.auth): not part of what a JSON copy carries
+
+
 def binary_fields(cls: type[Any], prefix: str = "") -> list[str]:
     """The fields of a message (and of its nested maps) that hold bytes, which JSON cannot carry."""
     out: list[str] = []
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
         inner = _element(hints[f.name])
+        if f.name == SIGNATURE:
+            continue
         if inner is bytes:
             out.append(f"{prefix}{f.name}")
         elif dataclasses.is_dataclass(inner):
@@ -289,7 +296,8 @@ class OutRoute:
 def to_json(msg: Message) -> bytes:
     """A decoded message as a JSON object: ``v``, then its fields (``seq`` and ``t`` included), nested maps as
     objects. Numbers are finite (the decoder checked them); a bytes field raises TypeError (refused at start)."""
-    return json.dumps({"v": msg.VERSION, **dataclasses.asdict(msg)}, separators=(",", ":"), allow_nan=False).encode()
+    fields = {k: v for k, v in dataclasses.asdict(msg).items() if k != SIGNATURE}
+    return json.dumps({"v": msg.VERSION, **fields}, separators=(",", ":"), allow_nan=False).encode()
 
 
 def _refuse_constant(name: str) -> float:
