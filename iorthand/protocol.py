@@ -560,6 +560,11 @@ class TwistCommand(Message):
 TWIST_FRAMES = ("base", "tool")
 
 
+# How the edge's safety reason begins when a stop command holds the robot ("stop from 'nurse': …"): a client
+# that recovers from halts by itself (a headless move) ends its motion on it instead.
+STOP_FROM = "stop from "
+
+
 @dataclass(kw_only=True)
 class StopCommand(Message):
     KEY: ClassVar[str] = keys.CMD_STOP

@@ -9,13 +9,15 @@ import time
 import numpy as np
 import pytest
 
-from iorthand.protocol import SafetyStatus, Status
+from iorthand import keys
+from iorthand.protocol import SafetyStatus, Status, StopCommand
 from iorthand.transport import ZenohConfig, open_session
 from iorthand_operator import recovery
 from iorthand_operator.bench.linkemu import LinkEmulator, LinkProfile
 from iorthand_operator.client import OperatorClient
 from iorthand_operator.script import Script, ScriptStep, run_script
 from iorthand_operator.scripted import move
+from tests.conftest import wait_until
 
 
 def status(code: Status, owner: str = "me", armed: bool = True, reason: str = "") -> SafetyStatus:
@@ -131,3 +133,29 @@ def test_a_script_completes_its_motion_after_a_3_s_blackout(relayed_client) -> N
     step = result["steps"][0]
     assert any(r.startswith("acquire") for r in step["recoveries"]), step
     assert client.robot_state.tcp_pose[1] - y0 == pytest.approx(0.010, abs=0.002), result
+
+
+def test_a_headless_move_stopped_by_somebody_ends_and_does_not_resume(edge_factory, operator_factory,
+                                                                      session_factory) -> None:
+    """Found by a red-team run of the operator side: `iorthand operator move` pressed afresh by itself after a
+    nurse's stop, and the robot moved again 0.29 s later. A stop that comes during the motion ends it."""
+    edge = edge_factory("sim1")
+    client = operator_factory("sim1", "op1")
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    out: list[dict] = []
+    t = threading.Thread(target=lambda: out.append(move(client, np.array([0.005, 0.0, 0.0]), np.zeros(3), 3.0,
+                                                        patience=5.0)))
+    t.start()
+    wait_until(lambda: np.any(edge._commanded), 5.0, message="the move under way")
+    time.sleep(0.3)
+    nurse = session_factory().declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP))
+    nurse.put(StopCommand(operator="nurse", reason="patient moved").stamp(1).encode())
+    wait_until(lambda: not np.any(edge._commanded), 2.0, message="the robot stopped")
+    x = client.robot_state.tcp_pose[0]
+    t.join(10)
+    assert out and not out[0]["completed"], out
+    assert any(r.startswith("stopped: stop from 'nurse'") for r in out[0]["recoveries"]), out[0]["recoveries"]
+    time.sleep(0.5)
+    assert client.robot_state.tcp_pose[0] == pytest.approx(x, abs=5e-4)  # it did not move again

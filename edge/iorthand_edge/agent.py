@@ -48,6 +48,7 @@ from iorthand import geometry, keys, motion
 from iorthand.cpu_latency import CpuLatencyWhileNeeded
 from iorthand.protocol import (
     MAX_PAYLOAD,
+    STOP_FROM,
     AppliedCommand,
     ControlReply,
     ControlRequest,
@@ -898,7 +899,7 @@ class EdgeAgent:
             repeated = self.supervisor.stop_in_force
             if not repeated:
                 self._cancel_goto(f"stop from {who}")
-                self.supervisor.stop(f"stop from {who}: {cmd.reason}")
+                self.supervisor.stop(f"{STOP_FROM}{who}: {cmd.reason}")
         self._rlog.warning(f"stop:{sender or cmd.operator}", f"stop from {who} on {key}: {cmd.reason}"
                            + (" (the robot was stopped already)" if repeated else ""))
         if repeated:

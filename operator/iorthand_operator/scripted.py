@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from iorthand import stats
+from iorthand.protocol import STOP_FROM, Status
 from iorthand_operator import recovery
 from iorthand_operator.client import OperatorClient
 
@@ -34,10 +35,13 @@ def drive_for(client: OperatorClient, seconds: float, patience: float) -> tuple[
     (accepted the commands: its limits may clip them, a force or workspace limit even to zero).
 
     The intent is clear (the caller asked for this motion), so whatever halts it on the way — a lost lease, a
-    dead link, a stop that waits for a fresh press — the client takes the step itself (:meth:`recover`) and
-    the motion goes on. Gives up ``patience`` s after it would have finished. Returns (s moved, what it did)."""
+    dead link — the client takes the step itself (:meth:`recover`) and the motion goes on. A stop command that
+    halts it on the way ends it instead: somebody (the nurse at the patient, another operator) stopped the
+    robot after this motion was asked for, and nothing resumes motion without a fresh intent. (A stop from
+    before, such as a script's own ``stop`` step, is recovered from: the motion asked after it is that intent.)
+    Gives up ``patience`` s after it would have finished. Returns (s moved, what it did)."""
     moved, actions = 0.0, []
-    last = time.monotonic()
+    last = started = time.monotonic()
     still_since = last
     give_up = last + seconds + patience
     while moved < seconds and time.monotonic() < give_up:
@@ -46,6 +50,10 @@ def drive_for(client: OperatorClient, seconds: float, patience: float) -> tuple[
         if client.driving():
             moved += now - last
             still_since = now
+        elif client.halted_at > started and client.safety is not None and client.safety.status == Status.STOPPED \
+                and client.safety.reason.startswith(STOP_FROM):
+            actions.append(f"stopped: {client.safety.reason}")
+            break
         elif now - still_since > STALL_S:
             step = client.recover()
             if step.step is not recovery.Step.NONE and (not actions or actions[-1] != f"{step.step.value}: {step.why}"):
