@@ -635,7 +635,7 @@ class SafetyStatus(Message):
     """Edge → all at 20 Hz and on change: the supervisor's state and why it is what it is."""
 
     KEY: ClassVar[str] = keys.STATE_SAFETY
-    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"forged", "contact_target", "task"})
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"forged", "contact_target", "task", "mac"})
     armed: bool = False
     arm_requested: bool = False
     owner: str = spec("", max_len=64)
@@ -658,6 +658,7 @@ class SafetyStatus(Message):
     forged: int = spec(0, lo=0)  # commands in the owner's name without the owner's signature, refused unanswered
     contact_target: float = spec(-1.0, lo=-1.0, hi=1000.0)  # N held along the probe in contact mode; -1: off
     task: str = spec("", max_len=200)  # a motion primitive under way and its progress ("" when none)
+    mac: bytes = spec(b"", max_len=MAC_MAX)  # signed with the owner's key while someone holds control (auth)
 
 
 def superseded_news(before: int, now: int) -> str | None:
@@ -682,12 +683,14 @@ class ForceLevelState(Message):
     """Edge → all on change and at 10 Hz. ``stale`` overrides ``level``: no fresh sample, no colour."""
 
     KEY: ClassVar[str] = keys.STATE_FORCE_LEVEL
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"mac"})
     level: int = spec(0, lo=0, hi=2)
     stale: bool = True
     value: float = spec(0.0, lo=-1e5, hi=1e5)  # the quantity compared with the thresholds, N
     quantity: str = spec("fz", max_len=16)
     caution: float = spec(6.0, lo=0.0)
     danger: float = spec(8.0, lo=0.0)
+    mac: bytes = spec(b"", max_len=MAC_MAX)  # signed with the owner's key while someone holds control (auth)
 
 
 @dataclass(kw_only=True)

@@ -20,7 +20,9 @@ from iorthand.protocol import (
     AppliedCommand,
     ControlReply,
     ControlRequest,
+    ForceLevelState,
     RobotState,
+    SafetyStatus,
     Status,
     StopCommand,
     TwistCommand,
@@ -156,7 +158,7 @@ def _edge_zenoh(lab, name: str) -> dict:
 def test_the_owner_believes_only_the_robot_state_and_echoes_the_edge_signed(edge_factory, operator_factory,
                                                                            session_factory) -> None:
     """Found by a red-team run of the operator side: a third session published robot states stamped "now" (a
-    fake pose) and command echoes in the owner's name. The owner's client took them: its commands told the edge
+    fake pose), command echoes in the owner's name, safety states and green force levels. The owner's client took them: its commands told the edge
     that its screen was live while the real state came 1 s late (the robot moved 18 mm past the stale-view
     check), and 60 forged echoes a command showed a 200 ms link as 2.5 ms. While someone holds control the edge
     signs its robot state and echoes with the owner's key; the owner's client ignores what does not verify."""
@@ -166,8 +168,11 @@ def test_the_owner_believes_only_the_robot_state_and_echoes_the_edge_signed(edge
     k = keys.RobotKeys("sim1")
     mallory = session_factory()
     state_pub, echo_pub = mallory.declare_publisher(k.key(keys.STATE_ROBOT)), mallory.declare_publisher(k.key(keys.STATE_APPLIED))
+    safety_pub = mallory.declare_publisher(k.key(keys.STATE_SAFETY))
+    level_pub = mallory.declare_publisher(k.key(keys.STATE_FORCE_LEVEL))
     fake = [0.5, 0.5, 0.5, 0.0, 0.0, 0.0]
     poses: list[list[float]] = []
+    shown: list[tuple[str, str]] = []
     echoes0, sent0 = alice.echo_count, alice.sent_count
     for i in range(200):
         now = time.time_ns()
@@ -175,10 +180,16 @@ def test_the_owner_believes_only_the_robot_state_and_echoes_the_edge_signed(edge
         for seq in range(max(1, alice.sent_count - 5), alice.sent_count + 5):  # echoes for the latest commands
             echo_pub.put(AppliedCommand(operator="alice", cmd_seq=seq, cmd_t=now, recv_t=now, accepted=True)
                          .stamp(10**6 + i, now).encode())
+        safety_pub.put(SafetyStatus(owner="alice", armed=True, status="stopped", reason="forged")
+                       .stamp(10**6 + i, now).encode())
+        level_pub.put(ForceLevelState(level=0, stale=False, quantity="forged").stamp(10**6 + i, now).encode())
         time.sleep(0.005)
         if alice.robot_state is not None:
             poses.append(list(alice.robot_state.tcp_pose))
+        shown.append((alice.safety.reason if alice.safety else "",
+                      alice.force_level.quantity if alice.force_level else ""))
     assert poses and fake not in poses, "a forged robot state was taken for the edge's"
+    assert not [x for x in shown if "forged" in x], "a forged safety state or force level was shown"
     assert alice.rejects.counts.get(k.key(keys.STATE_ROBOT), 0) >= 150
     assert alice.rejects.counts.get(k.key(keys.STATE_APPLIED), 0) >= 1000
     assert alice.echo_count - echoes0 <= alice.sent_count - sent0  # one echo a command at most

@@ -168,6 +168,7 @@ class EdgeAgent:
         if config.force is not None:
             sensor = make_force_sensor(config.force.sensor, config.phantom, lambda: self.reading)
             self.force = ForceMonitor(config.force, sensor, self._on_force_change)
+            self.force.seal = self.supervisor.for_owner
         self.servos = ServoUnit(config.servos) if config.servos is not None else None
         self.torch = TorchUnit(config.torch) if config.torch is not None else None
         # Perception and video run in a child process (iorthand_edge.media) so that they never take the control
@@ -539,7 +540,7 @@ class EdgeAgent:
                 task=SafetyStatus.fit("task", self.goto.reason) if self.goto.active else "",
             ).stamp(self._seq["safety"].next())
             # Put under the lock: two threads publishing at once must not reorder the sequence numbers.
-            self._pub_safety.put(msg.encode())
+            self._pub_safety.put(self.supervisor.for_owner(keys.STATE_SAFETY, msg))
 
     # ------------------------------------------------------------------ commands
 

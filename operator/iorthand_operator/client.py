@@ -594,11 +594,12 @@ class OperatorClient:
             return None
 
     def _from_the_edge(self, msg: Message, suffix: str, key: str) -> bool:
-        """While we hold control, the edge signs its robot state and command echoes with our key: one that does
-        not verify came from another session (on an open router) and is ignored, counted in ``rejects``. A
-        forged fresh robot state would have told the edge our screen was live while it showed a frozen picture,
-        and forged echoes faked the link's latency and "driving". Without a key (watching, or between grants)
-        nothing can be checked: everything is taken, as before."""
+        """While we hold control, the edge signs its robot state, command echoes, safety state and force levels
+        with our key: one that does not verify came from another session (on an open router) and is ignored,
+        counted in ``rejects``. A forged fresh robot state would have told the edge our screen was live while it
+        showed a frozen picture, forged echoes faked the link's latency and "driving", and a forged level 0
+        showed green while the real level was red. Without a key (watching, or between grants) nothing can be
+        checked: everything is taken, as before."""
         own = self._key
         if not own or auth.verify(own, auth.context(self.keys.robot, suffix), msg):
             return True
@@ -618,7 +619,7 @@ class OperatorClient:
 
     def _on_safety(self, sample: zenoh.Sample) -> None:
         msg = self._decode(SafetyStatus, sample)
-        if msg is not None:
+        if msg is not None and self._from_the_edge(msg, keys.STATE_SAFETY, str(sample.key_expr)):
             self.safety = msg
             if msg.status != self._last_safety_status and msg.status in recovery.REPRESS | recovery.REACQUIRE:
                 with self._lock:
@@ -640,7 +641,7 @@ class OperatorClient:
 
     def _on_force_level(self, sample: zenoh.Sample) -> None:
         msg = self._decode(ForceLevelState, sample)
-        if msg is not None:
+        if msg is not None and self._from_the_edge(msg, keys.STATE_FORCE_LEVEL, str(sample.key_expr)):
             self.force_level, self.force_level_at = msg, time.monotonic()
             if not msg.stale:
                 self.peak_force_level = max(self.peak_force_level, msg.level)

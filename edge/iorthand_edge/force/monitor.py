@@ -19,7 +19,7 @@ from collections.abc import Callable
 import zenoh
 
 from iorthand import keys
-from iorthand.protocol import ForceLevelState, ForceSample, Sequencer
+from iorthand.protocol import ForceLevelState, ForceSample, Message, Sequencer
 from iorthand.transport import Worker, publisher
 from iorthand_edge.force.config import ForceConfig
 from iorthand_edge.force.levels import LevelState, LevelTracker
@@ -50,6 +50,9 @@ class ForceMonitor:
         self._last_level_pub = 0.0
         self._reported_errors = 0
         self._next_retry = 0.0
+        # Signs the level for the owner's client (the agent sets Supervisor.for_owner): the owner believes only
+        # the levels this edge published, never a third session's green.
+        self.seal: Callable[[str, Message], bytes] | None = None
 
     def start(self, session: zenoh.Session, robot_keys: keys.RobotKeys, stop: threading.Event) -> None:
         self._pub_force = publisher(session, robot_keys.key(keys.STATE_FORCE))
@@ -168,4 +171,5 @@ class ForceMonitor:
             level=int(state.level), stale=state.stale, value=min(state.value, 1e5), quantity=lv.quantity,
             caution=lv.caution, danger=lv.danger,
         )
-        self._pub_level.put(msg.stamp(self._seq_level.next()).encode())
+        msg.stamp(self._seq_level.next())
+        self._pub_level.put(self.seal(keys.STATE_FORCE_LEVEL, msg) if self.seal is not None else msg.encode())
