@@ -79,6 +79,16 @@ def vec(n: int, *, lo: float | None = None, hi: float | None = None) -> Any:
     return spec(default_factory=lambda: [0.0] * n, length=n, lo=lo, hi=hi)
 
 
+def printable(text: str) -> str:
+    """Text from the wire as it may be shown (a terminal, a report): every character Python does not call
+    printable (controls, C1, DEL, format characters such as bidirectional overrides, separators other than the
+    space) written as its escape (``\\x1b``, ``\\n``, ``\\u202e``). Shown raw, they would steer a terminal
+    (clear the screen, move the cursor, set the window title) or draw lines of their own."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def now_ns() -> int:
     return time.time_ns()
 

@@ -359,8 +359,9 @@ class Supervisor:
 
     def for_owner(self, suffix: str, msg: Message) -> bytes:
         """``msg``'s payload, signed with the owner's key while someone holds control: the owner's client then
-        believes only what this edge said (the robot's state, its command echoes), not a third session that
-        publishes on the same key (a fresh-looking robot state would get its commands past the stale-view check)."""
+        believes only what this edge said (the robot's state, command echoes, safety state, force levels), not a
+        third session that publishes on the same key (a fresh-looking robot state would get its commands past
+        the stale-view check, a level 0 would show green)."""
         return auth.seal(self._key, self._context(suffix), msg) if self._key else msg.encode()
 
     # ---------------------------------------------------------------- faults, stops, force

@@ -16,9 +16,10 @@ session answered (the edge always answers too), but while the edge is silent a l
 the deployment's ACL, which lets only the edge's certificate answer under ``control/**``, closes that.
 
 The other way, the edge signs its robot state, its command echoes, its safety state and its force levels with
-the same key while someone holds control (``Supervisor.for_owner``), and the owner's client believes only those that verify: a third session
-cannot feed the owner a fresh-looking robot state (which the owner's commands would report to the edge as the
-age of its picture), fake echoes (the link's latency), a false safety state or a green force level. Watchers hold no key and check nothing.
+the same key while someone holds control (``Supervisor.for_owner``), and the owner's client believes only those
+that verify: a third session cannot feed the owner a fresh-looking robot state (which the owner's commands would
+report to the edge as the age of its picture), fake echoes (the link's latency), a false safety state or a green
+force level. Watchers hold no key and check nothing.
 
 The MAC is BLAKE2s keyed (a standard keyed hash, 16 bytes) over a context (the robot and the key suffix, so a
 signature for one robot or one kind of message is worthless for another) and the message's bytes as they travel,

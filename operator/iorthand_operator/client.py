@@ -124,6 +124,10 @@ class OperatorClient:
     ) -> None:
         self.session = session
         self.keys = keys.RobotKeys(robot_id)
+        # What the edge signs for the owner (Supervisor.for_owner), each key's signature context made once: they
+        # are checked in Zenoh's callbacks, the robot state 125 times a second.
+        self._edge_contexts = {suffix: auth.context(robot_id, suffix) for suffix in
+                               (keys.STATE_ROBOT, keys.STATE_APPLIED, keys.STATE_SAFETY, keys.STATE_FORCE_LEVEL)}
         self.operator_id = keys.check_operator_id(operator_id)
         self.rate_hz = rate_hz
         self.release_tail = release_tail
@@ -601,7 +605,7 @@ class OperatorClient:
         showed green while the real level was red. Without a key (watching, or between grants) nothing can be
         checked: everything is taken, as before."""
         own = self._key
-        if not own or auth.verify(own, auth.context(self.keys.robot, suffix), msg):
+        if not own or auth.verify(own, self._edge_contexts[suffix], msg):
             return True
         self.rejects.add(key, "not signed by the edge for the session that holds control")
         return False

@@ -33,6 +33,7 @@ from iorthand.protocol import (
     SafetyStatus,
     Status,
     TwistCommand,
+    printable,
 )
 from iorthand_cloud.recorder import metrics
 from iorthand_cloud.recorder.config import ReportConfig
@@ -273,8 +274,7 @@ def md_text(value: Any, limit: int = 500) -> str:
     text = str(value)
     if len(text) > limit:
         text = text[:limit] + "…"
-    text = "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
-    text = text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+    text = printable(text).replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
     return _MARKUP.sub(r"\\\1", text)
 
 

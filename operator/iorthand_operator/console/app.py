@@ -25,9 +25,9 @@ from textual.message import Message
 from textual.screen import ModalScreen
 from textual.widgets import Footer, OptionList, RichLog, Static
 
+from iorthand.protocol import printable
 from iorthand_operator.client import ControlRefused
 from iorthand_operator.console.controller import ConsoleController, ConsoleView
-from iorthand_operator.console.model import printable
 from iorthand_operator.inputs.keyboard import KeyboardInput
 
 

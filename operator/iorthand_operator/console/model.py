@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from iorthand.protocol import FORCE_LEVEL_COLOURS, ForceLevel, ForceLevelState, SensorReading
+from iorthand.protocol import FORCE_LEVEL_COLOURS, ForceLevel, ForceLevelState, SensorReading, printable
 from iorthand_operator.link import GRADE_COLOURS, LinkQuality, LinkThresholds
 
 GREY = "grey50"
@@ -101,18 +101,8 @@ def next_profile(current: str, profiles: Sequence[str]) -> str:
     return profiles[0]
 
 
-def printable(text: str) -> str:
-    """``text`` as it may reach the terminal: every character Python does not call printable (controls, C1, DEL,
-    format characters such as bidirectional overrides, separators other than the space) is shown as its escape
-    (``\\x1b``, ``\\n``, ``\\u202e``). From the wire, they would steer the terminal (clear the screen, move the
-    cursor, set the window title) or draw lines of their own."""
-    if text.isprintable():
-        return text
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
-
-
 def inert(value: Any) -> Any:
-    """A view (a dataclass of what the screen shows) with every string in it :func:`printable`, through lists,
+    """A view (a dataclass of what the screen shows) with every string in it ``printable``, through lists,
     tuples and nested views."""
     if isinstance(value, str):
         return printable(value)
