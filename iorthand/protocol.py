@@ -810,7 +810,10 @@ class ControlRequest(Message):
 
 @dataclass(kw_only=True)
 class ControlReply(Message):
-    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"key"})
+    """Edge → the querier alone: the answer to a ``control/<verb>`` query. Its ``seq`` is the request's; while
+    someone holds control it is signed with the owner's key (iorthand.security.auth.reply_context)."""
+
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"key", "mac"})
     ok: bool = False
     reason: str = spec("", max_len=200)
     owner: str = spec("", max_len=64)
@@ -818,6 +821,7 @@ class ControlReply(Message):
     detail: str = spec("", max_len=4096)  # JSON text for richer answers (pose lists, previews)
     # acquire: the secret that signs this owner's commands. A query's reply goes to the querier alone.
     key: bytes = spec(b"", max_len=KEY_MAX)
+    mac: bytes = spec(b"", max_len=MAC_MAX)
 
 
 @dataclass(kw_only=True)

@@ -471,16 +471,19 @@ class Worker(threading.Thread):
             self._stop_event.set()
 
 
-def query(session: zenoh.Session, key: str, payload: bytes, timeout: float = 2.0, every_answer: bool = False
-          ) -> list[bytes]:
+def query(session: zenoh.Session, key: str, payload: bytes, timeout: float = 2.0, every_answer: bool = False,
+          until: Callable[[bytes], bool] | None = None) -> list[bytes]:
     """Send a query and collect the ok replies' payloads (errors are raised with their text). ``every_answer``:
-    no consolidation, so that a caller expecting one answerer sees every session that answered."""
+    no consolidation, so that a caller expecting one answerer sees every session that answered. ``until``: stop
+    waiting at the first reply it accepts (returned last), whatever else is still to come."""
     consolidation = zenoh.ConsolidationMode.NONE if every_answer else None
     replies = session.get(key, payload=payload, timeout=timeout, consolidation=consolidation)
     out: list[bytes] = []
     for reply in replies:
         if reply.ok is not None:
             out.append(reply.ok.payload.to_bytes())
+            if until is not None and until(out[-1]):
+                break
         else:
             raise RuntimeError(f"query {key} failed: {reply.err.payload.to_bytes().decode(errors='replace')}")
     return out

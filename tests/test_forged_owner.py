@@ -134,6 +134,88 @@ def test_a_session_answering_control_queries_in_the_edges_name_is_exposed(edge_f
     impostor.undeclare()
 
 
+def test_the_owner_keeps_control_while_another_session_answers_or_holds_its_lease_renewals(
+        edge_factory, operator_factory, session_factory) -> None:
+    """Found by a red-team run of the operator side, on an open router: while alice held control, a session that
+    answered her renewals with a forged grant (two answers: none believed) or held them open without answering
+    (the query timed out) made her client give control up after one renewal, although the edge still held her
+    as its owner; the robot stopped. Now the edge signs its answer for her grant, with her request's sequence,
+    and her client takes it as soon as it arrives: she keeps control, her key unchanged."""
+    agent = edge_factory(safety={"lease": 1.0})  # a renewal every ~0.33 s
+    alice = operator_factory(operator_id="alice")
+    alice.wait_for_state()
+    alice.acquire()
+    alice.start()
+    key = alice._key
+    mallory = session_factory()
+    k = keys.RobotKeys("sim1")
+    held: list[zenoh.Query] = []
+
+    def forge(query: zenoh.Query) -> None:
+        fake = ControlReply(ok=True, reason="control granted to 'alice'", owner="alice", lease=1.0, key=b"m" * 32)
+        query.reply(query.key_expr, fake.stamp(0).encode())
+        query.drop()
+
+    impostors = [mallory.declare_queryable(k.key(keys.CONTROL_ACQUIRE), forge),
+                 mallory.declare_queryable(k.key(keys.CONTROL_ACQUIRE), held.append)]  # never answers
+    try:
+        time.sleep(0.3)
+        started = time.monotonic()
+        reply = alice.acquire()
+        took = time.monotonic() - started
+        assert reply.ok and not reply.key, reply.reason
+        assert took < alice.query_timeout / 2, f"the renewal waited {took:.2f} s for the query held open"
+        time.sleep(2.5)  # 2.5 leases of renewals through both impostors
+        assert held, "the silent impostor saw no query"
+        assert alice.owner and alice._key == key
+        assert agent.supervisor.owner == "alice"
+        assert not [e for e in list(alice.events) if "lost control" in e.reason or "renewal failed" in e.reason]
+    finally:
+        for q in impostors:
+            q.undeclare()
+        held.clear()
+
+
+def test_a_failing_renewal_is_tried_again_until_the_lease_runs_out(edge_factory, operator_factory) -> None:
+    """A renewal that fails (a busy edge, a stalled link) costs control only once the edge's lease can have run
+    out: before, the first failure cleared the client's key while the edge still held it as owner (a red-team
+    flood of acquire queries did that while the owner drove). The failure is the client's own acquire raising for
+    a while (the cause does not matter to this rule)."""
+    agent = edge_factory(safety={"lease": 1.5})  # a renewal every 0.5 s
+    alice = operator_factory(operator_id="alice")
+    alice.wait_for_state()
+    alice.acquire()
+    alice.start()
+    key = alice._key
+    real_acquire = alice.acquire
+    failing_until = [0.0]
+
+    def flaky_acquire(profile: str = "") -> ControlReply:
+        if time.monotonic() < failing_until[0]:
+            raise ControlRefused("edge busy: 256 requests are waiting before this acquire; try again")
+        return real_acquire(profile)
+
+    alice.acquire = flaky_acquire  # type: ignore[method-assign]
+    failing_until[0] = time.monotonic() + 0.9  # under the lease
+    time.sleep(1.6)
+    assert alice.owner and alice._key == key, [e.reason for e in alice.events]
+    reasons = [e.reason for e in alice.events]
+    assert any("renewal failed" in r for r in reasons) and any("renewed again" in r for r in reasons), reasons
+    # While she drives, her commands renew the edge's lease, and their signed echoes say so: failing renewals
+    # for twice the lease cost nothing.
+    alice.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+    wait_until(lambda: any(e.accepted for e in list(alice.echoes)[-5:]), 3.0, message="her commands applied")
+    failing_until[0] = time.monotonic() + 10.0
+    time.sleep(3.0)
+    assert alice.owner and alice._key == key and agent.supervisor.owner == "alice"
+    assert alice.echoes[-1].accepted
+    # Once she stops sending, nothing renews the lease: control is given up when it has run out.
+    alice.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+    wait_until(lambda: not alice.owner, 4.0, message="control given up once the lease has run out")
+    assert alice._key == b""
+    assert any("lost control" in e.reason for e in alice.events)
+
+
 @pytest.fixture(scope="module")
 def shared_robot_lab(tmp_path_factory: pytest.TempPathFactory):
     """mTLS + passwords + ACL as DEPLOY.md generates it, two operators granted the same robot, and operator keys

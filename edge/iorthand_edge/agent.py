@@ -607,12 +607,14 @@ class EdgeAgent:
         return self.goto.limits(p.linear, p.angular, self.config.safety.max_linear_acceleration)
 
     def _on_poses(self, query: zenoh.Query) -> None:
-        if self._request(query, keys.CONTROL_POSES) is None:
+        req = self._request(query, keys.CONTROL_POSES)
+        if req is None:
             return
         markers = sorted(self._fresh_markers())
         entries = [{"name": n} for n in [*self.config.goto.poses, motion.RETRACT, *(f"{motion.ABOVE_MARKER}{i}" for i in markers)]]
         entries += motion.primitives(markers, self.config.goto.marker_standoff)
-        self._reply(query, True, f"{len(entries)} poses and primitives", detail=json.dumps(entries))
+        self._reply(query, True, f"{len(entries)} poses and primitives", (keys.CONTROL_POSES, req),
+                    detail=json.dumps(entries))
 
     def _on_preview(self, query: zenoh.Query) -> None:
         req = self._request(query, keys.CONTROL_PREVIEW)
@@ -623,20 +625,22 @@ class EdgeAgent:
             limits = self._limits()
             owner = self.supervisor.owner
         if reading is None:
-            self._reply(query, False, "no robot state yet")
+            self._reply(query, False, "no robot state yet", (keys.CONTROL_PREVIEW, req))
             return
         try:
             params = json.loads(req.params) if req.params else {}
             if not isinstance(params, dict):
                 raise ValueError("not a JSON object")
         except ValueError as exc:
-            self._reply(query, False, f"preview {req.name!r}: params must be a JSON object ({exc})")
+            self._reply(query, False, f"preview {req.name!r}: params must be a JSON object ({exc})",
+                        (keys.CONTROL_PREVIEW, req))
             return
         # Planning (IK along the path, up to ~2 s) runs in the planner's child while this thread waits.
         pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
                                self._fresh_markers(), self._joint_angles(reading), params, owner)
         (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")
-        self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", detail=json.dumps(pv.detail()))
+        self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", (keys.CONTROL_PREVIEW, req),
+                    detail=json.dumps(pv.detail()))
 
     def _on_goto(self, query: zenoh.Query) -> None:
         req = self._request(query, keys.CONTROL_GOTO)
@@ -657,7 +661,7 @@ class EdgeAgent:
                     self.supervisor.contact_off(f"{req.name!r} moves the probe along its axis")
                     reason += "; contact mode off"
         (log.info if ok else log.warning)("goto %r by %r: %s", req.name, req.operator, reason)
-        self._reply(query, ok, reason)
+        self._reply(query, ok, reason, (keys.CONTROL_GOTO, req))
 
     # ------------------------------------------------------------------ control plane
 
@@ -727,17 +731,25 @@ class EdgeAgent:
         if not ok:
             self.rejects.add(key, why)
             self._rlog.warning(f"gate:{suffix}", f"refused {suffix} from {req.operator!r}: {why}")
-            self._reply(query, False, why)
+            self._reply(query, False, why, (suffix, req))
             return None
         return req
 
-    def _reply(self, query: zenoh.Query, ok: bool, reason: str, **extra: Any) -> None:
+    def _reply(self, query: zenoh.Query, ok: bool, reason: str, to: tuple[str, ControlRequest] | None = None,
+               signing_key: bytes | None = None, **extra: Any) -> None:
         """Answer a control query. The reply goes to the querier alone (Zenoh routes it back): the only way
-        the acquire's key travels."""
+        the acquire's key travels. ``to``: the decoded request and its key suffix: the answer carries the request's
+        sequence and is signed for the owner (``signing_key``: the grant's, default the current one), see
+        Supervisor.answer. Without it (a malformed request, a full queue) it is neither."""
         reply = ControlReply(ok=ok, reason=ControlReply.fit("reason", reason), owner=self.supervisor.owner, **extra)
-        reply.stamp(0)
+        reply.stamp(to[1].seq if to is not None else 0)
+        if to is None:
+            payload = reply.encode()
+        else:
+            with self.lock:
+                payload = self.supervisor.answer(to[0], reply, signing_key)
         try:
-            query.reply(query.key_expr, reply.encode())
+            query.reply(query.key_expr, payload)
         except zenoh.ZError as exc:
             log.warning("could not answer %s: %s", query.key_expr, exc)
         finally:
@@ -757,7 +769,7 @@ class EdgeAgent:
             ok, reason, key = grant.ok, grant.reason, grant.key
         if key or not ok:  # a new grant or a refusal; renewals (every lease/3) are not worth a line
             (log.info if ok else log.warning)("acquire by %r: %s", req.operator, reason)
-        self._reply(query, ok, reason, lease=self.config.safety.lease, key=key)
+        self._reply(query, ok, reason, (keys.CONTROL_ACQUIRE, req), lease=self.config.safety.lease, key=key)
         self._publish_safety(force=True)
 
     def _on_release(self, query: zenoh.Query) -> None:
@@ -765,12 +777,13 @@ class EdgeAgent:
         if req is None:
             return
         with self.lock:
+            grant_key = self.supervisor.grant_key  # the answer is signed with the key of the grant it ends
             ok, reason = self.supervisor.release(req)
             if ok and self.goto.active:
                 self._cancel_goto("control released")
         self._wake()
         (log.info if ok else log.warning)("release by %r: %s", req.operator, reason)
-        self._reply(query, ok, reason)
+        self._reply(query, ok, reason, (keys.CONTROL_RELEASE, req), grant_key)
         self._publish_safety(force=True)
 
     def _on_arm(self, query: zenoh.Query) -> None:
@@ -780,7 +793,7 @@ class EdgeAgent:
         with self.lock:
             ok, reason = self.supervisor.request_arm(req.operator)
         log.info("arm request by %r: %s", req.operator, reason)
-        self._reply(query, ok, reason)
+        self._reply(query, ok, reason, (keys.CONTROL_ARM, req))
         self._publish_safety(force=True)
 
     def _on_operator_gone(self, operator: str) -> None:
@@ -841,17 +854,19 @@ class EdgeAgent:
                 if not math.isfinite(force):
                     raise ValueError("force is not a finite number")
         except (ValueError, TypeError) as exc:
-            self._reply(query, False, f"contact: params must be a JSON object like {{\"force\": 4.0}} ({exc})")
+            self._reply(query, False, f"contact: params must be a JSON object like {{\"force\": 4.0}} ({exc})",
+                        (keys.CONTROL_CONTACT, req))
             return
         if req.name not in ("on", "off"):
-            self._reply(query, False, f"contact: name must be 'on' or 'off', got {req.name[:20]!r}")
+            self._reply(query, False, f"contact: name must be 'on' or 'off', got {req.name[:20]!r}",
+                        (keys.CONTROL_CONTACT, req))
             return
         with self.lock:
             ok, reason = self.supervisor.set_contact(req, req.name == "on", force)
             self._log_interventions()
         self._wake()
         (log.info if ok else log.warning)("contact by %r: %s", req.operator, reason)
-        self._reply(query, ok, reason)
+        self._reply(query, ok, reason, (keys.CONTROL_CONTACT, req))
         self._publish_safety(force=True)
 
     def _on_force_zero(self, query: zenoh.Query) -> None:
@@ -871,7 +886,7 @@ class EdgeAgent:
             except SensorError as exc:
                 ok, reason = False, f"force sensor not zeroed: {exc}"
         (log.info if ok else log.warning)("force zero by %r: %s", req.operator, reason)
-        self._reply(query, ok, reason)
+        self._reply(query, ok, reason, (keys.CONTROL_FORCE_ZERO, req))
 
     def _on_stop_sample(self, sample: zenoh.Sample) -> None:
         """A stop, acted on in Zenoh's callback: no queue to wait in behind other requests, none to be dropped

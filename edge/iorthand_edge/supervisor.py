@@ -364,6 +364,18 @@ class Supervisor:
         the stale-view check, a level 0 would show green)."""
         return auth.seal(self._key, self._context(suffix), msg) if self._key else msg.encode()
 
+    @property
+    def grant_key(self) -> bytes:
+        """The current grant's key (empty while nobody holds control): what :meth:`answer` signs with."""
+        return self._key
+
+    def answer(self, suffix: str, reply: Message, key: bytes | None = None) -> bytes:
+        """A reply to a ``suffix`` query, stamped with the request's sequence, as its payload: signed with ``key``
+        (default: the current grant's) so that the owner's client can tell this edge's answer from another
+        session's. Unsigned while nobody holds control."""
+        key = self._key if key is None else key
+        return auth.seal(key, auth.reply_context(self.robot, suffix), reply) if key else reply.encode()
+
     # ---------------------------------------------------------------- faults, stops, force
 
     def stop(self, reason: str) -> None:

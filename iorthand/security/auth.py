@@ -21,6 +21,11 @@ that verify: a third session cannot feed the owner a fresh-looking robot state (
 report to the edge as the age of its picture), fake echoes (the link's latency), a false safety state or a green
 force level. Watchers hold no key and check nothing.
 
+The edge's answers to the owner's control queries are signed too (``reply_context``), each carrying the sequence
+of the request it answers: the owner takes the answer that verifies and ignores any other session's, so another
+session answering on ``control/acquire`` (an open router), or holding the query open, no longer costs the owner
+its lease renewal; and an old answer replayed does not pass for the answer to a new request.
+
 The MAC is BLAKE2s keyed (a standard keyed hash, 16 bytes) over a context (the robot and the key suffix, so a
 signature for one robot or one kind of message is worthless for another) and the message's bytes as they travel,
 up to the MAC itself: a signed message's ``mac`` is its last field, so its payload ends with the MAC's 16 bytes.
@@ -53,6 +58,12 @@ def new_key() -> bytes:
 def context(robot: str, suffix: str) -> bytes:
     """What a signature is bound to besides the message: the robot id and the key suffix (``cmd/twist``)."""
     return f"iorthand/{robot}/{suffix}".encode()
+
+
+def reply_context(robot: str, suffix: str) -> bytes:
+    """The context of the edge's answer to a ``control/<verb>`` query: apart from the request's, which the same key
+    signs ('#' is in no key expression)."""
+    return context(robot, suffix) + b"#reply"
 
 
 def _digest(key: bytes, ctx: bytes, signed: bytes) -> bytes:
@@ -89,4 +100,4 @@ def verify(key: bytes, ctx: bytes, msg: Message) -> bool:
     return hmac.compare_digest(payload[-MAC_BYTES:], _digest(key, ctx, payload[:-MAC_BYTES]))
 
 
-__all__ = ["KEY_BYTES", "MAC_BYTES", "context", "new_key", "seal", "sign", "verify"]
+__all__ = ["KEY_BYTES", "MAC_BYTES", "context", "new_key", "reply_context", "seal", "sign", "verify"]

@@ -102,6 +102,7 @@ MAX_VITALS = 16
 # An acquire refused because the edge has not seen our liveliness token yet is asked again (identity.NO_TOKEN).
 TOKEN_RETRIES = 4
 TOKEN_RETRY_S = 0.25
+RENEW_RETRY_S = 0.2  # s between attempts while a lease renewal fails (see OperatorClient._renew_lease)
 
 class OperatorClient:
     def __init__(
@@ -165,6 +166,7 @@ class OperatorClient:
         self.last_refusal: AppliedCommand | None = None
         self.owner = False
         self.lease = 0.0
+        self._renewed_at = -math.inf  # monotonic time our last granted or renewed acquire was sent
         self._muted = False
         self.link = LinkWindow(link_window)
         self.realtime = realtime
@@ -240,16 +242,39 @@ class OperatorClient:
 
     def _control(self, suffix: str, profile: str = "", *, key: str | None = None, **fields: str) -> ControlReply:
         """A control query; signed with our grant's key while we hold control (renewing, releasing, moving to
-        a pose and zeroing the sensor are the owner's alone: the edge checks the signature, not the name)."""
+        a pose and zeroing the sensor are the owner's alone: the edge checks the signature, not the name).
+
+        While we hold a key, the edge's answer is signed with it and carries our request's sequence
+        (Supervisor.answer): that answer is taken as soon as it arrives, whoever else answers or holds the query
+        open, and an answer that is not signed so is not believed (ControlRefused): the edge no longer holds us
+        as its owner, or another session answered in its name. A new grant is the exception: it is signed with the
+        new key it carries."""
         req = ControlRequest(operator=self.operator_id, profile=profile, **fields)
         req.stamp(self._next_seq(suffix))
-        self._sign(req, suffix)
+        grant = self._key  # what this request is signed with, and what the edge's answer must be signed with
+        if grant:
+            auth.sign(grant, auth.context(self.keys.robot, suffix), req)
         payload = req.encode()
         to_edge = key is None  # (a preview goes through the twin: what it answers, the edge checks again)
         key = key or self.keys.key(suffix) + (f"/{self.operator_id}" if self.bind_keys else "")
-        replies = query(self.session, key, payload, timeout=self.query_timeout, every_answer=to_edge)
+        context = auth.reply_context(self.keys.robot, suffix)
+
+        def signed_with(payload: bytes, secret: bytes) -> ControlReply | None:
+            """The answer to this very request, signed with ``secret``; else None."""
+            try:
+                reply = ControlReply.decode(payload)
+            except DecodeError:
+                return None
+            return reply if secret and reply.seq == req.seq and auth.verify(secret, context, reply) else None
+
+        until = (lambda p: signed_with(p, grant) is not None) if to_edge and grant else None
+        replies = query(self.session, key, payload, timeout=self.query_timeout, every_answer=to_edge, until=until)
         if not replies:
             raise ControlRefused(f"no answer from robot {self.keys.robot!r} on {suffix} (is its edge agent online?)")
+        if until is not None and (ours := signed_with(replies[-1], grant)) is not None:
+            if len(replies) > 1:
+                self.rejects.add(key, f"{len(replies) - 1} other answer(s) not signed by the edge for our grant")
+            return ours
         if to_edge and len(replies) > 1:
             # Only the robot's edge answers here. On a router without access control any session can declare a
             # queryable on the key and answer first (a forged grant with a key of its own, to drive the robot
@@ -258,19 +283,26 @@ class OperatorClient:
                                  "its edge should: another session is answering in its name (a router without "
                                  "access control, docs/DEPLOY.md); no answer was taken")
         try:
-            return ControlReply.decode(replies[0])
+            reply = ControlReply.decode(replies[0])
         except DecodeError as exc:
             raise ControlRefused(f"malformed reply on {suffix}: {exc}") from None
+        if until is not None and signed_with(replies[0], reply.key) is None:
+            self.rejects.add(key, "an answer not signed by the edge for our grant")
+            raise ControlRefused(f"the answer on {suffix} is not signed for our grant of control: the edge no longer "
+                                 f"holds us as its owner, or another session answered in its name ({reply.reason!r})")
+        return reply
 
     def acquire(self, profile: str = "") -> ControlReply:
         """Acquire control, or renew it (a request signed with the key we hold). A new grant's key replaces
         ours; from then on every command is signed with it and the sequence starts again."""
         with self._acquire_lock:  # the lease thread and the user: one request at a time, in sequence order
+            asked = time.monotonic()
             reply = self._control(keys.CONTROL_ACQUIRE, profile)
             for _ in range(TOKEN_RETRIES):
                 if reply.ok or identity.NO_TOKEN not in reply.reason or self._token is None:
                     break
                 time.sleep(TOKEN_RETRY_S)  # our token may still be on its way to the edge
+                asked = time.monotonic()
                 reply = self._control(keys.CONTROL_ACQUIRE, profile)
         if not reply.ok:
             self.log_event("control", Status.NOT_OWNER, f"control refused: {reply.reason}")
@@ -283,6 +315,7 @@ class OperatorClient:
         elif not self._key:
             raise ControlRefused("the edge granted control without a key (an edge older than this client?)")
         self.owner, self.lease = True, reply.lease
+        self._renewed_at = asked  # the edge's lease runs from no earlier than this
         return reply
 
     def _set_key(self, key: bytes) -> None:
@@ -558,16 +591,37 @@ class OperatorClient:
             self.beat()
 
     def _renew_lease(self) -> None:
-        """While we own the robot, the lease renewal every lease/3 (a query: it may wait up to query_timeout)."""
-        while not self._stop.wait(max(0.2, self.lease / 3.0) if self.lease else 0.5):
-            if self.owner:
-                try:
-                    self.acquire()
-                except (ControlRefused, RuntimeError) as exc:
-                    self.owner = False
-                    self._set_key(b"")
-                    self.log_event("control", Status.NOT_OWNER, f"lost control: {exc}")
-                    log.warning("lost control: %s", exc)
+        """While we own the robot, the lease renewal every lease/3 (a query: it may wait up to query_timeout).
+
+        A renewal that fails is tried again every RENEW_RETRY_S for as long as the edge's lease may still run (it
+        began no earlier than the sending of our last renewal, or of our last command whose signed echo says the
+        edge applied it): a busy edge, a stalled link or another session's answer costs nothing unless it lasts a
+        whole lease. Then we give control up: the edge has let it go too (it stops the robot when the lease runs
+        out)."""
+        failing = False
+        while not self._stop.wait(RENEW_RETRY_S if failing else max(0.2, self.lease / 3.0) if self.lease else 0.5):
+            if not self.owner:
+                failing = False
+                continue
+            try:
+                self.acquire()
+                if failing:
+                    self.log_event("control", Status.OK, "lease renewed again")
+                failing = False
+            except (ControlRefused, RuntimeError) as exc:
+                left = self._renewed_at + self.lease - time.monotonic()
+                if left > 0:
+                    if not failing:
+                        self.log_event("control", Status.NOT_OWNER, f"lease renewal failed ({exc}): trying again; "
+                                       f"control lapses in {left:.1f} s unless a renewal gets through")
+                        log.warning("lease renewal failed: %s", exc)
+                    failing = True
+                    continue
+                failing = False
+                self.owner = False
+                self._set_key(b"")
+                self.log_event("control", Status.NOT_OWNER, f"lost control: {exc}")
+                log.warning("lost control: %s", exc)
 
     def beat(self) -> None:
         """The UI is alive: without a beat for ``ui_timeout`` the sender releases the deadman. The process
@@ -694,6 +748,11 @@ class OperatorClient:
             self._proc_sender.drain()  # the send record left the child before the command: take it now
         with self._lock:
             sent = self._sent.pop(msg.cmd_seq, None)  # one echo per command: a repeat is not a second answer
+            if sent is not None and msg.accepted and self._key:
+                # The edge signed this with our key (checked above): it held us as its owner when our command
+                # arrived, and an authentic command renews the edge's lease as a renewal does (Supervisor): while
+                # we drive, a renewal that cannot get through loses nothing.
+                self._renewed_at = max(self._renewed_at, time.monotonic() - max(0, now - sent) / 1e9)
             if sent is not None:
                 self.echoes.append(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status))
                 self.echo_count += 1
