@@ -91,7 +91,7 @@ def run_tree(tree: Path, seconds: float, workdir: Path) -> dict[str, Any]:
             seq += 1
             req = ControlRequest(operator="bench", name="sweep", params=json.dumps(SWEEP)).stamp(seq)
             asked = time.monotonic()
-            replies = list(session.get(k.key(keys.CONTROL_PREVIEW), payload=req.encode(), timeout=30.0))
+            replies = list(session.get(k.key(keys.PLAN_PREVIEW), payload=req.encode(), timeout=30.0))
             if not any(r.ok is not None for r in replies):
                 raise RuntimeError(f"preview {seq} not answered: {edge_log.read_text(errors='replace')[-1000:]}")
             previews.append(round(time.monotonic() - asked, 3))

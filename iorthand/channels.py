@@ -42,6 +42,8 @@ class Role(StrEnum):
     # `iorthand bridge mqtt`: readings of sensors outside the robot (a patient's vital signs) brought in from an
     # MQTT broker. Its own role so that the ACL and the bridge's own checks confine it to the rows naming it.
     BRIDGE = "bridge"
+    # The twin service: it has the edge plan the operators' previews (and draws them), nothing else of a robot's.
+    TWIN = "twin"
 
 
 class Qos(StrEnum):
@@ -134,8 +136,14 @@ CONTROL_ARM = _control("control/arm")
 CONTROL_POSES = _control("control/poses")
 CONTROL_GOTO = _control("control/goto")
 CONTROL_FORCE_ZERO = _control("control/force_zero")
-CONTROL_PREVIEW = _control("control/preview")  # plan a named pose, answer the verdict and a token
 CONTROL_CONTACT = _control("control/contact")  # contact mode on (name "on", the force in params) or off
+# Plan a named pose or a primitive; answer the verdict, the path and a single-use token for control/goto. A family
+# of its own: the twin asks it for the operators (it draws the plan), and an ACL grants a family whole, so the
+# twin gets this and nothing of control/**. Moving nothing, it is open to every granted operator; with bound keys
+# the plain key stays open too (shared), as the twin's query carries the operator's name as a claim only (the
+# token it yields is good for a goto signed by that operator's grant alone).
+PLAN_PREVIEW = Channel("plan/preview", Kind.QUERY, "ControlRequest", None, _EDGE, frozenset({Role.OPERATOR, Role.TWIN}),
+                       "ControlReply", OperatorKey.BOUND, shared=True)
 # Liveliness: an operator's token carries its id always, so nobody can look like another operator to the edge.
 ALIVE_EDGE = Channel("alive/edge", Kind.TOKEN, writers=_EDGE)
 ALIVE_OPERATOR = Channel("alive/operator", Kind.TOKEN, writers=_OPERATOR, operator_key=OperatorKey.ALWAYS)
@@ -144,8 +152,8 @@ TABLE: tuple[Channel, ...] = (
     CMD_TWIST, CMD_SERVO, CMD_TORCH, CMD_STOP, CMD_VIDEO_FEEDBACK,
     STATE_ROBOT, STATE_SAFETY, STATE_APPLIED, STATE_FORCE, STATE_FORCE_LEVEL, STATE_SERVO, STATE_TORCH,
     MARKERS, VIDEO_CAMERA, VIDEO_ULTRASOUND, SENSOR_VITAL,
-    CONTROL_ACQUIRE, CONTROL_RELEASE, CONTROL_ARM, CONTROL_POSES, CONTROL_GOTO, CONTROL_FORCE_ZERO, CONTROL_PREVIEW,
-    CONTROL_CONTACT,
+    CONTROL_ACQUIRE, CONTROL_RELEASE, CONTROL_ARM, CONTROL_POSES, CONTROL_GOTO, CONTROL_FORCE_ZERO, CONTROL_CONTACT,
+    PLAN_PREVIEW,
     ALIVE_EDGE, ALIVE_OPERATOR,
 )
 
@@ -197,6 +205,7 @@ def check(table: Iterable[Channel]) -> None:
 
 
 check(TABLE)
+BY_SUFFIX: dict[str, Channel] = {c.suffix: c for c in TABLE}
 COMMANDS = CMD_TWIST.family  # the family of every operator → robot command (one: see check)
 
 __all__ = ["COMMANDS", "TABLE", "Channel", "Kind", "OperatorKey", "Qos", "Role", "check", "families", "family"]

@@ -39,15 +39,15 @@ CONTROL_ARM = channels.CONTROL_ARM.suffix
 CONTROL_POSES = channels.CONTROL_POSES.suffix
 CONTROL_GOTO = channels.CONTROL_GOTO.suffix
 CONTROL_FORCE_ZERO = channels.CONTROL_FORCE_ZERO.suffix
-CONTROL_PREVIEW = channels.CONTROL_PREVIEW.suffix
 CONTROL_CONTACT = channels.CONTROL_CONTACT.suffix
+PLAN_PREVIEW = channels.PLAN_PREVIEW.suffix
 ALIVE_EDGE = channels.ALIVE_EDGE.suffix
 ALIVE_OPERATOR = channels.ALIVE_OPERATOR.suffix
 
 TWIN = "_twin"
 RECORDER = "_recorder"
 TWIN_SNAPSHOT = "snapshot"  # iorthand/_twin/<robot>/snapshot: latest state of one robot, with ages
-TWIN_PREVIEW = "preview"  # iorthand/_twin/<robot>/preview: forwarded to the edge's control/preview, drawn
+TWIN_PREVIEW = "preview"  # iorthand/_twin/<robot>/preview: forwarded to the edge's plan/preview, drawn
 
 # Recorder service keys, under iorthand/_recorder/ (see service_key): queryables, and the status stream that
 # also carries errors (a full disk must be visible to every client, not only in the recorder's log).

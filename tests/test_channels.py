@@ -77,7 +77,11 @@ def test_the_acl_grants_exactly_what_the_table_says(bind: bool) -> None:
             own = plain + "/alice" if bind else plain
             assert _allows(cfg, "operator-alice", "query", own) == (Role.OPERATOR in c.callers), c
             assert _allows(cfg, "operator-alice", "query", plain + "/bob") == (not bind), c
-            assert not _allows(cfg, "viewer-x", "query", plain) and not _allows(cfg, "twin", "query", plain), c
+            assert _allows(cfg, "operator-alice", "query", plain) == (not bind or c.shared), c
+            assert not _allows(cfg, "viewer-x", "query", plain), c
+            # The twin asks the edge for previews (plan/**), and nothing else: never control/** (acquiring).
+            assert _allows(cfg, "twin", "query", plain) == (Role.TWIN in c.callers), c
+            assert not _allows(cfg, "recorder", "query", plain), c
         else:
             own = plain + "/alice" if c.operator_key is OperatorKey.ALWAYS else plain
             assert _allows(cfg, "edge-r1", "liveliness_token", own) == (Role.EDGE in c.writers), c

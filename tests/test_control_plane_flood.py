@@ -47,7 +47,7 @@ def _flood(attacker: zenoh.Session, heavy: int, cheap: int) -> Answers:
     """``heavy`` costly sweeps, then ``cheap`` previews of unknown poses (refused at once when their turn comes),
     all in flight at the same time, in the name of nobody who holds control."""
     answers = Answers()
-    key = keys.RobotKeys("sim1").key(keys.CONTROL_PREVIEW)
+    key = keys.RobotKeys("sim1").key(keys.PLAN_PREVIEW)
     for i in range(heavy + cheap):
         name, params = ("sweep", HEAVY_SWEEP) if i < heavy else (f"nowhere{i}", "")
         req = ControlRequest(operator="mallory", name=name, params=params).stamp(i + 1)
@@ -97,7 +97,7 @@ def test_a_query_that_finds_the_planner_busy_says_so_and_the_planner_answers_lat
     assert busy and all("preview" in r and "try again" in r for r in busy), busy[:3]
     # Once the queue drains, a preview is planned again.
     wait_until(lambda: len(answers.replies) == 41, 20.0, message="every query answered")
-    key = keys.RobotKeys("sim1").key(keys.CONTROL_PREVIEW)
+    key = keys.RobotKeys("sim1").key(keys.PLAN_PREVIEW)
     req = ControlRequest(operator="mallory", name="home").stamp(1000)
     replies = [ControlReply.decode(r.ok.payload.to_bytes()) for r in attacker.get(key, payload=req.encode(), timeout=10.0)
                if r.ok is not None]
@@ -109,7 +109,7 @@ def test_a_refusal_longer_than_a_reply_carries_reaches_the_operator_cut(edge_fac
     characters: the operator gets it, cut, instead of a reply its decoder refuses as malformed."""
     edge_factory()
     s = session_factory()
-    key = keys.RobotKeys("sim1").key(keys.CONTROL_PREVIEW)
+    key = keys.RobotKeys("sim1").key(keys.PLAN_PREVIEW)
     params = json.dumps({"lanes": 50, "width": 0.15, "pitch": 0.01})
     req = ControlRequest(operator="alice", name="sweep", params=params).stamp(1)
     replies = [r.ok.payload.to_bytes() for r in s.get(key, payload=req.encode(), timeout=20.0) if r.ok is not None]

@@ -1,7 +1,7 @@
 """The edge's preview/goto logic, as pure code: tokens, refusals, and a previewed goto driving the simulated
 robot through the real supervisor (limits, deadman) on a simulated clock until it reaches the pose.
 
-The agent's queryables (control/preview, control/goto) are wired by the lead; this tests everything else.
+The agent's queryables (plan/preview, control/goto) are wired by the lead; this tests everything else.
 """
 
 from __future__ import annotations

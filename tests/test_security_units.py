@@ -131,8 +131,9 @@ def test_acl_policy_by_role() -> None:
     assert _allowed(cfg, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/*/alice", "iorthand/r1/cmd/stop"]
     assert sorted(_allowed(cfg, "operator-bob", "put", "ingress")) == [
         "iorthand/r1/cmd/*/bob", "iorthand/r1/cmd/stop", "iorthand/r2/cmd/*/bob", "iorthand/r2/cmd/stop"]
-    assert _allowed(cfg, "operator-alice", "query", "ingress") == ["iorthand/r1/control/*/alice", "iorthand/_twin/**",
-                                                                   "iorthand/_recorder/**"]
+    assert _allowed(cfg, "operator-alice", "query", "ingress") == [
+        "iorthand/r1/control/*/alice", "iorthand/r1/plan/*/alice", "iorthand/r1/plan/preview", "iorthand/_twin/**",
+        "iorthand/_recorder/**"]
     unbound = acl.router_config(_dep(bind_operator_keys=False))
     assert _allowed(unbound, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/**"]
     assert sorted(_allowed(unbound, "operator-bob", "put", "ingress")) == ["iorthand/r1/cmd/**", "iorthand/r2/cmd/**"]
@@ -140,10 +141,13 @@ def test_acl_policy_by_role() -> None:
     assert _allowed(cfg, "operator-alice", "liveliness_token", "ingress") == ["iorthand/r1/alive/operator/alice"]
     edge_puts = _allowed(cfg, "edge-r1", "put", "ingress")
     assert all(k.startswith("iorthand/r1/") and "/cmd" not in k for k in edge_puts)
-    assert _allowed(cfg, "edge-r1", "declare_queryable", "ingress") == ["iorthand/r1/control/**"]
+    assert _allowed(cfg, "edge-r1", "declare_queryable", "ingress") == ["iorthand/r1/control/**", "iorthand/r1/plan/**"]
     for viewer in ("viewer-eve", "twin", "recorder"):
         assert not [k for k in _allowed(cfg, viewer, "put", "ingress") if not k.startswith("iorthand/_")]
         assert not [k for k in _allowed(cfg, viewer, "query", "ingress") if "/control" in k]
+    # The twin has the edge plan the operators' previews: plan/** of every robot, and no other robot key.
+    assert [k for k in _allowed(cfg, "twin", "query", "ingress") if not k.startswith("iorthand/_")] == [
+        "iorthand/r1/plan/**", "iorthand/r2/plan/**"]
     # A viewer only reads the services: no starting, stopping or annotating a recording, no previews.
     assert _allowed(cfg, "viewer-eve", "query", "ingress") == ["iorthand/_twin/*/snapshot", "iorthand/_recorder/status"]
     assert _allowed(acl.router_config(_dep(services=["twin"])), "viewer-eve", "query", "ingress") == [

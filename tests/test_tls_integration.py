@@ -274,3 +274,49 @@ def test_bind_operator_keys_acl(tmp_path: Path) -> None:
     finally:
         for s in (alice, edge, router):
             s.close()
+
+
+def test_an_operator_previews_a_move_through_the_twin(tmp_path: Path) -> None:
+    """The console previews a named pose through the twin, which has the edge plan it and draws the plan. In the
+    secured deployment the router let the twin query nothing of a robot's, so every preview came back "no answer
+    from the edge" and no named pose or primitive could be run. The twin may now query ``plan/**`` (nothing else:
+    see test_channels), and with bound keys the edge answers the plain ``plan/preview`` too."""
+    from iorthand.config import from_dict
+    from iorthand_cloud.twin.config import TwinConfig
+    from iorthand_cloud.twin.service import TwinService
+    from iorthand_edge.agent import EdgeAgent
+    from iorthand_operator.client import ControlRefused, OperatorClient
+
+    lab = make_lab(tmp_path, free_port(), robots=["sim1"], operators={"alice": ["sim1"]}, viewers=["eve"],
+                   bind_operator_keys=True)
+    router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
+    agent = EdgeAgent(edge_config(lab.endpoint, "sim1", zenoh=edge_zenoh(lab), bind_operator_keys=True,
+                                  goto={"poses": {"home": [0.30, 0.0, 0.25, 3.14159, 0.0, 0.0]}}))
+    twin_zenoh = {**edge_zenoh(lab), "tls": {**edge_zenoh(lab)["tls"], "certificate": str(tmp_path / "twin.pem"),
+                                             "private_key": str(tmp_path / "twin.key")},
+                  "username": "twin", "password_file": str(tmp_path / "twin.password")}
+    twin = TwinService(from_dict({"zenoh": twin_zenoh, "viewer": {"serve": False, "save": str(tmp_path / "t.rrd")}},
+                                 TwinConfig, source="<test>"))
+    sessions = [open_session(lab.client("operator-alice")), open_session(lab.client("viewer-eve"))]
+    try:
+        agent.start()
+        twin.start()
+        alice = OperatorClient(sessions[0], "sim1", "alice", bind_keys=True)
+        alice.wait_for_state(10.0)
+        alice.acquire()
+        reply = alice.preview_pose("home")
+        assert reply.ok and reply.detail, reply.reason
+        assert twin.previews == 1
+        # A viewer may not have the edge plan anything, directly or through the twin.
+        eve = OperatorClient(sessions[1], "sim1", "eve", announce=False)
+        with pytest.raises(ControlRefused, match="no answer"):
+            eve.preview_pose("home")
+        direct = list(sessions[1].get(keys.RobotKeys("sim1").key(keys.PLAN_PREVIEW), payload=b"", timeout=1.0))
+        assert not [r for r in direct if r.ok is not None]
+        alice.close()
+    finally:
+        for s in sessions:
+            s.close()
+        twin.shutdown()
+        agent.shutdown()
+        router.close()

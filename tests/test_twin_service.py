@@ -1,6 +1,6 @@
 """Integration: real router, simulated edge(s), the twin service; synthetic publishers for the streams other
 engineers are building (force, markers, video, servos); a stand-in edge preview queryable running the real
-pure planner (:class:`GotoController`) until the lead wires ``control/preview`` into the edge agent."""
+pure planner (:class:`GotoController`) until the lead wires ``plan/preview`` into the edge agent."""
 
 from __future__ import annotations
 
@@ -150,7 +150,7 @@ def test_force_markers_images_and_servo_from_synthetic_publishers(edge_factory, 
 
 
 def _stand_in_edge_preview(session: zenoh.Session, robot: str):
-    """A stand-in for the edge's control/preview queryable, planning with the edge's real pure code."""
+    """A stand-in for the edge's plan/preview queryable, planning with the edge's real pure code."""
     from iorthand_edge.goto import GotoConfig, GotoController
     from iorthand_edge.supervisor import SafetyConfig
 
@@ -167,7 +167,7 @@ def _stand_in_edge_preview(session: zenoh.Session, robot: str):
         reply = ControlReply(ok=pv.ok, reason=pv.plan.reason, detail=json.dumps(pv.detail()))
         q.reply(q.key_expr, reply.stamp(0).encode())
 
-    return session.declare_queryable(keys.RobotKeys(robot).key(keys.CONTROL_PREVIEW), on_query)
+    return session.declare_queryable(keys.RobotKeys(robot).key(keys.PLAN_PREVIEW), on_query)
 
 
 def test_preview_is_forwarded_to_the_edge_and_drawn(twin_factory, session_factory):

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from iorthand import geometry, keys, motion
+from iorthand import channels, geometry, keys, motion
 from iorthand.cpu_latency import CpuLatencyWhileNeeded
 from iorthand.protocol import (
     MAX_PAYLOAD,
@@ -236,16 +236,17 @@ class EdgeAgent:
             s.declare_subscriber(k.key(keys.CMD_STOP) + "/*", self._on_stop_sample),
             subscribe(s, k.key(keys.CMD_SERVO) + bound, self._actuators, rejects=self.rejects),
             subscribe(s, k.key(keys.CMD_TORCH) + bound, self._actuators, rejects=self.rejects),
-            *(s.declare_queryable(k.key(suffix) + bound, self._queue_query(inbox, verb)) for suffix, inbox, verb in (
+            # With bound keys a shared query (plan/preview: the twin asks it for the operators) has its plain key too.
+            *(s.declare_queryable(k.key(suffix) + tail, self._queue_query(inbox, verb)) for suffix, inbox, verb in (
                 (keys.CONTROL_FORCE_ZERO, self._control, "force_zero"),
                 (keys.CONTROL_ACQUIRE, self._control, "acquire"),
                 (keys.CONTROL_RELEASE, self._control, "release"),
                 (keys.CONTROL_ARM, self._control, "arm"),
                 (keys.CONTROL_GOTO, self._control, "goto"),
                 (keys.CONTROL_CONTACT, self._control, "contact"),
-                (keys.CONTROL_PREVIEW, self._planning, "preview"),
+                (keys.PLAN_PREVIEW, self._planning, "preview"),
                 (keys.CONTROL_POSES, self._planning, "poses"),
-            )),
+            ) for tail in {bound, *([""] if channels.BY_SUFFIX[suffix].shared else [])}),
             s.liveliness().declare_subscriber(k.alive_operators, self._on_operator_liveliness, history=True),
         ]
         self._token = s.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
@@ -617,7 +618,7 @@ class EdgeAgent:
                     detail=json.dumps(entries))
 
     def _on_preview(self, query: zenoh.Query) -> None:
-        req = self._request(query, keys.CONTROL_PREVIEW)
+        req = self._request(query, keys.PLAN_PREVIEW)
         if req is None:
             return
         with self.lock:
@@ -625,7 +626,7 @@ class EdgeAgent:
             limits = self._limits()
             owner = self.supervisor.owner
         if reading is None:
-            self._reply(query, False, "no robot state yet", (keys.CONTROL_PREVIEW, req))
+            self._reply(query, False, "no robot state yet", (keys.PLAN_PREVIEW, req))
             return
         try:
             params = json.loads(req.params) if req.params else {}
@@ -633,13 +634,13 @@ class EdgeAgent:
                 raise ValueError("not a JSON object")
         except ValueError as exc:
             self._reply(query, False, f"preview {req.name!r}: params must be a JSON object ({exc})",
-                        (keys.CONTROL_PREVIEW, req))
+                        (keys.PLAN_PREVIEW, req))
             return
         # Planning (IK along the path, up to ~2 s) runs in the planner's child while this thread waits.
         pv = self.goto.preview(req.name, req.operator, reading.tcp_pose, time.monotonic(), limits,
                                self._fresh_markers(), self._joint_angles(reading), params, owner)
         (log.info if pv.ok else log.warning)("preview %r for %r: %s", req.name, req.operator, pv.plan.reason or "ok")
-        self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", (keys.CONTROL_PREVIEW, req),
+        self._reply(query, pv.ok, pv.plan.reason or f"preview of {req.name!r} accepted", (keys.PLAN_PREVIEW, req),
                     detail=json.dumps(pv.detail()))
 
     def _on_goto(self, query: zenoh.Query) -> None:

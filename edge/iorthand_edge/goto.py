@@ -2,7 +2,7 @@
 
 Flow (DESIGN.md "Safety model", issue 6 §5):
 
-1. ``control/preview`` (name) → :meth:`GotoController.preview` plans a straight line from the *current* pose
+1. ``plan/preview`` (name) → :meth:`GotoController.preview` plans a straight line from the *current* pose
    to the named pose at the *active* speed limits, checks the workspace box and the arm's reach, and — only
    if the plan is acceptable — issues a single-use token valid for ``token_ttl`` seconds. The reply carries
    the verdict and the path (the twin draws it as a ghost trajectory).
@@ -43,7 +43,7 @@ Vector = NDArray[np.float64]
 class GotoConfig:
     """The ``goto`` section of the edge configuration."""
 
-    enabled: bool = setting(True, help="serve control/preview and control/goto")
+    enabled: bool = setting(True, help="serve plan/preview and control/goto")
     poses: dict[str, list[float]] = setting(
         default_factory=lambda: {"home": [0.30, 0.0, 0.25, math.pi, 0.0, 0.0]},
         help="named safety poses [x,y,z,rx,ry,rz] in the base frame (m, rotation vector)",

@@ -19,7 +19,8 @@ enough. Which role may write or query which key of a robot is a column of the ta
   ``alive/operator/<name>`` so nobody can look like another operator to the edge's owner-loss logic. It sees
   only its robots and the cloud services.
 - ``twin``, ``recorder`` (services) and ``viewer-<name>`` (observers): subscribe and query; the services also
-  serve their own ``iorthand/_twin/**`` / ``iorthand/_recorder/**`` space. Viewers cannot query a robot's
+  serve their own ``iorthand/_twin/**`` / ``iorthand/_recorder/**`` space, and the twin queries every robot's
+  ``plan/**`` (it has the edge plan the operators' previews, and draws them), nothing else of a robot's. Viewers cannot query a robot's
   ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership), and of the
   services they may ask only what reads (:data:`READ_ONLY_QUERIES`: the twin's snapshots, the recorder's
   status): a viewer cannot start, stop or annotate a recording, nor have the edge plan a preview.
@@ -228,6 +229,9 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
         if services:
             asked = services if name in SERVICES else [READ_ONLY_QUERIES[s] for s in dep.services]
             rl.append(_rule(f"{name}-query", ["query"], ["ingress"], asked))
+        if name == Role.TWIN:  # previews for the operators (plan/**), nothing else of the robots'
+            rl.append(_rule(f"{name}-plan", ["query"], ["ingress"],
+                            [keys.RobotKeys(r).key(s) for r in dep.robots for s in _grants(table, Role.TWIN, Kind.QUERY, query=True)]))
         if name in SERVICES:
             own = _service_space(name)
             rl.append(_rule(f"{name}-serve", ["put", "delete", "declare_queryable", "reply", "liveliness_token"], ["ingress"], [own]))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from iorthand import keys
+from iorthand import channels, keys
 
 OPERATOR_CN_PREFIX = "operator-"
 
@@ -80,6 +80,8 @@ class CommandGate:
         if not self.bind_keys:
             return True, ""
         bound = operator_in_key(key, suffix)
+        if bound is None and channels.BY_SUFFIX[suffix].shared and keys.split_key(key)[1] == suffix:
+            return True, ""  # a plain key every granted caller may use (plan/preview): the name is a claim there
         if bound is None:
             return False, f"{key}: commands must come on the identity-scoped key .../{suffix}/<operator>"
         if bound != operator:

@@ -6,7 +6,7 @@ Threads (all named; Zenoh callbacks only queue):
 - ``twin-video``: the same for ``video/*`` on a separate small drop-oldest inbox, so big frames never delay
   poses and safety states.
 - ``twin-snapshot``: answers ``iorthand/_twin/<robot>/snapshot`` (fast, from memory).
-- ``twin-preview``: answers ``iorthand/_twin/<robot>/preview`` by forwarding to the edge's ``control/preview``
+- ``twin-preview``: answers ``iorthand/_twin/<robot>/preview`` by forwarding to the edge's ``plan/preview``
   (the edge is the safety authority and plans), drawing the returned path as a ghost and returning the edge's
   verdict unchanged. Separate from snapshots: a preview may wait seconds for the edge.
 - ``twin-viz``: every rerun call (see viz.py).
@@ -281,7 +281,7 @@ class TwinService:
     def forward_preview(self, robot: str, req: ControlRequest) -> ControlReply:
         """Ask the edge of ``robot`` to plan ``req.name``; draw and return its verdict."""
         assert self.session is not None
-        key = keys.RobotKeys(robot).key(keys.CONTROL_PREVIEW)
+        key = keys.RobotKeys(robot).key(keys.PLAN_PREVIEW)
         reply: ControlReply | None = None
         reason = ""
         try:
