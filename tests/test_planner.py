@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
+import signal
+import threading
 
 import numpy as np
 import pytest
@@ -50,3 +52,19 @@ def test_the_goto_controller_refuses_a_preview_whose_plan_overran(planner) -> No
     pv = ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params=LONGEST_SWEEP)
     assert not pv.ok and not pv.token
     assert pv.plan.reason == "planning 'sweep' took longer than 0.2 s: refused"
+
+
+def test_a_planner_that_dies_while_planning_refuses_that_preview_and_the_next_one_plans(planner) -> None:
+    """Found while checking previews in the secured deployment: the planner's child killed while it planned (the
+    kernel's out-of-memory killer on a Pi, say) raised in the edge's planner thread, whose crash stopped the whole
+    edge (no more robot states). Now that preview is refused with why, and the next one starts a new child."""
+    ctl = GotoController(GotoConfig(), LIMITS.workspace_min, LIMITS.workspace_max, planner=planner.plan_route)
+    assert ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params={"lanes": 2}).ok  # the child is up
+    child = planner._child
+    assert child is not None and child.pid is not None
+    threading.Timer(0.3, os.kill, (child.pid, signal.SIGKILL)).start()
+    pv = ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params=LONGEST_SWEEP)
+    assert not pv.ok and not pv.token
+    assert pv.plan.reason == "planning failed: RuntimeError: the planner process ended while planning 'sweep'"
+    again = ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params={"lanes": 2})
+    assert again.ok and again.token and planner._child is not None and planner._child.pid != child.pid

@@ -127,7 +127,7 @@ class GotoController:
     model: str = "ur3e"  # the arm's (robot.model): reach and singularities along a path
     max_tokens: int = 16
     # Plans a route (motion.plan_route's arguments and answer): the edge plans in a process of its own
-    # (iorthand_edge.planner); a TimeoutError refuses the preview.
+    # (iorthand_edge.planner); a TimeoutError or any failure of it refuses the preview.
     planner: Callable[..., motion.Route] = motion.plan_route
     status: str = "idle"  # idle | moving | done | cancelled
     reason: str = ""
@@ -167,6 +167,10 @@ class GotoController:
             )
         except TimeoutError as exc:
             return _refused(name, current_pose, limits, f"{exc}: refused")
+        except Exception as exc:  # the planner's child died (killed, out of memory) or planning has a bug
+            # The preview is refused with why; the next one starts a new child. Raised, it ended the edge's
+            # planner thread, and with it the whole edge (a worker's crash stops the agent). The agent logs why.
+            return _refused(name, current_pose, limits, f"planning failed: {type(exc).__name__}: {exc}")
         if not plan.ok:
             return Preview(plan)
         self._expire(now)
