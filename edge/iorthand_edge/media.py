@@ -72,6 +72,9 @@ RESTART_MAX_S = 30.0
 STOP_GRACE_S = 3.0  # s the child gets to close its camera and session after the stop flag
 STABLE_S = 30.0  # a child that ran this long before crashing starts the back-off from RESTART_MIN_S again
 RING_SIZE = 512  # state samples kept per key until a frame asks: 4 s of state/robot at 125 Hz
+# The viewers' reports kept until a stream's next frame (each viewer sends ~1 a second per stream, and one at once
+# when it needs a keyframe). A flood pushes real reports out, and costs Zenoh's ring, not a Python callback each.
+FEEDBACK_RING = 64
 FORCE_MAX_AGE = 0.5  # s: an older force level (or none) counts as no contact for the ultrasound image
 _PARENT_CHECK_S = 0.25
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"  # as the iorthand command line's
@@ -125,6 +128,7 @@ class MediaService:
                                          ("ultrasound", keys.VIDEO_ULTRASOUND, config.video.ultrasound)):
                 if stream is not None:
                     self.video.append(VideoStream(name, suffix, stream, make_source(stream, self.contact_force, shared)))
+        self._feedback: Any = None  # the viewers' reports on the H.264 streams: a subscriber with a RingChannel
         self._handlers: dict[str, Callable[[bytes], None]] = {}
         simulated_us = any(s.config.source == "ultrasound_sim" for s in self.video)
         if self.poses is not None or (simulated_us and config.force is None and config.phantom is not None):
@@ -204,15 +208,21 @@ class MediaService:
             return float(np.linalg.norm(contact_wrench(self.config.phantom, robot.tcp_pose, robot.tcp_speed)[:3]))
         return 0.0
 
-    def _on_feedback(self, sample: zenoh.Sample) -> None:
-        """A viewer's report (a Zenoh callback: decoded, handed to its stream, which only notes it)."""
-        try:
-            msg = VideoFeedback.decode(sample.payload.to_bytes())
-        except DecodeError:
-            return  # a report moves nothing: a garbled one is simply not taken into account
-        for stream in self.video:
-            if stream.name == msg.stream:
-                stream.on_feedback(msg)
+    def _drain_feedback(self) -> None:
+        """The viewers' reports that arrived since the last call, each handed to its stream (which only notes it).
+        Run by each stream before it encodes a frame: a keyframe request waits at most one frame period. A Python
+        callback per report let a flood of them take the process's GIL: the camera froze (0.5 frames/s of 15)."""
+        if self._feedback is None:
+            return
+        with self._drain_lock:
+            while (sample := self._feedback.try_recv()) is not None:
+                try:
+                    msg = VideoFeedback.decode(sample.payload.to_bytes())
+                except DecodeError:
+                    continue  # a report moves nothing: a garbled one is simply not taken into account
+                for stream in self.video:
+                    if stream.name == msg.stream:
+                        stream.on_feedback(msg)
 
     def _publish_markers(self, msg: Markers) -> None:
         if self._pub_markers is not None:
@@ -224,23 +234,23 @@ class MediaService:
         """Until the parent sets ``stop_flag`` or dies."""
         zenoh_config = (self.config.video.zenoh if self.config.video is not None else None) or self.config.zenoh
         session = open_session(zenoh_config, stop=self.stop)
-        feedback: zenoh.Subscriber | None = None
         try:
             if self.perception is not None:
                 self._pub_markers = publisher(session, self.keys.key(keys.MARKERS))
             # A few seconds of each (the pose history spans 2 s); when full, the oldest go.
             self._rings = {key: session.declare_subscriber(key, zenoh.handlers.RingChannel(RING_SIZE))
                            for key in self._handlers}
-            if self.perception is not None:
-                self.perception.start()
-            for stream in self.video:
-                stream.start(session, self.keys, self.stop)
             if any(stream.h264 is not None for stream in self.video):
                 # The viewers' reports on the H.264 streams (keyframe requests, loss, delay); with bound keys on
                 # each operator's own key.
                 bound = "/*" if self.config.bind_operator_keys else ""
-                feedback = session.declare_subscriber(self.keys.key(keys.CMD_VIDEO_FEEDBACK) + bound,
-                                                      self._on_feedback)
+                self._feedback = session.declare_subscriber(self.keys.key(keys.CMD_VIDEO_FEEDBACK) + bound,
+                                                            zenoh.handlers.RingChannel(FEEDBACK_RING))
+            if self.perception is not None:
+                self.perception.start()
+            for stream in self.video:
+                stream.before_send = self._drain_feedback
+                stream.start(session, self.keys, self.stop)
             conn.send(("up", os.getpid()))
             while not self.stop.wait(_PARENT_CHECK_S):
                 if stop_flag.value:
@@ -250,13 +260,11 @@ class MediaService:
                     os._exit(0)
         finally:
             self.stop.set()
-            if feedback is not None:
-                feedback.undeclare()
             if self.perception is not None:
                 self.perception.stop()
             for stream in self.video:
                 stream.join()
-            for ring in self._rings.values():
+            for ring in [*self._rings.values(), *([self._feedback] if self._feedback is not None else [])]:
                 ring.undeclare()
             session.close()
 

@@ -126,6 +126,8 @@ class VideoStream:
         self.bytes_sent = 0
         self.error = ""
         self._pub: Any = None
+        self.before_send: Callable[[], None] | None = None  # run before each frame is encoded (the media process's
+        # drain of the viewers' reports)
         self._workers: list[Worker] = []
         self.h264: H264Encoder | None = None
         self.bitrate: BitrateController | None = None
@@ -235,6 +237,8 @@ class VideoStream:
             item = self.slot.take(timeout=0.2)
             if item is None or self._pub is None:
                 continue
+            if self.before_send is not None:
+                self.before_send()
             if self.h264 is not None and self.bitrate is not None:
                 self.h264.set_bitrate(self.bitrate.decide(time.monotonic()))
                 if self.bitrate.reason:
