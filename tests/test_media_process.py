@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from iorthand import keys
-from iorthand.protocol import Markers, VideoFrame
+from iorthand.protocol import Markers, VideoFeedback, VideoFrame
 from tests.conftest import ROOT, edge_config, iorthand_cmd, stop_process, wait_until
 from tests.test_thread_names import kernel_thread_names
 
@@ -138,6 +138,24 @@ def test_a_flood_of_video_feedback_does_not_freeze_the_camera(edge_factory, sess
     assert sent > 10_000, f"the flood sent only {sent} reports"
     # 15 frames a second each: at least half of them through the flood.
     assert camera >= 22 and ultrasound >= 22, (camera, ultrasound, sent)
+
+
+def test_a_viewers_keyframe_request_is_answered_within_a_frame_or_two(edge_factory, session_factory) -> None:
+    """The reports reach the encoder through the ring too: with keyframes 10 s apart, each request is answered
+    by a keyframe well within a second (three requests, so that a scheduled keyframe cannot pass for them)."""
+    sections = demo_sections()
+    sections["video"]["camera"]["keyframe_interval"] = 10.0
+    streams = Streams(session_factory())
+    edge_factory(**sections)
+    wait_until(lambda: streams.pictures_since(0, 0)[0] >= 10, timeout=20.0, message="camera frames")
+    viewer = session_factory()
+    pub = viewer.declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_VIDEO_FEEDBACK))
+    for i in range(3):
+        time.sleep(1.0)  # past the encoder's hold between requested keyframes
+        n = len(streams.video["camera"])
+        pub.put(VideoFeedback(operator="viewer", stream="camera", keyframe=True).stamp(i + 1).encode())
+        wait_until(lambda n=n: any(f.keyframe for f in streams.video["camera"][n:]), timeout=1.0,
+                   message=f"a keyframe for request {i + 1}")
 
 
 def test_a_killed_media_process_is_restarted_and_the_robot_stays_controllable(
