@@ -315,15 +315,23 @@ class Inbox:
     frames grow to gigabytes while a writer stalls. Dropped items are counted, and so are items refused before
     they were queued (:meth:`refuse`: too large to take at all), with the last reason.
 
+    ``reserve`` (with ``keep="oldest"``): room for that many items put ``ahead`` beyond ``maxlen``; they are taken
+    before the others. What the owner of the robot asks must not wait behind, or be refused for, a queue that
+    others filled.
+
     A worker that waits for an item sleeps in a C-level ``SimpleQueue.get``, and :meth:`put` hands it the item
     there directly; items that arrive while it works wait in the bounded queue. This hand-over is on the command
     path: a ``Condition`` (a waiter list and a new lock per wait, in Python) made each wake-up about 10 µs slower
     on the project's VM (``benchmarks/README.md``).
     """
 
-    def __init__(self, maxlen: int = 256, keep: str = "newest", max_bytes: int | None = None) -> None:
+    def __init__(self, maxlen: int = 256, keep: str = "newest", max_bytes: int | None = None, reserve: int = 0) -> None:
         if keep not in ("newest", "oldest", "newest_per_key"):
             raise ValueError("keep must be 'newest', 'oldest' or 'newest_per_key'")
+        if reserve and keep != "oldest":
+            raise ValueError("a reserve is for keep='oldest' (the others never refuse an item)")
+        self.reserve = reserve
+        self._ahead = 0  # items put ahead, at the front of _items
         self._items: deque[tuple[Any, int]] = deque()
         self._maxlen = maxlen
         self._max_bytes = max_bytes
@@ -344,17 +352,23 @@ class Inbox:
             self.last_refusal = reason
 
     def _full(self, nbytes: int) -> bool:
-        if len(self._items) >= self._maxlen:
+        if len(self._items) - self._ahead >= self._maxlen:
             return True
         # An empty inbox takes any one item, however large: nothing can be stuck outside forever.
         return self._max_bytes is not None and bool(self._items) and self.nbytes + nbytes > self._max_bytes
 
-    def put(self, item: Any, nbytes: int = 0) -> bool:
-        """Queue ``item``; False when a full ``keep="oldest"`` inbox refused it (counted in ``dropped``)."""
+    def put(self, item: Any, nbytes: int = 0, ahead: bool = False) -> bool:
+        """Queue ``item``; False when a full ``keep="oldest"`` inbox refused it (counted in ``dropped``).
+        ``ahead``: before every item not put ahead, in the reserve while it has room."""
         with self._lock:
             if self._waiting:  # (the queue is empty) straight to the waiting worker, under the lock: see get
                 self._waiting = False
                 self._handover.put(item)
+                return True
+            if ahead and self._ahead < self.reserve:
+                self._items.insert(self._ahead, (item, nbytes))
+                self._ahead += 1
+                self.nbytes += nbytes
                 return True
             if self._full(nbytes) and self._keep == "oldest":
                 self.dropped += 1
@@ -376,6 +390,7 @@ class Inbox:
     def _pop(self) -> Any:
         item, nbytes = self._items.popleft()
         self.nbytes -= nbytes
+        self._ahead = max(0, self._ahead - 1)
         return item
 
     def get(self, timeout: float | None = None) -> Any | None:
@@ -406,6 +421,7 @@ class Inbox:
             items = [item for item, _ in self._items]
             self._items.clear()
             self.nbytes = 0
+            self._ahead = 0
             return items
 
     def close(self) -> None:

@@ -201,3 +201,30 @@ def test_an_acquire_whose_token_the_edge_has_not_seen_is_refused_at_once_and_the
         assert alice.acquire().ok and agent.supervisor.owner == "alice"
     finally:
         late.cancel()
+
+
+def test_the_owners_preview_goes_before_a_queue_that_others_filled(edge_factory, operator_factory,
+                                                                   session_factory, router_endpoint, tmp_path) -> None:
+    """Found by a red-team run of the edge: 8 heavy previews from anyone filled the planning queue (4), and the
+    owner's preview of a retreat was refused "edge busy". The owner's previews (signed with its grant's key, and
+    passed on by the twin as they are) now go before everyone else's, in room of their own."""
+    from iorthand.config import from_dict
+    from iorthand_cloud.twin.config import TwinConfig
+    from iorthand_cloud.twin.service import TwinService
+
+    edge_factory()
+    twin = TwinService(from_dict({"zenoh": {"mode": "client", "connect": [router_endpoint]}, "preview_timeout": 15.0,
+                                  "viewer": {"serve": False, "save": str(tmp_path / "twin.rrd")}},
+                                 TwinConfig, source="<test>"))
+    twin.start()
+    try:
+        alice = operator_factory(operator_id="alice", query_timeout=15.0)
+        alice.wait_for_state()
+        alice.acquire()
+        answers = _flood(session_factory(), heavy=2, cheap=20)  # one planned, the queue full behind it
+        wait_until(lambda: sum(r.startswith("edge busy") for r in answers.reasons()) >= 15, 5.0,
+                   message="the planning queue full")
+        reply = alice.preview_pose("home")
+        assert reply.ok, reply.reason
+    finally:
+        twin.shutdown()

@@ -314,3 +314,17 @@ def test_reject_log_is_rate_limited(caplog: pytest.LogCaptureFixture) -> None:
 
 def test_every_decoder_is_covered() -> None:
     assert set(protocol.MESSAGES_BY_KEY.values()) <= set(MESSAGES)
+
+
+def test_items_put_ahead_go_first_into_room_of_their_own() -> None:
+    """The planning queue's reserve for the owner (EdgeAgent: OWNER_PLANNING): a full queue still takes an item
+    put ahead, serves it before the others, and beyond the reserve treats it as any other."""
+    inbox = Inbox(2, keep="oldest", reserve=1)
+    assert inbox.put("a") and inbox.put("b") and not inbox.put("c")
+    assert inbox.put("owner", ahead=True)
+    assert not inbox.put("owner again", ahead=True)  # the reserve holds one: a full queue refuses the next
+    assert [inbox.get(0), inbox.get(0), inbox.get(0), inbox.get(0)] == ["owner", "a", "b", None]
+    assert inbox.put("x") and inbox.put("owner 2", ahead=True) and inbox.put("y")
+    assert [inbox.get(0), inbox.get(0), inbox.get(0)] == ["owner 2", "x", "y"]
+    with pytest.raises(ValueError, match="reserve"):
+        Inbox(2, keep="newest", reserve=1)

@@ -64,7 +64,7 @@ from iorthand.protocol import (
     TorchCommand,
     TwistCommand,
 )
-from iorthand.security import sdnotify
+from iorthand.security import auth, sdnotify
 from iorthand.security.identity import CommandGate, operator_in_key
 from iorthand.transport import Inbox, Worker, open_session, publisher, subscribe
 from iorthand_edge.actuators import ServoUnit, TorchUnit
@@ -90,6 +90,9 @@ TWIST_QUEUE = 64
 # in no queue (EdgeAgent._on_stop_sample).
 CONTROL_QUEUE = 256
 PLANNING_QUEUE = 4
+# The owner's previews (signed with its grant's key) go before everyone else's, into room of their own: 8 heavy
+# previews from anyone filled the planning queue, and the owner's retreat was refused "edge busy".
+OWNER_PLANNING = 2
 # Servo and torch commands are set-points: the newest of each key is all that matters, and they wait apart from
 # the control requests (a flood of them filled the control queue and refused the owner's lease renewals "edge
 # busy": the owner lost control). With bound keys each operator's key has its own slot: another's flood cannot
@@ -157,7 +160,7 @@ class EdgeAgent:
         self._last_safety_pub = 0.0
         self._twists = Inbox(TWIST_QUEUE, keep="newest")
         self._control = Inbox(CONTROL_QUEUE, keep="oldest")
-        self._planning = Inbox(PLANNING_QUEUE, keep="oldest")
+        self._planning = Inbox(PLANNING_QUEUE, keep="oldest", reserve=OWNER_PLANNING)
         self._actuators = Inbox(ACTUATOR_KEYS, keep="newest_per_key")
         self._workers: list[Worker] = []
         self._rlog = RateLimitedLog(log)
@@ -237,7 +240,7 @@ class EdgeAgent:
             subscribe(s, k.key(keys.CMD_SERVO) + bound, self._actuators, rejects=self.rejects),
             subscribe(s, k.key(keys.CMD_TORCH) + bound, self._actuators, rejects=self.rejects),
             # With bound keys a shared query (plan/preview: the twin asks it for the operators) has its plain key too.
-            *(s.declare_queryable(k.key(suffix) + tail, self._queue_query(inbox, verb)) for suffix, inbox, verb in (
+            *(s.declare_queryable(k.key(suffix) + tail, self._queue_query(inbox, verb, suffix)) for suffix, inbox, verb in (
                 (keys.CONTROL_FORCE_ZERO, self._control, "force_zero"),
                 (keys.CONTROL_ACQUIRE, self._control, "acquire"),
                 (keys.CONTROL_RELEASE, self._control, "release"),
@@ -673,18 +676,32 @@ class EdgeAgent:
             # The owner's lease still ends its control (Supervisor.step), but later than this event would have.
             self._rlog.warning("control-queue", f"control queue full: {event} of {operator!r} dropped")
 
-    def _queue_query(self, inbox: Inbox, verb: str) -> Callable[[zenoh.Query], None]:
+    def _queue_query(self, inbox: Inbox, verb: str, suffix: str) -> Callable[[zenoh.Query], None]:
         """A queryable's callback: the query waits in ``inbox`` for its thread, or, the inbox full, is answered
-        at once that the edge is busy (a querier that is not answered waits out its timeout, not knowing why)."""
+        at once that the edge is busy (a querier that is not answered waits out its timeout, not knowing why).
+        With a reserve in the inbox, the owner's queries go ahead of everyone else's."""
 
         def on_query(query: zenoh.Query) -> None:
-            if not inbox.put((verb, query)):
+            ahead = inbox.reserve > 0 and self._signed_by_owner(query, suffix)
+            if not inbox.put((verb, query), ahead=ahead):
                 why = f"edge busy: {len(inbox)} requests are waiting before this {verb}; try again"
                 self.rejects.add(str(query.key_expr), why)
                 self._rlog.warning(f"busy:{verb}", f"refused a {verb} query: {why}")
                 self._reply(query, False, why)
 
         return on_query
+
+    def _signed_by_owner(self, query: zenoh.Query, suffix: str) -> bool:
+        """Whether a query's request carries the signature of the grant that holds control (only checked here, in
+        Zenoh's callback, to queue it; the sequence is checked where it is handled)."""
+        key = self.supervisor.grant_key
+        if not key or query.payload is None:
+            return False
+        try:
+            req = ControlRequest.decode(query.payload.to_bytes())
+        except DecodeError:
+            return False
+        return auth.verify(key, auth.context(self.keys.robot, suffix), req)
 
     def _control_plane_loop(self, stop: threading.Event) -> None:
         handlers: dict[str, Callable[[Any], None]] = {

@@ -356,8 +356,10 @@ class OperatorClient:
         """Ask the twin to preview moving to ``name`` (a named pose, or a primitive with its ``params``: ``sweep``
         {width, pitch, lanes, speed}, ``approach:<marker>`` {standoff}, ``retreat``); the reply carries the
         verdict and a token."""
-        key = keys.service_key(keys.TWIN, self.keys.robot, "preview")
-        return self._control("preview", key=key, name=name, params=json.dumps(dict(params)) if params else "")
+        key = keys.service_key(keys.TWIN, self.keys.robot, keys.TWIN_PREVIEW)
+        # Signed for the edge's plan/preview, which the twin asks with our request as it is: the edge plans the
+        # owner's previews first (EdgeAgent._signed_by_owner).
+        return self._control(keys.PLAN_PREVIEW, key=key, name=name, params=json.dumps(dict(params)) if params else "")
 
     def goto_pose(self, name: str, token: str) -> ControlReply:
         """Execute a previewed move (``control/goto`` with the preview's token); the edge decides."""
