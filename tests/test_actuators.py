@@ -22,9 +22,11 @@ from iorthand_edge.actuators import (
     ServosConfig,
     ServoUnit,
     TorchConfig,
+    TorchUnit,
 )
 from iorthand_edge.actuators.control import AngleHistory, ServoController, torch_command
 from iorthand_edge.actuators.drivers import ActuatorDriver, PCA9685Driver, SerialDriver, format_serial_command
+from iorthand_edge.actuators.units import REFUSAL_REPORT_S
 from tests.conftest import wait_until
 
 HOME = math.radians(90)
@@ -128,6 +130,56 @@ def test_a_servo_unit_at_rest_answers_a_command_at_once_and_moves_at_its_rate() 
         stop.set()
         unit.join()
     assert unit._worker is not None and not unit._worker.is_alive()
+
+
+class PublishCounter:
+    """Stands in for a unit's publisher (``put``): the states it was given."""
+
+    def __init__(self, cls: type[ServoState] | type[TorchState]) -> None:
+        self.cls = cls
+        self.states: list[tuple[float, ServoState | TorchState]] = []
+
+    def put(self, payload: bytes) -> None:
+        self.states.append((time.monotonic(), self.cls.decode(payload)))
+
+
+@pytest.mark.parametrize("kind", ["servo", "torch"])
+def test_a_flood_of_refused_commands_is_reported_ten_times_a_second_and_a_command_at_once(kind: str) -> None:
+    """Found by a red-team run of the edge: each refused servo or torch command (another operator's flood) was
+    republished as one state, 2 600-3 100 a second to every watcher and the recorder. A refusal is now reported
+    within REFUSAL_REPORT_S, the latest reason; a command that is carried out is still reported at once."""
+    if kind == "servo":
+        unit: ServoUnit | TorchUnit = ServoUnit(ServosConfig(publish_hz=0.5), driver=CountingDriver())
+    else:
+        unit = TorchUnit(TorchConfig(publish_hz=0.5))
+    out = PublishCounter(ServoState if kind == "servo" else TorchState)
+    unit._pub = out  # type: ignore[assignment]
+    stop = threading.Event()
+    unit.start(None, keys.RobotKeys("sim1"), stop)
+    try:
+        wait_until(lambda: out.states, message="the first state")
+        time.sleep(0.3)
+        before, started = len(out.states), time.monotonic()
+        n = 0
+        while time.monotonic() - started < 1.0:
+            unit.reject(f"refused: not the owner ({n})")
+            n += 1
+        wait_until(lambda: out.states[-1][1].reason == f"refused: not the owner ({n - 1})", timeout=0.5,
+                   message="the latest refusal reported")
+        reported = len(out.states) - before
+        assert n > 1000 and reported <= 1.0 / REFUSAL_REPORT_S + 3, (n, reported)
+        time.sleep(REFUSAL_REPORT_S)
+        asked = time.monotonic()
+        if isinstance(unit, ServoUnit):
+            unit.command(pan=1.0)
+        else:
+            unit.command(True, 0.5)
+        wait_until(lambda: out.states[-1][0] > asked and not out.states[-1][1].reason.startswith("refused"),
+                   timeout=0.5, message="the command's state")
+        assert out.states[-1][0] - asked < 0.05
+    finally:
+        stop.set()
+        unit.join()
 
 
 def test_angle_history_interpolates_at_frame_times() -> None:

@@ -26,6 +26,10 @@ from iorthand_edge.actuators.drivers import ActuatorDriver, ActuatorError, make_
 log = logging.getLogger("iorthand.edge.actuators")
 
 REOPEN_S = 3.0
+# A refused command is reported on state/servo or state/torch, at most this often: a flood of refused commands
+# (another operator's, 2 600-3 100 a second in a red-team run) was republished one state each to every watcher,
+# the recorder included. A command that is carried out is reported at once.
+REFUSAL_REPORT_S = 0.1
 
 
 class _DriverHolder:
@@ -77,7 +81,8 @@ class ServoUnit:
         self.driver = _DriverHolder("servo", driver or make_driver(config.driver))
         self._lock = threading.Lock()
         self._outcome = ServoOutcome(*self.controller.angles, clamped=False, reason="")
-        self._dirty = True  # publish soon (new command or rejection)
+        self._dirty = True  # publish now (a new command)
+        self._refused = False  # a refusal waits to be published (no sooner than REFUSAL_REPORT_S after the last)
         self._wake = threading.Event()  # a command or a rejection for the loop, which sleeps while nothing moves
         self._written: dict[str, float] = {}
         self._seq = Sequencer()
@@ -109,11 +114,12 @@ class ServoUnit:
         return outcome
 
     def reject(self, reason: str) -> None:
-        """Report a refused command on ``state/servo`` (the targets do not change)."""
+        """Report a refused command on ``state/servo`` (the targets do not change), within REFUSAL_REPORT_S."""
         with self._lock:
             self._outcome = ServoOutcome(self._outcome.pan_target, self._outcome.tilt_target, False, reason)
-            self._dirty = True
-        self._wake.set()
+            wake, self._refused = not self._refused, True
+        if wake:  # (one wake-up per report, not per refused command)
+            self._wake.set()
 
     def servo_angles_at(self, t_ns: int) -> tuple[float, float]:
         """(pan, tilt) in rad at wall-clock time ``t_ns`` (for the perception chain)."""
@@ -129,7 +135,9 @@ class ServoUnit:
                 self.controller.step(now)
                 pan, tilt = self.controller.angles
                 outcome, dirty, moving = self._outcome, self._dirty, self.controller.moving
+                refusal_due = self._refused and now - last_pub >= REFUSAL_REPORT_S
                 self._dirty = False
+                publishing = dirty or refusal_due or now - last_pub >= 1.0 / self.config.publish_hz
             self.history.add(time.time_ns(), (pan, tilt))
             if self.driver.ensure(now):
                 for axis, angle in (("pan", pan), ("tilt", tilt)):
@@ -139,15 +147,19 @@ class ServoUnit:
                         if self.driver.ready:
                             self._written[axis] = angle
             moved = self.last_state is not None and (pan, tilt) != (self.last_state.pan, self.last_state.tilt)
-            if dirty or moved or now - last_pub >= 1.0 / self.config.publish_hz:
+            if publishing or moved:
+                with self._lock:  # what is published carries the latest refusal's reason
+                    self._refused, outcome = False, self._outcome
                 last_pub = now
                 self._publish(pan, tilt, outcome)
             if moving or not self.driver.ready:
                 time.sleep(period)  # not stop.wait: see the force monitor's loop (a stop is seen within a period)
             else:
                 # At rest, nothing to step or write until a command: sleep until one, or until the heartbeat
-                # is due (50 wake-ups a second less on the control process; join() wakes it to stop).
-                self._wake.wait(max(0.0, last_pub + 1.0 / self.config.publish_hz - time.monotonic()))
+                # (or a refusal's report) is due (50 wake-ups a second less on the control process; join() wakes
+                # it to stop).
+                due = last_pub + (REFUSAL_REPORT_S if self._refused else 1.0 / self.config.publish_hz)
+                self._wake.wait(max(0.0, due - time.monotonic()))
 
     def _publish(self, pan: float, tilt: float, outcome: ServoOutcome) -> None:
         reason = outcome.reason
@@ -168,6 +180,8 @@ class TorchUnit:
         self.driver = _DriverHolder("torch", driver or make_driver(config.driver))
         self._lock = threading.Lock()
         self._outcome = TorchOutcome(False, 0.0, "")
+        self._commanded = False  # a command waits to be carried out and published (at once)
+        self._refused = False  # a refusal waits to be published (no sooner than REFUSAL_REPORT_S after the last)
         self._wake = threading.Event()
         self._written: float | None = None
         self._seq = Sequencer()
@@ -192,7 +206,7 @@ class TorchUnit:
         """Raises TypeError/ValueError on a wrong type or NaN; clamps the brightness and says so."""
         outcome = torch_command(self.config, on, brightness)
         with self._lock:
-            self._outcome = outcome
+            self._outcome, self._commanded = outcome, True
         if outcome.reason:
             log.warning("torch command: %s", outcome.reason)
         self._wake.set()
@@ -202,19 +216,31 @@ class TorchUnit:
         with self._lock:
             o = self._outcome
             self._outcome = TorchOutcome(o.on, o.brightness, reason)
-        self._wake.set()
+            wake, self._refused = not self._refused, True
+        if wake:  # (one wake-up per report, not per refused command)
+            self._wake.set()
 
     def _loop(self, stop: threading.Event) -> None:
+        last_pub = -math.inf
         while not stop.is_set():
             self._wake.clear()  # before reading: a command after this ends the wait below at once
+            now = time.monotonic()
             with self._lock:
                 outcome = self._outcome
-            if self.driver.ensure(time.monotonic()) and self._written != outcome.output:
+                # Publish a command's outcome and the heartbeat at once, a refusal once REFUSAL_REPORT_S is up.
+                publishing = self._commanded or now - last_pub >= 1.0 / self.config.publish_hz or \
+                    (self._refused and now - last_pub >= REFUSAL_REPORT_S)
+                if publishing:
+                    self._commanded = self._refused = False
+            if self.driver.ensure(now) and self._written != outcome.output:
                 self.driver.write("set_level", self.config.channel, outcome.output)
                 if self.driver.ready:
                     self._written = outcome.output
-            self._publish(outcome)
-            self._wake.wait(1.0 / self.config.publish_hz)
+            if publishing:
+                last_pub = now
+                self._publish(outcome)
+            due = last_pub + (REFUSAL_REPORT_S if self._refused else 1.0 / self.config.publish_hz)
+            self._wake.wait(max(0.0, due - time.monotonic()))
 
     def _publish(self, outcome: TorchOutcome) -> None:
         reason = outcome.reason
