@@ -76,6 +76,11 @@ class Channel:
     reply: str = ""  # class name in iorthand.protocol of a query's reply
     operator_key: OperatorKey = OperatorKey.NONE
     shared: bool = False  # with bound keys the plain key stays open to every granted writer too
+    # Puts a second one session may send, at most: the router drops the rest (iorthand.transport.rate_limits).
+    # 0: no cap. For set-points and reports, whose newest is all that counts: a granted operator's flood of them
+    # held the edge's CPU (~95 %) and delayed the owner's twists. Never a stop (every one counts) or a twist (a
+    # burst after a stall is what the edge orders and applies).
+    max_rate: float = 0.0
 
     @property
     def family(self) -> str:
@@ -93,8 +98,9 @@ _EDGE = frozenset({Role.EDGE})
 _ROBOT = frozenset({Role.EDGE, Role.REPLAY})
 
 
-def _command(suffix: str, message: str, qos: Qos, *, shared: bool = False) -> Channel:
-    return Channel(suffix, Kind.PUT, message, qos, _OPERATOR, operator_key=OperatorKey.BOUND, shared=shared)
+def _command(suffix: str, message: str, qos: Qos, *, shared: bool = False, max_rate: float = 0.0) -> Channel:
+    return Channel(suffix, Kind.PUT, message, qos, _OPERATOR, operator_key=OperatorKey.BOUND, shared=shared,
+                   max_rate=max_rate)
 
 
 def _robot(suffix: str, message: str, qos: Qos) -> Channel:
@@ -108,12 +114,14 @@ def _control(suffix: str) -> Channel:
 # Operator → robot. A stop is everyone's: with bound keys every granted operator may still put the plain
 # cmd/stop (its own cmd/stop/<id> also passes, and then tells the edge who sent it).
 CMD_TWIST = _command("cmd/twist", "TwistCommand", Qos.COMMAND)
-CMD_SERVO = _command("cmd/servo", "ServoCommand", Qos.CONTROL)
-CMD_TORCH = _command("cmd/torch", "TorchCommand", Qos.CONTROL)
+# Set-points: the servos step at 50 Hz, and a torch command is a switch.
+CMD_SERVO = _command("cmd/servo", "ServoCommand", Qos.CONTROL, max_rate=50.0)
+CMD_TORCH = _command("cmd/torch", "TorchCommand", Qos.CONTROL, max_rate=50.0)
 CMD_STOP = _command("cmd/stop", "StopCommand", Qos.CONTROL, shared=True)
 # A viewer's report on a video stream (keyframe requests, loss, delay): operator → edge like a command, so a replay
-# never republishes it; it moves nothing.
-CMD_VIDEO_FEEDBACK = _command("cmd/video_feedback", "VideoFeedback", Qos.DATA)
+# never republishes it; it moves nothing. About 1 a second per stream and page (the web console's session carries
+# every page's).
+CMD_VIDEO_FEEDBACK = _command("cmd/video_feedback", "VideoFeedback", Qos.DATA, max_rate=50.0)
 # Robot → everyone.
 STATE_ROBOT = _robot("state/robot", "RobotState", Qos.STATE)
 STATE_SAFETY = _robot("state/safety", "SafetyStatus", Qos.SAFETY)
@@ -184,6 +192,8 @@ def check(table: Iterable[Channel]) -> None:
             raise ValueError(f"{c.suffix}: a put has a message and a QoS, a query a message, a token neither")
         if (c.kind is Kind.QUERY) != bool(c.callers) or (c.kind is Kind.QUERY) != bool(c.reply):
             raise ValueError(f"{c.suffix}: callers and a reply belong to queries, and every query has both")
+        if c.max_rate and (c.kind is not Kind.PUT or c.max_rate < 0):
+            raise ValueError(f"{c.suffix}: a rate cap is for puts, and positive")
         if c.shared and c.operator_key is not OperatorKey.BOUND:
             raise ValueError(f"{c.suffix}: only a bound key has a shared plain key")
         if c.operator_key is OperatorKey.BOUND and Role.OPERATOR not in c.writers | c.callers:

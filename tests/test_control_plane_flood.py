@@ -228,3 +228,54 @@ def test_the_owners_preview_goes_before_a_queue_that_others_filled(edge_factory,
         assert reply.ok, reply.reason
     finally:
         twin.shutdown()
+
+
+def test_the_router_caps_each_sessions_set_points_and_nobody_elses() -> None:
+    """``iorthand router`` (and the generated and shipped configurations: test_security_units) drops a session's
+    servo, torch and video-feedback messages beyond 50 a second at its ingress. A red-team flood of refused servo
+    commands from another operator held the edge at ~95 % CPU and the owner's twists went stale. The cap is per
+    session: another session's set-points all pass, and twists and stops are never capped."""
+    from iorthand.transport import client_config, free_port, open_session, router_settings
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(zenoh.Config.from_json5(json.dumps(router_settings([endpoint]))))
+    sessions = [open_session(client_config(endpoint)) for _ in range(3)]
+    try:
+        edge, alice, mallory = sessions
+        k = keys.RobotKeys("sim1")
+        got: dict[str, int] = {}
+
+        def count(sample: zenoh.Sample) -> None:
+            _, rest = keys.split_key(str(sample.key_expr))
+            got[rest] = got.get(rest, 0) + 1
+
+        edge.declare_subscriber(k.key("cmd/**"), count)
+        time.sleep(0.3)
+        flood = {suffix: mallory.declare_publisher(k.key(f"{suffix}/mallory"))
+                 for suffix in (keys.CMD_SERVO, keys.CMD_TORCH, keys.CMD_VIDEO_FEEDBACK)}
+        own = alice.declare_publisher(k.key(f"{keys.CMD_SERVO}/alice"))
+        started, sent, alice_sent = time.monotonic(), 0, 0
+        while (now := time.monotonic()) - started < 2.0:
+            for pub in flood.values():
+                pub.put(b"x")
+            sent += 1
+            if now - started >= alice_sent / 20:  # alice: 20 set-points a second, as a console sends them
+                own.put(b"y")
+                alice_sent += 1
+        elapsed = time.monotonic() - started
+        # Twists and stops at 1 000 a second, far over the cap: every one passes.
+        twist, stop = mallory.declare_publisher(k.key(f"{keys.CMD_TWIST}/mallory")), mallory.declare_publisher(k.key(keys.CMD_STOP))
+        for i in range(300):
+            twist.put(b"t%d" % i)
+            stop.put(b"s%d" % i)
+            time.sleep(0.001)
+        wait_until(lambda: got.get(keys.CMD_STOP, 0) == 300 and got.get(f"{keys.CMD_TWIST}/mallory", 0) == 300, 5.0,
+                   message=f"every twist and stop ({got})")
+        assert sent > 2_000, sent
+        for suffix in (keys.CMD_SERVO, keys.CMD_TORCH, keys.CMD_VIDEO_FEEDBACK):
+            assert got[f"{suffix}/mallory"] <= 50 * elapsed + 2, (suffix, got, sent)
+        assert got[f"{keys.CMD_SERVO}/alice"] == alice_sent  # her own set-points: none dropped
+    finally:
+        for s in sessions:
+            s.close()
+        router.close()

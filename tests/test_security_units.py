@@ -21,6 +21,7 @@ from iorthand.transport import (
     TlsConfig,
     ZenohConfig,
     load_router_config,
+    rate_limits,
     router_settings,
     zenoh_config,
     zenoh_entries,
@@ -178,11 +179,18 @@ def test_every_router_configuration_has_the_command_queue_sizes_and_the_small_sh
         "configs/router.json5": load_router_config(ROOT / "configs" / "router.json5"),
         "built-in": zenoh.Config.from_json5(json.dumps(router_settings(["tcp/127.0.0.1:7447"]))),
     }
+    robots = {"generated": _dep().robots}
     for name, zc in configs.items():
         sizes = json.loads(zc.get_json("transport/link/tx/queue/size"))
         assert {k: sizes[k] for k in TX_QUEUE_SIZE} == TX_QUEUE_SIZE, name
         assert json.loads(zc.get_json("transport/link/tx/lease")) == ROUTER_LEASE_MS, name
         assert json.loads(zc.get_json(SHM_POOL_SIZE_KEY)) == SHM_POOL_SIZE, name
+        # The per-session caps on set-points (rate_limits), as Zenoh reads them back.
+        caps = [{k: item[k] for k in ("flows", "messages", "rules")} for item in json.loads(zc.get_json("downsampling"))]
+        assert caps == rate_limits(robots.get(name, ("*",))), name
+    # A router that dials another carries every operator's messages on that link: no cap there.
+    assert "downsampling" not in router_settings(["tcp/127.0.0.1:7448"], ["tcp/127.0.0.1:7447"])
+    assert "downsampling" not in acl.router_config(_dep(connect=["tls/cloud.example.org:7447"]))
 
 
 def test_a_router_that_dials_another_announces_the_longer_lease() -> None:

@@ -50,7 +50,7 @@ from typing import Any
 from iorthand import channels, keys
 from iorthand.channels import Channel, Kind, OperatorKey, Role
 from iorthand.config import setting
-from iorthand.transport import ROUTER_LEASE_MS, SHM_POOL_SIZE, TX_QUEUE_SIZE, announced_lease
+from iorthand.transport import ROUTER_LEASE_MS, SHM_POOL_SIZE, TX_QUEUE_SIZE, announced_lease, rate_limits
 
 ALL_MESSAGES = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -283,6 +283,8 @@ def router_config(dep: Deployment) -> dict[str, Any]:
     }
     if dep.connect:
         cfg["connect"] = {"endpoints": list(dep.connect)}
+    else:  # the router operators connect to: each session's flood of set-points is capped here
+        cfg["downsampling"] = rate_limits(dep.robots)
     return cfg
 
 
