@@ -222,3 +222,14 @@ def test_a_new_grant_moves_nothing_before_a_release_and_a_press_under_it() -> No
     out = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, now - 0.05, False, now, time.time_ns(), 1.0, grant.key,
                       pressed_at=now, key_at=key_at)
     assert out is not None and out[0].deadman
+
+
+def test_a_request_anyone_may_make_is_refused_in_the_owners_name_without_its_signature() -> None:
+    """The plain plan/preview is open to every granted operator (the twin asks it for them), so a name there is a
+    claim: previews claiming the owner's name would each get a token kept as the owner's, and push its own token
+    out. They must carry the owner's signature."""
+    sv, alice, mallory, _ = setup()
+    claimed = mallory.request(sv, "alice", keys.PLAN_PREVIEW, name="home")  # mallory's session holds no key
+    assert "not signed by the session that holds control for 'alice'" in sv.impersonation(claimed, keys.PLAN_PREVIEW)
+    assert sv.impersonation(alice.request(sv, "alice", keys.PLAN_PREVIEW, name="home"), keys.PLAN_PREVIEW) == ""
+    assert sv.impersonation(mallory.request(sv, "mallory", keys.PLAN_PREVIEW, name="home"), keys.PLAN_PREVIEW) == ""

@@ -628,6 +628,10 @@ class EdgeAgent:
             reading = self.reading
             limits = self._limits()
             owner = self.supervisor.owner
+            impersonation = self.supervisor.impersonation(req, keys.PLAN_PREVIEW)
+        if impersonation:  # (the plain plan/preview is open to every granted operator: a name there is a claim)
+            self._reply(query, False, f"preview refused: {impersonation}", (keys.PLAN_PREVIEW, req))
+            return
         if reading is None:
             self._reply(query, False, "no robot state yet", (keys.PLAN_PREVIEW, req))
             return

@@ -284,6 +284,15 @@ class Supervisor:
             return f"not signed by the session that holds control for {operator!r}"
         return self._sequence_refusal(msg.seq, suffix)
 
+    def impersonation(self, msg: Message, suffix: str) -> str:
+        """"" unless ``msg`` (a request anyone may make, as a preview) is in the name of the operator holding
+        control without its grant's signature: then why it is refused. A preview's token is kept for its operator,
+        the owner's last (GotoController); previews claiming the owner's name could push its own out."""
+        operator = getattr(msg, "operator", "")
+        if not self.owner or operator != self.owner or auth.verify(self._key, self._context(suffix), msg):
+            return ""
+        return f"not signed by the session that holds control for {operator!r}"
+
     def _sequence_refusal(self, seq: int, suffix: str) -> str:
         """"" and ``seq`` recorded if it follows the last one on ``suffix`` within the jump bound, else why not."""
         last = self._last_seq.get(suffix, 0)
