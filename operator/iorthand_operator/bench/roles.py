@@ -42,7 +42,6 @@ from iorthand.protocol import (
     RobotState,
     SafetyStatus,
     Sequencer,
-    Status,
     TwistCommand,
     VideoFrame,
 )
@@ -57,11 +56,9 @@ from iorthand.transport import (
     query,
 )
 from iorthand_operator.client import OperatorClient
+from iorthand_operator.recovery import Step
 
 log = logging.getLogger("iorthand.bench.roles")
-
-# Refusals that a release and a fresh press of the deadman clear (Supervisor: a stop, a link gap, a new grant).
-NEEDS_PRESS = frozenset({Status.STOPPED, Status.LINK_GAP, Status.NO_DEADMAN})
 
 PING_KEY = "iorthand/_bench/ping"
 PONG_KEY = "iorthand/_bench/pong"
@@ -461,7 +458,6 @@ def operator_probe(args: argparse.Namespace) -> int:
         t0 = time.monotonic()
         direction = 1.0
         next_flip = t0 + args.flip_s
-        handled: dict[str, int] = {}
         for c in clients:
             c.set_twist([0.0, direction * args.speed, 0.0], np.zeros(3), deadman=True)
         while not stop.is_set() and time.monotonic() - t0 < args.duration:
@@ -472,26 +468,12 @@ def operator_probe(args: argparse.Namespace) -> int:
                 for c in clients:
                     c.set_twist([0.0, direction * args.speed, 0.0], np.zeros(3), deadman=True)
             for c in clients:
-                s = c.safety
-                lost = s is not None and s.owner != c.operator_id and time.time_ns() - s.t < 1e9
-                # After a stop, a long gap or a new grant the edge latches until the deadman is released and
-                # pressed again, and a press held from before a grant starts nothing: release and press as a
-                # person would after a lost link, once per re-acquire or fresh latched refusal.
-                why = ""
-                if lost:
-                    events.append([time.time_ns(), c.keys.robot, "reacquire", s.owner if s else ""])
-                    if _acquire(c, stop, 2.0):
-                        why = "control re-acquired"
-                r = c.last_refusal
-                if (r is not None and r.status in NEEDS_PRESS and r.seq != handled.get(c.keys.robot)
-                        and time.time_ns() - r.t < 1e9):
-                    handled[c.keys.robot] = r.seq
-                    why = r.reason
-                if why:
-                    events.append([time.time_ns(), c.keys.robot, "re-press deadman", why])
-                    c.set_twist(np.zeros(3), np.zeros(3), deadman=False)
-                    stop.wait(0.1)
-                    c.set_twist([0.0, direction * args.speed, 0.0], np.zeros(3), deadman=True)
+                # After a stop, a long gap, a lost grant or a new one (the client's lease renewal re-acquires
+                # by itself once the edge let control go) the edge waits for control and a fresh press of the
+                # deadman: the client takes that step, as a headless move does (OperatorClient.recover).
+                step = c.recover()
+                if step.step in (Step.ACQUIRE, Step.PRESS):
+                    events.append([time.time_ns(), c.keys.robot, step.step.value, step.why])
         for c in clients:
             c.set_twist(np.zeros(3), np.zeros(3), deadman=False)
         # Wait for the last echoes: until none has arrived for 1 s (a CPU stall can hold them), at most 5 s.
