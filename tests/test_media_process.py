@@ -5,6 +5,7 @@ controllable; the child never outlives the agent."""
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import signal
 import subprocess
@@ -19,6 +20,7 @@ import yaml
 
 from iorthand import keys
 from iorthand.protocol import Markers, VideoFeedback, VideoFrame
+from iorthand_edge.media import sets_bitrate
 from tests.conftest import ROOT, edge_config, iorthand_cmd, stop_process, wait_until
 from tests.test_thread_names import kernel_thread_names
 
@@ -156,6 +158,43 @@ def test_a_viewers_keyframe_request_is_answered_within_a_frame_or_two(edge_facto
         pub.put(VideoFeedback(operator="viewer", stream="camera", keyframe=True).stamp(i + 1).encode())
         wait_until(lambda n=n: any(f.keyframe for f in streams.video["camera"][n:]), timeout=1.0,
                    message=f"a keyframe for request {i + 1}")
+
+
+def test_a_report_sets_the_bitrate_when_nobody_holds_control_or_it_comes_from_who_does() -> None:
+    assert sets_bitrate("", "eve") and sets_bitrate("alice", "alice") and not sets_bitrate("alice", "eve")
+
+
+@pytest.mark.parametrize("bound", [False, True])
+def test_while_someone_drives_the_video_follows_its_reports_not_a_watchers(
+        edge_factory, operator_factory, session_factory, capfd: pytest.CaptureFixture[str], bound: bool) -> None:
+    """Found by a red-team run of the edge: one stream serves every viewer and followed the worst, so a watcher's
+    loss reports (a poor link, or any granted session's, one a second) cut the driving operator's picture from
+    2 000 to 200 kbit/s. While someone holds control only its reports move the bitrate; with bound keys the name is
+    the key's, which the router vouches for, not the report's (eve's reports claim to be alice's)."""
+    logging.getLogger("iorthand.edge.media").setLevel(logging.INFO)  # the child logs each bitrate change
+    sections = demo_sections()
+    sections["video"].pop("ultrasound")
+    edge_factory(bind_operator_keys=bound, **sections)
+    alice = operator_factory(operator_id="alice", bind_keys=bound)
+    alice.wait_for_state()
+    alice.acquire()
+    alice.start()  # her lease renewed throughout
+    streams = Streams(session_factory())
+    wait_until(lambda: streams.pictures_since(0, 0)[0] >= 10, timeout=20.0, message="camera frames")
+    k = keys.RobotKeys("sim1")
+    viewer = session_factory()
+    eve = viewer.declare_publisher(k.key(keys.CMD_VIDEO_FEEDBACK) + ("/eve" if bound else ""))
+    own = viewer.declare_publisher(k.key(keys.CMD_VIDEO_FEEDBACK) + ("/alice" if bound else ""))
+    lost = {"stream": "camera", "received": 0, "lost": 30}
+    capfd.readouterr()
+    for i in range(10):  # 5 s: two of the controller's 2-s holds
+        eve.put(VideoFeedback(operator="alice" if bound else "eve", **lost).stamp(i + 1).encode())
+        time.sleep(0.5)
+    assert "a viewer lost 30 of 30 frames" not in capfd.readouterr().err
+    for i in range(10):
+        own.put(VideoFeedback(operator="alice", **lost).stamp(100 + i).encode())
+        time.sleep(0.5)
+    assert "congestion (a viewer lost 30 of 30 frames)" in capfd.readouterr().err
 
 
 def test_a_killed_media_process_is_restarted_and_the_robot_stays_controllable(

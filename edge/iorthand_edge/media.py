@@ -10,7 +10,8 @@ difference.
 What they need from the control process arrives through Zenoh, like any other subscriber's: the TCP pose at a
 frame's time (``state/robot`` into a :class:`PoseHistory`), the servo angles (``state/servo``) and the contact
 force of the simulated ultrasound image (``state/force_level``; with no force sensor, the phantom's contact
-computed from ``state/robot``). They wait in Zenoh's own ring buffers (``RingChannel``: no Python callback, no
+computed from ``state/robot``), and who holds control (``state/safety``: the video's bitrate follows that
+operator's reports, :func:`sets_bitrate`). They wait in Zenoh's own ring buffers (``RingChannel``: no Python callback, no
 thread woken per sample) and are decoded when a frame needs them (:meth:`MediaService.pose_at` and the others
 drain the rings first): a burst of ~8 robot states per camera frame instead of 125 wake-ups a second, each of
 which made a state cost ~0.5 ms on this VM instead of 0.04.
@@ -49,6 +50,7 @@ from iorthand.protocol import (
     Markers,
     RejectCounter,
     RobotState,
+    SafetyStatus,
     ServoState,
     VideoFeedback,
     VideoFrame,
@@ -78,6 +80,14 @@ FEEDBACK_RING = 64
 FORCE_MAX_AGE = 0.5  # s: an older force level (or none) counts as no contact for the ultrasound image
 _PARENT_CHECK_S = 0.25
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"  # as the iorthand command line's
+
+
+def sets_bitrate(owner: str, sender: str) -> bool:
+    """Whether a viewer's report moves the stream's bitrate. One stream serves every viewer, and it followed the
+    worst: a watcher on a poor link (or any granted session's loss reports, one a second) cut the picture of the
+    operator driving the robot from 2 000 to 200 kbit/s. While someone holds control the stream follows that
+    operator's reports (and the sender's own congestion signals); the others' still get their keyframes."""
+    return not owner or sender == owner
 
 
 def needs_media(config: EdgeConfig) -> bool:
@@ -113,6 +123,7 @@ class MediaService:
         self._robot: RobotState | None = None
         self._force = (0.0, -math.inf)  # (contact force N, time.monotonic() it arrived)
         self._servo_last: ServoState | None = None
+        self._owner = ""  # who holds control (state/safety): while someone does, only its reports set the bitrate
         self._last_reject_log: dict[str, float] = {}
         self._pub_markers: Any = None
         p = config.perception
@@ -137,6 +148,8 @@ class MediaService:
             self._handlers[self.keys.key(keys.STATE_SERVO)] = self._on_servo
         if simulated_us and config.force is not None:
             self._handlers[self.keys.key(keys.STATE_FORCE_LEVEL)] = self._on_force_level
+        if any(s.bitrate is not None for s in self.video):
+            self._handlers[self.keys.key(keys.STATE_SAFETY)] = self._on_safety
 
     # -- what the control process tells us, through Zenoh ---------------------------------------------------
 
@@ -177,6 +190,9 @@ class MediaService:
         self.servos.add(msg.t, msg.pan, msg.tilt)
         self._servo_last = msg
 
+    def _on_safety(self, payload: bytes) -> None:
+        self._owner = SafetyStatus.decode(payload).owner
+
     def _on_force_level(self, payload: bytes) -> None:
         msg = ForceLevelState.decode(payload)
         self._force = (0.0 if msg.stale else msg.value, time.monotonic())
@@ -214,15 +230,20 @@ class MediaService:
         callback per report let a flood of them take the process's GIL: the camera froze (0.5 frames/s of 15)."""
         if self._feedback is None:
             return
+        self._drain()  # state/safety: who holds control now
         with self._drain_lock:
             while (sample := self._feedback.try_recv()) is not None:
                 try:
                     msg = VideoFeedback.decode(sample.payload.to_bytes())
                 except DecodeError:
                     continue  # a report moves nothing: a garbled one is simply not taken into account
+                # With bound keys the router vouches for the name in the key; without, the report's is a claim.
+                sender = msg.operator
+                if self.config.bind_operator_keys:
+                    sender = keys.split_key(str(sample.key_expr))[1].rsplit("/", 1)[-1]
                 for stream in self.video:
                     if stream.name == msg.stream:
-                        stream.on_feedback(msg)
+                        stream.on_feedback(msg, sets_bitrate=sets_bitrate(self._owner, sender))
 
     def _publish_markers(self, msg: Markers) -> None:
         if self._pub_markers is not None:

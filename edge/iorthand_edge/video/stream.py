@@ -139,12 +139,13 @@ class VideoStream:
                     1000 * config.bitrate_kbps, 1000 * config.min_bitrate_kbps, 1000 * config.max_bitrate_kbps,
                 ), 1.0 / config.fps)
 
-    def on_feedback(self, feedback: VideoFeedback) -> None:
+    def on_feedback(self, feedback: VideoFeedback, sets_bitrate: bool = True) -> None:
         """A viewer's report (the media process's subscription): a keyframe it waits for, and how the frames
-        reach it (the bitrate follows the worst viewer)."""
+        reach it (the bitrate follows the worst viewer among those that ``sets_bitrate``: see
+        iorthand_edge.media.sets_bitrate)."""
         if self.h264 is not None and feedback.keyframe:
             self.h264.viewer_asks_keyframe()
-        if self.bitrate is not None:
+        if self.bitrate is not None and sets_bitrate:
             self.bitrate.on_feedback(feedback.received, feedback.lost, feedback.delay_p90)
 
     @property
