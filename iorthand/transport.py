@@ -596,22 +596,23 @@ def rate_limits(robots: Iterable[str] = ("*",)) -> list[dict[str, Any]]:
     each robot, at most that many a second; Zenoh drops the rest at the router's ingress. The cap is per session
     (per link), so one operator's flood costs its own messages only, never another's.
 
-    Only for a router that operators connect to: one that dials another carries every operator's messages on one
-    link, where a cap would let one operator's flood drop the owner's (:func:`router_settings`, and the generated
-    configuration, leave it out there)."""
+    In the deployment's router (the generated configuration, which operators connect to) and the shipped
+    configs/router.json5. Not in a router that dials another: its one link carries every operator's messages,
+    where a cap would let one operator's flood drop the owner's. Nor in the built-in router of :func:`router_settings`
+    (tests, the demo, benchmarks: on the edge's own machine): there, with two CPU hogs, the UR driver saw more
+    false faults with the caps than without (benchmarks/README.md), for a reason not found."""
     rules = [{"key_expr": f"{keys.ROOT}/{robot}/{c.suffix}/**", "freq": c.max_rate}
              for robot in robots for c in channels.TABLE if c.max_rate]
     return [{"flows": ["ingress"], "messages": ["put"], "rules": rules}]
 
 
 def router_settings(listen: list[str], connect: list[str] | None = None, lease_ms: int | None = None,
-                    shared_memory: bool = True, datagrams: bool = False, capped: bool = True) -> dict[str, Any]:
+                    shared_memory: bool = True, datagrams: bool = False) -> dict[str, Any]:
     """A plain router's configuration as a dict (written as JSON, it is a JSON5 file a stock zenohd reads).
     The lease defaults to ROUTER_LEASE_MS, longer for a router that connects to others (:func:`announced_lease`).
     ``shared_memory=False`` models a router on its own host: two routers on one machine otherwise negotiate
     shared memory and hand large payloads over through it, which no link between sites can do. ``datagrams``:
-    UDP links beside the TCP ones (:func:`with_datagram_links`). ``capped``: :func:`rate_limits`, unless it
-    connects to another router."""
+    UDP links beside the TCP ones (:func:`with_datagram_links`)."""
     lease_ms = lease_ms or announced_lease(ROUTER_LEASE_MS, bool(connect))
     if datagrams:
         listen, connect = with_datagram_links(listen, connect or [])
@@ -630,15 +631,12 @@ def router_settings(listen: list[str], connect: list[str] | None = None, lease_m
         cfg["transport"]["unicast"] = {"max_links": DATAGRAM_MAX_LINKS}
     if connect:
         cfg["connect"] = {"endpoints": list(connect)}
-    elif capped:
-        cfg["downsampling"] = rate_limits()
     return cfg
 
 
 def router_json5(endpoint: str) -> str:
-    """A minimal loopback router configuration (tests, demo), without the rate caps: the edge's own defences
-    against floods are what the tests must see."""
-    return json.dumps(router_settings([endpoint], capped=False))
+    """A minimal loopback router configuration (tests, demo)."""
+    return json.dumps(router_settings([endpoint]))
 
 
 def client_config(endpoint: str, **overrides: Any) -> ZenohConfig:

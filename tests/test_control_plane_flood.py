@@ -231,14 +231,17 @@ def test_the_owners_preview_goes_before_a_queue_that_others_filled(edge_factory,
 
 
 def test_the_router_caps_each_sessions_set_points_and_nobody_elses() -> None:
-    """``iorthand router`` (and the generated and shipped configurations: test_security_units) drops a session's
-    servo, torch and video-feedback messages beyond 50 a second at its ingress. A red-team flood of refused servo
+    """The shipped router configuration (and the generated one: test_security_units) drops a session's servo,
+    torch and video-feedback messages beyond 50 a second at its ingress. A red-team flood of refused servo
     commands from another operator held the edge at ~95 % CPU and the owner's twists went stale. The cap is per
     session: another session's set-points all pass, and twists and stops are never capped."""
-    from iorthand.transport import client_config, free_port, open_session, router_settings
+    from iorthand.transport import client_config, free_port, load_router_config, open_session
+    from tests.conftest import ROOT
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = zenoh.open(zenoh.Config.from_json5(json.dumps(router_settings([endpoint]))))
+    config = load_router_config(ROOT / "configs" / "router.json5")
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    router = zenoh.open(config)
     sessions = [open_session(client_config(endpoint)) for _ in range(3)]
     try:
         edge, alice, mallory = sessions
