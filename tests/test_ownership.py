@@ -123,6 +123,26 @@ def test_a_long_gap_with_the_deadman_held_needs_a_fresh_press_and_a_short_one_do
     assert d.accepted and np.any(d.twist)
 
 
+def test_the_safety_status_names_the_latch_that_holds_the_robot_after_a_stale_view_clears() -> None:
+    """Found by the WAN bench's blackout trials: the first commands after a blackout carry an old picture of the
+    robot (stale_view, a halt that clears with a fresh picture) and resume after a long gap (link_gap, latched).
+    Once the picture was fresh again, the latched refusals kept the published status at stale_view: a console
+    (recovery.next_step) saw nothing to do, and no press came. The status names the latch that holds the robot."""
+    sv, alice, _, clock = setup()
+    assert alice.send(alice.twist()).accepted
+    clock[0] += 1.5  # a blackout with the deadman held; the first command back shows a 1 s old picture
+    sv.step(clock[0] - 0.5, POSE)
+    d = alice.send(alice.twist(view_age=1.0))
+    assert not d.accepted and sv.status == Status.STALE_VIEW
+    for _ in range(3):  # the picture is live again: the gap's latch is what holds the robot now
+        clock[0] += 1 / 60
+        d = alice.send(alice.twist())
+        assert not d.accepted and d.status == Status.LINK_GAP
+        assert sv.status == Status.LINK_GAP and "press it again" in sv.reason
+    assert alice.send(alice.twist(deadman=False)).accepted
+    assert alice.send(alice.twist()).accepted
+
+
 def test_a_fresh_press_after_a_long_release_moves_at_once() -> None:
     _sv, alice, _, clock = setup()
     assert alice.send(alice.twist(deadman=False)).accepted

@@ -88,11 +88,14 @@ def test_move_completes_its_motion_after_a_3_s_blackout(relayed_client) -> None:
     client.start()
     client.acquire()
     x0 = client.robot_state.tcp_pose[0]
+    grants = client._key_gen
     blackout = _blackout_after(emu, client, 0.5, 3.0)
     result = move(client, np.array([0.005, 0.0, 0.0]), np.zeros(3), 2.0, patience=20.0)
     blackout.join()
     assert result["completed"], result
-    assert any(r.startswith("acquire") for r in result["recoveries"]), result["recoveries"]
+    # The edge let control go during the blackout: granted anew (by the client's lease renewal, which retries
+    # until the lease can have run out, or by the move's own acquire), and the move pressed afresh under it.
+    assert client._key_gen > grants and result["recoveries"], result["recoveries"]
     # 2 s at 5 mm/s: the distance the operator asked for, dead link or not (the edge stopped during it).
     assert client.robot_state.tcp_pose[0] - x0 == pytest.approx(0.010, abs=0.002)
     assert edge.supervisor.counters.stops >= 1  # the edge did stop the robot while the link was dead
@@ -125,13 +128,14 @@ def test_a_script_completes_its_motion_after_a_3_s_blackout(relayed_client) -> N
     client.start()
     client.acquire()
     y0 = client.robot_state.tcp_pose[1]
+    grants = client._key_gen
     script = Script(name="scan", steps=[ScriptStep(twist=[0.0, 0.005, 0.0, 0.0, 0.0, 0.0], duration=2.0),
                                         ScriptStep(wait=0.3)], patience=20.0)
     blackout = _blackout_after(emu, client, 0.5, 3.0)
     result = run_script(client, script)
     blackout.join()
     step = result["steps"][0]
-    assert any(r.startswith("acquire") for r in step["recoveries"]), step
+    assert client._key_gen > grants and step["recoveries"], step  # granted anew, pressed afresh (as above)
     assert client.robot_state.tcp_pose[1] - y0 == pytest.approx(0.010, abs=0.002), result
 
 

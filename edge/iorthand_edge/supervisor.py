@@ -534,6 +534,8 @@ class Supervisor:
         self._deadman = True
         if self._latched:
             self.counters.rejected += 1
+            # What holds the robot is the latch: a halt since (a stale view, now cleared) may have taken the status.
+            self._set(self._latched, self._latch_reason)
             return self._decide([0.0] * 6, False, self._latched, self._latch_reason)
         manual = [float(v) for v in (*cmd.linear, *cmd.angular)]
         if cmd.frame == "tool":  # the probe's frame about its tip → the base frame, where every limit applies
