@@ -64,7 +64,7 @@ from iorthand.protocol import (
     TorchCommand,
     TwistCommand,
 )
-from iorthand.security import auth, sdnotify
+from iorthand.security import sdnotify
 from iorthand.security.identity import CommandGate, operator_in_key
 from iorthand.transport import Inbox, Worker, open_session, publisher, subscribe
 from iorthand_edge.actuators import ServoUnit, TorchUnit
@@ -698,14 +698,13 @@ class EdgeAgent:
     def _signed_by_owner(self, query: zenoh.Query, suffix: str) -> bool:
         """Whether a query's request carries the signature of the grant that holds control (only checked here, in
         Zenoh's callback, to queue it; the sequence is checked where it is handled)."""
-        key = self.supervisor.grant_key
-        if not key or query.payload is None:
+        if not self.supervisor.owner or query.payload is None:
             return False
         try:
             req = ControlRequest.decode(query.payload.to_bytes())
         except DecodeError:
             return False
-        return auth.verify(key, auth.context(self.keys.robot, suffix), req)
+        return self.supervisor.signed_by_owner(req, suffix)
 
     def _control_plane_loop(self, stop: threading.Event) -> None:
         handlers: dict[str, Callable[[Any], None]] = {

@@ -228,22 +228,26 @@ class MediaService:
         """The viewers' reports that arrived since the last call, each handed to its stream (which only notes it).
         Run by each stream before it encodes a frame: a keyframe request waits at most one frame period. A Python
         callback per report let a flood of them take the process's GIL: the camera froze (0.5 frames/s of 15)."""
-        if self._feedback is None:
+        if self._feedback is None or (sample := self._feedback.try_recv()) is None:
             return
         self._drain()  # state/safety: who holds control now
         with self._drain_lock:
-            while (sample := self._feedback.try_recv()) is not None:
-                try:
-                    msg = VideoFeedback.decode(sample.payload.to_bytes())
-                except DecodeError:
-                    continue  # a report moves nothing: a garbled one is simply not taken into account
-                # With bound keys the router vouches for the name in the key; without, the report's is a claim.
-                sender = msg.operator
-                if self.config.bind_operator_keys:
-                    sender = keys.split_key(str(sample.key_expr))[1].rsplit("/", 1)[-1]
-                for stream in self.video:
-                    if stream.name == msg.stream:
-                        stream.on_feedback(msg, sets_bitrate=sets_bitrate(self._owner, sender))
+            while sample is not None:
+                self._on_feedback(sample)
+                sample = self._feedback.try_recv()
+
+    def _on_feedback(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = VideoFeedback.decode(sample.payload.to_bytes())
+        except DecodeError:
+            return  # a report moves nothing: a garbled one is simply not taken into account
+        # With bound keys the router vouches for the name in the key; without, the report's is a claim.
+        sender = msg.operator
+        if self.config.bind_operator_keys:
+            sender = keys.split_key(str(sample.key_expr))[1].rsplit("/", 1)[-1]
+        for stream in self.video:
+            if stream.name == msg.stream:
+                stream.on_feedback(msg, sets_bitrate=sets_bitrate(self._owner, sender))
 
     def _publish_markers(self, msg: Markers) -> None:
         if self._pub_markers is not None:

@@ -280,16 +280,20 @@ class Supervisor:
             return f"{operator!r} does not hold control (nobody does)"
         if operator != self.owner:
             return f"{operator!r} does not hold control ({self.owner!r} does)"
-        if not auth.verify(self._key, self._context(suffix), msg):
+        if not self.signed_by_owner(msg, suffix):
             return f"not signed by the session that holds control for {operator!r}"
         return self._sequence_refusal(msg.seq, suffix)
+
+    def signed_by_owner(self, msg: Message, suffix: str) -> bool:
+        """Whether ``msg`` carries the signature of the grant that holds control (the sequence is not checked)."""
+        return bool(self._key) and auth.verify(self._key, self._context(suffix), msg)
 
     def impersonation(self, msg: Message, suffix: str) -> str:
         """"" unless ``msg`` (a request anyone may make, as a preview) is in the name of the operator holding
         control without its grant's signature: then why it is refused. A preview's token is kept for its operator,
         the owner's last (GotoController); previews claiming the owner's name could push its own out."""
         operator = getattr(msg, "operator", "")
-        if not self.owner or operator != self.owner or auth.verify(self._key, self._context(suffix), msg):
+        if not self.owner or operator != self.owner or self.signed_by_owner(msg, suffix):
             return ""
         return f"not signed by the session that holds control for {operator!r}"
 

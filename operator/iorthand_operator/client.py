@@ -251,9 +251,7 @@ class OperatorClient:
         new key it carries."""
         req = ControlRequest(operator=self.operator_id, profile=profile, **fields)
         req.stamp(self._next_seq(suffix))
-        grant = self._key  # what this request is signed with, and what the edge's answer must be signed with
-        if grant:
-            auth.sign(grant, auth.context(self.keys.robot, suffix), req)
+        grant = self._sign(req, suffix)  # and what the edge's answer must be signed with
         payload = req.encode()
         to_edge = key is None  # (a preview goes through the twin: what it answers, the edge checks again)
         key = key or self.keys.key(suffix) + (f"/{self.operator_id}" if self.bind_keys else "")
@@ -333,11 +331,12 @@ class OperatorClient:
         with self._lock:
             return self._seq_other[suffix].next()
 
-    def _sign(self, msg: Any, suffix: str) -> None:
-        """Sign ``msg`` (stamped) with our grant's key, if we hold one."""
+    def _sign(self, msg: Any, suffix: str) -> bytes:
+        """Sign ``msg`` (stamped) with our grant's key, if we hold one; returns the key (empty: unsigned)."""
         key = self._key
         if key:
             auth.sign(key, auth.context(self.keys.robot, suffix), msg)
+        return key
 
     def switch_profile(self, profile: str) -> ControlReply:
         """Ask the edge for another speed profile (renewing the lease); the edge refuses unknown ones."""
