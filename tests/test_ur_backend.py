@@ -287,7 +287,7 @@ def test_the_drivers_threads_run_real_time_the_command_thread_first(emu: Emulato
     edge's control loop (at normal priority, two CPU hogs delayed a kick past the 100 ms watchdog in 2 of 3
     minutes of bench_cpu_hogs.py). The threads it waits for, the reader (the child's GIL) and ur_rtde's receive
     threads (the acknowledgement a speedL waits for, the controller's timestamp), one step under it: normal, the
-    hogs starved them past 100 ms in 4 of 6 minutes. numpy's idle BLAS thread stays as it was. ``realtime:
+    hogs starved them past 100 ms in 3 of 6 minutes. numpy's idle BLAS thread stays as it was. ``realtime:
     false`` leaves it all normal."""
     safety = SafetyConfig()
     robot = URRobot(URRobotConfig(host=emu.host), safety.stop_deceleration)

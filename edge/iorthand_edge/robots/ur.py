@@ -65,8 +65,8 @@ DRIVER_PRIORITY = max(1, REALTIME_PRIORITY - 6)
 # timestamp, and the command thread, real time as it is, waited behind them: for the control interface's receive
 # thread, which reads the acknowledgement that speedL waits for, and for the child's GIL while the reader held it.
 # The controller then stopped the program for want of kicks. bench_cpu_hogs.py, UR, one minute a run, taken in turns
-# (benchmarks/README.md): 6 false faults in 6 runs with them normal, 9 in 10 with ur_rtde's alone raised, 1 in 4 with
-# all of them here; the command path's p99 as before (2.2-3.1 ms against 2.4-3.7).
+# (benchmarks/README.md): 6 false faults in 6 runs with them normal, 9 in 10 with ur_rtde's alone raised, 3 in 8 with
+# all of them here (not 0: the program still stopped once every few minutes); the command path's p99 as before.
 STREAM_PRIORITY = max(1, DRIVER_PRIORITY - 1)
 # On a PREEMPT_RT kernel (a Pi's, say) ur_rtde 1.6.5 puts its receive threads, and the thread calling its
 # constructors, at SCHED_FIFO 90 on its own: above the control loop and the command thread (seen with a faked
