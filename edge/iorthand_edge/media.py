@@ -55,6 +55,7 @@ from iorthand.protocol import (
     VideoFeedback,
     VideoFrame,
 )
+from iorthand.security.identity import operator_in_key
 from iorthand.transport import Worker, open_session, publisher
 from iorthand_edge.config import EdgeConfig
 from iorthand_edge.force import contact_wrench
@@ -244,7 +245,7 @@ class MediaService:
         # With bound keys the router vouches for the name in the key; without, the report's is a claim.
         sender = msg.operator
         if self.config.bind_operator_keys:
-            sender = keys.split_key(str(sample.key_expr))[1].rsplit("/", 1)[-1]
+            sender = operator_in_key(str(sample.key_expr), keys.CMD_VIDEO_FEEDBACK) or ""
         for stream in self.video:
             if stream.name == msg.stream:
                 stream.on_feedback(msg, sets_bitrate=sets_bitrate(self._owner, sender))

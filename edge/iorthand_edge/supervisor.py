@@ -189,6 +189,11 @@ class Counters:
     forged: int = 0
 
 
+def _not_signed(operator: str) -> str:
+    """Why a message in the name of the operator holding control is refused without its grant's signature."""
+    return f"not signed by the session that holds control for {operator!r}"
+
+
 class Supervisor:
     def __init__(self, config: SafetyConfig, period: float = 1.0 / 125.0, force_required: bool = False,
                  robot: str = "robot", keygen: Callable[[], bytes] = auth.new_key) -> None:
@@ -281,7 +286,7 @@ class Supervisor:
         if operator != self.owner:
             return f"{operator!r} does not hold control ({self.owner!r} does)"
         if not self.signed_by_owner(msg, suffix):
-            return f"not signed by the session that holds control for {operator!r}"
+            return _not_signed(operator)
         return self._sequence_refusal(msg.seq, suffix)
 
     def signed_by_owner(self, msg: Message, suffix: str) -> bool:
@@ -295,7 +300,7 @@ class Supervisor:
         operator = getattr(msg, "operator", "")
         if not self.owner or operator != self.owner or self.signed_by_owner(msg, suffix):
             return ""
-        return f"not signed by the session that holds control for {operator!r}"
+        return _not_signed(operator)
 
     def _sequence_refusal(self, seq: int, suffix: str) -> str:
         """"" and ``seq`` recorded if it follows the last one on ``suffix`` within the jump bound, else why not."""
