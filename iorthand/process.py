@@ -26,18 +26,17 @@ NATIVE_NAME_BYTES = 15
 REALTIME_PRIORITY = 10
 
 
-def raise_priority(realtime: bool, priority: int = REALTIME_PRIORITY, thread: int | None = None) -> str:
-    """Best effort SCHED_FIFO at ``priority`` for the calling thread, or the one whose native id is ``thread``
-    (root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ it); returns what it got. Only for threads that block between short
-    bursts of work (a fixed-rate sender, a control loop): a spinning one would starve others, so a process must
-    never run real-time as a whole."""
+def raise_priority(realtime: bool, priority: int = REALTIME_PRIORITY) -> str:
+    """Best effort SCHED_FIFO at ``priority`` for the calling thread (root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ it);
+    returns what it got. Only for threads that block between short bursts of work (a fixed-rate sender, a control
+    loop): a spinning one would starve others, so a process must never run real-time as a whole."""
     if not realtime or not hasattr(os, "sched_setscheduler"):
         return "normal"
     try:
         # SCHED_RESET_ON_FORK: a thread or process this thread starts (the UR driver, restarted by the control
         # loop after a fault) begins at normal priority instead of inheriting real time.
-        os.sched_setscheduler(threading.get_native_id() if thread is None else thread,
-                              os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+        os.sched_setscheduler(threading.get_native_id(), os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
+                              os.sched_param(priority))
         return "SCHED_FIFO"
     except (PermissionError, OSError) as exc:
         log.debug("thread stays at normal priority: %s", exc)

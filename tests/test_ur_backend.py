@@ -27,7 +27,7 @@ pytest.importorskip("rtde_control", reason="ur-rtde is not installed on this pla
 
 from iorthand_edge.robots.base import RobotFault, RobotReading
 from iorthand_edge.robots.config import URRobotConfig
-from iorthand_edge.robots.ur import DRIVER_PRIORITY, STREAM_PRIORITY, URRobot
+from iorthand_edge.robots.ur import DRIVER_PRIORITY, URRobot
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator import HOME_POSE, HOME_Q
 from iorthand_edge.ur_emulator.process import UR_PORTS, EmulatorProcess, free_loopback_host
@@ -282,13 +282,12 @@ def test_connect_during_protective_stop_says_why(emu: Emulator, make_robot: Call
         robot.connect()
 
 
-def test_the_drivers_threads_run_real_time_the_command_thread_first(emu: Emulator) -> None:
+def test_the_drivers_command_thread_alone_runs_real_time(emu: Emulator) -> None:
     """The driver's main thread writes the commands and kicks the controller's watchdog: real time, under the
     edge's control loop (at normal priority, two CPU hogs delayed a kick past the 100 ms watchdog in 2 of 3
-    minutes of bench_cpu_hogs.py). The threads it waits for, the reader (the child's GIL) and ur_rtde's receive
-    threads (the acknowledgement a speedL waits for, the controller's timestamp), one step under it: normal, the
-    hogs starved them past 100 ms in 3 of 6 minutes. numpy's idle BLAS thread stays as it was. ``realtime:
-    false`` leaves it all normal."""
+    minutes of bench_cpu_hogs.py). Its other threads, the reader and ur_rtde's own, stay normal: with them real
+    time too the command path's p99 under the hogs rose from 9-25 to 29-67 ms. ``realtime: false`` leaves it all
+    normal."""
     safety = SafetyConfig()
     robot = URRobot(URRobotConfig(host=emu.host), safety.stop_deceleration)
     robot.connect()
@@ -299,9 +298,7 @@ def test_the_drivers_threads_run_real_time_the_command_thread_first(emu: Emulato
         assert robot._proc is not None
         got = policies(robot._proc.pid)
         assert got.pop(str(robot._proc.pid)) == (os.SCHED_FIFO, DRIVER_PRIORITY)
-        streams = [tid for tid, policy in got.items() if policy == (os.SCHED_FIFO, STREAM_PRIORITY)]
-        assert len(streams) == 3, got  # the reader and ur_rtde's two receive threads
-        assert set(got.values()) <= {(os.SCHED_FIFO, STREAM_PRIORITY), (os.SCHED_OTHER, 0)}, got
+        assert len(got) >= 2 and set(got.values()) == {(os.SCHED_OTHER, 0)}, got  # the reader and ur_rtde's threads
     finally:
         robot.disconnect()
     plain = URRobot(URRobotConfig(host=emu.host), safety.stop_deceleration, realtime=False)
@@ -315,11 +312,11 @@ def test_the_drivers_threads_run_real_time_the_command_thread_first(emu: Emulato
         plain.disconnect()
 
 
-def test_ur_rtdes_threads_stay_under_the_command_thread_on_a_real_time_kernel() -> None:
+
+def test_ur_rtdes_threads_stay_normal_on_a_real_time_kernel() -> None:
     """On a PREEMPT_RT kernel (a Pi's, say) ur_rtde by default puts its receive threads, and the thread that calls
     its constructors, at SCHED_FIFO 90: above the edge's control loop and the driver's command thread. The driver
-    asks it not to and sets them itself, so the order measured here (the command thread over its other threads)
-    holds on any kernel. This
+    asks it not to, so the order measured here (the command thread alone at real time) holds on any kernel. This
     kernel is not real time: the probe runs in a mount namespace whose /sys/kernel/realtime reads 1, which is what
     ur_rtde 1.6.5 checks. It shows first that a bare ur_rtde is fooled, so the check on the driver is not vacuous.
     (Without the driver's request, two of its threads ran at SCHED_FIFO 90.)"""
@@ -340,5 +337,4 @@ def test_ur_rtdes_threads_stay_under_the_command_thread_on_a_real_time_kernel() 
     driver = {int(tid): tuple(v) for tid, v in got["driver"].items()}
     assert got["driver_priority"].startswith("SCHED_FIFO"), got
     assert driver.pop(got["driver_pid"]) == (os.SCHED_FIFO, DRIVER_PRIORITY)
-    assert sorted(driver.values()).count((os.SCHED_FIFO, STREAM_PRIORITY)) == 3, driver  # reader + ur_rtde's two
-    assert set(driver.values()) <= {(os.SCHED_FIFO, STREAM_PRIORITY), (os.SCHED_OTHER, 0)}, driver
+    assert len(driver) >= 3 and set(driver.values()) == {(os.SCHED_OTHER, 0)}, driver  # reader + ur_rtde's two

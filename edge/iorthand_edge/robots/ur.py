@@ -27,7 +27,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import multiprocessing as mp
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import asdict
@@ -60,19 +59,13 @@ MODE_MAX, FAULT_MAX = 40, 200  # the lengths RobotState accepts: a longer text w
 # under the UR emulator that stands for the controller in tests and benchmarks (EMULATOR_PRIORITY). At normal
 # priority, two CPU hogs delayed a kick past the 100 ms watchdog in 2 of 3 one-minute runs of bench_cpu_hogs.py.
 DRIVER_PRIORITY = max(1, REALTIME_PRIORITY - 6)
-# The driver's other threads, one step under the command thread: the reader and ur_rtde's receive threads. At
-# normal priority two CPU hogs still starved them past 100 ms: the receive interface's froze the controller's
-# timestamp, and the command thread, real time as it is, waited behind them: for the control interface's receive
-# thread, which reads the acknowledgement that speedL waits for, and for the child's GIL while the reader held it.
-# The controller then stopped the program for want of kicks. bench_cpu_hogs.py, UR, one minute a run, taken in turns
-# (benchmarks/README.md): 6 false faults in 6 runs with them normal, 9 in 10 with ur_rtde's alone raised, 3 in 8 with
-# all of them here (not 0: the program still stopped once every few minutes); the command path's p99 as before.
-STREAM_PRIORITY = max(1, DRIVER_PRIORITY - 1)
-# On a PREEMPT_RT kernel (a Pi's, say) ur_rtde 1.6.5 puts its receive threads, and the thread calling its
-# constructors, at SCHED_FIFO 90 on its own: above the control loop and the command thread (seen with a faked
-# /sys/kernel/realtime, tests/test_ur_backend.py). The driver asks it not to, and sets them to STREAM_PRIORITY
-# itself, on every kernel. A negative value is ur_rtde's "not on purpose"; it then logs a "Failed to set realtime
-# priority" warning that means just that.
+# ur_rtde's own threads stay normal on every kernel. On a PREEMPT_RT kernel (a Pi's, say) ur_rtde 1.6.5 otherwise
+# puts its receive threads, and the thread calling its constructors, at SCHED_FIFO 90: above the control loop and
+# the command thread (seen with a faked /sys/kernel/realtime, tests/test_ur_backend.py). The driver's other threads
+# at real time, one step under the command thread, halved the false faults under two CPU hogs, but ur_rtde then
+# crashed (SIGSEGV) when the link to the controller dropped, in 1 of 2 CI runs; tests/test_ur_stack.py's link kill
+# alone failed 1 of 37 runs so, 0 of 24 with them normal (benchmarks/README.md). A negative value is
+# ur_rtde's "not on purpose"; it then logs a "Failed to set realtime priority" warning that means just that.
 UR_RTDE_RT_PRIORITY = -1
 SPAWN_TIMEOUT = 15.0  # s for the driver child to start Python and import ur_rtde (not the controller's fault)
 ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
@@ -90,6 +83,7 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     0.1 m/s², and ``speedL`` waits for the controller's acknowledgement): state must keep flowing meanwhile or
     the agent would take a long stop for a hung driver. ur_rtde's methods release the GIL (its constructors do
     not), so the threads really run side by side."""
+    import os
     import threading
 
     import rtde_control
@@ -100,7 +94,6 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     # nothing about the controller.
     conn.send(("connecting", ""))
     try:
-        before = _threads()
         recv = rtde_receive.RTDEReceiveInterface(cfg["host"], cfg["rtde_frequency"], rt_priority=UR_RTDE_RT_PRIORITY)
         # No script can run in a protective stop (or worse): say so instead of a confusing upload failure.
         safety_mode = recv.getSafetyMode()
@@ -112,13 +105,12 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
         # mid-motion). So the first command of every connection is a stop; it also clears that register.
         if not ctrl.speedStop(cfg["stop_deceleration"]):
             raise RuntimeError("speedStop after connecting was refused (control script not running)")
-        # Raised before the watchdog is set: from then on the program lives on this thread's kicks, and at normal
-        # priority a loaded machine delayed the first one past the watchdog's 100 ms (the emulator stopped the
-        # program 0.103 s after the watchdog was set, 1 connection in 20 beside stress-ng --cpu 2).
+        # This thread only (reset on fork): ur_rtde's threads, started before, and the reader, started after, stay
+        # normal, or their work at the RTDE rate would take the CPU from the edge's command path. Raised before
+        # the watchdog is set: from then on the program lives on this thread's kicks, and at normal priority a
+        # loaded machine delayed the first one past the watchdog's 100 ms (the emulator stopped the program
+        # 0.103 s after the watchdog was set, 1 connection in 20 beside stress-ng --cpu 2).
         priority = raise_priority(cfg["realtime"], DRIVER_PRIORITY)
-        if priority == "SCHED_FIFO":
-            for thread in _threads() - before:  # the threads ur_rtde's constructors started: its receive threads
-                raise_priority(True, STREAM_PRIORITY, thread)
         # The watchdog lives in the program: every new script needs it set again.
         if not ctrl.setWatchdog(cfg["watchdog_hz"]):
             raise RuntimeError("setWatchdog was refused (control script not running)")
@@ -140,8 +132,6 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                 return False
 
     def reader() -> None:
-        if priority == "SCHED_FIFO":  # started normal (reset on fork), like anything the command thread starts
-            raise_priority(True, STREAM_PRIORITY)
         next_tick = time.monotonic()
         while not done.is_set():
             try:
@@ -218,11 +208,6 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                 send(("lost", f"RTDE link to the controller lost ({exc})"))
                 shutdown()
     shutdown()
-
-
-def _threads() -> set[int]:
-    """The native ids of this process's threads."""
-    return {int(tid) for tid in os.listdir("/proc/self/task")}
 
 
 # ---------------------------------------------------------------------------------------------------------
