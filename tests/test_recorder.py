@@ -12,6 +12,7 @@ from pathlib import Path
 
 import msgpack
 import pytest
+import zenoh
 from mcap.reader import make_reader
 from mcap.records import ChunkIndex
 from mcap.writer import CompressionType, Writer
@@ -273,6 +274,14 @@ def test_a_shutdown_that_cannot_wait_for_the_backlog_counts_it(router_endpoint, 
         write(*args)
 
     svc._write_sample = slow_disk  # type: ignore[method-assign]
+    on_sample = svc._on_sample
+    arrived = [0]
+
+    def counting(sample: zenoh.Sample) -> None:  # the recorder's own callback, counted
+        arrived[0] += str(sample.key_expr) == "iorthand/sim1/state/force"
+        on_sample(sample)
+
+    svc._on_sample = counting  # type: ignore[method-assign]
     svc.start()
     s = session_factory()
     pub = s.declare_publisher("iorthand/sim1/state/force")
@@ -281,7 +290,9 @@ def test_a_shutdown_that_cannot_wait_for_the_backlog_counts_it(router_endpoint, 
     for seq in range(1, 2001):
         pub.put(_force(seq))
     wait_until(lambda: svc.status.messages >= 20, 5, message="the writer under way")
-    time.sleep(0.5)  # every sample queued by now (the router forwards 2 000 small samples in milliseconds)
+    # Every sample queued before the shutdown (a loaded machine took more than 0.5 s to deliver them all: 172 were
+    # still on their way in a CI run, and neither recorded nor queued).
+    wait_until(lambda: arrived[0] >= 2000, 10, message="every sample arrived at the recorder")
     t0 = time.monotonic()
     svc.shutdown()
     assert time.monotonic() - t0 < 2.0
