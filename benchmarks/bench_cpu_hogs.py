@@ -21,7 +21,12 @@ Figures:
   config's ``command_timeout`` plus one control period. A silence that begins while the robot is already
   stopped (by a fault) is not a stop and is left out (``silences`` counts them all). A release stop: from the
   operator's send time of its first released command to the first zero commanded twist;
-- command→applied: the operator's send time to the edge's echo (``OperatorClient.echoes``), accepted ones.
+- command→applied: the operator's send time to the edge's echo (``OperatorClient.echoes``), accepted ones;
+- vCPU steal (``iorthand_operator.bench.steal``): the bursts of CPU time the hypervisor took from this virtual
+  machine during the run, and which fault incidents followed one (an incident: fault episodes less than
+  ``RECOVERY_S`` apart, a reconnect's steps; it follows a burst of ≥ 50 ms if first seen within 0.5 s after it). On
+  the test VM, the host takes a whole vCPU for 100 ms at times under the hogs, and nothing in the guest runs on
+  it meanwhile, not even at SCHED_FIFO 99: the UR controller's watchdog is 100 ms.
 
 Writes benchmarks/results/cpu_hogs.json.
 
@@ -32,8 +37,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import shutil
+import signal
 import socket
 import sys
 import tempfile
@@ -63,12 +70,14 @@ from iorthand.stats import summary
 from iorthand.transport import free_port
 from iorthand_edge.config import EdgeConfig
 from iorthand_edge.ur_emulator.process import EmulatorProcess
-from iorthand_operator.bench.procs import Group, Unavailable
+from iorthand_operator.bench import steal
+from iorthand_operator.bench.procs import Group, Unavailable, python_argv
 from iorthand_operator.bench.report import machine, write_json
 from iorthand_operator.client import OperatorClient
 
 SPEED = 0.005  # m/s: under the remote profile's 8 mm/s
 ROBOTS = {"sim": ("sim1", "edge-sim.yaml"), "ur": ("ur1", "edge-ur.yaml")}
+RECOVERY_S = 3.0  # s: a UR driver's reconnect after a fault (back-off 0.5 s, a new child, the script's upload)
 
 
 def send_time_of_next(op: OperatorClient, before: int, timeout: float = 1.0) -> int:
@@ -147,21 +156,30 @@ def episodes(flags: list[bool]) -> int:
     return sum(1 for prev, cur in zip([False, *flags], flags, strict=False) if cur and not prev)
 
 
-def faults(seen: Seen) -> tuple[int, list[str]]:
+def faults(seen: Seen) -> tuple[list[int], list[str]]:
+    """The wall times at which each fault episode was first seen, and the reasons."""
     last_robot: RobotState | None = None
     last_safety: SafetyStatus | None = None
     events = sorted([(t, "r", s) for t, s in seen.robot] + [(t, "s", s) for t, s in seen.safety], key=lambda e: e[0])
-    flags, reasons = [], []
-    for _, kind, msg in events:
+    flags, reasons, starts = [], [], []
+    for t, kind, msg in events:
         if kind == "r":
             last_robot = msg
         else:
             last_safety = msg
         why = driver_fault(last_robot, last_safety)
+        if why and not (flags and flags[-1]):
+            starts.append(t)
         flags.append(bool(why))
         if why:
             reasons.append(why)
-    return episodes(flags), sorted(set(reasons))[:10]
+    return starts, sorted(set(reasons))[:10]
+
+
+def incidents(starts: list[int], within_s: float = RECOVERY_S) -> list[int]:
+    """The first of each run of fault episodes that began within ``within_s`` of the one before: a driver fault
+    takes the UR driver through a reconnect, whose steps can show as further short episodes."""
+    return [t for i, t in enumerate(starts) if i == 0 or t - starts[i - 1] > within_s * 1e9]
 
 
 def arm(sock: Path) -> None:
@@ -202,11 +220,15 @@ def run_robot(kind: str, workdir: Path, duration: float, silence: float, hogs: i
             try:
                 time.sleep(2.0)  # the first commands and the sender's schedule settle before the hogs start
                 group.start("stress-ng", ["stress-ng", "--cpu", str(hogs), "--timeout", f"{duration + 10:.0f}s"])
+                sampler = group.start("steal", python_argv(steal.__name__, "--seconds", f"{duration + 10:.0f}"))
                 time.sleep(1.0)
                 t0 = time.time_ns()
                 releases, silences = teleoperate(op, duration, silence)
                 t1 = time.time_ns()
                 owner_at_end = op.owner
+                sampler.signal(signal.SIGTERM)
+                sampler.wait(10.0)
+                stolen = json.loads(sampler.output().strip().splitlines()[-1])
             finally:
                 close_operator(op)
                 watcher.close()
@@ -225,7 +247,10 @@ def run_robot(kind: str, workdir: Path, duration: float, silence: float, hogs: i
     bound_ms = 1000.0 * cfg.safety.command_timeout + period_ms
     stops = timeout_stops(seen, silences, silence)
     released = release_stops(seen, releases)
-    n_faults, fault_reasons = faults(seen)
+    fault_starts, fault_reasons = faults(seen)
+    found = [steal.Burst(**b) for b in stolen["bursts"] if t0 <= b["t_ns"] <= t1 + 1e9]
+    first = incidents(fault_starts)
+    after_steal = [t for t in first if steal.explained(t, found)]
     decision = [s["decision_ms"] for s in stops]
     zero = [s["zero_twist_ms"] for s in stops]
     return {
@@ -236,8 +261,13 @@ def run_robot(kind: str, workdir: Path, duration: float, silence: float, hogs: i
         "command_timeout_ms": 1000.0 * cfg.safety.command_timeout,
         "control_period_ms": period_ms,
         "stop_bound_ms": bound_ms,
-        "false_driver_faults": n_faults,
+        "false_driver_faults": len(fault_starts),
+        "false_driver_fault_incidents": len(first),
+        "incidents_after_vcpu_steal": len(after_steal),
         "fault_reasons": fault_reasons,
+        "fault_times_s": [round((t - t0) / 1e9, 3) for t in fault_starts],
+        "vcpu_steal_ms_per_cpu": stolen["steal_ms_per_cpu"],
+        "vcpu_steal_bursts": [{"t_s": round((b.t_ns - t0) / 1e9, 3), "cpu": b.cpu, "ms": b.ms} for b in found],
         "lease_expiries": episodes([lease_lost(s) for _, s in seen.safety]),
         "not_owner_echoes": sum(e.status == Status.NOT_OWNER for e in echoes),
         "owner_at_end": owner_at_end,
@@ -284,7 +314,10 @@ def main() -> int:
     for kind, r in results.items():
         z, d, rel, c = (r["timeout_stop_zero_twist_ms"], r["timeout_stop_decision_ms"], r["release_stop_ms"],
                         r["command_applied_ms"])
-        print(f"{kind}: false driver faults {r['false_driver_faults']}, lease expiries {r['lease_expiries']} "
+        print(f"{kind}: false driver faults {r['false_driver_faults']} in {r['false_driver_fault_incidents']} incidents "
+              f"({r['incidents_after_vcpu_steal']} after a vCPU steal; bursts "
+              f"{[round(b['ms']) for b in r['vcpu_steal_bursts']]} ms), "
+              f"lease expiries {r['lease_expiries']} "
               f"(not_owner {r['not_owner_echoes']}); {r['timeout_stops']} timeout stops: decision max {d['max']:.1f} ms, "
               f"zero twist max {z['max']:.1f} ms (bound {r['stop_bound_ms']:.1f}, over {r['timeout_stops_over_bound']}); "
               f"{r['release_stops']} release stops max {rel['max']:.1f} ms; command→applied p50 {c['p50']:.2f} "

@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -54,9 +55,18 @@ class RouterProcess:
         )
         assert self.proc.stdout is not None
         deadline = time.monotonic() + 15
+        seen: list[bytes] = []
         for line in self.proc.stdout:
+            seen.append(line)
             if b"router ready" in line or time.monotonic() > deadline:
                 break
+        if not seen or b"router ready" not in seen[-1]:
+            # Say so here (a port taken meanwhile, say), not as a test that waits in vain for its messages.
+            output = b"".join(seen).decode(errors="replace")[-2000:]
+            self.stop()
+            raise RuntimeError(f"router on {self.endpoint} not ready (exit code {self.proc.poll()}): {output}")
+        # Keep draining its output, or a router that logs enough blocks on a full pipe.
+        threading.Thread(target=self.proc.stdout.read, daemon=True).start()
 
     def stop(self) -> None:
         if self.proc is not None:
@@ -171,6 +181,18 @@ def twin_factory(router_endpoint, tmp_path):
         t = TwinService(twin_config(router_endpoint, tmp_path, **viewer))
         t.start()
         twins.append(t)
+        # Its queryables reach the router a moment after start(): a query sent before has no answerer and gets
+        # no reply at all (seen in a loaded CI run). The snapshot's is declared first, the preview's right after.
+        from iorthand import keys
+        from iorthand.transport import client_config, query
+
+        probe = open_session(client_config(router_endpoint))
+        try:
+            key = keys.service_key(keys.TWIN, "probe1", keys.TWIN_SNAPSHOT)
+            wait_until(lambda: bool(query(probe, key, b"", timeout=1.0)), 15, interval=0.05,
+                       message="the twin's queryables at the router")
+        finally:
+            probe.close()
         return t
 
     yield make

@@ -62,7 +62,8 @@ DRIVER_PRIORITY = max(1, REALTIME_PRIORITY - 6)
 # ur_rtde's own threads stay normal on every kernel. On a PREEMPT_RT kernel (a Pi's, say) ur_rtde 1.6.5 otherwise
 # puts its receive threads, and the thread calling its constructors, at SCHED_FIFO 90: above the control loop and
 # the command thread (seen with a faked /sys/kernel/realtime, tests/test_ur_backend.py). The driver's other threads
-# at real time, one step under the command thread, halved the false faults under two CPU hogs, but ur_rtde then
+# at real time, one step under the command thread, showed no fewer false faults under two CPU hogs on the test VM
+# (those follow the hypervisor taking a whole vCPU for 100 ms, which no priority prevents), and ur_rtde then
 # crashed (SIGSEGV) when the link to the controller dropped, in 1 of 2 CI runs; tests/test_ur_stack.py's link kill
 # alone failed 1 of 37 runs so, 0 of 24 with them normal (benchmarks/README.md). A negative value is
 # ur_rtde's "not on purpose"; it then logs a "Failed to set realtime priority" warning that means just that.
