@@ -161,16 +161,18 @@ def faults(seen: Seen) -> tuple[list[int], list[str]]:
     last_robot: RobotState | None = None
     last_safety: SafetyStatus | None = None
     events = sorted([(t, "r", s) for t, s in seen.robot] + [(t, "s", s) for t, s in seen.safety], key=lambda e: e[0])
-    flags, reasons, starts = [], [], []
+    reasons: list[str] = []
+    starts: list[int] = []
+    at_fault = False
     for t, kind, msg in events:
         if kind == "r":
             last_robot = msg
         else:
             last_safety = msg
         why = driver_fault(last_robot, last_safety)
-        if why and not (flags and flags[-1]):
+        if why and not at_fault:
             starts.append(t)
-        flags.append(bool(why))
+        at_fault = bool(why)
         if why:
             reasons.append(why)
     return starts, sorted(set(reasons))[:10]

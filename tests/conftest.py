@@ -18,8 +18,9 @@ from typing import TYPE_CHECKING
 import pytest
 import zenoh
 
+from iorthand import keys
 from iorthand.config import from_dict
-from iorthand.transport import free_port, open_session, router_json5
+from iorthand.transport import client_config, free_port, open_session, query, router_json5
 
 if TYPE_CHECKING:
     from iorthand_edge.ur_emulator.process import EmulatorProcess
@@ -46,6 +47,7 @@ class RouterProcess:
         self.config = config
         self.options = options
         self.proc: subprocess.Popen[bytes] | None = None
+        self.ready_at = 0.0  # monotonic time it said "router ready"
 
     def start(self) -> None:
         settings = ["--config", str(self.config)] if self.config else ["--listen", self.endpoint]
@@ -65,6 +67,7 @@ class RouterProcess:
             output = b"".join(seen).decode(errors="replace")[-2000:]
             self.stop()
             raise RuntimeError(f"router on {self.endpoint} not ready (exit code {self.proc.poll()}): {output}")
+        self.ready_at = time.monotonic()
         # Keep draining its output, or a router that logs enough blocks on a full pipe.
         threading.Thread(target=self.proc.stdout.read, daemon=True).start()
 
@@ -183,9 +186,6 @@ def twin_factory(router_endpoint, tmp_path):
         twins.append(t)
         # Its queryables reach the router a moment after start(): a query sent before has no answerer and gets
         # no reply at all (seen in a loaded CI run). The snapshot's is declared first, the preview's right after.
-        from iorthand import keys
-        from iorthand.transport import client_config, query
-
         probe = open_session(client_config(router_endpoint))
         try:
             key = keys.service_key(keys.TWIN, "probe1", keys.TWIN_SNAPSHOT)

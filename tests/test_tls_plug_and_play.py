@@ -3,8 +3,6 @@ leaves the robot stopped during the gap, and control can be re-acquired afterwar
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -16,30 +14,6 @@ from iorthand.security.lab import Lab, make_lab
 from iorthand.transport import free_port, open_session
 from tests.conftest import RouterProcess, edge_config, wait_until
 from tests.test_tls_integration import edge_zenoh
-
-
-class SecureRouterProcess(RouterProcess):
-    """``iorthand router --config <generated JSON5>`` in its own process (so it can be killed and restarted)."""
-
-    def __init__(self, lab: Lab) -> None:
-        super().__init__(lab.endpoint)
-        self.lab = lab
-        self.ready_at = 0.0
-
-    def start(self) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "iorthand.cli", "router", "--config", str(self.lab.router_config)],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        )
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:  # (EOF ends the loop if the router dies)
-            if b"router ready" in line:
-                self.ready_at = time.monotonic()
-                break
-        else:
-            raise AssertionError(f"router did not start (exit {self.proc.wait()})")
-        # Keep draining its output so the router never blocks on a full pipe.
-        threading.Thread(target=self.proc.stdout.read, daemon=True).start()
 
 
 @pytest.fixture
@@ -61,7 +35,7 @@ def test_edge_started_before_the_router_connects_within_2s(lab: Lab) -> None:
     t.start()
     time.sleep(1.5)  # the edge is retrying (and diagnosing) while no router exists
     assert not connected_at
-    router = SecureRouterProcess(lab)
+    router = RouterProcess(lab.endpoint, lab.router_config)
     router.start()
     try:
         wait_until(lambda: connected_at, 5.0, message="the edge connecting")
@@ -77,7 +51,7 @@ def test_router_restart_stops_the_robot_and_control_is_reacquired(lab: Lab) -> N
     from iorthand_edge.agent import EdgeAgent
     from iorthand_operator.client import ControlRefused, OperatorClient
 
-    router = SecureRouterProcess(lab)
+    router = RouterProcess(lab.endpoint, lab.router_config)
     router.start()
     agent = EdgeAgent(edge_config(lab.endpoint, "sim1", zenoh=edge_zenoh(lab)))
     agent.start()
