@@ -72,6 +72,16 @@ def die_with_parent(sig: int = signal.SIGTERM) -> None:
         _libc().prctl(_PR_SET_PDEATHSIG, sig)
 
 
+def exit_reason(exitcode: int | None, said: str = "") -> str:
+    """How a child process ended, for a log line or an operator's screen: the signal that killed it, or its exit
+    code and what it said before it went (``said``)."""
+    if exitcode is not None and exitcode < 0:
+        with contextlib.suppress(ValueError):
+            return f"was killed by {signal.Signals(-exitcode).name}"
+        return f"was killed by signal {-exitcode}"
+    return f"exited with code {exitcode}" + (f": {said}" if said else "")
+
+
 def enter_child(parent_pid: int, pdeathsig: bool = True) -> None:
     """The first thing a spawned child that works for ``parent_pid`` does: die with it (``pdeathsig``), leave at
     once if it is already gone (it died before the request), ignore Ctrl-C (it reaches the whole process group,
@@ -85,5 +95,5 @@ def enter_child(parent_pid: int, pdeathsig: bool = True) -> None:
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
 
 
-__all__ = ["NATIVE_NAME_BYTES", "REALTIME_PRIORITY", "die_with_parent", "enter_child", "name_thread",
+__all__ = ["NATIVE_NAME_BYTES", "REALTIME_PRIORITY", "die_with_parent", "enter_child", "exit_reason", "name_thread",
            "native_thread_name", "raise_priority"]

@@ -198,7 +198,7 @@ def test_the_operators_stream_is_signed_as_the_edge_decodes_it() -> None:
     for i in range(4):  # the grant's first command is a release (sent by the stream itself), then the press
         now = time.monotonic()
         out = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
-                          pressed_at=now, key_at=now - 0.01)
+                          pressed_at=now, press_from=now - 0.01)
         assert out is not None
         cmd, payload = out
         assert cmd.seq == i + 1 and cmd.deadman == (i > 0)
@@ -229,19 +229,57 @@ def test_a_new_grant_moves_nothing_before_a_release_and_a_press_under_it() -> No
     assert not d.accepted and d.status == Status.NO_DEADMAN and "release the deadman" in d.reason
     # The client side: the press began before the key arrived.
     stream = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
-    pressed, key_at = time.monotonic() - 2.0, time.monotonic() - 1.0
+    pressed, press_from = time.monotonic() - 2.0, time.monotonic() - 1.0
     sent = []
     for _ in range(30):
         now = time.monotonic()
         out = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
-                          pressed_at=pressed, key_at=key_at)
+                          pressed_at=pressed, press_from=press_from)
         if out is not None:
             sent.append(out[0])
     assert sent and not any(c.deadman for c in sent)  # held from before: released, then quiet
     now = time.monotonic()  # the operator releases and presses again
     out = stream.next(now, [0.004, 0, 0, 0, 0, 0], True, now - 0.05, False, now, time.time_ns(), 1.0, grant.key,
-                      pressed_at=now, key_at=key_at)
+                      pressed_at=now, press_from=press_from)
     assert out is not None and out[0].deadman
+
+
+def test_a_resumed_stream_goes_on_with_the_grants_sequence_that_the_edge_still_accepts() -> None:
+    """A sender process that died is replaced by one whose stream resumes after the last command sent: no release
+    first (the grant's went out), a sequence the edge accepts (one that started again at 1 would read as a replay),
+    and a press held from before the restart still moves nothing."""
+    import time
+
+    from iorthand.protocol import ControlRequest
+    from iorthand_operator.sender import CommandStream
+
+    sv = Supervisor(SafetyConfig(auto_arm=True), robot="sim1")
+    grant = sv.acquire(ControlRequest(operator="alice").stamp(1), 100.0)
+    first = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
+    pressed = time.monotonic()
+    for i in range(5):
+        now = time.monotonic()
+        cmd, payload = first.next(now, [0.004, 0, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
+                                  pressed_at=pressed, press_from=pressed - 0.01)
+        assert sv.on_command(TwistCommand.decode(payload), time.time(), 100.0 + i / 60, POSE).accepted
+    restarted = time.monotonic()
+    second = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
+    second.resume(first.key_gen, first.seq)
+    now = time.monotonic()
+    cmd, payload = second.next(now, [0.004, 0, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
+                               pressed_at=pressed, press_from=restarted)
+    assert cmd.seq == 6 and not cmd.deadman  # the press from before the restart: released
+    assert sv.on_command(TwistCommand.decode(payload), time.time(), 100.2, POSE).accepted
+    now = time.monotonic()  # a fresh press moves
+    cmd, payload = second.next(now, [0.004, 0, 0, 0, 0, 0], True, now - 0.05, False, now, time.time_ns(), 1.0,
+                               grant.key, pressed_at=now, press_from=restarted)
+    d = sv.on_command(TwistCommand.decode(payload), time.time(), 100.22, POSE)
+    assert cmd.seq == 7 and cmd.deadman and d.accepted and d.twist[0] > 0, d
+    # Without resume, the replacement's sequence starts again at 1 under the same grant: refused as a replay.
+    third = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
+    now = time.monotonic()
+    cmd, payload = third.next(now, [0.0] * 6, False, now, False, now, time.time_ns(), 1.0, grant.key)
+    assert cmd.seq == 1 and not sv.on_command(TwistCommand.decode(payload), time.time(), 100.24, POSE).accepted
 
 
 def test_a_request_anyone_may_make_is_refused_in_the_owners_name_without_its_signature() -> None:

@@ -41,6 +41,15 @@ def test_the_next_step_follows_what_the_edge_says(safety, owner_held, fresh, ste
     assert recovery.next_step("me", owner_held, safety, fresh).step is step
 
 
+def test_a_sender_that_is_down_is_what_the_operator_waits_for() -> None:
+    """Whatever the edge says, nothing moves the robot while this console's commands cannot go out."""
+    why = "the command sender process was killed by SIGKILL: no command goes out"
+    for safety in (status(Status.OK), status(Status.LINK_GAP), status(Status.IDLE, owner="")):
+        step = recovery.next_step("me", True, safety, True, sender_down=why)
+        assert step == recovery.NextStep(recovery.Step.WAIT, why)
+    assert recovery.hint(recovery.next_step("me", True, status(Status.OK), True, why), "E", "SPACE", True) == why
+
+
 def test_the_hint_names_the_key() -> None:
     press = recovery.NextStep(recovery.Step.PRESS, "stop from nurse")
     assert recovery.hint(press, "E", "SPACE", toggle=True) == "press SPACE to move again (stop from nurse)"

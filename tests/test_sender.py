@@ -4,6 +4,8 @@ machine delays what the test *sees*, not what it checks)."""
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
 import time
 
@@ -13,6 +15,8 @@ import pytest
 
 from iorthand.transport import client_config
 from iorthand_operator.client import OperatorClient
+from iorthand_operator.recovery import Step
+from iorthand_operator.sender import ProcessSender
 from tests.conftest import wait_until
 
 
@@ -204,3 +208,44 @@ def test_the_lease_is_renewed_while_the_sender_process_starts(edge_factory, proc
     assert owners and all(o == op.operator_id for o in owners), \
         f"control lost during the start-up in {sum(o != op.operator_id for o in owners)} of {len(owners)} samples"
     assert op.owner
+
+
+def test_a_sender_process_that_dies_is_started_again_and_only_a_fresh_press_moves_the_robot(
+        edge_factory, proc_operator) -> None:
+    """The console's sender process is killed while the operator drives: the robot stops (the edge's deadman),
+    the console says how the sender ended, another one starts and goes on with the grant's sequence (its commands
+    are accepted, not refused as replays), and the press held through all this moves nothing until the operator
+    releases the deadman and presses it again."""
+    edge = edge_factory()
+    op = driving(proc_operator())
+    op.set_twist([0.01, 0.0, 0.0], np.zeros(3), deadman=True)
+    wait_until(lambda: commanded(edge)[0] > 0.005, 10.0, message="the robot moving")
+    first = op._proc_sender.proc
+    os.kill(first.pid, signal.SIGKILL)
+    wait_until(lambda: not commanded(edge).any(), 5.0, message="the robot stopping without commands")
+    wait_until(lambda: any(e.kind == "sender" and "SIGKILL" in e.reason for e in op.events), 5.0,
+               message="an event naming how the sender ended")
+    wait_until(lambda: op._proc_sender.proc is not first and op._proc_sender.alive() and not op.sender_down, 30.0,
+               message="another sender process")
+    assert any(e.status == "restarted" for e in op.events), list(op.events)
+    mark = op.echo_count
+    deadline = time.monotonic() + 1.5  # the operator still holds the deadman pressed before the restart
+    while time.monotonic() < deadline:
+        assert not commanded(edge).any(), "a press held through the restart moved the robot"
+        time.sleep(0.02)
+    echoes = op.echoes_since(mark)
+    assert echoes and all(e.accepted for e in echoes), [(e.seq, e.status) for e in echoes]
+    assert op.next_step().step is Step.PRESS, op.next_step()
+    op.set_twist(np.zeros(3), np.zeros(3), deadman=False)
+    time.sleep(0.1)
+    op.set_twist([0.01, 0.0, 0.0], np.zeros(3), deadman=True)
+    wait_until(lambda: commanded(edge)[0] > 0.005, 5.0, message="a fresh press moving the robot")
+
+
+def test_a_sender_process_that_fails_says_why(router_endpoint) -> None:
+    """A child that fails names its error to the parent (it used to end with exit code 0 and no word)."""
+    sender = ProcessSender(client_config(router_endpoint), "iorthand/sim1/cmd//twist", "sim1", "op", 60.0, 0.3, 0.5, False,
+                           threading.Lock(), lambda *_: None)
+    with pytest.raises(RuntimeError, match=r"ZError: Invalid Key Expr .iorthand/sim1/cmd//twist."):
+        sender.start(timeout=30.0)
+    assert not sender.alive()

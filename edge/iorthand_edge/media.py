@@ -30,7 +30,6 @@ import logging
 import math
 import multiprocessing as mp
 import os
-import signal
 import sys
 import threading
 import time
@@ -43,7 +42,7 @@ import numpy as np
 import zenoh
 
 from iorthand import keys
-from iorthand.process import enter_child, name_thread
+from iorthand.process import enter_child, exit_reason, name_thread
 from iorthand.protocol import (
     DecodeError,
     ForceLevelState,
@@ -326,14 +325,6 @@ def media_main(config: EdgeConfig, parent_pid: int, pdeathsig: bool, stop_flag: 
 
 # ---------------------------------------------------------------------------------------------------------
 # The agent's side.
-
-
-def exit_reason(exitcode: int | None, said: str) -> str:
-    if exitcode is not None and exitcode < 0:
-        with contextlib.suppress(ValueError):
-            return f"was killed by {signal.Signals(-exitcode).name}"
-        return f"was killed by signal {-exitcode}"
-    return f"exited with code {exitcode}" + (f": {said}" if said else "")
 
 
 class MediaProcess:

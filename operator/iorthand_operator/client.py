@@ -103,6 +103,10 @@ MAX_VITALS = 16
 TOKEN_RETRIES = 4
 TOKEN_RETRY_S = 0.25
 RENEW_RETRY_S = 0.2  # s between attempts while a lease renewal fails (see OperatorClient._renew_lease)
+# A sender process that dies is started again, unless it died this many times within this many seconds: then the
+# client gives control up and says why (OperatorClient._restart_sender).
+SENDER_LOSSES = 3
+SENDER_LOSS_WINDOW_S = 60.0
 
 class OperatorClient:
     def __init__(
@@ -143,7 +147,9 @@ class OperatorClient:
         # counter of grants (each restarts the command sequence). Empty while we do not hold control.
         self._key = b""
         self._key_gen = 0
-        self._key_at = 0.0  # monotonic time the key arrived; a deadman press from before it starts nothing
+        # Monotonic time the key arrived, or a sender process that died was started again: a deadman press from
+        # before it starts nothing.
+        self._press_from = 0.0
         self._pressed_at = 0.0  # monotonic time the deadman was last pressed
         # Monotonic time the edge entered its latest halt that waits for a fresh press or a new grant
         # (recovery.REPRESS, recovery.REACQUIRE): a press after it is fresh intent (CommandStream).
@@ -206,8 +212,11 @@ class OperatorClient:
         if sender_config is not None:
             self._proc_sender = ProcessSender(
                 sender_config, twist_key, robot_id, self.operator_id, rate_hz, release_tail, ui_timeout, realtime,
-                self._lock, self._on_send_record,
+                self._lock, self._on_send_record, on_lost=self._on_sender_lost,
             )
+        self.sender_down = ""  # why our commands cannot go out (the sender died); empty while they can
+        self._sender_losses: deque[float] = deque(maxlen=SENDER_LOSSES)
+        self._sender_start = threading.Lock()  # a restart of the sender and close() one at a time
         self._stream = CommandStream(robot_id, self.operator_id, release_tail, ui_timeout)  # the thread sender's
         # Twists leave from exactly one place: the child's own publisher, or this one for the thread sender.
         self._pub_twist = None if self._proc_sender is not None else publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
@@ -320,12 +329,12 @@ class OperatorClient:
         with self._lock:
             self._key = key
             self._key_gen += 1
-            self._key_at = time.monotonic()
+            self._press_from = time.monotonic()
             stop = self._seq_other[keys.CMD_STOP]  # stops are not signed: one sequence for the session
             self._seq_other.clear()  # the edge counts each grant's signed messages afresh
             self._seq_other[keys.CMD_STOP] = stop
             if self._proc_sender is not None:
-                self._proc_sender.write(key=key, key_gen=self._key_gen, key_at=self._key_at)
+                self._proc_sender.write(key=key, key_gen=self._key_gen, press_from=self._press_from)
 
     def _next_seq(self, suffix: str) -> int:
         with self._lock:
@@ -507,10 +516,48 @@ class OperatorClient:
             with self._lock:
                 self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at,
                                         muted=self._muted, pressed_at=self._pressed_at, key=self._key,
-                                        key_gen=self._key_gen, key_at=self._key_at, state_t=self._state_t,
+                                        key_gen=self._key_gen, press_from=self._press_from, state_t=self._state_t,
                                         halted_at=self._halted_at, frame=TWIST_FRAMES.index(self._frame))
             self._proc_sender.start()
             self.sender_priority = f"{self._proc_sender.priority} (process {self._proc_sender.proc.pid})"
+
+    def _on_sender_lost(self, reason: str) -> None:
+        """The sender process died (its link thread tells us): no command goes out, so the edge stops the robot
+        when its deadman times out. Say so, and start another in a thread of its own (a start takes a second)."""
+        if self._stop.is_set():
+            return
+        self.sender_down = f"{reason}: no command goes out"
+        self.log_event("sender", "stopped", f"{reason}: the robot stops")
+        threading.Thread(target=self._restart_sender, name="operator-sender-restart", daemon=True).start()
+
+    def _restart_sender(self) -> None:
+        """Start the sender process again, going on with the grant's sequence. A press held through the gap is no
+        intent to move: only a fresh one after the restart is (``_press_from``; the edge latches a gap over its
+        resume bound too). A sender that keeps dying (SENDER_LOSSES times in SENDER_LOSS_WINDOW_S) is not started
+        again: the client gives control up, so that a console that can command may take it."""
+        assert self._proc_sender is not None
+        now = time.monotonic()
+        self._sender_losses.append(now)
+        if len(self._sender_losses) == SENDER_LOSSES and now - self._sender_losses[0] < SENDER_LOSS_WINDOW_S:
+            self.sender_down = (f"the command sender process failed {SENDER_LOSSES} times in "
+                                f"{now - self._sender_losses[0]:.0f} s: control given up; restart the console")
+            self.log_event("sender", "failed", self.sender_down)
+            self.release()
+            return
+        with self._sender_start:
+            if self._stop.is_set():
+                return
+            with self._lock:
+                self._press_from = time.monotonic()
+                self._proc_sender.write(press_from=self._press_from)
+            try:
+                self._proc_sender.start()
+            except RuntimeError as exc:
+                self.sender_down = f"the command sender could not be started again ({exc}): restart the console"
+                self.log_event("sender", "failed", self.sender_down)
+                return
+        self.sender_down = ""
+        self.log_event("sender", "restarted", "commands go out again: release the deadman and press it again to move")
 
     def _on_send_record(self, seq: int, t_ns: int, mono: float) -> None:
         """One send by the sender process (called by its link thread, or by an echo arriving first)."""
@@ -532,14 +579,19 @@ class OperatorClient:
             self._send()
             return not self._stop.is_set()
 
-        run_fixed_rate(tick, self.rate_hz, self.spin, self._stop.wait)
+        try:
+            run_fixed_rate(tick, self.rate_hz, self.spin, self._stop.wait)
+        except Exception as exc:  # no command goes out any more: the operator must see why, not a silent console
+            log.exception("the command sender thread failed")
+            self.sender_down = f"the command sender failed ({type(exc).__name__}: {exc}): restart the console"
+            self.log_event("sender", "failed", self.sender_down)
 
     def _send(self, state_t: int | None = None) -> TwistCommand | None:
         """What the command stream sends now (the thread sender's tick, or one send_now), sent."""
         with self._lock:
             out = self._stream.next(time.monotonic(), self._twist, self._deadman, self._released_at,
                                     self._muted, self._heartbeat, self._state_t if state_t is None else state_t,
-                                    self._key_gen, self._key, self._pressed_at, self._key_at, self._halted_at,
+                                    self._key_gen, self._key, self._pressed_at, self._press_from, self._halted_at,
                                     self._frame)
         if out is None:
             return None
@@ -632,7 +684,8 @@ class OperatorClient:
     def close(self) -> None:
         self._stop.set()
         if self._proc_sender is not None:
-            self._proc_sender.stop()  # the child first: no orphan, and no twist after close
+            with self._sender_start:  # (not while a restart starts another)
+                self._proc_sender.stop()  # the child first: no orphan, and no twist after close
         for t in self._threads:
             t.join(timeout=1.0)
         try:
@@ -779,8 +832,8 @@ class OperatorClient:
 
     def next_step(self) -> recovery.NextStep:
         """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`)."""
-        fresh = self._deadman and self._pressed_at > max(self._halted_at, self._key_at)
-        return recovery.next_step(self.operator_id, self.owner, self.safety, fresh)
+        fresh = self._deadman and self._pressed_at > max(self._halted_at, self._press_from)
+        return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down)
 
     def recover(self) -> recovery.NextStep:
         """For a client whose intent is its command (a headless move, a script): take the step itself. It

@@ -35,9 +35,14 @@ class NextStep:
     why: str
 
 
-def next_step(me: str, owner_held: bool, safety: SafetyStatus | None, fresh_press: bool) -> NextStep:
+def next_step(me: str, owner_held: bool, safety: SafetyStatus | None, fresh_press: bool,
+              sender_down: str = "") -> NextStep:
     """The step ``me`` must take. ``owner_held``: this client believes it holds a grant; ``fresh_press``: its
-    deadman is pressed, and was pressed after the edge's latest halt and after the latest grant."""
+    deadman is pressed, and was pressed after the edge's latest halt, the latest grant and the latest start of its
+    command sender. ``sender_down``: why this client's commands cannot go out (its sender process died); nothing
+    the operator does moves the robot until they do."""
+    if sender_down:
+        return NextStep(Step.WAIT, sender_down)
     if safety is None:
         return NextStep(Step.WAIT, "no safety status from the edge yet")
     if not safety.armed:

@@ -14,8 +14,13 @@ Safety: if the parent's heartbeat is older than ``ui_timeout`` the child treats 
 twists with ``deadman=False`` for ``release_tail``, then quiet): a frozen UI must not keep the robot moving.
 The child exits when the parent dies (PR_SET_PDEATHSIG, a parent-pid check every tick, a broken pipe).
 
-Child → parent: one record per send (seq, send time, monotonic send instant) through a pipe, written before
-the put, so the parent can match the edge's echo to its send time exactly as with the thread sender.
+Child → parent: one record per send (seq, send time, monotonic send instant, grant) through a pipe, written before
+the put, so the parent can match the edge's echo to its send time exactly as with the thread sender; and, if the
+child fails, why (``E``), before it exits with code 1.
+
+A child that ends while the parent did not ask it to (killed, crashed) is reported to the parent
+(``on_lost``, with how it ended), which may start another with :meth:`ProcessSender.start`: the new child goes on
+with the grant's sequence where the records say the last one left it (the edge refuses a sequence that goes back).
 
 What each tick sends is decided in one place for both senders, :class:`CommandStream` (the deadman released
 when the UI is silent, the quiet tail after a release, a sequence that restarts with every grant of control,
@@ -34,24 +39,25 @@ import struct
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from typing import Any
 
 from iorthand import keys
-from iorthand.process import enter_child, raise_priority
+from iorthand.process import enter_child, exit_reason, raise_priority
 from iorthand.protocol import TWIST_FRAMES, TwistCommand
 from iorthand.security import auth
 
 log = logging.getLogger("iorthand.operator.sender")
 
 # Shared array layout (doubles). The grant's key (bytes) is in a second array, written under the same seqlock.
-_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN, _PRESSED, _KEY_AT, _HALTED, _FRAME = (
+_GEN, _TWIST, _DEADMAN, _MUTED, _RELEASED, _HEARTBEAT, _STOP, _STATE_T, _KEY_GEN, _PRESSED, _PRESS_FROM, _HALTED, _FRAME = (
     0, 1, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17)
 _SIZE = 18
 _FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT, "stop": _STOP,
-           "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "key_at": _KEY_AT, "halted_at": _HALTED,
+           "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "press_from": _PRESS_FROM, "halted_at": _HALTED,
            "frame": _FRAME}
-_RECORD = struct.Struct("<qqd")  # seq, t (ns), monotonic send instant (s)
+_RECORD = struct.Struct("<qqdd")  # seq, t (ns), monotonic send instant (s), the grant (key_gen) seq counts in
 
 
 @contextlib.contextmanager
@@ -80,10 +86,11 @@ class CommandStream:
     while the UI's heartbeat is older than ``ui_timeout`` (a frozen UI must not keep the robot moving). Each new
     key (a new grant of control) restarts the sequence at 1, as the edge expects, and its first command is a
     release: the edge moves nothing under a grant before it has seen the deadman released and pressed. A press
-    that began before the grant (``pressed_at`` < ``key_at``: the client re-acquired by itself, after an edge
-    restart or a lost lease) counts as released until the operator releases and presses again. A press that
-    begins after the edge halted in a state that waits for a fresh press (``halted_at``: a stop, a long gap) is
-    that fresh intent: if no release has gone out since the halt, this tick sends one, and the press the next."""
+    that began before ``press_from`` (the grant: the client re-acquired by itself, after an edge restart or a lost
+    lease; or the restart of a sender process that died) counts as released until the operator releases and
+    presses again. A press that begins after the edge halted in a state that waits for a fresh press
+    (``halted_at``: a stop, a long gap) is that fresh intent: if no release has gone out since the halt, this tick
+    sends one, and the press the next."""
 
     def __init__(self, robot: str, operator_id: str, release_tail: float, ui_timeout: float) -> None:
         self.operator_id = operator_id
@@ -91,14 +98,14 @@ class CommandStream:
         self.ui_timeout = ui_timeout
         self.ctx = auth.context(robot, keys.CMD_TWIST)
         self.seq = 0
-        self._key_gen = -1.0
+        self.key_gen = -1.0  # the grant whose commands ``seq`` counts
         self._release_first = False
         self._stale_since: float | None = None
         self._release_sent_at = -math.inf  # monotonic time of the last command with the deadman released
 
     def next(self, now: float, twist: Any, deadman: bool, released_at: float, muted: bool, heartbeat: float,
              state_t: float, key_gen: float, key: bytes, pressed_at: float = 0.0,
-             key_at: float = 0.0, halted_at: float = -math.inf,
+             press_from: float = 0.0, halted_at: float = -math.inf,
              frame: str = "base") -> tuple[TwistCommand, bytes] | None:
         if now - heartbeat > self.ui_timeout:  # the UI is frozen (or gone): release the deadman
             if self._stale_since is None:
@@ -108,10 +115,10 @@ class CommandStream:
             deadman = False
         else:
             self._stale_since = None
-        if key_gen != self._key_gen:
-            self._key_gen, self.seq, self._release_first = key_gen, 0, True
-        if deadman and pressed_at < key_at:  # held from before this grant: not an intent to move under it
-            deadman, released_at = False, max(released_at, key_at)
+        if key_gen != self.key_gen:
+            self.key_gen, self.seq, self._release_first = key_gen, 0, True
+        if deadman and pressed_at < press_from:  # held from before the grant (or restart): no intent to move now
+            deadman, released_at = False, max(released_at, press_from)
         if muted or not key:
             return None
         if self._release_first:
@@ -131,6 +138,11 @@ class CommandStream:
         cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age,
                            frame=frame)
         return cmd, auth.seal(key, self.ctx, cmd.stamp(self.seq, t))
+
+    def resume(self, key_gen: float, seq: int) -> None:
+        """Go on with grant ``key_gen``'s sequence after ``seq`` (a sender process that died sent up to it): no
+        release first, that grant's went out already. A different grant on the next tick starts afresh."""
+        self.key_gen, self.seq, self._release_first = key_gen, seq, False
 
 
 def run_fixed_rate(tick: Callable[[], bool], rate_hz: float, spin: bool, wait: Callable[[float], Any]) -> None:
@@ -200,6 +212,7 @@ class ProcessSender:
         realtime: bool,
         lock: threading.Lock,
         on_record: Callable[[int, int, float], None],
+        on_lost: Callable[[str], None] | None = None,
         heartbeat_s: float = 0.05,
     ) -> None:
         self._ctx = mp.get_context("spawn")
@@ -208,6 +221,7 @@ class ProcessSender:
         self.shared = SharedCommand(self.array, self.key)
         self._lock = lock  # the client's lock: serialises the parent's writers
         self._on_record = on_record
+        self._on_lost = on_lost
         self._drain_lock = threading.Lock()
         self.heartbeat_s = heartbeat_s
         self.heartbeat_suspended = False  # test hook: models a frozen UI (no heartbeat, no set_twist)
@@ -217,6 +231,9 @@ class ProcessSender:
         self._conn: Any = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._stopping = False  # stop() was asked: the child's end is no loss
+        self.last_sent = (-1.0, 0)  # (grant, seq) of the last command a child sent (its record)
+        self.said = ""  # what the child said before it ended, if it failed
         self.beat()
 
     def write(self, **fields: Any) -> None:
@@ -232,9 +249,10 @@ class ProcessSender:
             self.shared.write(heartbeat=time.monotonic())
 
     def start(self, timeout: float = 30.0) -> None:
-        """Start the child and wait until it is ready. A child that ends during start-up without a word (exit code
-        0: it found its parent gone, or was sent SIGTERM) is started once more, and said so; a reason it gives,
-        or a second silent end, is raised."""
+        """Start the child and wait until it is ready; a child that died before goes on with the sequence of
+        :attr:`last_sent`. A child that ends during start-up without a word (exit code 0: it found its parent gone,
+        or was sent SIGTERM) is started once more, and said so; a reason it gives, or a second silent end, is
+        raised."""
         try:
             self._start_once(timeout)
         except _SilentExit as exc:
@@ -245,11 +263,13 @@ class ProcessSender:
         with self._lock:
             self.shared.write(stop=0.0)  # (a failed start stopped the one before)
         self._stop.clear()
+        self._stopping = False
+        self.said = ""
         recv, send = self._ctx.Pipe(duplex=False)
         pdeathsig = threading.current_thread() is threading.main_thread()  # PDEATHSIG follows the *thread*
         self.proc = self._ctx.Process(
             target=child_main, name="iorthand-sender", daemon=True,
-            args=(send, self.array, self.key, *self._args, os.getpid(), pdeathsig),
+            args=(send, self.array, self.key, *self._args, os.getpid(), pdeathsig, self.last_sent),
         )
         with _real_std_streams():
             self.proc.start()
@@ -259,10 +279,13 @@ class ProcessSender:
         while True:
             left = deadline - time.monotonic()
             if left <= 0 or not recv.poll(min(left, 0.2)):
-                if left <= 0 or not self.proc.is_alive():
+                if left <= 0:
                     self.stop()
-                    error = _SilentExit if left > 0 and self.proc.exitcode == 0 else RuntimeError
-                    raise error(f"sender process did not start (exit code {self.proc.exitcode})")
+                    raise RuntimeError(f"the sender process was not ready within {timeout:.0f} s")
+                if not self.proc.is_alive():
+                    self.stop()
+                    error = _SilentExit if self.proc.exitcode == 0 else RuntimeError
+                    raise error(f"the sender process {exit_reason(self.proc.exitcode)} during start-up")
                 continue
             try:
                 msg = recv.recv_bytes()
@@ -288,7 +311,11 @@ class ProcessSender:
                 while conn.poll(0):
                     msg = conn.recv_bytes()
                     if msg[:1] == b"S":
-                        self._on_record(*_RECORD.unpack(msg[1:]))
+                        seq, t_ns, mono, key_gen = _RECORD.unpack(msg[1:])
+                        self.last_sent = (key_gen, seq)
+                        self._on_record(seq, t_ns, mono)
+                    elif msg[:1] == b"E":
+                        self.said = msg[1:].decode(errors="replace")
             except (EOFError, OSError):
                 self._conn = None
 
@@ -302,16 +329,32 @@ class ProcessSender:
                 with contextlib.suppress(EOFError, OSError):
                     conn.poll(self.heartbeat_s)
                 self.drain()
+                if self._conn is None and not self._stopping:  # the child closed its end: it is gone
+                    self._lost()
+                    return
             now = time.monotonic()
             if now - last_beat >= self.heartbeat_s:
                 self.beat()
                 last_beat = now
+
+    def _lost(self) -> None:
+        """The child ended without being asked to: reap it and tell ``on_lost`` how it ended."""
+        proc = self.proc
+        proc.join(1.0)
+        if proc.is_alive():  # closed its pipe yet still there: hung in its exit
+            proc.kill()
+            proc.join(1.0)
+        reason = f"the command sender process {exit_reason(proc.exitcode, self.said)}"
+        log.error("%s", reason)
+        if self._on_lost is not None:
+            self._on_lost(reason)
 
     def alive(self) -> bool:
         return self.proc is not None and self.proc.is_alive()
 
     def stop(self, timeout: float = 2.0) -> None:
         """Stop the child (flag, then SIGTERM, then SIGKILL) and the link thread; no orphan survives."""
+        self._stopping = True
         with self._lock:
             self.shared.write(stop=1.0)
         proc = self.proc
@@ -341,28 +384,32 @@ class _SilentExit(RuntimeError):
 
 
 def child_main(conn, array, key, zenoh_config, twist_key: str, robot: str, operator_id: str, rate_hz: float,
-               release_tail: float, ui_timeout: float, realtime: bool, parent_pid: int, pdeathsig: bool) -> None:
+               release_tail: float, ui_timeout: float, realtime: bool, parent_pid: int, pdeathsig: bool,
+               last_sent: tuple[float, int]) -> None:
     enter_child(parent_pid, pdeathsig)  # Ctrl-C goes to the UI; the parent stops us
+    code = 0
     try:
         stream = CommandStream(robot, operator_id, release_tail, ui_timeout)
+        if last_sent[0] >= 0:
+            stream.resume(*last_sent)
         _child_loop(conn, array, key, zenoh_config, twist_key, stream, rate_hz, realtime, parent_pid)
+    except BaseException as exc:  # a failure the parent must be told of, not an exit that looks like a clean one
+        code = 1
+        traceback.print_exc()
+        with contextlib.suppress(OSError):
+            conn.send_bytes(b"E" + f"{type(exc).__name__}: {exc}".encode())
     finally:
         with contextlib.suppress(Exception):
             sys.stdout.flush()
             sys.stderr.flush()
-        os._exit(0)
+        os._exit(code)  # not the interpreter's shutdown: it joins Zenoh's threads and can hang
 
 
 def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandStream, rate_hz: float,
                 realtime: bool, parent_pid: int) -> None:
-    try:
-        from iorthand.transport import QOS_BY_KEY, open_session, publisher
+    from iorthand.transport import QOS_BY_KEY, open_session, publisher
 
-        session = open_session(zenoh_config)
-    except BaseException as exc:
-        with contextlib.suppress(OSError):
-            conn.send_bytes(b"E" + f"{type(exc).__name__}: {exc}".encode())
-        return
+    session = open_session(zenoh_config)  # a failure is the parent's to hear of (child_main)
     pub = None
     try:
         pub = publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
@@ -381,11 +428,11 @@ def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandS
                 return False
             out = stream.next(time.monotonic(), vals[_TWIST:_TWIST + 6], bool(vals[_DEADMAN]), vals[_RELEASED],
                               bool(vals[_MUTED]), vals[_HEARTBEAT], vals[_STATE_T], vals[_KEY_GEN],
-                              k if any(k) else b"", vals[_PRESSED], vals[_KEY_AT], vals[_HALTED],
+                              k if any(k) else b"", vals[_PRESSED], vals[_PRESS_FROM], vals[_HALTED],
                               TWIST_FRAMES[int(vals[_FRAME])])
             if out is not None:
                 cmd, payload = out
-                conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic()))
+                conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic(), stream.key_gen))
                 pub.put(payload)
             return True
 
