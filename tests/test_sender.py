@@ -14,8 +14,8 @@ import psutil
 import pytest
 
 from iorthand.transport import client_config
-from iorthand_operator.client import OperatorClient
-from iorthand_operator.recovery import Step
+from iorthand_operator.client import SENDER_LOSSES, OperatorClient
+from iorthand_operator.recovery import NextStep, Step
 from iorthand_operator.sender import ProcessSender
 from tests.conftest import wait_until
 
@@ -249,3 +249,22 @@ def test_a_sender_process_that_fails_says_why(router_endpoint) -> None:
     with pytest.raises(RuntimeError, match=r"ZError: Invalid Key Expr .iorthand/sim1/cmd//twist."):
         sender.start(timeout=30.0)
     assert not sender.alive()
+
+
+def test_a_sender_process_that_keeps_dying_makes_the_console_give_control_up(edge_factory, proc_operator) -> None:
+    """The third death of the sender in a minute: no other is started, and control goes, so that a console that
+    can command may take it; the console says why and that it must be restarted."""
+    edge = edge_factory()
+    op = driving(proc_operator())
+    for death in range(SENDER_LOSSES):
+        proc = op._proc_sender.proc
+        os.kill(proc.pid, signal.SIGKILL)
+        if death < SENDER_LOSSES - 1:
+            wait_until(lambda proc=proc: op._proc_sender.proc is not proc and op._proc_sender.alive()
+                       and not op.sender_down, 30.0, message=f"the sender started again after death {death + 1}")
+    wait_until(lambda: edge.supervisor.owner == "", 10.0, message="control given up")
+    assert not op.owner and f"failed {SENDER_LOSSES} times" in op.sender_down, op.sender_down
+    assert op.next_step() == NextStep(Step.WAIT, op.sender_down)
+    assert any(e.status == "failed" for e in op.events), list(op.events)
+    time.sleep(1.0)
+    assert op._proc_sender.proc is proc and not op._proc_sender.alive()  # none started after the last

@@ -539,10 +539,8 @@ class OperatorClient:
         now = time.monotonic()
         self._sender_losses.append(now)
         if len(self._sender_losses) == SENDER_LOSSES and now - self._sender_losses[0] < SENDER_LOSS_WINDOW_S:
-            self.sender_down = (f"the command sender process failed {SENDER_LOSSES} times in "
-                                f"{now - self._sender_losses[0]:.0f} s: control given up; restart the console")
-            self.log_event("sender", "failed", self.sender_down)
-            self.release()
+            self._give_up_control(f"the command sender process failed {SENDER_LOSSES} times in "
+                                  f"{now - self._sender_losses[0]:.0f} s")
             return
         with self._sender_start:
             if self._stop.is_set():
@@ -552,12 +550,17 @@ class OperatorClient:
                 self._proc_sender.write(press_from=self._press_from)
             try:
                 self._proc_sender.start()
-            except RuntimeError as exc:
-                self.sender_down = f"the command sender could not be started again ({exc}): restart the console"
-                self.log_event("sender", "failed", self.sender_down)
+            except Exception as exc:  # whatever it is, this console cannot command: say it and let control go
+                self._give_up_control(f"the command sender could not be started again ({exc})")
                 return
         self.sender_down = ""
         self.log_event("sender", "restarted", "commands go out again: release the deadman and press it again to move")
+
+    def _give_up_control(self, why: str) -> None:
+        """This console cannot send commands: it says why and releases control, which another console may take."""
+        self.sender_down = f"{why}: control given up; restart the console"
+        self.log_event("sender", "failed", self.sender_down)
+        self.release()
 
     def _on_send_record(self, seq: int, t_ns: int, mono: float) -> None:
         """One send by the sender process (called by its link thread, or by an echo arriving first)."""
