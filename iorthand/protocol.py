@@ -554,13 +554,17 @@ class TwistCommand(Message):
     """Operator → edge at a fixed rate: tool velocity in the base frame, with the deadman flag."""
 
     KEY: ClassVar[str] = keys.CMD_TWIST
-    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"state_age", "frame", "mac"})
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"state_age", "frame", "view_t", "mac"})
     operator: str = spec("", max_len=64)
     linear: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # m/s
     angular: list[float] = vec(3, lo=-_SPEED, hi=_SPEED)  # rad/s
     deadman: bool = False
     # Age (s) of the newest robot state the operator's screen showed when this was sent; -1: none seen yet.
     state_age: float = spec(-1.0, lo=-1.0, hi=1e9)
+    # That state's own stamp (RobotState.t, ns: the edge's clock); 0: none. The edge measures the view's age on
+    # its own clock from it, which an operator clock that is behind cannot shorten (state_age is the operator's
+    # clock minus the edge's).
+    view_t: int = spec(0, lo=0, hi=_FAR_FUTURE_NS)
     # The frame of linear and angular: "base" (the robot's base frame) or "tool" (the probe's frame, about its tip:
     # forward, sideways and along the probe; tilt, rock and turn about the tip). One of TWIST_FRAMES.
     frame: str = spec("base", max_len=8)

@@ -26,10 +26,13 @@ class Operator(Grants):
         return self.acquire(self.sv, self.name, self.clock[0])
 
     def twist(self, vx: float = 0.005, deadman: bool = True, view_age: float = 0.02, seq: int | None = None,
-              name: str | None = None) -> TwistCommand:
+              name: str | None = None, skew: float = 0.0, view_t: int = 0) -> TwistCommand:
+        """A command of this operator's session; ``skew``: how far (s) its clock is ahead of the edge's (it stamps
+        the command, and its view's age is its clock minus the state's stamp); ``view_t``: the state it names."""
         self.seq += 1
-        cmd = TwistCommand(operator=name or self.name, linear=[vx, 0.0, 0.0], deadman=deadman, state_age=view_age)
-        cmd.stamp(self.seq if seq is None else seq, int((WALL0 + self.clock[0]) * 1e9))
+        cmd = TwistCommand(operator=name or self.name, linear=[vx, 0.0, 0.0], deadman=deadman, state_age=view_age,
+                           view_t=view_t)
+        cmd.stamp(self.seq if seq is None else seq, int((WALL0 + self.clock[0] + skew) * 1e9))
         return self.sign(self.sv, self.name, cmd)
 
     def send(self, cmd: TwistCommand):
@@ -162,6 +165,37 @@ def test_motion_from_an_old_picture_is_refused_and_stops_the_robot() -> None:
     assert d.accepted and d.action == Action.MOVE
 
 
+def test_an_operator_clock_behind_the_robots_cannot_make_an_old_picture_look_fresh() -> None:
+    """The operator's clock is 0.4 s behind the edge's and its screen froze on a state 0.8 s old: it computes an
+    age of 0.4 s. The command names that state (its stamp on the edge's clock), and the edge measures 0.8 s."""
+    _sv, alice, _, clock = setup(max_view_age=0.5)
+    now_ns = int((WALL0 + clock[0]) * 1e9)
+    d = alice.send(alice.twist(view_age=0.1, view_t=now_ns - 100_000_000))
+    assert d.accepted and d.action == Action.MOVE
+    d = alice.send(alice.twist(view_age=0.4, view_t=now_ns - 800_000_000, skew=-0.4))
+    assert not d.accepted and d.status == Status.STALE_VIEW and "800 ms" in d.reason and d.action == Action.STOP
+    # A state stamped later than the command arrived is none of this edge's: what the operator says stands.
+    d = alice.send(alice.twist(view_age=0.05, view_t=now_ns + 10**12))
+    assert d.accepted and d.action == Action.MOVE
+
+
+def test_a_command_refused_for_its_time_says_when_the_clocks_differ() -> None:
+    """An operator whose clock is 2 s off gets every command refused (the edge cannot tell a late command from a
+    wrong clock by the command's time alone), but the state it names was stamped a moment ago on the edge's
+    clock: the refusal says which clock is off, not that the command is old."""
+    _sv, alice, _, clock = setup()
+    now_ns = int((WALL0 + clock[0]) * 1e9)
+    for skew, side in ((-2.0, "behind"), (2.0, "ahead of")):
+        d = alice.send(alice.twist(view_t=now_ns - 30_000_000, skew=skew))
+        assert not d.accepted and d.status == Status.STALE_COMMAND, d
+        assert f"clock is 2000 ms {side} this robot's" in d.reason and "NTP" in d.reason, d.reason
+    # Without a fresh state to go by, an old command is just old.
+    d = alice.send(alice.twist(view_t=now_ns - 3_000_000_000, skew=-2.0))
+    assert not d.accepted and d.reason.startswith("command is 2000 ms old"), d.reason
+    d = alice.send(alice.twist(skew=-2.0))
+    assert not d.accepted and d.reason.startswith("command is 2000 ms old"), d.reason
+
+
 def test_the_driver_is_told_to_stop_once_after_motion_then_nothing() -> None:
     sv, alice, _, clock = setup()
     assert alice.send(alice.twist()).action == Action.MOVE
@@ -196,12 +230,13 @@ def test_the_operators_stream_is_signed_as_the_edge_decodes_it() -> None:
     grant = sv.acquire(ControlRequest(operator="alice").stamp(1), 100.0)
     stream = CommandStream("sim1", "alice", release_tail=0.3, ui_timeout=0.5)
     for i in range(4):  # the grant's first command is a release (sent by the stream itself), then the press
-        now = time.monotonic()
-        out = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, time.time_ns(), 1.0, grant.key,
+        now, state_t = time.monotonic(), time.time_ns() - 20_000_000
+        out = stream.next(now, [0, 0.004, 0, 0, 0, 0], True, 0.0, False, now, state_t, 1.0, grant.key,
                           pressed_at=now, press_from=now - 0.01)
         assert out is not None
         cmd, payload = out
         assert cmd.seq == i + 1 and cmd.deadman == (i > 0)
+        assert cmd.view_t == state_t and 0.02 <= cmd.state_age < 0.5  # the state it names, and its age here
         d = sv.on_command(TwistCommand.decode(payload), time.time(), 100.0 + i / 60, POSE)
         assert d.accepted and (d.twist[1] > 0) == (i > 0), d
     # A new grant (a new key) restarts the sequence at 1, as the edge expects.

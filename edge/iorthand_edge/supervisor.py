@@ -533,9 +533,10 @@ class Supervisor:
         if resumed_after_gap and not self._latched:
             self._halt(Status.LINK_GAP, f"commands resumed after a gap of {1000 * gap:.0f} ms (more than "
                        f"{1000 * self.config.resume_gap:.0f}): release the deadman and press it again", latch=True)
-        if cmd.state_age < 0 or cmd.state_age > self.config.max_view_age:
+        view_age = _view_age(cmd, recv_wall)
+        if view_age < 0 or view_age > self.config.max_view_age:
             # Acting on an old picture: the robot stops, and moves again once the operator sees it live.
-            seen = "no robot state" if cmd.state_age < 0 else f"a robot state {1000 * cmd.state_age:.0f} ms old"
+            seen = "no robot state" if view_age < 0 else f"a robot state {1000 * view_age:.0f} ms old"
             self.counters.rejected += 1
             self._halt(Status.STALE_VIEW, f"motion refused: the operator's screen shows {seen} "
                        f"(max {1000 * self.config.max_view_age:.0f} ms)")
@@ -623,9 +624,16 @@ class Supervisor:
         if cmd.operator != self.owner:
             return Status.NOT_OWNER, f"robot is controlled by {self.owner!r}, not {cmd.operator!r}"
         age = recv_wall - cmd.t / 1e9
-        if age > self.config.max_command_age:
-            return Status.STALE_COMMAND, f"command is {1000 * age:.0f} ms old (max {1000 * self.config.max_command_age:.0f})"
-        if age < -self.config.max_command_age:
+        if abs(age) > self.config.max_command_age:
+            loop = recv_wall - cmd.view_t / 1e9 if cmd.view_t else math.inf
+            if 0.0 <= loop <= self.config.max_view_age:
+                # It names a robot state this edge stamped a moment ago: the command is not old, the clocks differ.
+                side = "behind" if age > 0 else "ahead of"
+                return Status.STALE_COMMAND, (f"the operator's clock is {1000 * abs(age):.0f} ms {side} this robot's "
+                                              f"(its view is {1000 * loop:.0f} ms old): synchronise the clocks (NTP)")
+            if age > 0:
+                return Status.STALE_COMMAND, (f"command is {1000 * age:.0f} ms old "
+                                              f"(max {1000 * self.config.max_command_age:.0f})")
             return Status.STALE_COMMAND, f"command time is {-1000 * age:.0f} ms in the future: check clock sync"
         return None
 
@@ -799,6 +807,16 @@ class Supervisor:
             _add_along(twist, -reaction.retract_speed - toward, n)
             result = Status.FORCE_DANGER, "danger-level force: retracting along the contact normal"
         return result
+
+
+def _view_age(cmd: TwistCommand, recv_wall: float) -> float:
+    """The age (s) of the robot state the operator acted on; -1: none. What the operator says (its clock minus
+    this edge's) and, when the command names that state (``view_t``, stamped on this edge's clock), its age
+    measured here, both trips over the link included: the older of the two, so that an operator's clock that is
+    behind cannot make an old picture look fresh."""
+    if cmd.state_age < 0:
+        return -1.0
+    return max(cmd.state_age, recv_wall - cmd.view_t / 1e9) if cmd.view_t else cmd.state_age
 
 
 def _floats(v: Vector | list[float]) -> list[float]:

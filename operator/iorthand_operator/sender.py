@@ -136,7 +136,7 @@ class CommandStream:
         state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
         lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
         cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age,
-                           frame=frame)
+                           view_t=max(0, int(state_t)), frame=frame)
         return cmd, auth.seal(key, self.ctx, cmd.stamp(self.seq, t))
 
     def resume(self, key_gen: float, seq: int) -> None:
