@@ -167,16 +167,20 @@ def test_motion_from_an_old_picture_is_refused_and_stops_the_robot() -> None:
 
 def test_an_operator_clock_behind_the_robots_cannot_make_an_old_picture_look_fresh() -> None:
     """The operator's clock is 0.4 s behind the edge's and its screen froze on a state 0.8 s old: it computes an
-    age of 0.4 s. The command names that state (its stamp on the edge's clock), and the edge measures 0.8 s."""
+    age of 0.4 s. The command names that state (its stamp on the edge's clock), and the edge measures 0.8 s.
+    (The sequence goes on: a stale picture halts, it does not latch.)"""
     _sv, alice, _, clock = setup(max_view_age=0.5)
     now_ns = int((WALL0 + clock[0]) * 1e9)
     d = alice.send(alice.twist(view_age=0.1, view_t=now_ns - 100_000_000))
     assert d.accepted and d.action == Action.MOVE
     d = alice.send(alice.twist(view_age=0.4, view_t=now_ns - 800_000_000, skew=-0.4))
     assert not d.accepted and d.status == Status.STALE_VIEW and "800 ms" in d.reason and d.action == Action.STOP
+    # Nor can a clock 0.3 s ahead make a fresh picture (0.25 s here) look old (0.55 s by the operator's clock).
+    d = alice.send(alice.twist(view_age=0.55, view_t=now_ns - 250_000_000, skew=0.3))
+    assert d.accepted and d.action == Action.MOVE, d
     # A state stamped later than the command arrived is none of this edge's: what the operator says stands.
-    d = alice.send(alice.twist(view_age=0.05, view_t=now_ns + 10**12))
-    assert d.accepted and d.action == Action.MOVE
+    d = alice.send(alice.twist(view_age=0.8, view_t=now_ns + 10**12))
+    assert not d.accepted and d.status == Status.STALE_VIEW and "800 ms" in d.reason
 
 
 def test_a_command_refused_for_its_time_says_when_the_clocks_differ() -> None:

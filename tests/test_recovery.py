@@ -50,6 +50,15 @@ def test_a_sender_that_is_down_is_what_the_operator_waits_for() -> None:
     assert recovery.hint(recovery.next_step("me", True, status(Status.OK), True, why), "E", "SPACE", True) == why
 
 
+def test_a_press_from_before_the_grant_or_the_senders_restart_must_be_made_again() -> None:
+    """Its commands say "released" whatever the edge's status (a restart slower than the release tail sends none:
+    the edge shows a command timeout, which by itself asks for nothing)."""
+    for code in (Status.COMMAND_TIMEOUT, Status.NO_DEADMAN, Status.OK):
+        step = recovery.next_step("me", True, status(code), False, old_press=True)
+        assert step.step is recovery.Step.PRESS and "started again" in step.why, step
+    assert recovery.next_step("me", True, status(Status.COMMAND_TIMEOUT), False).step is recovery.Step.NONE
+
+
 def test_the_hint_names_the_key() -> None:
     press = recovery.NextStep(recovery.Step.PRESS, "stop from nurse")
     assert recovery.hint(press, "E", "SPACE", toggle=True) == "press SPACE to move again (stop from nurse)"

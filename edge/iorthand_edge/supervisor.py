@@ -27,8 +27,9 @@ Rules (DESIGN.md, "Safety model"):
 - After a gap in the commands longer than ``resume_gap`` while the deadman was held, motion resumes only after
   the deadman is released and pressed again (shorter gaps resume). A new grant of control starts the same way:
   its first motion needs a release and a press under it (the operator's client sends the release itself when the
-  press came after the grant). A command states how old the robot state on
-  the operator's screen is; motion from a picture older than ``max_view_age`` is refused and the robot stops.
+  press came after the grant). A command names the robot state on the
+  operator's screen (its stamp, on this edge's clock: the state's age is measured here, both trips over the link
+  included); motion from a picture older than ``max_view_age`` is refused and the robot stops.
 
 Every event (a command, a control cycle, a stop, arming, ownership, a fault, a force level) goes through one
 method with its time; each answer is a :class:`Decision` whose ``action`` says what the driver must do (move,
@@ -810,13 +811,15 @@ class Supervisor:
 
 
 def _view_age(cmd: TwistCommand, recv_wall: float) -> float:
-    """The age (s) of the robot state the operator acted on; -1: none. What the operator says (its clock minus
-    this edge's) and, when the command names that state (``view_t``, stamped on this edge's clock), its age
-    measured here, both trips over the link included: the older of the two, so that an operator's clock that is
-    behind cannot make an old picture look fresh."""
+    """The age (s) of the robot state the operator acted on; -1: none. When the command names that state
+    (``view_t``, stamped on this edge's clock), its age measured here, both trips over the link included: no
+    operator's clock comes into it, so one that is behind cannot make an old picture look fresh, nor one ahead a
+    fresh one old. Otherwise (an older client, a stamp from this edge's future) what the operator says: its clock
+    minus this edge's."""
     if cmd.state_age < 0:
         return -1.0
-    return max(cmd.state_age, recv_wall - cmd.view_t / 1e9) if cmd.view_t else cmd.state_age
+    loop = recv_wall - cmd.view_t / 1e9
+    return loop if cmd.view_t and loop >= 0.0 else cmd.state_age
 
 
 def _floats(v: Vector | list[float]) -> list[float]:

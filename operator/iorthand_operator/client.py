@@ -836,7 +836,8 @@ class OperatorClient:
     def next_step(self) -> recovery.NextStep:
         """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`)."""
         fresh = self._deadman and self._pressed_at > max(self._halted_at, self._press_from)
-        return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down)
+        old = self._deadman and self._pressed_at < self._press_from
+        return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down, old)
 
     def recover(self) -> recovery.NextStep:
         """For a client whose intent is its command (a headless move, a script): take the step itself. It

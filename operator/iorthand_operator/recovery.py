@@ -36,11 +36,12 @@ class NextStep:
 
 
 def next_step(me: str, owner_held: bool, safety: SafetyStatus | None, fresh_press: bool,
-              sender_down: str = "") -> NextStep:
+              sender_down: str = "", old_press: bool = False) -> NextStep:
     """The step ``me`` must take. ``owner_held``: this client believes it holds a grant; ``fresh_press``: its
     deadman is pressed, and was pressed after the edge's latest halt, the latest grant and the latest start of its
-    command sender. ``sender_down``: why this client's commands cannot go out (its sender process died); nothing
-    the operator does moves the robot until they do."""
+    command sender; ``old_press``: it is held by a press from before the latest grant or start of its sender, which
+    its commands send as released. ``sender_down``: why this client's commands cannot go out (its sender process
+    died); nothing the operator does moves the robot until they do."""
     if sender_down:
         return NextStep(Step.WAIT, sender_down)
     if safety is None:
@@ -52,6 +53,9 @@ def next_step(me: str, owner_held: bool, safety: SafetyStatus | None, fresh_pres
     if not owner_held or safety.owner != me or safety.status in REACQUIRE:
         why = safety.reason if safety.status in REACQUIRE else "this console does not hold control"
         return NextStep(Step.ACQUIRE, why)
+    if old_press:  # whatever the edge says: these commands say "released" until the operator presses again
+        return NextStep(Step.PRESS, "the deadman was pressed before control was granted or the command sender "
+                                    "started again")
     # A released deadman (NO_DEADMAN: also a new grant's first state) or a halt that waits for a fresh press.
     if (safety.status in REPRESS or safety.status == Status.NO_DEADMAN) and not fresh_press:
         return NextStep(Step.PRESS, safety.reason or Status(safety.status).message)

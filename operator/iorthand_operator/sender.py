@@ -232,6 +232,7 @@ class ProcessSender:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._stopping = False  # stop() was asked: the child's end is no loss
+        self._ready = threading.Event()  # the child said it is ready (drain)
         self.last_sent = (-1.0, 0)  # (grant, seq) of the last command a child sent (its record)
         self.said = ""  # what the child said before it ended, if it failed
         self.beat()
@@ -264,6 +265,7 @@ class ProcessSender:
             self.shared.write(stop=0.0)  # (a failed start stopped the one before)
         self._stop.clear()
         self._stopping = False
+        self._ready.clear()
         self.said = ""
         recv, send = self._ctx.Pipe(duplex=False)
         pdeathsig = threading.current_thread() is threading.main_thread()  # PDEATHSIG follows the *thread*
@@ -275,31 +277,34 @@ class ProcessSender:
             self.proc.start()
         send.close()  # the child holds the only write end: EOF here when it exits
         self._conn = recv
-        deadline = time.monotonic() + timeout
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0 or not recv.poll(min(left, 0.2)):
-                if left <= 0:
-                    self.stop()
-                    raise RuntimeError(f"the sender process was not ready within {timeout:.0f} s")
-                if not self.proc.is_alive():
-                    self.stop()
-                    error = _SilentExit if self.proc.exitcode == 0 else RuntimeError
-                    raise error(f"the sender process {exit_reason(self.proc.exitcode)} during start-up")
-                continue
-            try:
-                msg = recv.recv_bytes()
-            except EOFError:
-                self.stop()
-                raise RuntimeError("sender process exited during start-up") from None
-            if msg[:1] == b"R":
-                self.priority = msg[1:].decode()
-                break
-            if msg[:1] == b"E":
-                self.stop()
-                raise RuntimeError(f"sender process failed: {msg[1:].decode()}")
+        self._wait_ready(timeout)
         self._thread = threading.Thread(target=self._link, name="operator-sender-link", daemon=True)
         self._thread.start()
+
+    def _wait_ready(self, timeout: float) -> None:
+        """Wait for the child's "ready"; stop it and raise why it is not. Its messages are read by :meth:`drain`
+        only, here as from an echo's callback: the child's first commands follow its "ready" at once, and an echo
+        that drained the pipe first would otherwise have taken the "ready" from under this wait."""
+        deadline = time.monotonic() + timeout
+        while not self._ready.is_set():
+            left = deadline - time.monotonic()
+            conn = self._conn
+            if conn is not None and left > 0:
+                with contextlib.suppress(EOFError, OSError):
+                    conn.poll(min(left, 0.2))
+                self.drain()
+                if self._ready.is_set():
+                    return
+            if self.said:
+                self.stop()
+                raise RuntimeError(f"sender process failed: {self.said}")
+            if left <= 0:
+                self.stop()
+                raise RuntimeError(f"the sender process was not ready within {timeout:.0f} s")
+            if self._conn is None or not self.proc.is_alive():  # it ended without a word
+                self.stop()
+                error = _SilentExit if self.proc.exitcode == 0 else RuntimeError
+                raise error(f"the sender process {exit_reason(self.proc.exitcode)} during start-up")
 
     def drain(self) -> None:
         """Hand every record waiting in the pipe to ``on_record`` (from the link thread or an echo callback)."""
@@ -314,6 +319,9 @@ class ProcessSender:
                         seq, t_ns, mono, key_gen = _RECORD.unpack(msg[1:])
                         self.last_sent = (key_gen, seq)
                         self._on_record(seq, t_ns, mono)
+                    elif msg[:1] == b"R":
+                        self.priority = msg[1:].decode()
+                        self._ready.set()
                     elif msg[:1] == b"E":
                         self.said = msg[1:].decode(errors="replace")
             except (EOFError, OSError):
