@@ -27,9 +27,9 @@ Rules (DESIGN.md, "Safety model"):
 - After a gap in the commands longer than ``resume_gap`` while the deadman was held, motion resumes only after
   the deadman is released and pressed again (shorter gaps resume). A new grant of control starts the same way:
   its first motion needs a release and a press under it (the operator's client sends the release itself when the
-  press came after the grant). A command names the robot state on the
-  operator's screen (its stamp, on this edge's clock: the state's age is measured here, both trips over the link
-  included); motion from a picture older than ``max_view_age`` is refused and the robot stops.
+  press came after the grant). A command names the robot state on the operator's screen (its stamp, on this
+  edge's clock: the state's age is measured here, both trips over the link included); motion from a picture
+  older than ``max_view_age`` is refused and the robot stops.
 
 Every event (a command, a control cycle, a stop, arming, ownership, a fault, a force level) goes through one
 method with its time; each answer is a :class:`Decision` whose ``action`` says what the driver must do (move,
