@@ -346,13 +346,27 @@ def drive(page, fingers: Fingers, dx: float, dy: float) -> None:
 
 
 def in_thread(coro_fn) -> Any:
-    """Run an aiohttp client coroutine to completion (Playwright's sync API holds this thread's event loop)."""
+    """Run an aiohttp client coroutine to completion (Playwright's sync API holds this thread's event loop). A
+    daemon: a client that never finishes fails its test, and must not keep the test run from exiting."""
     out: list[Any] = []
-    t = threading.Thread(target=lambda: out.append(asyncio.run(coro_fn())))
+    t = threading.Thread(target=lambda: out.append(asyncio.run(coro_fn())), daemon=True)
     t.start()
     t.join(30)
     assert out, "the client did not finish"
     return out[0]
+
+
+async def text_message(ws, timeout: float) -> dict | None:
+    """The next websocket message's JSON, None for a binary one (video). A closed socket raises: receive() then
+    answers at once, and a loop waiting for an answer spun on it for ever (a CI run hung after such a failure)."""
+    import aiohttp
+
+    msg = await ws.receive(timeout=timeout)
+    if msg.type == aiohttp.WSMsgType.TEXT:
+        return json.loads(msg.data)
+    if msg.type == aiohttp.WSMsgType.BINARY:
+        return None
+    raise AssertionError(f"the server closed the websocket: {msg}")
 
 
 # ------------------------------------------------------------------------------------------------ tests
@@ -651,9 +665,8 @@ def test_oversize_malformed_and_ungranted_messages_are_refused_with_a_reason(sta
                 got: list[dict] = []
                 with contextlib.suppress(TimeoutError):
                     while len([m for m in got if m.get("type") == "refused"]) < 6:
-                        msg = await ws.receive(timeout=2.0)
-                        if msg.type == aiohttp.WSMsgType.TEXT:
-                            got.append(json.loads(msg.data))
+                        if (m := await text_message(ws, 2.0)) is not None:
+                            got.append(m)
             # A robot this user is not granted: refused before the upgrade.
             try:
                 async with s.ws_connect(f"{stack.url}/ws?robot=other", headers=headers):
@@ -712,9 +725,8 @@ def test_a_page_that_floods_twists_has_the_excess_dropped_and_is_told(stack, bro
 
             async def until(pred) -> None:
                 while not any(pred(m) for m in got):
-                    msg = await ws.receive(timeout=5.0)
-                    if msg.type == aiohttp.WSMsgType.TEXT:
-                        got.append(json.loads(msg.data))
+                    if (m := await text_message(ws, 5.0)) is not None:
+                        got.append(m)
 
             await ws.send_str(json.dumps({"type": "acquire"}))
             await until(lambda m: m.get("to") == "acquire")
@@ -847,9 +859,8 @@ def test_logging_out_ends_the_pages_of_that_log_in_and_their_control(stack) -> N
         async with aiohttp.ClientSession() as s, s.ws_connect(f"{stack.url}/ws", headers=headers) as ws:
             await ws.send_str(json.dumps({"type": "acquire"}))
             while not any(m.get("to") == "acquire" for m in got):
-                msg = await ws.receive(timeout=10.0)
-                if msg.type == aiohttp.WSMsgType.TEXT:  # (video frames come as binary messages)
-                    got.append(json.loads(msg.data))
+                if (m := await text_message(ws, 10.0)) is not None:
+                    got.append(m)
             foreign = {"Origin": "http://evil.example", "Cookie": f"iorthand_session={cookie}"}
             async with s.post(f"{stack.url}/api/logout", headers=foreign) as r:
                 refused = r.status
@@ -897,9 +908,8 @@ def test_a_page_flooding_stops_and_junk_is_paced_and_bounded(stack) -> None:
             deadline = start + 4.0  # 1 500 messages at 500 a second after a burst of 250: read in 2.5 s
             with contextlib.suppress(TimeoutError):
                 while time.monotonic() < deadline:  # (the page's state keeps coming, 20 a second)
-                    msg = await ws.receive(timeout=deadline - time.monotonic())
-                    if msg.type == aiohttp.WSMsgType.TEXT:
-                        got.append((time.monotonic() - start, json.loads(msg.data)))
+                    if (m := await text_message(ws, deadline - time.monotonic())) is not None:
+                        got.append((time.monotonic() - start, m))
             return got
 
     try:
