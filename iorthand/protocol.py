@@ -562,8 +562,7 @@ class TwistCommand(Message):
     # Age (s) of the newest robot state the operator's screen showed when this was sent; -1: none seen yet.
     state_age: float = spec(-1.0, lo=-1.0, hi=1e9)
     # That state's own stamp (RobotState.t, ns: the edge's clock); 0: none. The edge measures the view's age on
-    # its own clock from it, which an operator clock that is behind cannot shorten (state_age is the operator's
-    # clock minus the edge's).
+    # its own clock from it, where no operator's clock comes in (state_age is the operator's clock minus the edge's).
     view_t: int = spec(0, lo=0, hi=_FAR_FUTURE_NS)
     # The frame of linear and angular: "base" (the robot's base frame) or "tool" (the probe's frame, about its tip:
     # forward, sideways and along the probe; tilt, rock and turn about the tip). One of TWIST_FRAMES.

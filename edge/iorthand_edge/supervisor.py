@@ -626,8 +626,8 @@ class Supervisor:
             return Status.NOT_OWNER, f"robot is controlled by {self.owner!r}, not {cmd.operator!r}"
         age = recv_wall - cmd.t / 1e9
         if abs(age) > self.config.max_command_age:
-            loop = recv_wall - cmd.view_t / 1e9 if cmd.view_t else math.inf
-            if 0.0 <= loop <= self.config.max_view_age:
+            loop = _named_state_age(cmd, recv_wall)
+            if loop is not None and loop <= self.config.max_view_age:
                 # It names a robot state this edge stamped a moment ago: the command is not old, the clocks differ.
                 side = "behind" if age > 0 else "ahead of"
                 return Status.STALE_COMMAND, (f"the operator's clock is {1000 * abs(age):.0f} ms {side} this robot's "
@@ -810,16 +810,21 @@ class Supervisor:
         return result
 
 
+def _named_state_age(cmd: TwistCommand, recv_wall: float) -> float | None:
+    """The age (s), on this edge's clock, of the robot state the command names (``view_t``), both trips over the
+    link included; None when it names none, or one from this edge's future (not one of its states)."""
+    age = recv_wall - cmd.view_t / 1e9
+    return age if cmd.view_t and age >= 0.0 else None
+
+
 def _view_age(cmd: TwistCommand, recv_wall: float) -> float:
-    """The age (s) of the robot state the operator acted on; -1: none. When the command names that state
-    (``view_t``, stamped on this edge's clock), its age measured here, both trips over the link included: no
+    """The age (s) of the robot state the operator acted on; -1: none. The named state's age measured here: no
     operator's clock comes into it, so one that is behind cannot make an old picture look fresh, nor one ahead a
-    fresh one old. Otherwise (an older client, a stamp from this edge's future) what the operator says: its clock
-    minus this edge's."""
+    fresh one old. Otherwise (an older client) what the operator says: its clock minus this edge's."""
     if cmd.state_age < 0:
         return -1.0
-    loop = recv_wall - cmd.view_t / 1e9
-    return loop if cmd.view_t and loop >= 0.0 else cmd.state_age
+    age = _named_state_age(cmd, recv_wall)
+    return cmd.state_age if age is None else age
 
 
 def _floats(v: Vector | list[float]) -> list[float]:

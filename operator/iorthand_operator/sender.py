@@ -346,13 +346,10 @@ class ProcessSender:
                 last_beat = now
 
     def _lost(self) -> None:
-        """The child ended without being asked to: reap it and tell ``on_lost`` how it ended."""
-        proc = self.proc
-        proc.join(1.0)
-        if proc.is_alive():  # closed its pipe yet still there: hung in its exit
-            proc.kill()
-            proc.join(1.0)
-        reason = f"the command sender process {exit_reason(proc.exitcode, self.said)}"
+        """The child ended without being asked to: reap it (stop(), for one hung in its exit) and tell ``on_lost``
+        how it ended."""
+        self.stop()
+        reason = f"the command sender process {exit_reason(self.proc.exitcode, self.said)}"
         log.error("%s", reason)
         if self._on_lost is not None:
             self._on_lost(reason)
