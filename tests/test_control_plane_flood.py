@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import subprocess
+import sys
 import threading
 import time
 
@@ -20,7 +22,7 @@ import zenoh
 from iorthand import keys
 from iorthand.protocol import ControlReply, ControlRequest, ServoCommand, Status, StopCommand, TorchCommand
 from iorthand.security import identity
-from tests.conftest import drive_slowly, wait_until
+from tests.conftest import drive_slowly, stop_process, wait_until
 
 # The costliest sweep the planner accepts (50 lanes of 15 cm, 1 mm apart): about 1.6 s of CPU on this machine.
 HEAVY_SWEEP = json.dumps({"lanes": 50, "width": 0.15, "pitch": 0.001})
@@ -282,3 +284,64 @@ def test_the_router_caps_each_sessions_set_points_and_nobody_elses() -> None:
         for s in sessions:
             s.close()
         router.close()
+
+
+# A session of its own process: from the test's, which runs the edge too, a flood shares the edge's GIL and never
+# outruns it. Counts the acquires it sent and the replies that found the edge busy.
+FLOODERS = 3
+_ACQUIRE_FLOOD = """
+import sys, threading, time
+from iorthand.protocol import ControlReply, ControlRequest
+from iorthand.transport import client_config, open_session
+session = open_session(client_config(sys.argv[1]))
+key, end = sys.argv[2], time.monotonic() + float(sys.argv[3])
+payload = ControlRequest(operator="nobody").stamp(1).encode()
+busy, lock = [0], threading.Lock()
+def on_reply(reply):
+    if reply.ok is not None and ControlReply.decode(reply.ok.payload.to_bytes()).reason.startswith("edge busy"):
+        with lock:
+            busy[0] += 1
+sent = 0
+while time.monotonic() < end:
+    for _ in range(100):
+        session.get(key, on_reply, payload=payload, timeout=5.0)
+    sent += 100
+time.sleep(2.0)
+print(sent, busy[0], flush=True)
+session.close()
+"""
+
+
+@pytest.mark.serial  # three flooding processes: on two cores they would slow every test beside them
+def test_the_owner_keeps_control_through_a_flood_of_acquires(edge_factory, operator_factory,
+                                                              router_endpoint) -> None:
+    """Found by a review of the edge: Zenoh caps no query, and the edge answers control requests one by one (~1 400
+    a second here). A session that sends acquires faster kept the control queue full: the owner's lease renewals
+    were refused "edge busy" until the lease ran out, and it lost control (the robot stopped: fail-safe, but anyone
+    granted could take the robot from its operator this way). The owner's signed requests now have room of their
+    own in that queue, ahead of everyone else's, as its previews have in the planner's."""
+    agent = edge_factory()
+    alice = operator_factory(operator_id="alice")
+    drive_slowly(agent, alice)
+    alice.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+    lease = agent.config.safety.lease
+    floods = [subprocess.Popen([sys.executable, "-c", _ACQUIRE_FLOOD, router_endpoint,
+                                keys.RobotKeys("sim1").key(keys.CONTROL_ACQUIRE), str(2.0 * lease)],
+                               stdout=subprocess.PIPE, text=True) for _ in range(FLOODERS)]
+    owners: set[str] = set()
+    try:
+        while any(f.poll() is None for f in floods):  # two leases of flood, and its last replies
+            owners.add(agent.supervisor.owner)
+            time.sleep(0.02)
+        counts = [[int(v) for v in f.communicate(timeout=10)[0].split()] for f in floods]
+    finally:
+        for f in floods:
+            stop_process(f)
+    sent, busy = (sum(c[i] for c in counts) for i in (0, 1))
+    print(f"{sent} acquires in {2.0 * lease:.1f} s, {busy} answered busy")
+    assert busy > 0, "the flood never filled the control queue: it tests nothing"
+    failed = [e.reason for e in alice.events if "renewal failed" in e.reason]
+    print(f"alice's renewals that failed: {failed}")
+    assert owners == {"alice"} and alice.owner, owners
+    assert not failed, failed
+    assert alice.acquire().ok

@@ -93,6 +93,10 @@ PLANNING_QUEUE = 4
 # The owner's previews (signed with its grant's key) go before everyone else's, into room of their own: 8 heavy
 # previews from anyone filled the planning queue, and the owner's retreat was refused "edge busy".
 OWNER_PLANNING = 2
+# Likewise the owner's control requests (lease renewals, arm, goto, contact, release): Zenoh caps no query, and
+# three sessions sending acquires in made-up names kept the control queue full, so the owner's renewals were
+# refused "edge busy" and its control hung on a retry getting through before the lease ran out.
+OWNER_CONTROL = 4
 # Servo and torch commands are set-points: the newest of each key is all that matters, and they wait apart from
 # the control requests (a flood of them filled the control queue and refused the owner's lease renewals "edge
 # busy": the owner lost control). With bound keys each operator's key has its own slot: another's flood cannot
@@ -159,7 +163,7 @@ class EdgeAgent:
         self._last_safety: tuple[Any, ...] | None = None
         self._last_safety_pub = 0.0
         self._twists = Inbox(TWIST_QUEUE, keep="newest")
-        self._control = Inbox(CONTROL_QUEUE, keep="oldest")
+        self._control = Inbox(CONTROL_QUEUE, keep="oldest", reserve=OWNER_CONTROL)
         self._planning = Inbox(PLANNING_QUEUE, keep="oldest", reserve=OWNER_PLANNING)
         self._actuators = Inbox(ACTUATOR_KEYS, keep="newest_per_key")
         self._workers: list[Worker] = []
