@@ -41,6 +41,7 @@ from iorthand import keys
 from iorthand.protocol import AppliedCommand, RobotState, SafetyStatus, Status
 from iorthand.transport import client_config, free_port, open_session
 from iorthand_operator.web import users
+from iorthand_operator.web.config import WebConfig
 from tests.conftest import ROOT, iorthand_cmd, stop_process, wait_until
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -471,6 +472,15 @@ def test_every_way_a_page_lets_go_stops_the_robot_within_the_timeout(stack, brow
             assert final <= STOP_BOUND_S, f"{how}: stopped {1000 * final:.1f} ms after the last moving command"
             assert stopper in (Status.NO_DEADMAN, Status.OK) or final >= TIMEOUT_S, (final, stopper)
             assert moving_after == 0, f"{how}: {moving_after} commands moved the robot after the page's release"
+        if how == "cut":
+            # The link stays cut: the server hears nothing from the page, which held control. It releases control
+            # after its page_silence (3 s), not after the socket's own heartbeat (5 s + 2.5 s for the pong), so
+            # that another operator can take over as soon as after a terminal console's lease.
+            w.wait(lambda: w.safety and not w.safety[-1].owner, WebConfig().page_silence + 1.5,
+                   "the server to release the silent page's control")
+            released = (time.time_ns() - let_go) / 1e9
+            print(f"cut: control released {released:.2f} s after the link was cut")
+            assert released >= WebConfig().page_silence - 0.2, f"released after {released:.2f} s of silence"
     finally:
         # The page holds control until it goes: a failure above must not leave it holding control for the tests
         # after this one (each would then fail to take control, hiding which one failed first).
@@ -643,6 +653,38 @@ def test_a_websocket_from_another_origin_is_refused(stack, browser, tmp_path) ->
     assert in_thread(forged) == 403
     assert stack.stats(cookie)["refused"]["cross_origin"] >= before + 2
     page.context.close()
+
+
+def test_a_page_of_another_host_name_resolving_here_is_refused(stack, browser) -> None:
+    """DNS rebinding: an attacker's name made to resolve to the console's address (Chromium's host-resolver rule
+    does here what the attacker's DNS would) makes the attacker's page the console's own origin under that name:
+    from a victim's browser inside the hospital it could guess passwords and use up the account's log-in failures.
+    The server answered it, origin check included, as itself. Now a request that names a host the console is not
+    is refused (421) and counted, and costs no log-in attempt."""
+    cookie = _log_in_over_http(stack, "student")
+    before = stack.stats(cookie)["refused"]
+    rebound = browser.browser_type.launch(executable_path=CHROMIUM, headless=True,
+                                          args=[*ARGS, "--host-resolver-rules=MAP evil.example 127.0.0.1"])
+    try:
+        page = rebound.new_page()
+        answer = page.goto(f"http://evil.example:{stack.port}/login")
+        assert answer is not None and answer.status == 421, answer and answer.status
+        assert "does not answer to host 'evil.example" in page.content()
+    finally:
+        rebound.close()
+    attempt = urllib.request.Request(
+        f"{stack.url}/api/login", method="POST", data=json.dumps({"user": "physician", "password": "guess"}).encode(),
+        headers={"Host": f"evil.example:{stack.port}", "Origin": f"http://evil.example:{stack.port}",
+                 "Content-Type": "application/json"})
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(attempt, timeout=10)
+    assert refused.value.code == 421
+    after = stack.stats(cookie)["refused"]
+    assert after["unknown_host"] >= before.get("unknown_host", 0) + 2, after
+    assert after.get("login_failed", 0) == before.get("login_failed", 0), "the guess was checked as a log-in"
+    for name in ("localhost", "127.0.0.1"):  # the console's own names on loopback still answer
+        with urllib.request.urlopen(f"http://{name}:{stack.port}/login", timeout=10) as r:
+            assert r.status == 200, name
 
 
 def test_oversize_malformed_and_ungranted_messages_are_refused_with_a_reason(stack, browser) -> None:

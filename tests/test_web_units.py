@@ -9,7 +9,7 @@ import pytest
 
 from iorthand.security.acl import Deployment
 from iorthand_operator.web import messages, users
-from iorthand_operator.web.config import WebConfig
+from iorthand_operator.web.config import WebConfig, host_allowed
 
 
 def test_grants_follow_the_deployment_as_the_routers_acl_does() -> None:
@@ -189,6 +189,26 @@ def test_a_flooding_page_gets_twice_its_rate_through_and_still_lets_go() -> None
     # ... but not a stream of releases: once released, the budget holds for them too.
     assert not any(budget.allow(_held(10_002 + i, deadman=False), 11.0) for i in range(100))
     assert budget.allow(_held(20_000), 12.0)  # a second later the page has its budget back
+
+
+def test_a_request_may_name_only_the_hosts_the_console_answers_to() -> None:
+    """Against DNS rebinding (test_web_console has it with a browser): the Host header names one of the console's
+    names, any port (a relay or a NAT may change it)."""
+    local = WebConfig(listen="127.0.0.1:8443").host_names()
+    assert {"127.0.0.1", "localhost", "::1"} <= local
+    for host in ("127.0.0.1:8443", "LOCALHOST:9000", "[::1]:8443", "localhost"):
+        assert host_allowed(host, local), host
+    for host in ("evil.example:8443", "127.0.0.1.evil.example", "", "[::1", "localhost.evil"):
+        assert not host_allowed(host, local), host
+    served = WebConfig(listen="0.0.0.0:8443", server_names=["Robot-1.hospital.org"],
+                       allowed_origins=["https://console.hospital.org:4443"])
+    names = served.host_names(["*.ward.hospital.org", "10.0.0.7"])
+    assert "localhost" not in names  # not on loopback: a browser on this host opens it by a name it has
+    for host in ("robot-1.hospital.org:8443", "console.hospital.org", "scanner.ward.hospital.org", "10.0.0.7:8443",
+                 "robot-1.hospital.org."):
+        assert host_allowed(host, names), host
+    for host in ("a.b.ward.hospital.org", "ward.hospital.org", "localhost:8443", "10.0.0.8"):
+        assert not host_allowed(host, names), host
 
 
 def test_a_console_reachable_from_the_network_needs_tls() -> None:

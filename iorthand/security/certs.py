@@ -195,13 +195,18 @@ def common_name(cert: x509.Certificate) -> str:
     return str(attrs[0].value) if attrs else ""
 
 
+def subject_alt_names(cert: x509.Certificate) -> list[str]:
+    """The names and addresses a certificate is valid for, as text (DNS names, IP addresses)."""
+    try:
+        return [str(getattr(v, "value", v)) for v in cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value]
+    except x509.ExtensionNotFound:
+        return []
+
+
 def describe(path: Path) -> dict[str, object]:
     """What ``iorthand certs show`` prints: subject, issuer, validity, SANs, usages, fingerprint."""
     cert = load_certificate(path)
-    try:
-        sans = [str(getattr(v, "value", v)) for v in cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value]
-    except x509.ExtensionNotFound:
-        sans = []
+    sans = subject_alt_names(cert)
     try:
         is_ca = cert.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
     except x509.ExtensionNotFound:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import ipaddress
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from iorthand.config import setting
 from iorthand.transport import ZenohConfig
@@ -27,6 +29,11 @@ class WebConfig:
     allowed_origins: list[str] = setting(
         default_factory=list, help="origins besides the server's own that may open the console (a reverse proxy's)",
     )
+    server_names: list[str] = setting(
+        default_factory=list, help="names or addresses browsers open the console by, besides the listen address, the "
+        "loopback names (when it listens on loopback), the TLS certificate's names and allowed_origins' hosts: a "
+        "request for any other host is refused (a DNS-rebinding page names its own)",
+    )
     trusted_proxies: list[str] = setting(
         default_factory=lambda: ["127.0.0.1", "::1"],
         help="addresses of reverse proxies whose X-Forwarded-For and X-Forwarded-Proto are believed: the browser's "
@@ -41,12 +48,27 @@ class WebConfig:
     arm_model: str = setting("ur3e", choices=("ur3e", "ur5e"), help="the arm drawn in the 3D view")
     arm_models: dict[str, str] = setting(default_factory=dict, help="robot id → ur3e | ur5e, where not arm_model")
     release_tail: float = setting(0.3, lo=0.0, hi=5.0, help="s of released-deadman commands forwarded after a release")
+    page_silence: float = setting(
+        3.0, lo=0.5, hi=60.0, help="s without a message from a page that holds control (it sends twists at twist_hz "
+        "while it does) before the server releases control for it: its link dropped or the browser suspended it. "
+        "The edge's own lease, which ends a silent terminal console's control, is 3 s by default",
+    )
 
     def host_port(self) -> tuple[str, int]:
         host, sep, port = self.listen.rpartition(":")
         if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
             raise ValueError(f"listen {self.listen!r}: expected HOST:PORT")
         return host.strip("[]"), int(port)
+
+    def host_names(self, certificate_names: Iterable[str] = ()) -> frozenset[str]:
+        """The host names a request may name (its Host header, port aside): what a browser opens this console by.
+        ``certificate_names``: the TLS certificate's, which are the names a browser accepts it for."""
+        host, _ = self.host_port()
+        names = {host, *certificate_names, *self.server_names}
+        names.update(urlsplit(origin).hostname or "" for origin in self.allowed_origins)
+        if _loopback(host):
+            names.update(LOOPBACK_NAMES)
+        return frozenset(n.strip("[]").lower() for n in names if n)
 
     def check(self) -> None:
         host, _ = self.host_port()
@@ -63,6 +85,24 @@ class WebConfig:
                 raise ValueError(f"allowed_origins: {origin!r} is not an origin like https://host[:port]")
 
 
+LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
+
+def host_allowed(host_header: str, names: frozenset[str]) -> bool:
+    """Whether a request's Host header names one of ``names`` (any port: a relay or a NAT may change it). A
+    certificate's wildcard ``*.example.org`` covers one label, as for a browser."""
+    try:
+        host = (urlsplit(f"//{host_header}").hostname or "").rstrip(".")
+    except ValueError:  # a malformed header (an unclosed bracket, a bad port)
+        return False
+    if not host:
+        return False
+    if host in names:
+        return True
+    label, dot, parent = host.partition(".")
+    return bool(label and dot and f"*.{parent}" in names)
+
+
 def _loopback(host: str) -> bool:
     if host == "localhost":
         return True
@@ -72,4 +112,4 @@ def _loopback(host: str) -> bool:
         return False
 
 
-__all__ = ["WebConfig", "WebTls"]
+__all__ = ["LOOPBACK_NAMES", "WebConfig", "WebTls", "host_allowed"]

@@ -46,13 +46,14 @@ from iorthand.config import from_dict as config_from_dict
 from iorthand.config import read_yaml
 from iorthand.protocol import DecodeError, Sequencer, StopCommand, VideoFeedback, VideoFrame
 from iorthand.security.acl import Deployment
+from iorthand.security.certs import load_certificate, subject_alt_names
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
 from iorthand_operator import recovery
 from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient
 from iorthand_operator.console.model import force_view, vitals_line
 from iorthand_operator.link import GRADE_COLOURS, LinkThresholds
 from iorthand_operator.web import messages, users
-from iorthand_operator.web.config import WebConfig
+from iorthand_operator.web.config import WebConfig, host_allowed
 
 log = logging.getLogger("iorthand.web")
 
@@ -179,6 +180,10 @@ class Bridge:
 
     def __init__(self, config: WebConfig, deployment: Deployment, user_hashes: dict[str, str]) -> None:
         self.config = config
+        # What a browser may name in Host: a DNS-rebinding page (evil.example resolving to this server) names its own
+        # host, and would otherwise be this console's origin, free to guess passwords and lock accounts out.
+        names = subject_alt_names(load_certificate(config.tls.certificate)) if config.tls is not None else []
+        self.host_names = config.host_names(names)
         self.grants = users.grants(deployment)
         self.robots = list(deployment.robots)
         self.hashes = user_hashes
@@ -334,6 +339,7 @@ class Page:
         self.budgets = messages.PageBudgets()
         self._request: asyncio.Task[None] | None = None  # the request under way (held: the loop keeps tasks weakly)
         self.refused = 0
+        self.heard_at = time.monotonic()  # the last message of any kind from the page
 
     # ------------------------------------------------------------- from the page
 
@@ -459,6 +465,9 @@ class Page:
             self.bridge.controllers.pop(self.robot, None)
             return False, str(exc)
         client.start()  # the lease renewal; the page's messages are the command stream
+        # The page's twists start once it hears that it holds control: its silence counts from now at the earliest
+        # (an acquire that took seconds must not count as silence).
+        self.heard_at = max(self.heard_at, time.monotonic())
         self.client = client
         log.info("%s controls %s from a web page", self.grant.user, self.robot)
         return True, reply.reason
@@ -507,7 +516,18 @@ class Page:
                     await self.end(4401, "log-in ended (logged out, expired, or ended by newer log-ins of the same "
                                          "user): log in again")
                     return
-                if self.client is not None and not self.client.owner and not self._busy:
+                silent = time.monotonic() - self.heard_at
+                if self.client is not None and silent > self.bridge.config.page_silence and not self._busy:
+                    # A controlling page sends twists at twist_hz whatever the operator does: this silence is a
+                    # dropped link (no FIN: the socket's own heartbeat notices it only after 7.5 s) or a browser
+                    # that suspended the page. Its robot stopped at the edge's command timeout; another operator
+                    # may now take control, as after a terminal console's lease.
+                    reason = (f"control released: nothing from this page for {silent:.1f} s (its link dropped or "
+                              "the browser suspended it): take control again")
+                    log.warning("%s on %s: %s", self.grant.user, self.robot, reason)
+                    await self.send({"type": "refused", "kind": "control_lost", "reason": reason})
+                    await asyncio.get_running_loop().run_in_executor(None, self._release)
+                elif self.client is not None and not self.client.owner and not self._busy:
                     # The lease was lost (a dead link, the edge restarted): the client said why in its events;
                     # the page takes control again on purpose, with a fresh press of the deadman.
                     await self.send({"type": "refused", "kind": "control_lost", "reason": "control lost: take it again"})
@@ -652,7 +672,7 @@ def _json_object(text: str) -> dict[str, Any]:
 
 
 def make_app(bridge: Bridge) -> web.Application:
-    app = web.Application(client_max_size=16 * 1024, middlewares=[_headers])
+    app = web.Application(client_max_size=16 * 1024, middlewares=[_headers, _known_host])
     app["bridge"] = bridge
     app.add_routes([
         web.get("/", _index),
@@ -685,6 +705,16 @@ async def _headers(request: web.Request, handler: Callable[[web.Request], Any]) 
     if isinstance(response, web.HTTPException):
         raise response
     return response
+
+
+@web.middleware
+async def _known_host(request: web.Request, handler: Callable[[web.Request], Any]) -> web.StreamResponse:
+    bridge: Bridge = request.app["bridge"]
+    if not host_allowed(request.host, bridge.host_names):
+        bridge.refusals.add("unknown_host", f"{request.host[:80]!r} from {bridge.peer(request).address}")
+        raise web.HTTPMisdirectedRequest(text=f"this console does not answer to host {request.host[:80]!r}: open it "
+                                         "by its own name (server_names in its config lists more)")
+    return await handler(request)
 
 
 async def _on_startup(app: web.Application) -> None:
@@ -794,7 +824,8 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
     pusher = asyncio.create_task(page.push())
     try:
         async for msg in ws:
-            pause = page.budgets.reading.delay(time.monotonic())
+            page.heard_at = time.monotonic()
+            pause = page.budgets.reading.delay(page.heard_at)
             if pause:  # a flooding page: read it no faster (the socket's buffers then hold its sender back)
                 await asyncio.sleep(pause)
             if msg.type == WSMsgType.TEXT:
