@@ -53,7 +53,7 @@ TWIN_PREVIEW = "preview"  # iorthand/_twin/<robot>/preview: forwarded to the edg
 # also carries errors (a full disk must be visible to every client, not only in the recorder's log).
 RECORDER_START = "start"
 RECORDER_STOP = "stop"
-RECORDER_ANNOTATE = "annotate"
+RECORDER_ANNOTATE = "annotate"  # annotate/<author> carries its author: the router binds it to the certificate
 RECORDER_STATUS = "status"
 RECORDER_ANNOTATIONS = "annotations"  # the channel annotations are stored on, inside recordings
 

@@ -20,6 +20,7 @@ from mcap.writer import CompressionType, Writer
 from iorthand import keys
 from iorthand.config import from_dict
 from iorthand.protocol import Annotation, ForceSample, RecorderStatus, TwistCommand, VideoFrame
+from iorthand.transport import query
 from iorthand_cloud.recorder import client
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
@@ -75,8 +76,13 @@ def test_records_messages_with_times_sequence_and_gaps(recorder_factory, session
     frame = VideoFrame(width=4, height=2, data=b"\xff\xd8jpeg\xff\xd9").stamp(1)
     vid.put(frame.encode())
     wait_until(lambda: svc.status.messages >= 7, message="7 messages recorded")
-    ann = client.annotate(s, "probe slipped", author="alice", tags=["slip"], score=3.0)
+    ann = client.annotate(s, "probe slipped", author="alice", tags=["slip"], score=3.0)  # on annotate/alice
     assert ann.ok, ann.reason
+    # An author other than the one its key names (which the router binds to a certificate) is refused, not stored.
+    forged = Annotation(author="bob", text="bob's words").stamp(1).encode()
+    replies = query(s, keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATE, "alice"), forged, timeout=5.0)
+    refused = RecorderStatus.decode(replies[0])
+    assert not refused.ok and "'bob'" in refused.reason and "'alice''s key" in refused.reason, refused.reason
     stopped = client.stop(s)
     assert stopped.ok and not stopped.recording and stopped.closed_t >= stopped.first_message_t > 0
     folder = tmp_path / "rec" / "t1"

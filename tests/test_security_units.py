@@ -132,13 +132,16 @@ def test_acl_policy_by_role() -> None:
     assert _allowed(cfg, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/*/alice", "iorthand/r1/cmd/stop"]
     assert sorted(_allowed(cfg, "operator-bob", "put", "ingress")) == [
         "iorthand/r1/cmd/*/bob", "iorthand/r1/cmd/stop", "iorthand/r2/cmd/*/bob", "iorthand/r2/cmd/stop"]
+    # ... and so is its authorship of a recording's annotations (the recorder stores the author the key names).
     assert _allowed(cfg, "operator-alice", "query", "ingress") == [
         "iorthand/r1/control/*/alice", "iorthand/r1/plan/*/alice", "iorthand/r1/plan/preview", "iorthand/_twin/**",
-        "iorthand/_recorder/**"]
+        "iorthand/_recorder/start", "iorthand/_recorder/stop", "iorthand/_recorder/status",
+        "iorthand/_recorder/annotate/alice"]
     unbound = acl.router_config(_dep(bind_operator_keys=False))
     assert _allowed(unbound, "operator-alice", "put", "ingress") == ["iorthand/r1/cmd/**"]
     assert sorted(_allowed(unbound, "operator-bob", "put", "ingress")) == ["iorthand/r1/cmd/**", "iorthand/r2/cmd/**"]
     assert _allowed(unbound, "operator-alice", "query", "ingress")[0] == "iorthand/r1/control/**"
+    assert _allowed(unbound, "operator-alice", "query", "ingress")[-2:] == ["iorthand/_twin/**", "iorthand/_recorder/**"]
     assert _allowed(cfg, "operator-alice", "liveliness_token", "ingress") == ["iorthand/r1/alive/operator/alice"]
     edge_puts = _allowed(cfg, "edge-r1", "put", "ingress")
     assert all(k.startswith("iorthand/r1/") and "/cmd" not in k for k in edge_puts)

@@ -251,6 +251,35 @@ def test_a_viewer_may_ask_the_recorder_its_status_but_not_stop_or_annotate(lab: 
             s.close()
 
 
+def test_with_bound_keys_an_operator_annotates_a_recording_only_as_itself(tmp_path: Path) -> None:
+    """An annotation's author was a claim in its payload: any operator could annotate a recording in another's name.
+    With bind_operator_keys the router lets operator-alice annotate only on ``_recorder/annotate/alice``, and the
+    recorder stores only the author that key names (test_recorder)."""
+    lab = make_lab(tmp_path, free_port(), robots=["sim1"], operators={"alice": ["sim1"], "bob": ["sim1"]},
+                   bind_operator_keys=True)
+    router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
+    recorder = open_session(lab.client("recorder"))
+    alice = open_session(lab.client("operator-alice"))
+    asked: list[str] = []
+
+    def answer(q: zenoh.Query) -> None:
+        asked.append(str(q.key_expr))
+        q.reply(q.key_expr, b"ok")
+
+    try:
+        recorder.declare_queryable(keys.service_key(keys.RECORDER, "**"), answer)
+        time.sleep(0.3)
+        verbs = [f"{keys.RECORDER_ANNOTATE}/alice", f"{keys.RECORDER_ANNOTATE}/bob", keys.RECORDER_ANNOTATE,
+                 keys.RECORDER_STATUS]
+        answered = [sum(r.ok is not None for r in alice.get(keys.service_key(keys.RECORDER, verb), timeout=1.0))
+                    for verb in verbs]
+        assert answered == [1, 0, 0, 1], dict(zip(verbs, answered, strict=True))
+        assert asked == ["iorthand/_recorder/annotate/alice", "iorthand/_recorder/status"]
+    finally:
+        for s in (alice, recorder, router):
+            s.close()
+
+
 def test_bind_operator_keys_acl(tmp_path: Path) -> None:
     """With identity-scoped keys, alice may publish only on cmd/<kind>/alice: a twist in bob's name on
     cmd/twist/bob (or on the plain key) never reaches the edge. A stop is everyone's: on the plain cmd/stop, or
@@ -320,3 +349,14 @@ def test_an_operator_previews_a_move_through_the_twin(tmp_path: Path) -> None:
         twin.shutdown()
         agent.shutdown()
         router.close()
+
+
+def test_iorthand_annotate_writes_as_the_operator_its_certificate_names(lab: Lab) -> None:
+    """Behind a router that binds annotations to certificates, `iorthand annotate` without --author annotates as
+    the certificate's operator (any other author would be dropped by the router); no operator certificate, no
+    default author."""
+    from iorthand_cloud.recorder.cli import _certificate_operator
+
+    assert _certificate_operator(lab.client("operator-alice")) == "alice"
+    assert _certificate_operator(lab.client("viewer-eve")) == ""
+    assert _certificate_operator(ZenohConfig(connect=["tcp/127.0.0.1:7447"])) == ""

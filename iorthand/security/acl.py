@@ -23,7 +23,9 @@ enough. Which role may write or query which key of a robot is a column of the ta
   ``plan/**`` (it has the edge plan the operators' previews, and draws them), nothing else of a robot's. Viewers cannot query a robot's
   ``control/**`` (acquiring control is a query: a viewer that could query it could steal ownership), and of the
   services they may ask only what reads (:data:`READ_ONLY_QUERIES`: the twin's snapshots, the recorder's
-  status): a viewer cannot start, stop or annotate a recording, nor have the edge plan a preview.
+  status): a viewer cannot start, stop or annotate a recording, nor have the edge plan a preview. With
+  ``bind_operator_keys`` an operator annotates only on ``_recorder/annotate/<name>``, so a recording's
+  annotations carry the author its certificate names.
 - ``web`` (``iorthand web``, with ``web: true``): a trusted bridge. It logs its users in by password
   (:mod:`iorthand_operator.web`) and may send for each operator exactly what that operator's certificate may
   (its bound keys, its token) and watch every robot; its users' grants are the deployment's, as here.
@@ -128,6 +130,20 @@ READ_ONLY_QUERIES = {
 }
 
 
+def _operator_services(dep: Deployment, op: str) -> list[str]:
+    """What operator ``op`` may ask the services: all of them, except that with bind_operator_keys it annotates a
+    recording only on its own key (``annotate/<op>``): the recorder stores the author that key names."""
+    out: list[str] = []
+    for service in dep.services:
+        if service == "recorder" and dep.bind_operator_keys:
+            out += [keys.service_key(keys.RECORDER, verb)
+                    for verb in (keys.RECORDER_START, keys.RECORDER_STOP, keys.RECORDER_STATUS)]
+            out.append(keys.service_key(keys.RECORDER, keys.RECORDER_ANNOTATE, keys.check_operator_id(op)))
+        else:
+            out.append(_service_space(service))
+    return out
+
+
 def _grants(table: Iterable[Channel], role: Role, kind: Kind, *, query: bool = False,
             bound: str | None = None) -> list[str]:
     """The key suffixes ``role`` may write (``query``: query) among the ``kind`` rows of ``table``: each family
@@ -203,7 +219,7 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
             *operator_rules(sid, op, robots),
         ]
         if services:
-            rl.append(_rule(f"{sid}-services", ["query"], ["ingress"], services))
+            rl.append(_rule(f"{sid}-services", ["query"], ["ingress"], _operator_services(dep, op)))
         add(sid, rl)
 
     if dep.web:

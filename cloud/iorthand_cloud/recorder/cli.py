@@ -16,6 +16,7 @@ from pathlib import Path
 
 from iorthand import keys
 from iorthand.config import ConfigError, cli_number, from_dict, load
+from iorthand.security.certs import CertError, common_name, load_certificate
 from iorthand.transport import ZenohConfig, client_config, open_session
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
 from iorthand_cloud.recorder.reader import SegmentError
@@ -71,12 +72,30 @@ def _cmd_recorder(args: argparse.Namespace) -> int:
         session.close()
 
 
+def _certificate_operator(cfg: ZenohConfig) -> str:
+    """The operator an ``operator-<name>`` client certificate names, "" for any other (or none)."""
+    if cfg.tls is None or not cfg.tls.certificate:
+        return ""
+    try:
+        name = common_name(load_certificate(Path(cfg.tls.certificate)))
+    except CertError:
+        return ""  # the session's own start-up says what is wrong with it
+    return name.removeprefix("operator-") if name.startswith("operator-") else ""
+
+
 def _cmd_annotate(args: argparse.Namespace) -> int:
     from iorthand_cloud.recorder import client
 
-    session = _session(args)
+    cfg = load_config(args)
+    # Behind the deployment's router an operator annotates only as itself: by default, as its certificate says.
+    author = args.author or _certificate_operator(cfg.zenoh)
+    session = open_session(cfg.zenoh)
     try:
-        st = client.annotate(session, args.text, author=args.author, tags=args.tag or [], score=args.score)
+        st = client.annotate(session, args.text, author=author, tags=args.tag or [], score=args.score)
+    except client.RecorderUnavailable as exc:
+        print(f"annotation not stored: {exc}; behind a router with bind_operator_keys, only operator-{author or 'NAME'}'s "
+              "certificate may annotate as that author (--author)")
+        return 1
     finally:
         session.close()
     print(("annotation stored in " + st.session) if st.ok else f"annotation refused: {st.reason}")
@@ -230,7 +249,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("annotate", help="add a comment, tags or a score to the recording in progress")
     p.add_argument("text")
     connection(p)
-    p.add_argument("--author", default="")
+    p.add_argument("--author", default="", help="who annotates (default: the operator the client certificate names); "
+                   "behind a router with bind_operator_keys only that operator's certificate may annotate as it")
     p.add_argument("--tag", action="append")
     p.add_argument("--score", type=float)
     p.set_defaults(func=_cmd_annotate)

@@ -39,5 +39,10 @@ def status(session: zenoh.Session, timeout: float = 2.0) -> RecorderStatus:
 
 def annotate(session: zenoh.Session, text: str, author: str = "", tags: list[str] | None = None,
              score: float | None = None, timeout: float = 5.0) -> RecorderStatus:
+    """An author that is an operator id goes on the key ``annotate/<author>``, which the deployment's router lets
+    only that operator's certificate query (bind_operator_keys); any other author is the sender's claim."""
     ann = Annotation(author=author, text=text, tags=list(tags or []), score=score)
-    return _ask(session, keys.RECORDER_ANNOTATE, ann.stamp(_seq.next()).encode(), timeout)
+    verb = keys.RECORDER_ANNOTATE
+    if author and keys.OPERATOR_ID_PATTERN.match(author):
+        verb = f"{verb}/{author}"
+    return _ask(session, verb, ann.stamp(_seq.next()).encode(), timeout)

@@ -73,6 +73,14 @@ def recorder_key(name: str) -> str:
     return keys.service_key(keys.RECORDER, name)
 
 
+def _keyed_author(query: zenoh.Query | None) -> str | None:
+    """The author an annotation's key names (``annotate/<author>``), None on the plain ``annotate`` key."""
+    if query is None:
+        return None
+    _, sep, author = str(query.key_expr).partition(recorder_key(keys.RECORDER_ANNOTATE) + "/")
+    return author if sep else None
+
+
 @dataclass
 class _Control:
     action: str
@@ -163,6 +171,9 @@ class RecorderService:
         self._declared = [s.declare_subscriber(e, self._on_sample) for e in self.config.key_exprs]
         for action in (keys.RECORDER_START, keys.RECORDER_STOP, keys.RECORDER_ANNOTATE):
             self._declared.append(s.declare_queryable(recorder_key(action), self._query_handler(action)))
+        # annotate/<author>: the author's own key (client.annotate), which the router binds to its certificate.
+        self._declared.append(s.declare_queryable(recorder_key(f"{keys.RECORDER_ANNOTATE}/*"),
+                                                  self._query_handler(keys.RECORDER_ANNOTATE)))
         self._declared.append(s.declare_queryable(recorder_key(keys.RECORDER_STATUS), self._on_status_query))
         self._worker = Worker("recorder-writer", self._writer_loop, self.stop_event)
         self._worker.start()
@@ -631,6 +642,11 @@ class RecorderService:
             ann = Annotation.decode(item.payload)
         except DecodeError as exc:
             self._refuse(item.query, f"malformed annotation: {exc}")
+            return
+        keyed = _keyed_author(item.query)
+        if keyed is not None and ann.author != keyed:
+            self._refuse(item.query, f"annotation by {ann.author[:64]!r} sent on {keyed!r}'s key: an annotation's author "
+                         "is the one its key names (the router lets only that operator's certificate use it)")
             return
         if rec is None:
             self._refuse(item.query, "no recording in progress: the annotation was not stored")
