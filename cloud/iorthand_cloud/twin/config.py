@@ -94,7 +94,7 @@ class ViewerConfig:
     serve: bool = setting(True, help="serve the web viewer (an operator opens a URL)")
     bind: str = setting("127.0.0.1", help="address the viewer's HTTP and gRPC ports listen on")
     unauthenticated_network: bool = setting(False, help="allow a bind reachable from other machines: the viewer has "
-                                            "no log-in, and its gRPC port takes writes from anyone who reaches it")
+                                            "no log-in (it is read-only: nobody who reaches it writes into it)")
     public_host: str = setting("", help="host name put in the printed URL (default: the bind address)")
     grpc_port: int = setting(9876, lo=0, hi=65535)
     web_port: int = setting(9090, lo=0, hi=65535)
@@ -122,8 +122,8 @@ class ViewerConfig:
             raise ValueError(f"bind {self.bind!r} must be an IP address such as 127.0.0.1 or 0.0.0.0") from None
         if self.enabled and self.serve and not address.is_loopback and not self.unauthenticated_network:
             raise ValueError(f"bind {self.bind} is reachable from other machines, and the rerun viewer has no log-in: "
-                             "anyone who reaches it would see the patient's images and poses, and could write into "
-                             "what every viewer sees. Keep 127.0.0.1 behind an authenticating reverse proxy "
+                             "anyone who reaches it would see the patient's images and poses. Keep 127.0.0.1 behind "
+                             "an authenticating reverse proxy "
                              "(docs/DEPLOY.md), or set viewer.unauthenticated_network: true on a network where "
                              "everyone may")
         if self.serve and self.grpc_port != 0 and self.grpc_port == self.web_port:

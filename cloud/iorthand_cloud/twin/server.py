@@ -4,9 +4,12 @@ Choice (issue 6 §4, FACTS.md): ``rr.serve_grpc`` / ``rr.serve_web_viewer`` alwa
 option to change it, so they cannot honour ``viewer.bind: 127.0.0.1`` (the default: expose the viewer only
 through a reverse proxy or an SSH tunnel). The twin therefore runs rerun's own relay as a child process,
 
-    rerun --serve-web --bind <bind> --port <grpc_port> --web-viewer-port <web_port> --server-memory-limit <limit>
+    rerun --serve-web --bind 127.0.0.1 --port <relay port> --web-viewer-port <relay port> --server-memory-limit <limit>
 
-and streams to it with ``connect_grpc``. One code path for every bind address, and a side benefit: the
+and streams to it with ``connect_grpc``. Browsers reach it only through the viewer's gateway (gateway.py, a child
+process too), on ``bind``'s ``web_port`` and ``grpc_port``: the page, its assets and the viewer's reads pass, and
+nothing that writes (the relay's gRPC port takes writes from anyone who reaches it). One code path for every bind
+address, and a side benefit: the
 relay's buffering and the HTTP serving use another process's CPU and memory, never the twin's (the memory
 limit drops the oldest data; static data — the robot model — is kept). The relay dies with the twin
 (PR_SET_PDEATHSIG) and is terminated on shutdown. The viewer's assets are inside the wheel: no network.
@@ -29,15 +32,18 @@ import re
 import shutil
 import socket
 import subprocess
+import sys
 import threading
 import time
 import urllib.parse
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import rerun as rr
 
 from iorthand.process import die_with_parent
+from iorthand.transport import free_port
 
 from .config import ViewerConfig
 
@@ -85,18 +91,18 @@ def _load_viewer_assets(host: str, web_port: int, timeout: float = 10.0) -> None
                     "the first page load instead", base, exc)
 
 
-def _wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen[bytes]) -> None:
+def _wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen[bytes], what: str) -> None:
     target = "127.0.0.1" if host in ("0.0.0.0", "::") else host
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise RuntimeError(f"the rerun relay exited with code {proc.returncode} (port {port} in use?)")
+            raise RuntimeError(f"{what} exited with code {proc.returncode} (port {port} in use?)")
         try:
             with socket.create_connection((target, port), timeout=0.2):
                 return
         except OSError:
             time.sleep(0.05)
-    raise RuntimeError(f"the rerun relay did not listen on {host}:{port} within {timeout:g} s")
+    raise RuntimeError(f"{what} did not listen on {host}:{port} within {timeout:g} s")
 
 
 class ViewerServer:
@@ -106,7 +112,8 @@ class ViewerServer:
         self.config = config
         self.save = save if save is not None else config.save
         self.log_dir = log_dir
-        self.proc: subprocess.Popen[bytes] | None = None
+        self.proc: subprocess.Popen[bytes] | None = None  # the rerun relay
+        self.gateway: subprocess.Popen[bytes] | None = None  # what browsers reach of it (gateway.py)
         self.url = ""
         self.grpc_url = ""
         self._rec: rr.RecordingStream | None = None
@@ -122,25 +129,32 @@ class ViewerServer:
         sinks: list[object] = []
         if c.serve:
             host = c.public_host or ("127.0.0.1" if c.bind in ("0.0.0.0", "::") else c.bind)
+            # The relay on loopback ports of its own, which only this host reaches; the viewer's ports are the
+            # read-only gateway's (see gateway.py: the relay's gRPC port takes writes from anyone who reaches it).
+            relay_grpc, relay_web = free_port(), free_port()
             argv = [
-                rerun_executable(), "--serve-web", "--bind", c.bind, "--port", str(c.grpc_port),
-                "--web-viewer-port", str(c.web_port), "--server-memory-limit", c.memory_limit,
+                rerun_executable(), "--serve-web", "--bind", "127.0.0.1", "--port", str(relay_grpc),
+                "--web-viewer-port", str(relay_web), "--server-memory-limit", c.memory_limit,
                 "--newest-first",  # a browser that opens the viewer gets now first, then what came before
             ]
-            out = subprocess.DEVNULL
-            if self.log_dir is not None:
-                self.log_dir.mkdir(parents=True, exist_ok=True)
-                out = (self.log_dir / "rerun-relay.log").open("wb")  # type: ignore[assignment]
             env = {**os.environ, "RERUN_ANALYTICS": "0"}
-            self.proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                         preexec_fn=die_with_parent, env=env)
-            _wait_port(c.bind, c.grpc_port, c.relay_start_timeout, self.proc)
-            _wait_port(c.bind, c.web_port, c.relay_start_timeout, self.proc)
-            _load_viewer_assets("127.0.0.1" if c.bind in ("0.0.0.0", "::") else c.bind, c.web_port)
-            self.grpc_url = f"rerun+http://{'127.0.0.1' if c.bind in ('0.0.0.0', '::') else c.bind}:{c.grpc_port}/proxy"
+            self.proc = subprocess.Popen(argv, stdout=self._log("rerun-relay.log"), stderr=subprocess.STDOUT,
+                                         stdin=subprocess.DEVNULL, preexec_fn=die_with_parent, env=env)
+            _wait_port("127.0.0.1", relay_grpc, c.relay_start_timeout, self.proc, "the rerun relay")
+            _wait_port("127.0.0.1", relay_web, c.relay_start_timeout, self.proc, "the rerun relay")
+            _load_viewer_assets("127.0.0.1", relay_web)
+            self.gateway = subprocess.Popen(
+                [sys.executable, "-m", "iorthand_cloud.twin.gateway", "--web", f"{c.bind}:{c.web_port}={relay_web}",
+                 "--data", f"{c.bind}:{c.grpc_port}={relay_grpc}"],
+                stdout=self._log("viewer-gateway.log"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                preexec_fn=die_with_parent)
+            _wait_port(c.bind, c.grpc_port, c.relay_start_timeout, self.gateway, "the viewer's gateway")
+            _wait_port(c.bind, c.web_port, c.relay_start_timeout, self.gateway, "the viewer's gateway")
+            self.grpc_url = f"rerun+http://127.0.0.1:{relay_grpc}/proxy"
             self.url = viewer_url(host, c.grpc_port, c.web_port)
             sinks.append(rr.GrpcSink(self.grpc_url))
-            log.info("rerun web viewer on %s:%d (data %s:%d); open %s", c.bind, c.web_port, c.bind, c.grpc_port, self.url)
+            log.info("rerun web viewer on %s:%d (data %s:%d, read-only); open %s", c.bind, c.web_port, c.bind,
+                     c.grpc_port, self.url)
         if self.save is not None:
             Path(self.save).parent.mkdir(parents=True, exist_ok=True)
             # No footer by default: the FileSink keeps a manifest entry per chunk in memory until it closes (rerun
@@ -183,14 +197,22 @@ class ViewerServer:
                 self._rec.flush(timeout_sec=2.0)
                 self._rec.disconnect()
             self._rec = None
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(2)
-        self.proc = None
+        for proc in (self.gateway, self.proc):
+            if proc is not None and proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.wait(5)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait(2)
+        self.proc = self.gateway = None
+
+    def _log(self, name: str) -> Any:
+        """A child's output: a file in ``log_dir``, or nowhere."""
+        if self.log_dir is None:
+            return subprocess.DEVNULL
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        return (self.log_dir / name).open("wb")
 
 
 __all__ = ["ViewerServer", "rerun_executable", "viewer_url"]
