@@ -118,6 +118,7 @@ session.close()
 """
 
 
+@pytest.mark.serial  # its flooding process takes a CPU from every other test, and its frame count needs the rest
 def test_a_flood_of_video_feedback_does_not_freeze_the_camera(edge_factory, session_factory, router_endpoint) -> None:
     """Found by a red-team run of the edge: viewers' reports as fast as one process can put them (~700 000 a
     second) took the media process to 79 % of a core and froze the camera at 0.5 frames a second of 15, markers
