@@ -222,21 +222,28 @@ def test_the_replay_identity_publishes_only_as_a_replay(lab: Lab, tls_router: st
         replay.close()
 
 
-def test_a_viewer_may_ask_the_recorder_its_status_but_not_stop_or_annotate(lab: Lab, tls_router: str) -> None:
-    """The recorder's queries that change a recording are an operator's: the router drops a viewer's (the
-    generated ACL let viewers query the whole service space before, and a viewer stopped a recording)."""
-    recorder = open_session(lab.client("recorder"))
-    viewer = open_session(lab.client("viewer-eve"))
-    alice = open_session(lab.client("operator-alice"))
+def _recorder_stand_in(recorder: zenoh.Session) -> tuple[zenoh.Queryable, list[str]]:
+    """A queryable on the recorder's whole space, with the recorder's identity: answers every query that the
+    router lets through, and lists their keys."""
     asked: list[str] = []
 
     def answer(q: zenoh.Query) -> None:
         asked.append(str(q.key_expr))
         q.reply(q.key_expr, b"ok")
 
+    qable = recorder.declare_queryable(keys.service_key(keys.RECORDER, "**"), answer)
+    time.sleep(0.3)
+    return qable, asked
+
+
+def test_a_viewer_may_ask_the_recorder_its_status_but_not_stop_or_annotate(lab: Lab, tls_router: str) -> None:
+    """The recorder's queries that change a recording are an operator's: the router drops a viewer's (the
+    generated ACL let viewers query the whole service space before, and a viewer stopped a recording)."""
+    recorder = open_session(lab.client("recorder"))
+    viewer = open_session(lab.client("viewer-eve"))
+    alice = open_session(lab.client("operator-alice"))
     try:
-        qable = recorder.declare_queryable(keys.service_key(keys.RECORDER, "**"), answer)
-        time.sleep(0.3)
+        qable, asked = _recorder_stand_in(recorder)
 
         def replies(session: zenoh.Session, verb: str) -> int:
             return sum(r.ok is not None for r in session.get(keys.service_key(keys.RECORDER, verb), timeout=1.0))
@@ -260,15 +267,8 @@ def test_with_bound_keys_an_operator_annotates_a_recording_only_as_itself(tmp_pa
     router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
     recorder = open_session(lab.client("recorder"))
     alice = open_session(lab.client("operator-alice"))
-    asked: list[str] = []
-
-    def answer(q: zenoh.Query) -> None:
-        asked.append(str(q.key_expr))
-        q.reply(q.key_expr, b"ok")
-
     try:
-        recorder.declare_queryable(keys.service_key(keys.RECORDER, "**"), answer)
-        time.sleep(0.3)
+        _, asked = _recorder_stand_in(recorder)
         verbs = [f"{keys.RECORDER_ANNOTATE}/alice", f"{keys.RECORDER_ANNOTATE}/bob", keys.RECORDER_ANNOTATE,
                  keys.RECORDER_STATUS]
         answered = [sum(r.ok is not None for r in alice.get(keys.service_key(keys.RECORDER, verb), timeout=1.0))
