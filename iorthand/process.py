@@ -11,7 +11,9 @@ import ctypes
 import logging
 import os
 import signal
+import subprocess
 import threading
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +72,17 @@ def die_with_parent(sig: int = signal.SIGTERM) -> None:
     happens, and callers keep their own parent-pid checks. Usable as ``subprocess``'s ``preexec_fn``."""
     with contextlib.suppress(OSError, AttributeError):
         _libc().prctl(_PR_SET_PDEATHSIG, sig)
+
+
+def terminate(proc: subprocess.Popen[Any], timeout: float = 5.0) -> None:
+    """SIGTERM, then SIGKILL after ``timeout``: the child is gone when this returns."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout)
 
 
 def exit_reason(exitcode: int | None, said: str = "") -> str:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import gc
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -20,6 +19,7 @@ import zenoh
 
 from iorthand import keys
 from iorthand.config import from_dict
+from iorthand.process import terminate
 from iorthand.transport import client_config, free_port, open_session, query, router_json5
 
 if TYPE_CHECKING:
@@ -76,15 +76,8 @@ class RouterProcess:
             stop_process(self.proc)
 
 
-def stop_process(proc: subprocess.Popen, timeout: float = 5.0) -> None:
-    """SIGTERM, then SIGKILL after ``timeout``: a process a test started is always gone afterwards."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout)
+# SIGTERM, then SIGKILL: a process a test started is always gone afterwards.
+stop_process = terminate
 
 
 @pytest.fixture

@@ -42,7 +42,7 @@ from typing import Any
 
 import rerun as rr
 
-from iorthand.process import die_with_parent
+from iorthand.process import die_with_parent, terminate
 from iorthand.transport import free_port
 
 from .config import ViewerConfig
@@ -198,13 +198,8 @@ class ViewerServer:
                 self._rec.disconnect()
             self._rec = None
         for proc in (self.gateway, self.proc):
-            if proc is not None and proc.poll() is None:
-                proc.terminate()
-                try:
-                    proc.wait(5)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait(2)
+            if proc is not None:
+                terminate(proc)
         self.proc = self.gateway = None
 
     def _log(self, name: str) -> Any:

@@ -17,7 +17,7 @@ import sys
 import threading
 from typing import Any
 
-from iorthand.process import REALTIME_PRIORITY
+from iorthand.process import REALTIME_PRIORITY, terminate
 
 from .emulator import DEFAULT_CONTROL_PORT
 from .faults import ControlClient
@@ -113,13 +113,7 @@ class EmulatorProcess:
                 self.call("clear_faults")
             self.ctl.close()
             self.ctl = None
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout)
+        terminate(self.proc, timeout)
 
     def __enter__(self) -> EmulatorProcess:
         return self.wait_ready()
