@@ -8,6 +8,7 @@ cannot even connect get a message naming the endpoint, the certificate and the c
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import msgpack
@@ -258,13 +259,21 @@ def test_a_viewer_may_ask_the_recorder_its_status_but_not_stop_or_annotate(lab: 
             s.close()
 
 
-def test_with_bound_keys_an_operator_annotates_a_recording_only_as_itself(tmp_path: Path) -> None:
-    """An annotation's author was a claim in its payload: any operator could annotate a recording in another's name.
-    With bind_operator_keys the router lets operator-alice annotate only on ``_recorder/annotate/alice``, and the
-    recorder stores only the author that key names (test_recorder)."""
+@pytest.fixture
+def bound_lab(tmp_path: Path) -> Iterator[Lab]:
+    """A deployment with bind_operator_keys (alice and bob granted sim1), its router running."""
     lab = make_lab(tmp_path, free_port(), robots=["sim1"], operators={"alice": ["sim1"], "bob": ["sim1"]},
                    bind_operator_keys=True)
     router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
+    yield lab
+    router.close()
+
+
+def test_with_bound_keys_an_operator_annotates_a_recording_only_as_itself(bound_lab: Lab) -> None:
+    """An annotation's author was a claim in its payload: any operator could annotate a recording in another's name.
+    With bind_operator_keys the router lets operator-alice annotate only on ``_recorder/annotate/alice``, and the
+    recorder stores only the author that key names (test_recorder)."""
+    lab = bound_lab
     recorder = open_session(lab.client("recorder"))
     alice = open_session(lab.client("operator-alice"))
     try:
@@ -276,17 +285,15 @@ def test_with_bound_keys_an_operator_annotates_a_recording_only_as_itself(tmp_pa
         assert answered == [1, 0, 0, 1], dict(zip(verbs, answered, strict=True))
         assert asked == ["iorthand/_recorder/annotate/alice", "iorthand/_recorder/status"]
     finally:
-        for s in (alice, recorder, router):
+        for s in (alice, recorder):
             s.close()
 
 
-def test_bind_operator_keys_acl(tmp_path: Path) -> None:
+def test_bind_operator_keys_acl(bound_lab: Lab) -> None:
     """With identity-scoped keys, alice may publish only on cmd/<kind>/alice: a twist in bob's name on
     cmd/twist/bob (or on the plain key) never reaches the edge. A stop is everyone's: on the plain cmd/stop, or
     on cmd/stop/alice, which tells the edge who sent it."""
-    lab = make_lab(tmp_path, free_port(), robots=["sim1"], operators={"alice": ["sim1"], "bob": ["sim1"]},
-                   bind_operator_keys=True)
-    router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
+    lab = bound_lab
     edge = open_session(lab.client("edge-sim1"))
     alice = open_session(lab.client("operator-alice"))
     try:
@@ -301,7 +308,7 @@ def test_bind_operator_keys_acl(tmp_path: Path) -> None:
         time.sleep(0.2)
         assert sorted(got) == ["iorthand/sim1/cmd/stop", "iorthand/sim1/cmd/stop/alice", "iorthand/sim1/cmd/twist/alice"]
     finally:
-        for s in (alice, edge, router):
+        for s in (alice, edge):
             s.close()
 
 
