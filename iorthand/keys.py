@@ -139,6 +139,17 @@ def all_replays(suffix: str) -> str:
 ALL_COMMANDS = f"{ROOT}/*/{channels.COMMANDS}/**"
 
 
+def channel_suffix(suffix: str) -> str:
+    """The row of the table of channels a key suffix is on: an operator's own key (``cmd/twist/<operator>``, with
+    bind_operator_keys) is on its channel's row (``cmd/twist``); any other suffix is its own."""
+    parent, sep, operator = suffix.rpartition("/")
+    channel = channels.BY_SUFFIX.get(parent) if sep and suffix not in channels.BY_SUFFIX else None
+    if channel is not None and channel.operator_key is not channels.OperatorKey.NONE \
+            and OPERATOR_ID_PATTERN.match(operator):
+        return parent
+    return suffix
+
+
 def is_command_key(key: str) -> bool:
     """True for an operator → robot command key (``iorthand/<robot>/cmd/...``)."""
     try:

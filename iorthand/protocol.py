@@ -965,9 +965,10 @@ MESSAGES_BY_KEY: dict[str, type[Message]] = messages_by_key()
 
 
 def message_type_for(key: str) -> type[Message] | None:
-    """The message class of a robot key (``iorthand/<robot>/<suffix>``), or None if it has none."""
+    """The message class of a robot key (``iorthand/<robot>/<suffix>``, an operator's own key included:
+    ``.../cmd/twist/<operator>``), or None if it has none."""
     try:
         _, suffix = keys.split_key(key)
     except keys.KeyExprError:
         return None
-    return MESSAGES_BY_KEY.get(suffix)
+    return MESSAGES_BY_KEY.get(keys.channel_suffix(suffix))

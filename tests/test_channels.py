@@ -39,6 +39,11 @@ def test_decoders_and_qos_are_the_tables() -> None:
     k = keys.RobotKeys("r1")
     assert protocol.message_type_for(k.key(keys.VIDEO_ULTRASOUND)) is protocol.VideoFrame
     assert protocol.message_type_for(k.key(keys.CONTROL_ACQUIRE)) is None  # queries are not recorded streams
+    # An operator's own key (bind_operator_keys) carries its channel's message; no other key gains a type.
+    assert protocol.message_type_for(k.key(f"{keys.CMD_TWIST}/alice")) is protocol.TwistCommand
+    assert protocol.message_type_for(k.key(f"{keys.CMD_STOP}/bob")) is protocol.StopCommand
+    for suffix in (f"{keys.STATE_ROBOT}/alice", f"{keys.CMD_TWIST}/alice/x", f"{keys.CMD_TWIST}/no one"):
+        assert protocol.message_type_for(f"{keys.ROOT}/r1/{suffix}") is None, suffix
 
 
 def _dep(bind: bool) -> acl.Deployment:

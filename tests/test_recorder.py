@@ -123,6 +123,33 @@ def test_records_messages_with_times_sequence_and_gaps(recorder_factory, session
     assert "2 missing by sequence (1 gaps; on state/force 2)" in (tmp_path / "report" / "report.md").read_text()
 
 
+def test_commands_on_an_operators_own_key_are_recorded_typed_and_counted_by_the_report(
+        recorder_factory, session_factory, tmp_path: Path) -> None:
+    """With bind_operator_keys (DEPLOY.md's default) an operator commands on ``cmd/twist/<operator>``: the recorder
+    stored those commands untyped (raw bytes, no schema) and the report counted none, so a secured deployment's
+    report had no teleoperation time from the commands (it fell back to the session's span)."""
+    svc = recorder_factory()
+    s = session_factory()
+    pub = s.declare_publisher(keys.RobotKeys("sim1").key(f"{keys.CMD_TWIST}/alice"))
+    time.sleep(0.3)
+    assert client.start(s, session_id="bound").ok
+    for seq in range(1, 41):  # 0.4 s of held deadman at 100 Hz, then 10 released
+        cmd = TwistCommand(operator="alice", linear=[0.01, 0.0, 0.0], deadman=seq <= 30).stamp(seq)
+        pub.put(cmd.encode())
+        time.sleep(0.01)
+    wait_until(lambda: svc.status.messages >= 40, message="40 commands recorded")
+    assert client.stop(s).ok
+    folder = tmp_path / "rec" / "bound"
+    with (folder / "telemetry-0001.mcap").open("rb") as f:
+        summary = make_reader(f).get_summary()
+        assert summary is not None
+        assert {sc.name for sc in summary.schemas.values()} >= {"TwistCommand"}
+    data = build_report(folder, ReportConfig(plots=False), tmp_path / "report")
+    figures = data["robots"]["sim1"]
+    assert figures["commands"] == 40 and figures["malformed"] == 0, figures
+    assert 0.2 < figures["index"]["t_t"] < 0.45, figures["index"]  # the 30 held commands, not the session
+
+
 def test_where_messages_went_missing_most_first() -> None:
     lost = {"iorthand/a/state/force": 2, "iorthand/a/video/camera": 5, "iorthand/a/markers": 1, "iorthand/a/state/robot": 3}
     assert missing_where(lost) == "video/camera 5, state/robot 3, state/force 2 and 1 more keys"

@@ -96,6 +96,7 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
             robot, suffix = keys.split_key(rec.key)
         except keys.KeyExprError:
             continue
+        suffix = keys.channel_suffix(suffix)  # an operator's own command key (bind_operator_keys) is its channel's
         if not keys.is_robot_id(robot):
             foreign += 1
             continue
