@@ -11,6 +11,8 @@ from urllib.parse import urlsplit
 from iorthand.config import setting
 from iorthand.transport import ZenohConfig
 
+_LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+
 
 @dataclass
 class WebTls:
@@ -67,7 +69,7 @@ class WebConfig:
         names = {host, *certificate_names, *self.server_names}
         names.update(urlsplit(origin).hostname or "" for origin in self.allowed_origins)
         if _loopback(host):
-            names.update(LOOPBACK_NAMES)
+            names.update(_LOOPBACK_NAMES)
         return frozenset(n.strip("[]").lower() for n in names if n)
 
     def check(self) -> None:
@@ -83,9 +85,6 @@ class WebConfig:
         for origin in self.allowed_origins:
             if not origin.startswith(("https://", "http://")) or origin.endswith("/"):
                 raise ValueError(f"allowed_origins: {origin!r} is not an origin like https://host[:port]")
-
-
-LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
 
 def host_allowed(host_header: str, names: frozenset[str]) -> bool:
@@ -112,4 +111,4 @@ def _loopback(host: str) -> bool:
         return False
 
 
-__all__ = ["LOOPBACK_NAMES", "WebConfig", "WebTls", "host_allowed"]
+__all__ = ["WebConfig", "WebTls", "host_allowed"]
