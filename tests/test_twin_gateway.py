@@ -21,7 +21,7 @@ from iorthand.config import from_dict
 from iorthand.transport import free_port
 from iorthand_cloud.twin.config import ViewerConfig
 from iorthand_cloud.twin.gateway import data_allowed
-from iorthand_cloud.twin.server import ViewerServer
+from iorthand_cloud.twin.server import ViewerServer, viewer_hosts
 
 SERVICE = "/rerun.sdk_comms.v1alpha1.MessageProxyService"
 EMPTY_GRPC_WEB_MESSAGE = b"\x00\x00\x00\x00\x00"  # one uncompressed, empty protobuf message
@@ -78,6 +78,32 @@ def test_the_viewer_reads_through_its_gateway_and_nothing_writes(viewer: ViewerS
                          f"http://127.0.0.1:{c.grpc_port}{SERVICE}/WriteMessages"],
                         input=EMPTY_GRPC_WEB_MESSAGE, capture_output=True, timeout=10)
     assert not h2.stdout.decode().endswith(" 2"), f"an HTTP/2 write was answered: {h2.stdout!r}"
+
+
+def test_a_page_of_another_host_name_gets_nothing_from_the_viewer(viewer: ViewerServer) -> None:
+    """DNS rebinding: a page at evil.example, its name made to resolve to the viewer's address, is the viewer's own
+    origin under that name and could read the patient's images from a browser that reaches the viewer. Requests
+    naming a host the viewer is not are refused (421); the viewer's own names still answer."""
+    c = viewer.config
+    for port, path in ((c.web_port, "/"), (c.grpc_port, f"{SERVICE}/ReadMessages")):
+        req = urllib.request.Request(f"http://127.0.0.1:{port}{path}", headers={"Host": f"evil.example:{port}"},
+                                     data=EMPTY_GRPC_WEB_MESSAGE if port == c.grpc_port else None)
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(req, timeout=5)
+        assert refused.value.code == 421 and b"does not answer to host" in refused.value.read()
+    with urllib.request.urlopen(f"http://localhost:{c.web_port}/", timeout=10) as r:
+        assert r.status == 200
+
+
+def test_the_viewer_answers_to_its_own_names() -> None:
+    def hosts(**viewer: object) -> list[str]:
+        return viewer_hosts(from_dict(viewer, ViewerConfig, source="<test>"))
+
+    assert set(hosts(bind="127.0.0.1")) == {"127.0.0.1", "localhost", "::1"}
+    assert set(hosts(bind="127.0.0.1", public_host="twin.example.org")) == {"twin.example.org", "127.0.0.1",
+                                                                           "localhost", "::1"}
+    assert hosts(bind="0.0.0.0", unauthenticated_network=True, public_host="twin.lan") == ["twin.lan"]
+    assert hosts(bind="0.0.0.0", unauthenticated_network=True) == []  # the machine's addresses are not known
 
 
 def test_only_the_read_methods_pass() -> None:

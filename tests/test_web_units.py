@@ -8,8 +8,9 @@ import re
 import pytest
 
 from iorthand.security.acl import Deployment
+from iorthand.security.hosts import host_allowed
 from iorthand_operator.web import messages, users
-from iorthand_operator.web.config import WebConfig, host_allowed
+from iorthand_operator.web.config import WebConfig
 
 
 def test_grants_follow_the_deployment_as_the_routers_acl_does() -> None:

@@ -11,8 +11,11 @@ the public ports:
   streamed through as they come. Any other method, path or protocol is refused (403 with the reason; HTTP/2,
   how a native gRPC client writes, is not spoken here at all).
 
+Both refuse (421) a request that names a host the viewer is not (``--hosts``): a DNS-rebinding page would
+otherwise be the viewer's own origin and read the patient's images from a browser that reaches the viewer.
+
 Run by :class:`iorthand_cloud.twin.server.ViewerServer`: ``python -m iorthand_cloud.twin.gateway --web
-HOST:PORT=UPSTREAM_PORT --data HOST:PORT=UPSTREAM_PORT``, the upstream ports on 127.0.0.1.
+HOST:PORT=UPSTREAM_PORT --data HOST:PORT=UPSTREAM_PORT --hosts NAME,...``, the upstream ports on 127.0.0.1.
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ import sys
 from collections.abc import Callable, Iterable
 
 from aiohttp import ClientSession, ClientTimeout, web
+
+from iorthand.security.hosts import host_allowed, normalise
 
 log = logging.getLogger("iorthand.twin.gateway")
 
@@ -53,8 +58,10 @@ def web_allowed(method: str, path: str) -> bool:
     return method in ("GET", "HEAD")
 
 
-def make_app(upstream_port: int, allowed: Callable[[str, str], bool]) -> web.Application:
-    """A proxy to ``127.0.0.1:upstream_port`` of what ``allowed(method, path)`` lets through."""
+def make_app(upstream_port: int, allowed: Callable[[str, str], bool], hosts: frozenset[str] | None = None
+             ) -> web.Application:
+    """A proxy to ``127.0.0.1:upstream_port`` of what ``allowed(method, path)`` lets through, for requests that name
+    one of ``hosts`` (None: any; see :mod:`iorthand.security.hosts`)."""
     app = web.Application(client_max_size=MAX_REQUEST_BYTES)
 
     async def start_client(app: web.Application) -> None:
@@ -65,6 +72,10 @@ def make_app(upstream_port: int, allowed: Callable[[str, str], bool]) -> web.App
         await app["client"].close()
 
     async def forward(request: web.Request) -> web.StreamResponse:
+        if hosts is not None and not host_allowed(request.host, hosts):
+            log.warning("refused a request for host %r from %s", request.host[:80], request.remote)
+            raise web.HTTPMisdirectedRequest(text=f"the twin's viewer does not answer to host {request.host[:80]!r}: "
+                                             "open it by its own name (viewer.public_host)")
         if not allowed(request.method, request.path):
             log.warning("refused %s %s from %s", request.method, request.path[:120], request.remote)
             raise web.HTTPForbidden(text=f"{READ_ONLY}; {request.method} {request.path[:120]} is not one")
@@ -117,7 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m iorthand_cloud.twin.gateway", description=__doc__.split("\n")[0])
     parser.add_argument("--web", required=True, help="HOST:PORT=UPSTREAM_PORT of the viewer's page and assets")
     parser.add_argument("--data", required=True, help="HOST:PORT=UPSTREAM_PORT of the viewer's data (gRPC-Web)")
+    parser.add_argument("--hosts", default="", help="comma-separated names requests may name (default: any)")
     args = parser.parse_args(argv)
+    hosts = normalise(args.hosts.split(",")) if args.hosts else None
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         (web_host, web_port, web_up), (data_host, data_port, data_up) = _site(args.web), _site(args.data)
@@ -129,8 +142,8 @@ def main(argv: list[str] | None = None) -> int:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
-        await serve([(web_host, web_port, make_app(web_up, web_allowed)),
-                     (data_host, data_port, make_app(data_up, data_allowed))], stop)
+        await serve([(web_host, web_port, make_app(web_up, web_allowed, hosts)),
+                     (data_host, data_port, make_app(data_up, data_allowed, hosts))], stop)
 
     try:
         asyncio.run(run())

@@ -26,6 +26,7 @@ file closes, which grew the twin by ~10 MB a minute (+200 MB by the 500 MB cap) 
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import logging
 import os
 import re
@@ -43,6 +44,7 @@ from typing import Any
 import rerun as rr
 
 from iorthand.process import die_with_parent, terminate
+from iorthand.security.hosts import LOOPBACK_NAMES
 from iorthand.transport import free_port
 
 from .config import ViewerConfig
@@ -73,6 +75,21 @@ def viewer_url(host: str, grpc_port: int, web_port: int) -> str:
     """The URL to open in a browser: the web viewer, told where its data (the gRPC proxy) is."""
     data = f"rerun+http://{host}:{grpc_port}/proxy"
     return f"http://{host}:{web_port}/?url={urllib.parse.quote(data, safe='')}"
+
+
+def viewer_hosts(c: ViewerConfig) -> list[str]:
+    """The names the viewer's gateway answers to: its bind address, ``public_host``, and the loopback names on a
+    loopback bind. Empty (any name) on a wildcard bind without a ``public_host``: there the machine's own addresses,
+    which browsers may use, are not known here."""
+    wildcard = c.bind in ("0.0.0.0", "::")
+    if wildcard and not c.public_host:
+        return []
+    names = [c.public_host] if c.public_host else []
+    if not wildcard:
+        names.append(c.bind)
+        if ipaddress.ip_address(c.bind).is_loopback:
+            names += LOOPBACK_NAMES
+    return names
 
 
 def _load_viewer_assets(host: str, web_port: int, timeout: float = 10.0) -> None:
@@ -143,9 +160,10 @@ class ViewerServer:
             _wait_port("127.0.0.1", relay_grpc, c.relay_start_timeout, self.proc, "the rerun relay")
             _wait_port("127.0.0.1", relay_web, c.relay_start_timeout, self.proc, "the rerun relay")
             _load_viewer_assets("127.0.0.1", relay_web)
+            hosts = viewer_hosts(c)
             self.gateway = subprocess.Popen(
                 [sys.executable, "-m", "iorthand_cloud.twin.gateway", "--web", f"{c.bind}:{c.web_port}={relay_web}",
-                 "--data", f"{c.bind}:{c.grpc_port}={relay_grpc}"],
+                 "--data", f"{c.bind}:{c.grpc_port}={relay_grpc}", *(["--hosts", ",".join(hosts)] if hosts else [])],
                 stdout=self._log("viewer-gateway.log"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                 preexec_fn=die_with_parent)
             _wait_port(c.bind, c.grpc_port, c.relay_start_timeout, self.gateway, "the viewer's gateway")
@@ -210,4 +228,4 @@ class ViewerServer:
         return (self.log_dir / name).open("wb")
 
 
-__all__ = ["ViewerServer", "rerun_executable", "viewer_url"]
+__all__ = ["ViewerServer", "rerun_executable", "viewer_hosts", "viewer_url"]

@@ -9,9 +9,8 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from iorthand.config import setting
+from iorthand.security.hosts import LOOPBACK_NAMES, normalise
 from iorthand.transport import ZenohConfig
-
-_LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
 
 @dataclass
@@ -69,8 +68,8 @@ class WebConfig:
         names = {host, *certificate_names, *self.server_names}
         names.update(urlsplit(origin).hostname or "" for origin in self.allowed_origins)
         if _loopback(host):
-            names.update(_LOOPBACK_NAMES)
-        return frozenset(n.strip("[]").lower() for n in names if n)
+            names.update(LOOPBACK_NAMES)
+        return normalise(names)
 
     def check(self) -> None:
         host, _ = self.host_port()
@@ -87,21 +86,6 @@ class WebConfig:
                 raise ValueError(f"allowed_origins: {origin!r} is not an origin like https://host[:port]")
 
 
-def host_allowed(host_header: str, names: frozenset[str]) -> bool:
-    """Whether a request's Host header names one of ``names`` (any port: a relay or a NAT may change it). A
-    certificate's wildcard ``*.example.org`` covers one label, as for a browser."""
-    try:
-        host = (urlsplit(f"//{host_header}").hostname or "").rstrip(".")
-    except ValueError:  # a malformed header (an unclosed bracket, a bad port)
-        return False
-    if not host:
-        return False
-    if host in names:
-        return True
-    label, dot, parent = host.partition(".")
-    return bool(label and dot and f"*.{parent}" in names)
-
-
 def _loopback(host: str) -> bool:
     if host == "localhost":
         return True
@@ -111,4 +95,4 @@ def _loopback(host: str) -> bool:
         return False
 
 
-__all__ = ["WebConfig", "WebTls", "host_allowed"]
+__all__ = ["WebConfig", "WebTls"]

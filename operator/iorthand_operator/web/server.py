@@ -47,13 +47,14 @@ from iorthand.config import read_yaml
 from iorthand.protocol import DecodeError, Sequencer, StopCommand, VideoFeedback, VideoFrame
 from iorthand.security.acl import Deployment
 from iorthand.security.certs import load_certificate, subject_alt_names
+from iorthand.security.hosts import host_allowed
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
 from iorthand_operator import recovery
 from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient
 from iorthand_operator.console.model import force_view, vitals_line
 from iorthand_operator.link import GRADE_COLOURS, LinkThresholds
 from iorthand_operator.web import messages, users
-from iorthand_operator.web.config import WebConfig, host_allowed
+from iorthand_operator.web.config import WebConfig
 
 log = logging.getLogger("iorthand.web")
 
