@@ -28,7 +28,7 @@ from iorthand_cloud.recorder.repair import has_footer
 from iorthand_cloud.recorder.replay import Replayer
 from iorthand_cloud.recorder.report import build_report
 from iorthand_cloud.recorder.service import RecorderService
-from iorthand_cloud.recorder.simulate import SyntheticSession, expected_events
+from iorthand_cloud.recorder.simulate import RATES, SyntheticSession, expected_events
 from tests.conftest import wait_until
 from tests.test_recorder import recorder_config
 
@@ -72,6 +72,13 @@ def test_no_gaps_and_report_matches_the_script(recorded) -> None:
     assert r["deadman_stops"] == ev["deadman_stops"]
     assert r["refusals"].get("deadman_released", 0) > 0
     assert r["command_latency_ms"]["count"] > 0
+    # The age of the operator's picture, on the edge's clock alone: every command that names a state (the script's
+    # first may come before its first state) joined with its echo, and at the median no older than the script's
+    # state period (125 Hz) plus the time to send the command.
+    view = r["view_age_ms"]
+    assert r["command_latency_ms"]["count"] - 1 <= view["count"] <= r["command_latency_ms"]["count"], view
+    assert 0.0 <= view["p50"] < 1000.0 / RATES[keys.STATE_ROBOT] + 5.0, view
+    assert "age of the operator's picture" in (folder / "report" / "report.md").read_text()
     out = folder / "report"
     assert {"report.md", "report.json", "force_sim1.png", "trajectory_sim1.png"} <= {p.name for p in out.iterdir()}
     assert json.loads((out / "report.json").read_text())["annotations"][0]["text"] == "end of script"

@@ -50,7 +50,12 @@ class RobotSeries:
     force: list[tuple[float, float]] = field(default_factory=list)  # (t s, value N)
     levels: list[tuple[float, int, bool]] = field(default_factory=list)
     commands: list[tuple[float, bool]] = field(default_factory=list)  # (t, deadman)
-    latency_ms: list[float] = field(default_factory=list)  # operator send → edge receive
+    latency_ms: list[float] = field(default_factory=list)  # operator send → edge receive (two clocks)
+    # Edge receive − the edge's stamp of the state the operator saw (TwistCommand.view_t): both on the edge's clock,
+    # the whole loop (state out, the operator's screen, command back), whatever the clocks' skew.
+    view_age_ms: list[float] = field(default_factory=list)
+    view_t: dict[tuple[str, int], int] = field(default_factory=dict)  # (operator, seq) → view_t: see settle
+    echo_recv: dict[tuple[str, int], int] = field(default_factory=dict)  # (operator, command seq) → edge receive
     refusals: Counter[str] = field(default_factory=Counter)
     applied: int = 0
     safety: list[tuple[float, str]] = field(default_factory=list)
@@ -64,7 +69,13 @@ class RobotSeries:
         self.timed.append((series, entry, t_ns - recv_ns))
 
     def settle(self) -> None:
-        """Each message into its series, unless its source time strays from the robot's usual offset."""
+        """Each message into its series, unless its source time strays from the robot's usual offset; each
+        command's picture age from its echo (a command and its echo arrive at the recorder in either order)."""
+        for key, view_t in self.view_t.items():
+            recv_t = self.echo_recv.get(key, 0)
+            if recv_t >= view_t:
+                self.view_age_ms.append((recv_t - view_t) / 1e6)
+        self.view_t, self.echo_recv = {}, {}
         if self.timed:
             usual = statistics.median_low(offset for _, _, offset in self.timed)
             for series, entry, offset in self.timed:
@@ -114,11 +125,15 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
             elif suffix == keys.CMD_TWIST:
                 c = TwistCommand.decode(rec.data)
                 s.add(s.commands, (c.t / 1e9, c.deadman), c.t, rec.log_time)
+                if c.view_t:
+                    s.view_t[(c.operator, c.seq)] = c.view_t
             elif suffix == keys.STATE_APPLIED:
                 ap = AppliedCommand.decode(rec.data)
                 s.applied += 1
                 if ap.recv_t and ap.cmd_t:
                     s.latency_ms.append((ap.recv_t - ap.cmd_t) / 1e6)
+                if ap.recv_t:
+                    s.echo_recv[(ap.operator, ap.cmd_seq)] = ap.recv_t
                 if not ap.accepted:
                     s.refusals[ap.status] += 1
             elif suffix == keys.STATE_SAFETY:
@@ -147,7 +162,8 @@ def robot_figures(s: RobotSeries, cfg: ReportConfig, session_span: float) -> dic
         "index": index.as_dict(),
         "levels_source": keys.STATE_FORCE_LEVEL if s.levels else f"{keys.STATE_FORCE} thresholds",
         "warning_edges": [{"t": t, "level": lv} for t, lv in edges],
-        "command_latency_ms": {k: v if k == "count" else _num(v) for k, v in stats.summary(s.latency_ms).items()},
+        "command_latency_ms": _summary(s.latency_ms),
+        "view_age_ms": _summary(s.view_age_ms),
         "commands": len(s.commands),
         "applied": s.applied,
         "refusals": dict(s.refusals),
@@ -157,6 +173,10 @@ def robot_figures(s: RobotSeries, cfg: ReportConfig, session_span: float) -> dic
         "malformed": s.malformed,
         "implausible_time": s.implausible_time,
     }
+
+
+def _summary(values: list[float]) -> dict[str, Any]:
+    return {k: v if k == "count" else _num(v) for k, v in stats.summary(values).items()}
 
 
 def _num(v: float) -> float | None:
@@ -298,7 +318,7 @@ def render_markdown(data: dict[str, Any]) -> str:
     ]
     for robot, r in data["robots"].items():
         ix = r["index"]
-        lat = r["command_latency_ms"]
+        lat, view = r["command_latency_ms"], r["view_age_ms"]
         lines += [
             f"## Robot {md_text(robot)}",
             "",
@@ -312,8 +332,10 @@ def render_markdown(data: dict[str, Any]) -> str:
             f"| Ω = 4·ω_R + ω_Y | {ix['Omega']} |",
             f"| **performance index φ = α·ψ − β·Ω/(1−ψ)** (α = {ix['alpha']}, β = {ix['beta']}) | "
             f"**{_fmt(ix['phi'])} %** |",
-            f"| command latency (operator → edge) p50 / p90 / p99 | {_fmt(lat['p50'])} / {_fmt(lat['p90'])} / "
-            f"{_fmt(lat['p99'])} ms ({lat['count']} commands) |",
+            f"| command latency (operator → edge; two clocks) p50 / p90 / p99 | {_fmt(lat['p50'])} / "
+            f"{_fmt(lat['p90'])} / {_fmt(lat['p99'])} ms ({lat['count']} commands) |",
+            f"| age of the operator's picture when the edge got the command (the edge's clock) p50 / p90 / p99 | "
+            f"{_fmt(view['p50'])} / {_fmt(view['p90'])} / {_fmt(view['p99'])} ms ({view['count']} commands) |",
             f"| deadman stops | {r['deadman_stops']} |",
             f"| refusals | {r['refusals_total']} {md_text(r['refusals']) if r['refusals'] else ''} |",
             f"| malformed messages | {r['malformed']} |",

@@ -148,6 +148,7 @@ class SyntheticSession:
         self._seq: dict[str, Sequencer] = {}
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._level = 0
+        self._state_t = 0  # the newest robot state's stamp (ns)
         self._t0 = 0.0
         self._jpegs = make_jpegs() if self.rates.get(keys.VIDEO_CAMERA) else []
         suffixes = [*self.rates, keys.STATE_APPLIED]
@@ -212,9 +213,10 @@ class SyntheticSession:
         a = 0.3 * t
         pose = [0.3 + 0.05 * math.cos(a), 0.05 * math.sin(a), 0.2, math.pi, 0.0, 0.0]
         speed = [-0.015 * math.sin(a), 0.015 * math.cos(a), 0.0, 0.0, 0.0, 0.0]
-        self._put(keys.STATE_ROBOT, lambda seq: RobotState(
-            tcp_pose=pose, tcp_speed=speed, q=[0.0, -1.57, 1.57, -1.57, -1.57, 0.0], commanded=speed,
-            mode="sim", robot_time=t).stamp(seq).encode())
+        state = RobotState(tcp_pose=pose, tcp_speed=speed, q=[0.0, -1.57, 1.57, -1.57, -1.57, 0.0], commanded=speed,
+                           mode="sim", robot_time=t)
+        self._put(keys.STATE_ROBOT, lambda seq: state.stamp(seq).encode())
+        self._state_t = state.t  # what the operator's screen shows next (TwistCommand.view_t)
 
     def _force(self, t: float) -> None:
         f = force_at(t)
@@ -238,7 +240,8 @@ class SyntheticSession:
     def _twist(self, t: float) -> None:
         deadman = not in_deadman_window(t)
         lin = [0.005, 0.0, 0.0] if deadman else [0.0, 0.0, 0.0]
-        cmd = TwistCommand(operator=self.operator, linear=lin, deadman=deadman).stamp(self._seq[keys.CMD_TWIST].next())
+        cmd = TwistCommand(operator=self.operator, linear=lin, deadman=deadman, view_t=self._state_t
+                           ).stamp(self._seq[keys.CMD_TWIST].next())
         self._pubs[keys.CMD_TWIST].put(cmd.encode())
         self.stats.published[keys.CMD_TWIST] = self.stats.published.get(keys.CMD_TWIST, 0) + 1
         self.stats.last_seq[keys.CMD_TWIST] = cmd.seq
