@@ -96,14 +96,14 @@ def test_a_page_of_another_host_name_gets_nothing_from_the_viewer(viewer: Viewer
 
 
 def test_the_viewer_answers_to_its_own_names() -> None:
-    def hosts(**viewer: object) -> list[str]:
+    def hosts(**viewer: object) -> frozenset[str]:
         return viewer_hosts(from_dict(viewer, ViewerConfig, source="<test>"))
 
-    assert set(hosts(bind="127.0.0.1")) == {"127.0.0.1", "localhost", "::1"}
-    assert set(hosts(bind="127.0.0.1", public_host="twin.example.org")) == {"twin.example.org", "127.0.0.1",
-                                                                           "localhost", "::1"}
-    assert hosts(bind="0.0.0.0", unauthenticated_network=True, public_host="twin.lan") == ["twin.lan"]
-    assert hosts(bind="0.0.0.0", unauthenticated_network=True) == []  # the machine's addresses are not known
+    assert hosts(bind="127.0.0.1") == {"127.0.0.1", "localhost", "::1"}
+    assert hosts(bind="127.0.0.1", public_host="twin.example.org") == {"twin.example.org", "127.0.0.1", "localhost",
+                                                                      "::1"}
+    assert hosts(bind="0.0.0.0", unauthenticated_network=True, public_host="twin.lan") == {"twin.lan"}
+    assert hosts(bind="0.0.0.0", unauthenticated_network=True) == set()  # the machine's addresses are not known
 
 
 def test_only_the_read_methods_pass() -> None:

@@ -7,10 +7,33 @@ closes that. Pure functions: the web console and the twin's viewer gateway use t
 
 from __future__ import annotations
 
+import ipaddress
 from collections.abc import Iterable
 from urllib.parse import urlsplit
 
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
+WILDCARDS = ("0.0.0.0", "::")  # listen addresses that name no host: every address of the machine
+
+
+def is_loopback(host: str) -> bool:
+    """Whether a listen address (or ``localhost``) is this machine's loopback."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def own_names(listen_host: str, others: Iterable[str] = ()) -> frozenset[str]:
+    """The names a server listening on ``listen_host`` answers to: that address (unless a wildcard), ``others``,
+    and the loopback names when it listens on loopback (normalised for :func:`host_allowed`)."""
+    names = [*others]
+    if listen_host not in WILDCARDS:
+        names.append(listen_host)
+    if is_loopback(listen_host):
+        names += LOOPBACK_NAMES
+    return normalise(names)
 
 
 def normalise(names: Iterable[str]) -> frozenset[str]:
@@ -33,4 +56,4 @@ def host_allowed(host_header: str, names: frozenset[str]) -> bool:
     return bool(label and dot and f"*.{parent}" in names)
 
 
-__all__ = ["LOOPBACK_NAMES", "host_allowed", "normalise"]
+__all__ = ["LOOPBACK_NAMES", "WILDCARDS", "host_allowed", "is_loopback", "normalise", "own_names"]

@@ -17,6 +17,7 @@ from pathlib import Path
 from iorthand import keys
 from iorthand.config import ConfigError, cli_number, from_dict, load
 from iorthand.security.certs import CertError, common_name, load_certificate
+from iorthand.security.identity import operator_from_common_name
 from iorthand.transport import ZenohConfig, client_config, open_session
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
 from iorthand_cloud.recorder.reader import SegmentError
@@ -80,7 +81,7 @@ def _certificate_operator(cfg: ZenohConfig) -> str:
         name = common_name(load_certificate(Path(cfg.tls.certificate)))
     except CertError:
         return ""  # the session's own start-up says what is wrong with it
-    return name.removeprefix("operator-") if name.startswith("operator-") else ""
+    return operator_from_common_name(name) or ""
 
 
 def _cmd_annotate(args: argparse.Namespace) -> int:

@@ -26,7 +26,6 @@ file closes, which grew the twin by ~10 MB a minute (+200 MB by the 500 MB cap) 
 from __future__ import annotations
 
 import contextlib
-import ipaddress
 import logging
 import os
 import re
@@ -44,7 +43,7 @@ from typing import Any
 import rerun as rr
 
 from iorthand.process import die_with_parent, terminate
-from iorthand.security.hosts import LOOPBACK_NAMES
+from iorthand.security.hosts import WILDCARDS, own_names
 from iorthand.transport import free_port
 
 from .config import ViewerConfig
@@ -77,19 +76,13 @@ def viewer_url(host: str, grpc_port: int, web_port: int) -> str:
     return f"http://{host}:{web_port}/?url={urllib.parse.quote(data, safe='')}"
 
 
-def viewer_hosts(c: ViewerConfig) -> list[str]:
+def viewer_hosts(c: ViewerConfig) -> frozenset[str]:
     """The names the viewer's gateway answers to: its bind address, ``public_host``, and the loopback names on a
     loopback bind. Empty (any name) on a wildcard bind without a ``public_host``: there the machine's own addresses,
     which browsers may use, are not known here."""
-    wildcard = c.bind in ("0.0.0.0", "::")
-    if wildcard and not c.public_host:
-        return []
-    names = [c.public_host] if c.public_host else []
-    if not wildcard:
-        names.append(c.bind)
-        if ipaddress.ip_address(c.bind).is_loopback:
-            names += LOOPBACK_NAMES
-    return names
+    if c.bind in WILDCARDS and not c.public_host:
+        return frozenset()
+    return own_names(c.bind, [c.public_host])
 
 
 def _load_viewer_assets(host: str, web_port: int, timeout: float = 10.0) -> None:
@@ -109,7 +102,7 @@ def _load_viewer_assets(host: str, web_port: int, timeout: float = 10.0) -> None
 
 
 def _wait_port(host: str, port: int, timeout: float, proc: subprocess.Popen[bytes], what: str) -> None:
-    target = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    target = "127.0.0.1" if host in WILDCARDS else host
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -145,7 +138,7 @@ class ViewerServer:
         c = self.config
         sinks: list[object] = []
         if c.serve:
-            host = c.public_host or ("127.0.0.1" if c.bind in ("0.0.0.0", "::") else c.bind)
+            host = c.public_host or ("127.0.0.1" if c.bind in WILDCARDS else c.bind)
             # The relay on loopback ports of its own, which only this host reaches; the viewer's ports are the
             # read-only gateway's (see gateway.py: the relay's gRPC port takes writes from anyone who reaches it).
             relay_grpc, relay_web = free_port(), free_port()
@@ -163,7 +156,7 @@ class ViewerServer:
             hosts = viewer_hosts(c)
             self.gateway = subprocess.Popen(
                 [sys.executable, "-m", "iorthand_cloud.twin.gateway", "--web", f"{c.bind}:{c.web_port}={relay_web}",
-                 "--data", f"{c.bind}:{c.grpc_port}={relay_grpc}", *(["--hosts", ",".join(hosts)] if hosts else [])],
+                 "--data", f"{c.bind}:{c.grpc_port}={relay_grpc}", *(["--hosts", ",".join(sorted(hosts))] if hosts else [])],
                 stdout=self._log("viewer-gateway.log"), stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                 preexec_fn=die_with_parent)
             _wait_port(c.bind, c.grpc_port, c.relay_start_timeout, self.gateway, "the viewer's gateway")

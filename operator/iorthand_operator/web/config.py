@@ -9,7 +9,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from iorthand.config import setting
-from iorthand.security.hosts import LOOPBACK_NAMES, normalise
+from iorthand.security.hosts import is_loopback, own_names
 from iorthand.transport import ZenohConfig
 
 
@@ -65,15 +65,12 @@ class WebConfig:
         """The host names a request may name (its Host header, port aside): what a browser opens this console by.
         ``certificate_names``: the TLS certificate's, which are the names a browser accepts it for."""
         host, _ = self.host_port()
-        names = {host, *certificate_names, *self.server_names}
-        names.update(urlsplit(origin).hostname or "" for origin in self.allowed_origins)
-        if _loopback(host):
-            names.update(LOOPBACK_NAMES)
-        return normalise(names)
+        origins = [urlsplit(origin).hostname or "" for origin in self.allowed_origins]
+        return own_names(host, [*certificate_names, *self.server_names, *origins])
 
     def check(self) -> None:
         host, _ = self.host_port()
-        if self.tls is None and not _loopback(host):
+        if self.tls is None and not is_loopback(host):
             raise ValueError(f"listen {self.listen!r}: a console reachable from the network needs tls (certificate, "
                              "private_key): passwords and the deadman must not cross a network in clear")
         for address in self.trusted_proxies:
@@ -84,15 +81,6 @@ class WebConfig:
         for origin in self.allowed_origins:
             if not origin.startswith(("https://", "http://")) or origin.endswith("/"):
                 raise ValueError(f"allowed_origins: {origin!r} is not an origin like https://host[:port]")
-
-
-def _loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 __all__ = ["WebConfig", "WebTls"]

@@ -517,24 +517,33 @@ class Page:
                     await self.end(4401, "log-in ended (logged out, expired, or ended by newer log-ins of the same "
                                          "user): log in again")
                     return
-                silent = time.monotonic() - self.heard_at
-                if self.client is not None and silent > self.bridge.config.page_silence and not self._busy:
-                    # A controlling page sends twists at twist_hz whatever the operator does: this silence is a
-                    # dropped link (no FIN: the socket's own heartbeat notices it only after 7.5 s) or a browser
-                    # that suspended the page. Its robot stopped at the edge's command timeout; another operator
-                    # may now take control, as after a terminal console's lease.
-                    reason = (f"control released: nothing from this page for {silent:.1f} s (its link dropped or "
-                              "the browser suspended it): take control again")
-                    log.warning("%s on %s: %s", self.grant.user, self.robot, reason)
-                    await self.send({"type": "refused", "kind": "control_lost", "reason": reason})
-                    await asyncio.get_running_loop().run_in_executor(None, self._release)
-                elif self.client is not None and not self.client.owner and not self._busy:
-                    # The lease was lost (a dead link, the edge restarted): the client said why in its events;
-                    # the page takes control again on purpose, with a fresh press of the deadman.
-                    await self.send({"type": "refused", "kind": "control_lost", "reason": "control lost: take it again"})
+                lost = self._control_lost()
+                if lost:
+                    await self.send({"type": "refused", "kind": "control_lost", "reason": lost})
                     await asyncio.get_running_loop().run_in_executor(None, self._release)
                 await self.send(self.state())
             await self._push_video()
+
+    def _control_lost(self) -> str:
+        """Why this page no longer holds the control it took, "" while it does (or holds none, or a request for it
+        is under way)."""
+        if self.client is None or self._busy:
+            return ""
+        silent = time.monotonic() - self.heard_at
+        if silent > self.bridge.config.page_silence:
+            # A controlling page sends twists at twist_hz whatever the operator does: this silence is a dropped link
+            # (no FIN: the socket's own heartbeat notices it only after 7.5 s) or a browser that suspended the page.
+            # Its robot stopped at the edge's command timeout; another operator may now take control, as after a
+            # terminal console's lease.
+            reason = (f"control released: nothing from this page for {silent:.1f} s (its link dropped or the browser "
+                      "suspended it): take control again")
+            log.warning("%s on %s: %s", self.grant.user, self.robot, reason)
+            return reason
+        if not self.client.owner:
+            # The lease was lost (a dead link, the edge restarted): the client said why in its events; the page
+            # takes control again on purpose, with a fresh press of the deadman.
+            return "control lost: take it again"
+        return ""
 
     async def _push_video(self) -> None:
         """Each stream's frames the page has not had, while its socket has room. JPEG: the newest only. H.264: in
