@@ -516,7 +516,8 @@ class Status(StrEnum):
     WORKSPACE = "workspace_limit", "velocity leaving the workspace box was removed"
     FORCE_CAUTION = "force_caution", "caution-level force: the approach is slowed"
     FORCE_DANGER = "force_danger", "danger-level force: motion pressing harder removed", True
-    FORCE_STALE = "force_stale", "the force sensor is silent: motion toward contact refused", True
+    FORCE_STALE = "force_stale", ("the force sensor went silent: the robot stopped; release the deadman and press it "
+                                  "again; motion toward contact is refused until it is back"), True
     STOPPED = "stopped", "stopped: release the deadman and press it again to move", True
     FAULT = "fault", "a robot fault: the robot stopped", True
     OWNER_LOST = "owner_lost", "the owner's session was lost: acquire control again", True

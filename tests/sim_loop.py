@@ -97,7 +97,8 @@ class SimEdge:
         cmd = TwistCommand(operator="op1", deadman=deadman, linear=tw[:3], angular=tw[3:], state_age=0.02)
         cmd.stamp(self.seq, int(self.clock.t * 1e9))
         pose = self.robot.read_state().tcp_pose
-        goto = self.goto.twist(pose, self.clock.t).tolist() if self.goto.active else None
+        off = self.sv.contact_off_reason
+        goto = self.goto.twist(pose, self.clock.t, contact_off=off).tolist() if self.goto.active else None
         decision = self.sv.on_command(self.grants.sign(self.sv, "op1", cmd), self.clock.t, self.clock.t, pose, goto)
         if decision.cancel_goto:
             self.goto.cancel(decision.cancel_goto)

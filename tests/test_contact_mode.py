@@ -102,6 +102,55 @@ def test_contact_mode_is_entered_and_left_on_purpose() -> None:
     assert sv.set_contact(c.request(sv, "op1", keys.CONTROL_CONTACT), False)[0] and sv.contact_target is None
 
 
+def test_a_sensor_gone_silent_in_contact_stops_the_probe_ends_contact_mode_and_waits_for_a_fresh_press() -> None:
+    """The probe on a patient, the sensor silent: sliding on would press blind. The stop is latched (the deadman
+    held through it moves nothing, even once the sensor is back) and contact mode ends."""
+    sv, c = contact_supervisor()
+    assert sv.set_contact(c.request(sv, "op1", keys.CONTROL_CONTACT), True, TARGET)[0]
+    sv.update_contact_force(TARGET, c.mono)
+    c.mono += 0.02
+    assert sv.on_command(c.cmd(vx=0.004), c.wall, c.mono, POSE).twist[0] == pytest.approx(0.004)
+    sv.update_force(0, True, c.mono)
+    assert sv.contact_target is None
+    assert any("contact mode off: force sensor stale" in r for _, r in sv.interventions)
+    for _ in range(10):  # the operator keeps steering, the deadman held
+        c.mono += 0.016
+        d = sv.on_command(c.cmd(vx=0.004), c.wall, c.mono, POSE)
+        assert not d.accepted and d.status == Status.FORCE_STALE and not any(d.twist)
+        assert "press it again" in d.reason
+        assert not any(sv.step(c.mono, POSE).twist)
+    sv.update_force(0, False, c.mono)  # samples again
+    c.mono += 0.016
+    assert not any(sv.on_command(c.cmd(vx=0.004), c.wall, c.mono, POSE).twist)
+    c.mono += 0.016
+    sv.on_command(c.cmd(vx=0.0, deadman=False), c.wall, c.mono, POSE)
+    c.mono += 0.016
+    d = sv.on_command(c.cmd(vx=0.004), c.wall, c.mono, POSE)
+    assert d.accepted and d.twist[0] == pytest.approx(0.004) and sv.contact_target is None
+
+
+def test_red_in_contact_mode_stops_the_steering_and_a_sweep_and_only_backs_off() -> None:
+    """Red while the admittance holds a force below yellow: it is not keeping up (a surface rising under the
+    sweep). Steering on would press harder sideways: only the back-off moves the probe until the level drops."""
+    sv, c = contact_supervisor()
+    assert sv.set_contact(c.request(sv, "op1", keys.CONTROL_CONTACT), True, TARGET)[0]
+    sv.update_force(2, False, c.mono)
+    sv.update_contact_force(8.5, c.mono)
+    c.mono += 0.02
+    d = sv.on_command(c.cmd(vx=0.004, wz=0.05), c.wall, c.mono, POSE)
+    assert d.accepted and d.status == Status.FORCE_DANGER and "steering stopped" in d.reason
+    assert d.twist[0] == 0.0 and d.twist[5] == 0.0 and d.twist[2] > 0.0  # the tool points down: +z backs off
+    c.mono += 0.02
+    d = sv.on_command(c.cmd(vx=0.0), c.wall, c.mono, POSE, [0.005, 0.0, 0.0, 0.0, 0.0, 0.0])  # a sweep's lane
+    assert d.twist[0] == 0.0 and "steering stopped" in d.cancel_goto
+    assert sv.step(c.mono, POSE).status.halts  # the control loop ends the move too
+    sv.update_force(1, False, c.mono)  # back under red: steering is the operator's again (held throughout)
+    sv.update_contact_force(7.0, c.mono)
+    c.mono += 0.02
+    d = sv.on_command(c.cmd(vx=0.004), c.wall, c.mono, POSE)
+    assert d.accepted and d.twist[0] == pytest.approx(0.004)
+
+
 def _pressing(sample: ForceSample) -> float:
     return -sample.force[2]  # the tool points down: the surface pushes back along the tool's -z
 

@@ -110,7 +110,8 @@ def test_press_levels_reaction_retreat_and_stale(edge_factory, operator_factory,
     wait_until(lambda: float(agent.reading.tcp_pose[2]) > z + 0.002, message="retreat")
     wait_until(lambda: agent.force.state.level == 0, message="level back to SAFE")
 
-    # Stop the sensor: stale, the robot stops, contact motion is refused, retreat still allowed.
+    # Stop the sensor: stale, the robot stops (latched: a release and a press to move again), contact motion is
+    # refused, retreat allowed.
     op.set_twist([0, 0, -0.005], [0, 0, 0], deadman=True)
     time.sleep(0.2)
     agent.force.sensor.silent = True
@@ -123,6 +124,11 @@ def test_press_levels_reaction_retreat_and_stale(edge_factory, operator_factory,
     z = float(agent.reading.tcp_pose[2])
     time.sleep(0.5)
     assert float(agent.reading.tcp_pose[2]) >= z - 0.0005
+    op.set_twist([0, 0, 0.005], [0, 0, 0], deadman=True)  # held through the stop: moves nothing
+    time.sleep(0.3)
+    assert float(agent.reading.tcp_pose[2]) == pytest.approx(z, abs=0.0005)
+    op.set_twist([0, 0, 0], [0, 0, 0], deadman=False)
+    time.sleep(0.1)
     op.set_twist([0, 0, 0.005], [0, 0, 0], deadman=True)
     wait_until(lambda: float(agent.reading.tcp_pose[2]) > z + 0.001, message="retreat while stale")
     assert any("force sensor stale" in r.getMessage() for r in caplog.records)

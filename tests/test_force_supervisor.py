@@ -137,7 +137,9 @@ def test_danger_retracts_the_configured_distance_even_with_the_deadman_held() ->
     assert any(s == Status.FORCE_DANGER and "retract" in r for s, r in rig.sv.interventions)
 
 
-def test_stale_sensor_stops_then_refuses_contact_motion_but_allows_retreat() -> None:
+def test_stale_sensor_stops_until_a_fresh_press_then_refuses_contact_motion_but_allows_retreat() -> None:
+    """A silent sensor is a stop: the deadman held through it moves nothing, not even away from contact; after a
+    release and a press, only motion that does not press harder moves while the sensor is silent."""
     rig = fresh_rig(profile="remote")
     rig.press(-0.005)
     rig.run(0.2)
@@ -153,9 +155,19 @@ def test_stale_sensor_stops_then_refuses_contact_motion_but_allows_retreat() -> 
     rig.run(0.3)  # operator still pressing down
     assert rig.reading.tcp_pose[2] >= z - 0.0005  # only the braking distance after the stop
     z = rig.reading.tcp_pose[2]
+    rig.press(+0.005)  # the deadman still held from before the stop
+    rig.run(0.3)
+    assert rig.reading.tcp_pose[2] == pytest.approx(z, abs=1e-6)
+    assert rig.sv.status == Status.FORCE_STALE and "press it again" in rig.sv.reason
+    rig.deadman = False
+    rig.run(0.1)
     rig.press(+0.005)
     rig.run(0.3)
     assert rig.reading.tcp_pose[2] > z + 0.001
+    z = rig.reading.tcp_pose[2]
+    rig.press(-0.005)
+    rig.run(0.3)
+    assert rig.reading.tcp_pose[2] >= z - 0.0005  # only the braking distance
 
 
 def test_no_sample_yet_refuses_contact_motion() -> None:
@@ -192,6 +204,37 @@ def test_monitor_flags_stale_at_the_first_tick_past_the_limit() -> None:
         monitor.tick(None, t)
     assert 0.1 < t <= 0.1 + 0.01 + 1e-9
     assert changes[-1].stale and monitor.stale_since == t
+
+
+class _Recorded:
+    """Stands in for a Zenoh publisher: keeps the bytes the monitor puts, which the test decodes as a receiver."""
+
+    def __init__(self) -> None:
+        self.sent: list[bytes] = []
+
+    def put(self, payload: bytes) -> None:
+        self.sent.append(payload)
+
+
+@pytest.mark.parametrize("reading", [float("nan"), float("inf"), 2e5])
+def test_a_reading_beyond_what_the_wire_carries_still_reaches_every_receiver_as_red(reading: float) -> None:
+    """A sample with NaN, inf or more than the messages' 1e5 N made both force messages undecodable: the edge
+    went red, and every console and the twin dropped the red as malformed."""
+    from iorthand.protocol import ForceLevelState, ForceSample
+    from iorthand_edge.force.config import ForceConfig
+
+    changes = []
+    monitor = ForceMonitor(ForceConfig(), _Silent(), changes.append)
+    monitor._pub_force, monitor._pub_level = _Recorded(), _Recorded()
+    monitor.tick(WrenchSample(np.array([0.0, 0.0, reading, 0.0, 0.0, 0.0]), 1), 1.0)
+    assert changes[-1].level == ForceLevel.DANGER and not changes[-1].stale
+    (level,) = [ForceLevelState.decode(b) for b in monitor._pub_level.sent]
+    assert level.level == ForceLevel.DANGER and not level.stale and level.value == 1e5
+    forces = [ForceSample.decode(b) for b in monitor._pub_force.sent]
+    if math.isnan(reading):
+        assert forces == []  # not a measurement: not in the stream (the level says red)
+    else:
+        assert [f.force for f in forces] == [[0.0, 0.0, 1e5]]  # saturated, as a sensor at its range
 
 
 class _Flaky(ForceSensor):

@@ -143,7 +143,7 @@ def _drive(ctl: GotoController, safety: SafetyConfig, robot: SimRobot, clock: Fa
             seq += 1
             held = clock.t - t0 < deadman_until
             cmd = TwistCommand(operator="op1", deadman=held, state_age=0.02).stamp(seq, int(clock.t * 1e9))
-            goto = ctl.twist(pose, clock.t).tolist() if ctl.active else None
+            goto = ctl.twist(pose, clock.t, contact_off=sup.contact_off_reason).tolist() if ctl.active else None
             decision = sup.on_command(grants.sign(sup, "op1", cmd), clock.t, clock.t, pose, goto)
             if decision.cancel_goto:
                 ctl.cancel(decision.cancel_goto)
@@ -210,7 +210,7 @@ def test_releasing_the_deadman_cancels_the_goto_and_it_does_not_resume():
     assert ctl.status == "cancelled" and "deadman" in ctl.reason
     here = robot.read_state().tcp_pose
     assert geometry.translation_distance(geometry.pose_to_matrix(here), geometry.pose_to_matrix(HOME)) > 0.01
-    assert np.allclose(ctl.twist(here, clock.t), 0.0)
+    assert np.allclose(ctl.twist(here, clock.t, contact_off=""), 0.0)
 
 
 def test_a_blocked_goto_cancels_when_off_the_path():
@@ -219,7 +219,7 @@ def test_a_blocked_goto_cancels_when_off_the_path():
     pv = ctl.preview("home", "op1", START, 0.0, lim)
     ctl.start("home", pv.token, "op1", START, 0.0, lim)
     # the robot did not move at all (blocked by a limit or a force reaction) while the path went on
-    ctl.twist(START, 0.1)
+    ctl.twist(START, 0.1, contact_off="")
     assert ctl.active
-    ctl.twist(START, 1.0)
+    ctl.twist(START, 1.0, contact_off="")
     assert not ctl.active and ctl.status == "cancelled" and "off the planned path" in ctl.reason

@@ -68,3 +68,17 @@ def test_a_planner_that_dies_while_planning_refuses_that_preview_and_the_next_on
     assert pv.plan.reason == "planning failed: RuntimeError: the planner process ended while planning 'sweep'"
     again = ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params={"lanes": 2})
     assert again.ok and again.token and planner._child is not None and planner._child.pid != child.pid
+
+
+def test_a_planner_that_died_between_previews_is_started_again_for_the_next_one(planner) -> None:
+    """Killed while idle (the out-of-memory killer between two previews): every later preview failed with
+    BrokenPipeError until the edge restarted, and with them the retreat to the safe pose."""
+    ctl = GotoController(GotoConfig(), LIMITS.workspace_min, LIMITS.workspace_max, planner=planner.plan_route)
+    assert ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params={"lanes": 2}).ok
+    child = planner._child
+    assert child is not None and child.pid is not None
+    os.kill(child.pid, signal.SIGKILL)
+    child.join(5.0)
+    pv = ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params={"lanes": 2})
+    assert pv.ok and pv.token, pv.plan.reason
+    assert planner._child is not None and planner._child.pid != child.pid

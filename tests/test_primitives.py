@@ -196,6 +196,15 @@ def test_a_stop_and_a_new_goal_preempt_the_sweep() -> None:
     assert edge.goto.reason.startswith("retreat: started")
 
 
+def test_leaving_contact_mode_ends_the_sweep() -> None:
+    """A sweep's height is the held force's: without contact mode nothing would follow the surface."""
+    edge = _sweeping()
+    edge.contact(False)
+    edge.run(0.05)
+    assert not edge.goto.active and "contact mode ended" in edge.goto.reason
+    assert np.allclose(edge.robot.read_state().tcp_speed[:2], 0.0, atol=1e-9)
+
+
 def test_goto_progress_names_each_leg() -> None:
     edge = SimEdge(PhantomConfig(**CYLINDER), START_ABOVE, goto=GotoConfig(poses={"home": [0.25, 0.0, 0.30, math.pi, 0, 0]}))
     edge.start(motion.RETREAT)

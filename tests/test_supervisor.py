@@ -243,6 +243,38 @@ def test_force_danger_removes_pressing_component() -> None:
     assert d.twist[2] == pytest.approx(0.005)  # retreat allowed
 
 
+def test_red_during_a_previewed_move_stops_it_unless_it_lifts_off() -> None:
+    """Red during a move: it met what its preview did not show. A move that does not lift off stops (its status
+    halts, so the move ends); one that lifts off goes on. The operator's own sideways twist keeps the rule it had:
+    only motion pressing harder is removed."""
+    sv = Supervisor(SafetyConfig(auto_arm=True), force_required=True)
+    c = Clock(sv)
+    c.acquire(sv, "op1", c.mono)
+    sv.update_force(ForceLevel.DANGER, stale=False)
+    c.mono += 0.02
+    d = sv.on_command(c.cmd(vx=0.0), c.wall, c.mono, POSE, [0.005, 0.0, 0.0, 0.0, 0.0, 0.02])
+    assert d.status == Status.FORCE_DANGER and d.status.halts and not np.any(d.twist)
+    assert "previewed move stopped" in d.cancel_goto
+    c.mono += 0.02
+    lifting = [0.002, 0.0, 0.004, 0.0, 0.0, 0.0]  # the tool points down: +z lifts off
+    d = sv.on_command(c.cmd(vx=0.0), c.wall, c.mono, POSE, lifting)
+    assert d.accepted and not d.cancel_goto and d.twist == pytest.approx(lifting)
+    c.mono += 0.02
+    d = sv.on_command(c.cmd(vx=0.004), c.wall, c.mono, POSE)
+    assert d.accepted and d.twist[0] == pytest.approx(0.004)
+
+
+def test_a_pose_that_is_not_a_number_is_a_fault() -> None:
+    """Every limit compares with the pose, and no comparison with NaN holds: the workspace box would let
+    anything through."""
+    sv, c = armed()
+    nan_pose = [0.30, float("nan"), 0.20, 3.14159, 0.0, 0.0]
+    assert sv.on_reading("", True, nan_pose) == "the robot reported a pose that is not a number: no limit can hold"
+    d = sv.on_command(c.cmd(vx=-0.008), c.wall, c.mono, nan_pose)
+    assert not d.accepted and d.status == Status.FAULT and not np.any(d.twist)
+    assert sv.on_reading("", True, POSE) == ""
+
+
 def test_stale_force_stops_then_refuses_contact_motion() -> None:
     sv = Supervisor(SafetyConfig(auto_arm=True), force_required=True)
     c = Clock(sv)

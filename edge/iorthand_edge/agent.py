@@ -428,7 +428,7 @@ class EdgeAgent:
                 self.force.on_robot_state(now)
             self._feed_contact_force()
             before = self.supervisor.fault
-            fault = self.supervisor.on_reading(reading.fault, reading.connected)
+            fault = self.supervisor.on_reading(reading.fault, reading.connected, reading.tcp_pose)
             if fault and fault != before:
                 log.error("robot fault: %s — stopping", fault)
             decision = self.supervisor.step(now, reading.tcp_pose)
@@ -584,7 +584,8 @@ class EdgeAgent:
             now = time.monotonic()
             # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
             received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
-            goto = self.goto.twist(pose, now).tolist() if self.goto.active else None
+            off = self.supervisor.contact_off_reason
+            goto = self.goto.twist(pose, now, contact_off=off).tolist() if self.goto.active else None
             decision = self.supervisor.on_command(cmd, recv_ns / 1e9, received, pose, goto)
             if decision.cancel_goto:
                 self._cancel_goto(decision.cancel_goto)

@@ -251,10 +251,16 @@ class GotoController:
         self.status, self.reason = "cancelled", reason
         return True
 
-    def twist(self, current_pose: ArrayLike, now: float) -> Vector:
-        """The tool twist for this cycle (base frame). Zero, and the move ends, when done or off the path."""
+    def twist(self, current_pose: ArrayLike, now: float, *, contact_off: str) -> Vector:
+        """The tool twist for this cycle (base frame). Zero, and the move ends, when done, off the path, or when
+        a planar route (a sweep) finds contact mode off (``contact_off``: why; "" while it is on): nothing holds
+        its height any more."""
         act = self._active
         if act is None:
+            return np.zeros(6)
+        if act.plan.planar and contact_off:
+            self.cancel(f"contact mode ended ({contact_off}): {act.plan.name!r} runs only in it (its height is the "
+                        "held force)")
             return np.zeros(6)
         t = now - act.started_at
         route, limits = act.plan, act.limits

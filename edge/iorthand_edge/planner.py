@@ -52,8 +52,16 @@ class PlannerProcess:
     def plan_route(self, name: str, current: ArrayLike, limits: motion.Limits, poses: Mapping[str, Sequence[float]],
                    *args: Any, **kwargs: Any) -> motion.Route:
         """:func:`iorthand.motion.plan_route`'s answer; PlanningTimeout if it takes longer than ``timeout``."""
+        if self._child is not None and not self._child.is_alive():
+            # It ended since the last plan (the OOM killer, a crash): a new child plans this one.
+            log.error("the planner process ended (exit code %s): planner restarted", self._child.exitcode)
+            self.close()
         conn = self._conn or self._start()
-        conn.send(((name, current, limits, poses, *args), kwargs))
+        try:
+            conn.send(((name, current, limits, poses, *args), kwargs))
+        except OSError:  # it ended just now: this plan fails, the next one starts a new child
+            self.close()
+            raise RuntimeError(f"the planner process ended before planning {name!r}") from None
         if not conn.poll(self.timeout):
             self.close()
             log.error("planning %r took longer than %g s: planner restarted", name, self.timeout)

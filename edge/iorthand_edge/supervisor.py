@@ -14,10 +14,13 @@ Rules (DESIGN.md, "Safety model"):
 - Force (only with a force sensor, ``force_required``): at CAUTION the speed toward contact is capped so that
   the tool stops within ``overshoot_margin`` of where DANGER is detected; at DANGER velocity pressing harder is
   removed and, if configured, the tool backs off ``retract_distance`` along the contact normal (whether or not
-  the deadman is held); a stale sensor (or none yet) stops the robot once and then refuses motion toward
-  contact. Motion away from contact is always allowed. Each intervention is recorded in ``interventions``
-  (drained and logged by the agent) and shows in the status and reason.
-- After a stop command the robot stays stopped until the deadman is released and pressed again; after a fault
+  the deadman is held); in contact mode at DANGER the operator's motion stops and only the admittance's back-off
+  moves the probe. A sensor that goes stale stops the robot as a stop command does (latched, contact mode
+  ended); with no fresh sample (or none yet) motion toward contact is refused. Motion away from contact is
+  allowed whenever the robot may move. Each intervention is recorded in ``interventions`` (drained and logged by
+  the agent) and shows in the status and reason.
+- After a stop command or a silent force sensor the robot stays stopped until the deadman is released and
+  pressed again; after a fault
   or the owner's loss, until an operator acquires control again *and then* releases and presses the deadman (a
   lease renewal alone never moves the robot). Nothing resumes by itself.
 - Ownership belongs to the session that acquired it, never to a name: each grant draws a fresh key that only
@@ -170,6 +173,9 @@ class Decision:
 
 
 GRANT_NEEDS_PRESS = "control granted: release the deadman and press it to move"
+# The halts that a release of the deadman ends (the next press may move); a fault or a lost owner needs control
+# acquired again as well.
+_RELEASED_BY_THE_DEADMAN = (Status.STOPPED, Status.LINK_GAP, Status.FORCE_STALE)
 
 
 @dataclass
@@ -218,6 +224,7 @@ class Supervisor:
         self._last_deadman = False  # the deadman flag of the last accepted command
         self._deadman = False
         self._target = [0.0] * 6  # the last accepted command, already limited
+        self._target_is_move = False  # _target is a previewed move's velocity, not the operator's own twist
         self._sent_motion = False  # the driver was last told to move (a zero then means: stop)
         self._latched: Status | None = None  # keeps the robot stopped until cleared (see module doc)
         self._latch_reason = ""
@@ -228,6 +235,7 @@ class Supervisor:
         # force (N, pressing positive) and the monotonic time it was taken. ``contact_ceiling``: the caution level
         # (a target at or above it is refused); set by the agent from the force configuration.
         self.contact_target: float | None = None
+        self.contact_off_reason = "contact mode not entered"  # why it is off ("" while on)
         self.contact_ceiling = math.inf
         self._contact_force = 0.0
         self._contact_force_at = -math.inf
@@ -413,9 +421,12 @@ class Supervisor:
         elif not reason:
             self.fault = ""
 
-    def on_reading(self, fault: str, connected: bool) -> str:
-        """The robot driver's health from one reading: a fault it reports, or a lost link, is a fault here.
-        Returns the fault in effect ("" when healthy)."""
+    def on_reading(self, fault: str, connected: bool, tcp_pose: Vector) -> str:
+        """The robot driver's health from one reading: a fault it reports, a lost link, or a pose that is not a
+        number (every limit compares with it, and a comparison with NaN never holds) is a fault here. Returns
+        the fault in effect ("" when healthy)."""
+        if not fault and connected and not all(math.isfinite(v) for v in _floats(tcp_pose)):
+            fault = "the robot reported a pose that is not a number: no limit can hold"
         self.set_fault(fault or ("" if connected else "robot link lost"))
         return self.fault
 
@@ -431,11 +442,14 @@ class Supervisor:
         if not (reaction.enabled and self.force_required):
             return
         if became_stale:
-            # A silent sensor: the robot does not know how hard it presses. Stop once (not latched); then only
-            # motion away from contact is allowed until samples come back.
+            # A silent sensor: the robot does not know how hard it presses. A stop like any other, latched: a
+            # deadman held through it moves nothing (the probe on a patient must not slide on blind), contact mode
+            # ends, and after a release and a press only motion that does not press harder is allowed until
+            # samples come back.
             self._retreat_until = -math.inf
-            reason = "force sensor stale: robot stopped, motion toward contact refused"
-            self._halt(Status.FORCE_STALE, reason)
+            reason = ("force sensor stale: robot stopped, motion toward contact refused; release the deadman and "
+                      "press it again to move")
+            self._halt(Status.FORCE_STALE, reason, latch=True)
             self._intervene(Status.FORCE_STALE, reason)
         elif level == ForceLevel.DANGER and not stale and not was_danger:
             reason = "danger-level force: motion pressing harder removed"
@@ -462,7 +476,7 @@ class Supervisor:
         if not 0.0 < force < self.contact_ceiling:
             return False, f"contact force {force:g} N refused: it must lie above 0 and below the caution level " \
                           f"({self.contact_ceiling:g} N)"
-        self.contact_target = force
+        self.contact_target, self.contact_off_reason = force, ""
         self._contact_integral, self._contact_at = 0.0, -math.inf
         self._note(Status.CONTACT, f"contact mode on: holding {force:g} N along the probe")
         return True, f"contact mode on: holding {force:g} N along the probe"
@@ -470,7 +484,7 @@ class Supervisor:
     def contact_off(self, why: str) -> None:
         """Leave contact mode (if on), with the reason logged and recorded."""
         if self.contact_target is not None:
-            self.contact_target = None
+            self.contact_target, self.contact_off_reason = None, why
             self._note(Status.CONTACT, f"contact mode off: {why}")
 
     def update_contact_force(self, force: float, at: float) -> None:
@@ -501,7 +515,7 @@ class Supervisor:
         if goto_twist is not None and not decision.cancel_goto and decision.status != Status.NOT_OWNER:
             if not cmd.deadman:
                 decision.cancel_goto = "deadman released"
-            elif not decision.accepted:
+            elif not decision.accepted or decision.status.halts:
                 decision.cancel_goto = decision.reason or decision.status.message
         return decision
 
@@ -524,9 +538,9 @@ class Supervisor:
         self._lease_until = now + self.config.lease
         if not cmd.deadman:
             self._deadman = False
-            if self._latched in (Status.STOPPED, Status.LINK_GAP):
-                self._latched = None  # deadman released after a stop or a gap: the next press may move (a grant's
-                # latch is cleared by any authentic release, in _refuse)
+            if self._latched in _RELEASED_BY_THE_DEADMAN:
+                self._latched = None  # deadman released after a stop, a gap or a silent sensor: the next press may
+                # move (a grant's latch is cleared by any authentic release, in _refuse)
             self._target = [0.0] * 6
             self.counters.applied += 1
             self._set(Status.NO_DEADMAN, "deadman released")
@@ -552,7 +566,8 @@ class Supervisor:
         if cmd.frame == "tool":  # the probe's frame about its tip → the base frame, where every limit applies
             manual = [*rotate(tcp_pose[3:], manual[:3]), *rotate(tcp_pose[3:], manual[3:])]
         took_over = goto_twist is not None and any(manual)
-        self._target = [float(v) for v in goto_twist] if goto_twist is not None and not took_over else manual
+        self._target_is_move = goto_twist is not None and not took_over
+        self._target = [float(v) for v in goto_twist] if self._target_is_move else manual
         decision = self._limit(self._target, tcp_pose, now)
         if took_over:
             decision.cancel_goto = "the operator took over with a manual twist"
@@ -791,7 +806,19 @@ class Supervisor:
             _add_along(twist, -toward, n)
             return Status.FORCE_STALE, "force sensor stale: motion toward contact refused"
         result: tuple[Status, str] | None = None
-        if self.force_level == ForceLevel.DANGER and toward > 0:
+        in_contact = self.contact_target is not None
+        if self.force_level == ForceLevel.DANGER and (in_contact or (self._target_is_move and toward >= 0)):
+            # Red while the admittance holds a force below yellow: it is not keeping up (a surface rising under the
+            # sweep, the patient moving); red during a previewed move that does not lift off: it met what its
+            # preview did not show. Going on would press harder sideways, so the operator's steering and the move
+            # stop; only motion away from contact (the admittance backing off to the held force) goes on.
+            away = min(0.0, toward)
+            twist[:] = [away * n[0], away * n[1], away * n[2], 0.0, 0.0, 0.0]
+            toward = away
+            result = Status.FORCE_DANGER, ("danger-level force in contact mode: steering stopped, the probe backs off"
+                                           if in_contact else
+                                           "danger-level force: the previewed move stopped")
+        elif self.force_level == ForceLevel.DANGER and toward > 0:
             _add_along(twist, -toward, n)
             toward = 0.0
             result = Status.FORCE_DANGER, "danger-level force: motion pressing harder removed"

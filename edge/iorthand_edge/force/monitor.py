@@ -12,6 +12,7 @@ meanwhile it is stale, which the supervisor treats as a stop.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -28,6 +29,21 @@ from iorthand_edge.force.sensors import ForceSensor, SensorError, WrenchSample
 log = logging.getLogger("iorthand.edge.force")
 
 RETRY_S = 1.0
+WIRE_LIMIT = 1e5  # N or N·m: the most a force message carries (ForceSample, ForceLevelState); beyond is saturated
+
+
+def on_the_wire(value: float) -> float | None:
+    """``value`` as a force message can carry it: saturated at ±WIRE_LIMIT; None for NaN, which is no measurement
+    (the level counts it as danger: see levels.next_level)."""
+    if math.isnan(value):
+        return None
+    return max(-WIRE_LIMIT, min(WIRE_LIMIT, value))
+
+
+def _level_value(value: float) -> float:
+    """The level's quantity on the wire: a NaN (a red level) as the most the wire carries."""
+    wire = on_the_wire(value)
+    return WIRE_LIMIT if wire is None else wire
 
 
 class ForceMonitor:
@@ -49,6 +65,7 @@ class ForceMonitor:
         self._pub_level: zenoh.Publisher | None = None
         self._last_level_pub = 0.0
         self._reported_errors = 0
+        self._not_a_number = False  # the newest sample held a NaN
         self._next_retry = 0.0
         # Signs the level for the owner's client (the agent sets Supervisor.for_owner): the owner believes only
         # the levels this edge published, never a third session's green.
@@ -139,8 +156,16 @@ class ForceMonitor:
             self.tracker.add(sample.wrench if sample.batch is None else sample.batch, now)
             self.samples += 1
             self.last_wrench = [float(v) for v in sample.wrench]
-            if self._pub_force is not None:
-                msg = ForceSample(force=self.last_wrench[:3], torque=self.last_wrench[3:])
+            wire = [on_the_wire(v) for v in self.last_wrench]
+            if (None in wire) != self._not_a_number:
+                # Not a measurement: the level is red (and says so on state/force_level); the stream skips it.
+                self._not_a_number = None in wire
+                if self._not_a_number:
+                    log.error("force sensor gives samples that are not numbers (%s): level danger", self.last_wrench)
+                else:
+                    log.info("force sensor gives numbers again")
+            if not self._not_a_number and self._pub_force is not None:
+                msg = ForceSample(force=wire[:3], torque=wire[3:])
                 self._pub_force.put(msg.stamp(self._seq_force.next(), sample.t_ns).encode())
         state = self.tracker.state(now)
         changed = (state.level, state.stale) != (self.state.level, self.state.stale)
@@ -168,7 +193,7 @@ class ForceMonitor:
             return
         lv = self.config.levels
         msg = ForceLevelState(
-            level=int(state.level), stale=state.stale, value=min(state.value, 1e5), quantity=lv.quantity,
+            level=int(state.level), stale=state.stale, value=_level_value(state.value), quantity=lv.quantity,
             caution=lv.caution, danger=lv.danger,
         )
         msg.stamp(self._seq_level.next())
