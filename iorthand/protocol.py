@@ -543,6 +543,12 @@ class Status(StrEnum):
             return True
 
 
+# Halts the edge ends on a fresh press of the deadman (released, then pressed): nothing resumes by itself.
+RESUME_ON_PRESS = frozenset({Status.STOPPED, Status.LINK_GAP, Status.FORCE_STALE})
+# Halts that end the grant: control is acquired again, and then a fresh press.
+RESUME_ON_ACQUIRE = frozenset({Status.OWNER_LOST, Status.FAULT})
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Messages. Bounds are generous sanity limits; safety limits live in the supervisor's configuration.
 

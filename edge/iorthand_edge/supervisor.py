@@ -51,7 +51,15 @@ import numpy as np
 from iorthand import keys
 from iorthand.config import setting
 from iorthand.geometry import rotate
-from iorthand.protocol import TWIST_FRAMES, ControlRequest, ForceLevel, Message, Status, TwistCommand
+from iorthand.protocol import (
+    RESUME_ON_PRESS,
+    TWIST_FRAMES,
+    ControlRequest,
+    ForceLevel,
+    Message,
+    Status,
+    TwistCommand,
+)
 from iorthand.security import auth
 from iorthand_edge.kinematic_guard import KinematicGuard, KinematicLimits
 from iorthand_edge.robots.base import Vector
@@ -173,9 +181,6 @@ class Decision:
 
 
 GRANT_NEEDS_PRESS = "control granted: release the deadman and press it to move"
-# The halts that a release of the deadman ends (the next press may move); a fault or a lost owner needs control
-# acquired again as well.
-_RELEASED_BY_THE_DEADMAN = (Status.STOPPED, Status.LINK_GAP, Status.FORCE_STALE)
 
 
 @dataclass
@@ -538,7 +543,7 @@ class Supervisor:
         self._lease_until = now + self.config.lease
         if not cmd.deadman:
             self._deadman = False
-            if self._latched in _RELEASED_BY_THE_DEADMAN:
+            if self._latched in RESUME_ON_PRESS:
                 self._latched = None  # deadman released after a stop, a gap or a silent sensor: the next press may
                 # move (a grant's latch is cleared by any authentic release, in _refuse)
             self._target = [0.0] * 6

@@ -14,12 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
+from iorthand.protocol import RESUME_ON_ACQUIRE as REACQUIRE
+from iorthand.protocol import RESUME_ON_PRESS as REPRESS
 from iorthand.protocol import SafetyStatus, Status
-
-# Halts after which the edge moves again on a fresh press of the deadman (released, then pressed).
-REPRESS = frozenset({Status.STOPPED, Status.LINK_GAP})
-# Halts that end the grant: control must be acquired again (and then a fresh press).
-REACQUIRE = frozenset({Status.OWNER_LOST, Status.FAULT})
 
 
 class Step(Enum):
