@@ -49,6 +49,15 @@ def test_good_config_loads_with_defaults(tmp_path: Path) -> None:
         (GOOD + "safety: {command_timeout: .nan}\n", "safety.command_timeout", "finite"),
         (GOOD + "perception: {camera: {kind: synthetic, fps: 15}}\nvideo: {camera: {source: perception, fps: 30}}\n",
          "", "video.camera.fps 30 must be perception.camera.fps 15"),
+        # A box written in millimetres: its + faces would never be met.
+        (GOOD.replace("profile: local}", "profile: local, workspace: {min: [100, -300, 20], max: [450, 300, 450]}}"),
+         "safety.workspace", "100 m is beyond any arm's reach (2 m); the box is in metres (millimetres?)"),
+        (GOOD.replace("profile: local}", "profile: local, contact: {target: 7}}") + "force: {sensor: {kind: sim}}\n",
+         "", "safety.contact.target 7 N must lie below force.levels.caution (6 N)"),
+        (GOOD.replace("profile: local}", "profile: local, force: {contact_axis: [0, 0, 1.0e-12]}}"),
+         "safety.force", "must be a direction"),
+        (GOOD + "goto: {poses: {sweep: [0.3, 0, 0.25, 3.14, 0, 0]}}\n", "goto", "the name of a primitive"),
+        (GOOD + "goto: {poses: {'above_marker:3': [0.3, 0, 0.25, 3.14, 0, 0]}}\n", "goto", "':' is reserved"),
     ],
 )
 def test_errors_name_file_key_and_expectation(tmp_path: Path, text: str, key: str, expected: str) -> None:
@@ -58,6 +67,17 @@ def test_errors_name_file_key_and_expectation(tmp_path: Path, text: str, key: st
     assert err.value.source == str(path)
     assert err.value.key == key
     assert expected in str(err.value)
+
+
+def test_a_named_pose_or_a_start_outside_the_workspace_is_said(tmp_path: Path) -> None:
+    """They load (the box may be narrowed on purpose), but every move there is refused: `iorthand check` and the
+    agent's start say so."""
+    cfg = load_edge_config(write(tmp_path, GOOD + "goto: {poses: {home: [0.30, 0.0, 0.60, 3.14, 0, 0]}}\n"
+                                                   "robot: {kind: sim, initial_pose: [0.9, 0.0, 0.2, 3.14, 0, 0]}\n"))
+    said = dict(cfg.warnings())
+    assert said["goto.poses.home"].startswith("[0.3, 0.0, 0.6] lies outside safety.workspace")
+    assert "robot.initial_pose" in said
+    assert not dict(load_edge_config(write(tmp_path, GOOD)).warnings()).keys() & {"goto.poses.home", "robot.initial_pose"}
 
 
 def test_unreadable_and_corrupt_files(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ import pytest
 from iorthand import geometry, motion
 from iorthand.protocol import ControlReply, ForceLevel, Status
 from iorthand_edge.force.contact import PhantomConfig
-from iorthand_edge.goto import GotoConfig
+from iorthand_edge.goto import GotoConfig, GotoController
 from tests.sim_loop import CONTROL_PERIOD, CYLINDER, START_ABOVE, SimEdge, within
 
 TARGET = 4.0
@@ -85,6 +85,31 @@ def test_approach_and_retreat() -> None:
     assert retreat.ok and len(retreat.legs) == 2 and retreat.labels == ["up, away from the patient", "to the safe pose"]
     assert retreat.legs[0].goal[2] == pytest.approx(0.25) and retreat.goal[:3] == pytest.approx(home[:3])
     assert motion.plan_route(motion.RETREAT, HERE, LIMITS, {}, params={"x": 1}).reason.startswith("retreat: unknown")
+
+
+def test_a_move_to_a_marker_runs_only_while_the_marker_is_where_the_preview_saw_it() -> None:
+    """The preview planned on the marker then in view; a start up to the token's 10 s later, or the move itself,
+    must not aim at where the patient was. A marker out of view during the move goes on (the probe hides it)."""
+    ctl = GotoController(GotoConfig(), LIMITS.workspace_min, LIMITS.workspace_max)
+    marker = geometry.translation(0.32, 0.02, 0.10)
+    moved = geometry.translation(0.32, 0.03, 0.10)  # 10 mm: the patient moved
+    name = f"{motion.APPROACH}7"
+
+    def previewed() -> str:
+        pv = ctl.preview(name, "op1", HERE, 0.0, LIMITS, markers={7: marker})
+        assert pv.ok, pv.plan.reason
+        return pv.token
+
+    assert ctl.start(name, previewed(), "op1", HERE, 9.9, LIMITS, markers={}) == (
+        False, "marker 7 is not in view now: preview again once it is")
+    ok, why = ctl.start(name, previewed(), "op1", HERE, 1.0, LIMITS, markers={7: moved})
+    assert not ok and why == "marker 7 moved 10.0 mm / 0.0° since the preview: preview again"
+    turned = marker @ geometry.make_transform(geometry.rotvec_to_matrix([0.0, 0.2, 0.0]), [0.0, 0.0, 0.0])
+    assert not ctl.start(name, previewed(), "op1", HERE, 1.0, LIMITS, markers={7: turned})[0]
+    assert ctl.start(name, previewed(), "op1", HERE, 1.0, LIMITS, markers={7: marker})[0]
+    assert np.any(ctl.twist(HERE, 1.1, contact_off="", markers={}))  # out of view: on
+    assert not np.any(ctl.twist(HERE, 1.2, contact_off="", markers={7: moved}))
+    assert not ctl.active and ctl.reason == "marker 7 moved 10.0 mm / 0.0° since the preview: move cancelled, preview again"
 
 
 def test_the_edge_lists_its_primitives_with_their_defaults() -> None:

@@ -584,8 +584,10 @@ class EdgeAgent:
             now = time.monotonic()
             # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
             received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
-            off = self.supervisor.contact_off_reason
-            goto = self.goto.twist(pose, now, contact_off=off).tolist() if self.goto.active else None
+            goto = None
+            if self.goto.active:
+                markers = self._fresh_markers() if self.goto.aims_at_marker else None
+                goto = self.goto.twist(pose, now, contact_off=self.supervisor.contact_off_reason, markers=markers).tolist()
             decision = self.supervisor.on_command(cmd, recv_ns / 1e9, received, pose, goto)
             if decision.cancel_goto:
                 self._cancel_goto(decision.cancel_goto)
@@ -659,6 +661,7 @@ class EdgeAgent:
         req = self._request(query, keys.CONTROL_GOTO)
         if req is None:
             return
+        markers = self._fresh_markers()
         with self.lock:
             refusal = self.supervisor.owner_refusal(req, keys.CONTROL_GOTO)
             if refusal:
@@ -668,7 +671,7 @@ class EdgeAgent:
             else:
                 contact = self.supervisor.contact_target is not None
                 ok, reason = self.goto.start(req.name, req.token, req.operator, self.reading.tcp_pose,
-                                             time.monotonic(), self._limits(), contact=contact)
+                                             time.monotonic(), self._limits(), contact=contact, markers=markers)
                 if ok and contact and not self.goto.planar:
                     # Contact mode would hold the probe's axis against the move (a retreat lifts off on purpose).
                     self.supervisor.contact_off(f"{req.name!r} moves the probe along its axis")

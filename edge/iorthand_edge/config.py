@@ -74,6 +74,10 @@ class EdgeConfig:
                              " none (use kind sim with a phantom)")
         if self.phantom is not None and not simulated:
             raise ValueError("phantom: a simulated phantom only makes sense with the simulated robot (robot.kind sim)")
+        if self.force is not None and self.safety.contact.target >= self.force.levels.caution:
+            raise ValueError(f"safety.contact.target {self.safety.contact.target:g} N must lie below "
+                             f"force.levels.caution ({self.force.levels.caution:g} N): contact mode would always be "
+                             "refused")
         stream = self.video.camera if self.video is not None else None
         # (A video file as the perception camera has no rate of its own to compare.)
         camera_fps = getattr(self.perception.camera, "fps", None) if self.perception is not None else None
@@ -90,6 +94,14 @@ class EdgeConfig:
         if not self.safety.auto_arm and self.local_socket is None:
             out.append(("local_socket", "not set while safety.auto_arm is false: nothing can confirm arming "
                                         "(iorthand arm), so the robot never moves"))
+        box = self.safety.workspace
+        named = {f"goto.poses.{name}": pose for name, pose in self.goto.poses.items()}
+        if isinstance(self.robot, SimRobotConfig):
+            named["robot.initial_pose"] = self.robot.initial_pose
+        for where, pose in named.items():
+            if not box.contains(pose[:3]):
+                out.append((where, f"{[round(v, 4) for v in pose[:3]]} lies outside safety.workspace "
+                                   f"{box.min} .. {box.max}: every move there is refused"))
         return out
 
 

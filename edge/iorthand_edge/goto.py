@@ -54,6 +54,10 @@ class GotoConfig:
     marker_max_age: float = setting(
         0.5, lo=0.05, hi=5.0, help="s a marker pose stays usable for above_marker:<id> after its camera frame"
     )
+    marker_tolerance: float = setting(
+        0.005, lo=0.0005, hi=0.05, help="m a move's marker may have moved since the preview (the patient moved)",
+    )
+    marker_angle_tolerance: float = setting(0.1, lo=0.005, hi=0.5, help="rad, idem for its orientation")
     tcp_offset: list[float] = setting(default_factory=lambda: [0.0] * 6, length=6, help="TCP in the flange frame")
     start_tolerance: float = setting(0.005, lo=0.0, hi=0.1, help="m the robot may have moved since the preview")
     start_angle_tolerance: float = setting(0.05, lo=0.0, hi=1.0, help="rad, idem for orientation")
@@ -67,10 +71,10 @@ class GotoConfig:
         for name, pose in self.poses.items():
             if len(pose) != 6:
                 raise ValueError(f"poses.{name}: expected 6 numbers [x,y,z,rx,ry,rz], got {len(pose)}")
-            if name == motion.RETRACT or name.startswith(motion.ABOVE_MARKER):
-                continue
-            if ":" in name:
-                raise ValueError(f"poses.{name}: ':' is reserved for above_marker:<id>")
+            if name in (motion.SWEEP, motion.RETREAT):
+                raise ValueError(f"poses.{name}: the name of a primitive, which it would hide: name it otherwise")
+            if ":" in name:  # a pose named above_marker:<id> would hide the live marker's
+                raise ValueError(f"poses.{name}: ':' is reserved for above_marker:<id> and approach:<id>")
 
 
 @dataclass
@@ -100,6 +104,23 @@ def _refused(name: str, current_pose: ArrayLike, limits: motion.Limits, reason: 
     return Preview(motion.Route(name, [plan]))
 
 
+@dataclass(frozen=True)
+class _Aim:
+    """The marker a move aims at, as the preview saw it (T_base_marker)."""
+
+    marker_id: int
+    pose: Vector
+
+
+def _aim(name: str, markers: Mapping[int, ArrayLike] | None) -> _Aim | None:
+    """The marker ``name`` aims at (above_marker:<id>, approach:<id>) with its pose now; None for other moves."""
+    for prefix in (motion.ABOVE_MARKER, motion.APPROACH):
+        text = name[len(prefix):] if name.startswith(prefix) else ""
+        if text.isdigit() and markers and int(text) in markers:
+            return _Aim(int(text), np.asarray(markers[int(text)], dtype=float))
+    return None
+
+
 @dataclass
 class _Issued:
     name: str
@@ -107,6 +128,7 @@ class _Issued:
     plan: motion.Route
     issued_at: float
     limits: motion.Limits
+    aim: _Aim | None = None
 
 
 @dataclass
@@ -115,6 +137,7 @@ class _Active:
     operator: str
     started_at: float
     limits: motion.Limits
+    aim: _Aim | None = None
 
 
 @dataclass
@@ -175,7 +198,7 @@ class GotoController:
             return Preview(plan)
         self._expire(now)
         token = secrets.token_hex(12)
-        self._tokens[token] = _Issued(name, operator, plan, now, limits)
+        self._tokens[token] = _Issued(name, operator, plan, now, limits, _aim(name, markers))
         while len(self._tokens) > self.max_tokens:
             others = [t for t, issued in self._tokens.items() if issued.operator != owner]
             del self._tokens[others[0] if others else next(iter(self._tokens))]
@@ -188,10 +211,12 @@ class GotoController:
     # ------------------------------------------------------------------ goto
 
     def start(self, name: str, token: str, operator: str, current_pose: ArrayLike, now: float,
-              limits: motion.Limits, contact: bool = False) -> tuple[bool, str]:
+              limits: motion.Limits, contact: bool = False,
+              markers: Mapping[int, ArrayLike] | None = None) -> tuple[bool, str]:
         """Validate a goto. Tokens are single-use: a refused goto for a known token also consumes it. A valid
         goto while another move runs preempts it (a new goal). ``contact``: contact mode is on (a planar route,
-        a sweep, runs only in it: its height is the force's)."""
+        a sweep, runs only in it: its height is the force's). ``markers``: those in view now (fresh); a move
+        aimed at a marker starts only while it is seen where the preview saw it."""
         if not self.config.enabled:
             return False, "preview/goto is disabled in this edge's configuration"
         if not token:
@@ -219,12 +244,31 @@ class GotoController:
             return False, "the speed limits are lower than at the preview (profile changed): preview again"
         if issued.plan.planar and not contact:
             return False, f"{name!r} runs in contact mode (its height is the held force): turn contact mode on first"
+        if issued.aim is not None:
+            if not markers or issued.aim.marker_id not in markers:
+                return False, f"marker {issued.aim.marker_id} is not in view now: preview again once it is"
+            moved = self._marker_moved(issued.aim, markers[issued.aim.marker_id])
+            if moved:
+                return False, f"{moved}: preview again"
         if self._active is not None:
             self.cancel(f"preempted by a new goal: {name!r}")
         # Run the path exactly as previewed (its timing was approved), never faster.
-        self._active = _Active(issued.plan, operator, now, issued.limits)
+        self._active = _Active(issued.plan, operator, now, issued.limits, issued.aim)
         self.status, self.reason = "moving", f"{name}: started ({issued.plan.duration:.1f} s)"
         return True, self.reason
+
+    def _marker_moved(self, aim: _Aim, seen: ArrayLike) -> str:
+        """Why the marker seen now is not where the preview saw it ("" when it is, within the tolerances)."""
+        moved = geometry.translation_distance(aim.pose, seen)
+        turned = geometry.rotation_angle(aim.pose, seen)
+        if moved > self.config.marker_tolerance or turned > self.config.marker_angle_tolerance:
+            return f"marker {aim.marker_id} moved {1000 * moved:.1f} mm / {math.degrees(turned):.1f}° since the preview"
+        return ""
+
+    @property
+    def aims_at_marker(self) -> bool:
+        """The move under way aims at a marker (its twist wants the markers in view)."""
+        return self._active is not None and self._active.aim is not None
 
     @property
     def planar(self) -> bool:
@@ -251,13 +295,21 @@ class GotoController:
         self.status, self.reason = "cancelled", reason
         return True
 
-    def twist(self, current_pose: ArrayLike, now: float, *, contact_off: str) -> Vector:
-        """The tool twist for this cycle (base frame). Zero, and the move ends, when done, off the path, or when
-        a planar route (a sweep) finds contact mode off (``contact_off``: why; "" while it is on): nothing holds
-        its height any more."""
+    def twist(self, current_pose: ArrayLike, now: float, *, contact_off: str,
+              markers: Mapping[int, ArrayLike] | None = None) -> Vector:
+        """The tool twist for this cycle (base frame). Zero, and the move ends, when done, off the path, when a
+        planar route (a sweep) finds contact mode off (``contact_off``: why; "" while it is on): nothing holds
+        its height any more, or when the marker it aims at is seen (in ``markers``, those in view) away from
+        where the preview saw it: the patient moved. A marker out of view goes on (the probe itself hides it
+        close up)."""
         act = self._active
         if act is None:
             return np.zeros(6)
+        if act.aim is not None and markers and act.aim.marker_id in markers:
+            moved = self._marker_moved(act.aim, markers[act.aim.marker_id])
+            if moved:
+                self.cancel(f"{moved}: move cancelled, preview again")
+                return np.zeros(6)
         if act.plan.planar and contact_off:
             self.cancel(f"contact mode ended ({contact_off}): {act.plan.name!r} runs only in it (its height is the "
                         "held force)")

@@ -71,6 +71,9 @@ class SpeedProfile:
     angular: float = setting(0.1, lo=0.0, hi=1.0, help="rad/s")
 
 
+MAX_REACH = 2.0  # m from the base: no arm iorthand drives reaches further (a UR20: 1.75 m)
+
+
 @dataclass
 class WorkspaceBox:
     """Allowed tool positions in the base frame (m)."""
@@ -81,6 +84,14 @@ class WorkspaceBox:
     def check(self) -> None:
         if any(lo >= hi for lo, hi in zip(self.min, self.max, strict=True)):
             raise ValueError(f"workspace min {self.min} must be below max {self.max} on every axis")
+        far = [v for v in (*self.min, *self.max) if abs(v) > MAX_REACH]
+        if far:
+            # A box written in millimetres loads as metres: none of its faces would ever be met.
+            raise ValueError(f"workspace {self.min} .. {self.max}: {far[0]:g} m is beyond any arm's reach "
+                             f"({MAX_REACH:g} m); the box is in metres (millimetres?)")
+
+    def contains(self, position: list[float]) -> bool:
+        return all(lo <= v <= hi for lo, v, hi in zip(self.min, position, self.max, strict=False))
 
 
 @dataclass
@@ -100,8 +111,9 @@ class ForceReaction:
     )
 
     def check(self) -> None:
-        if not any(self.contact_axis):
-            raise ValueError("contact_axis must not be the zero vector")
+        # Normalised where it is used: a near-zero axis would amplify noise into a direction.
+        if math.hypot(*self.contact_axis) < 0.1:
+            raise ValueError(f"contact_axis {self.contact_axis} must be a direction (length 1: the probe's axis)")
 
     def approach_speed_cap(self, deceleration: float) -> float:
         """The fastest approach (m/s) that still stops within ``overshoot_margin``: v·T + v²/(2a) ≤ margin."""
