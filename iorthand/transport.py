@@ -268,6 +268,8 @@ def open_session(cfg: ZenohConfig, stop: threading.Event | None = None) -> zenoh
             session = zenoh.open(zc)
             if attempt > 1:
                 log.info("connected to %s after %d attempts", ", ".join(cfg.connect), attempt)
+            if cfg.mode == "client":
+                _say_router_links(session, ", ".join(cfg.connect))
             return session
         except zenoh.ZError as exc:
             if diagnoser is None and cfg.mode == "client":
@@ -289,6 +291,23 @@ def open_session(cfg: ZenohConfig, stop: threading.Event | None = None) -> zenoh
             else:
                 time.sleep(delay)
             delay = min(delay * 2, MAX_RETRY_DELAY)
+
+
+def _say_router_links(session: zenoh.Session, where: str) -> None:
+    """Log when the link to the router drops and when it is back. Zenoh reconnects by itself and says nothing:
+    an edge whose router went away looked alive in its log (journalctl on the Pi) while nothing reached it. The
+    listener lives as long as the session."""
+
+    def on_event(event: zenoh.TransportEvent) -> None:
+        if event.transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        if event.kind == zenoh.SampleKind.DELETE:
+            log.warning("lost the link to the router at %s: nothing goes out or comes in until it is back; "
+                        "reconnecting", where)
+        else:
+            log.info("linked to the router at %s again", where)
+
+    session.info.declare_transport_events_listener(on_event, history=False)
 
 
 def publisher(session: zenoh.Session, key: str, qos: QosProfile | None = None) -> zenoh.Publisher:
