@@ -349,3 +349,18 @@ def test_servo_and_torch_commands_through_the_router(edge_factory, operator_fact
     wait_until(lambda: any(m.on and m.brightness == pytest.approx(0.8) for m in states["torch"]), message="torch on")
     assert agent.torch.driver.driver.levels[2] == pytest.approx(0.8)
     assert agent.supervisor.status != "stopped"  # neither command was taken for a stop
+
+
+@pytest.mark.parametrize(("axis", "said"), [
+    ({"min_deg": -90, "max_deg": 90, "home_deg": 0}, r"pan: \[-90, 90\]° is outside what a PCA9685 servo takes, 0..180°"),
+    ({"channel": 17}, r"pan.channel 17: the PCA9685 board has channels 0..15"),
+])
+def test_a_servo_axis_a_pca9685_cannot_drive_is_refused_when_the_file_loads(axis: dict, said: str) -> None:
+    """It loaded, and every move of that axis then failed on the Pi (ServoKit takes 0..180° on 16 channels)."""
+    from iorthand.config import ConfigError, from_dict
+    from iorthand_edge.actuators.config import ServosConfig
+
+    data = {"driver": {"kind": "pca9685"}, "pan": {"channel": 0, **axis}}
+    with pytest.raises(ConfigError, match=said):
+        from_dict(data, ServosConfig, source="<test>")
+    assert from_dict({**data, "driver": {"kind": "sim"}}, ServosConfig, source="<test>").pan.channel == axis.get("channel", 0)

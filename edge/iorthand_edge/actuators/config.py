@@ -35,6 +35,8 @@ class PCA9685DriverConfig(ActuatorDriverConfig):
     max_pulse_us: int = setting(2500, lo=100, hi=3000)
 
 
+PCA9685_RANGE_DEG = 180.0  # ServoKit's actuation range: the angles its servos take
+
 SERIAL_FIELDS = {"channel": 0, "degrees": 90.0, "value": 0.5, "percent": 50, "pwm": 128}
 
 
@@ -95,6 +97,15 @@ class ServosConfig:
     def check(self) -> None:
         if self.pan.channel == self.tilt.channel:
             raise ValueError(f"pan and tilt share channel {self.pan.channel}")
+        if isinstance(self.driver, PCA9685DriverConfig):
+            for name, axis in (("pan", self.pan), ("tilt", self.tilt)):
+                if axis.channel >= self.driver.channels:
+                    raise ValueError(f"{name}.channel {axis.channel}: the PCA9685 board has channels 0.."
+                                     f"{self.driver.channels - 1}")
+                if axis.min_deg < 0.0 or axis.max_deg > PCA9685_RANGE_DEG:
+                    # ServoKit refuses any other angle: every move of that axis would fail at run time.
+                    raise ValueError(f"{name}: [{axis.min_deg:g}, {axis.max_deg:g}]° is outside what a PCA9685 "
+                                     f"servo takes, 0..{PCA9685_RANGE_DEG:g}° (centre {PCA9685_RANGE_DEG / 2:g})")
 
 
 @dataclass
