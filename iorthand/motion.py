@@ -379,10 +379,18 @@ def _param(params: Mapping[str, Any], name: str, default: float, lo: float, hi: 
     return float(value)
 
 
-def plan_sweep(current: ArrayLike, limits: Limits, params: Mapping[str, Any]) -> Route:
+def _end_joints(plan: Plan) -> Vector | None:
+    """Where a leg leaves the arm's joints: the next leg is solved near them, so that a flip between two legs
+    (one arm configuration at the end of one, another at the start of the next) is seen, not planned over."""
+    return None if plan.joints is None or not len(plan.joints) else plan.joints[-1]
+
+
+def plan_sweep(current: ArrayLike, limits: Limits, params: Mapping[str, Any],
+               reference_q: ArrayLike | None = None) -> Route:
     """A zig-zag over the surface from ``current``: ``lanes`` lanes ``width`` m long along the base x axis,
     ``pitch`` m apart along y, at ``speed`` m/s (at most the profile's); the height and the contact are contact
-    mode's, the orientation kept. Checked at the current height (workspace, reach)."""
+    mode's, the orientation kept. Checked at the current height (workspace, reach), each leg from the joints
+    the one before left (the first from ``reference_q``, the arm's now)."""
     width = _param(params, "width", SWEEP_DEFAULTS["width"], 0.005, 0.5)
     pitch = _param(params, "pitch", SWEEP_DEFAULTS["pitch"], 0.001, 0.1)
     lanes = int(_param(params, "lanes", SWEEP_DEFAULTS["lanes"], 1, 50))
@@ -393,17 +401,20 @@ def plan_sweep(current: ArrayLike, limits: Limits, params: Mapping[str, Any]) ->
     legs: list[Plan] = []
     labels: list[str] = []
     direction = 1.0
+    q = reference_q
     for lane in range(lanes):
         there = here.copy()
         there[0] += direction * width
-        legs.append(check_plan(plan_line(SWEEP, here, there, lim), lim))
+        legs.append(check_plan(plan_line(SWEEP, here, there, lim), lim, q))
         labels.append(f"lane {lane + 1} of {lanes}")
+        q = _end_joints(legs[-1])
         here = there
         if lane < lanes - 1:
             there = here.copy()
             there[1] += pitch
-            legs.append(check_plan(plan_line(SWEEP, here, there, lim), lim))
+            legs.append(check_plan(plan_line(SWEEP, here, there, lim), lim, q))
             labels.append(f"step to lane {lane + 2} of {lanes}")
+            q = _end_joints(legs[-1])
             here = there
         direction = -direction
     return Route(SWEEP, legs, planar=True, labels=labels)
@@ -443,7 +454,7 @@ def plan_route(
             raise PoseError(f"{name}: unknown parameter(s) {', '.join(map(str, unknown))}"
                             f" (known: {', '.join(known) or 'none'})")
         if name == SWEEP:
-            return plan_sweep(current, limits, params)
+            return plan_sweep(current, limits, params, reference_q)
         if name.startswith(APPROACH):
             standoff = _param(params, "standoff", marker_standoff, 0.01, 0.5)
             marker = f"{ABOVE_MARKER}{name[len(APPROACH):]}"
@@ -454,7 +465,8 @@ def plan_route(
             up = plan_to(RETRACT, current, limits, poses, markers, retract_distance, marker_standoff, reference_q)
             legs, labels = [up], ["up, away from the patient"]
             if HOME in poses:
-                legs.append(check_plan(plan_line(HOME, up.goal, np.asarray(poses[HOME], dtype=float), limits), limits))
+                home = plan_line(HOME, up.goal, np.asarray(poses[HOME], dtype=float), limits)
+                legs.append(check_plan(home, limits, _end_joints(up)))
                 labels.append("to the safe pose")
             return Route(RETREAT, legs, labels=labels)
     except PoseError as exc:

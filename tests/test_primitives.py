@@ -87,6 +87,25 @@ def test_approach_and_retreat() -> None:
     assert motion.plan_route(motion.RETREAT, HERE, LIMITS, {}, params={"x": 1}).reason.startswith("retreat: unknown")
 
 
+@pytest.mark.parametrize("name", [motion.SWEEP, motion.RETREAT])
+def test_every_leg_of_a_route_is_solved_from_the_joints_the_leg_before_left(name: str) -> None:
+    """A route of several legs is one motion of the arm: its first leg starts from the arm's joints now (here an
+    elbow-down arm, not the home posture's branch) and each next leg from where the one before left them. Solved
+    each on its own, the sweep's legs were checked on the home posture's branch, not the arm's: a flip between
+    the arm and the plan, or between two legs, was never seen."""
+    from iorthand import kinematics
+
+    arm = kinematics.model(LIMITS.model)
+    usual = kinematics.solve_near(arm, HERE)
+    q_now = next(q for q in kinematics.inverse(arm, HERE) if not np.allclose(q, usual) and q[1] < -1.5)
+    route = motion.plan_route(name, HERE, LIMITS, {"home": [0.25, 0.0, 0.30, math.pi, 0.0, 0.0]}, reference_q=q_now,
+                              params={"lanes": 3} if name == motion.SWEEP else None)
+    assert route.ok and len(route.legs) > 1, route.reason
+    assert np.allclose(route.legs[0].joints[0], q_now, atol=1e-6)
+    for before, leg in zip(route.legs, route.legs[1:], strict=False):
+        assert np.allclose(leg.joints[0], before.joints[-1], atol=1e-6)
+
+
 def test_a_move_to_a_marker_runs_only_while_the_marker_is_where_the_preview_saw_it() -> None:
     """The preview planned on the marker then in view; a start up to the token's 10 s later, or the move itself,
     must not aim at where the patient was. A marker out of view during the move goes on (the probe hides it)."""
