@@ -29,7 +29,8 @@ install -o root -g iorthand -m 0644 "$BUNDLE"/ca.pem "$BUNDLE"/edge-*.pem /etc/i
 install -o root -g iorthand -m 0640 "$BUNDLE"/edge-*.key "$BUNDLE"/edge-*.password /etc/iorthand/certs/
 [ -f /etc/iorthand/edge.yaml ] || install -o root -g iorthand -m 0640 "$BUNDLE"/edge.yaml /etc/iorthand/edge.yaml
 
-/opt/iorthand/venv/bin/iorthand check --config /etc/iorthand/edge.yaml
+# As the service user: the check then also proves it can read every file it names.
+runuser -u iorthand -- /opt/iorthand/venv/bin/iorthand check --config /etc/iorthand/edge.yaml
 install -m 0644 "$REPO"/deploy/systemd/iorthand-edge.service /etc/systemd/system/
 systemctl daemon-reload
 systemctl enable --now iorthand-edge

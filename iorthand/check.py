@@ -7,9 +7,15 @@ own dataclasses when ``iorthand-cloud`` is installed, otherwise only their ``zen
 
 Then every Zenoh section found in the config gets the same pre-checks as a failed connection
 (:func:`iorthand.security.diagnose.precheck`): files exist and are readable, certificates parse, chain to the
-CA, are valid now and match their keys, passwords are readable. With ``--router-config`` it also checks that
-the router's ACL has a subject for this certificate — a session that matches no subject connects and is then
-silently ignored, the hardest failure to see.
+CA, are valid now and match their keys, passwords are readable (and not by every user). The certificate's
+common name and the user name must be the role's identity as the router's ACL knows it (``edge-<robot_id>``,
+``operator-<operator_id>``, ``twin``, ...). With ``--router-config`` it also checks that the router's ACL has a
+subject for this certificate — a session that matches no subject connects and is then silently ignored, the
+hardest failure to see — and, where the router's user dictionary is readable, that the password is the one in it.
+
+A router reachable from the network must listen on TLS, with mTLS, user/password and an ACL whose default is
+deny: anything less is an error (the systemd unit then does not start it); a loopback-only router (development,
+the demo) may be open.
 
 Exit status: 0 all good (warnings allowed), 1 problems found, 2 the file does not load.
 """
@@ -20,11 +26,12 @@ import argparse
 import dataclasses
 import importlib
 import json
+import os
 from pathlib import Path
 from typing import Any
 
 from iorthand.config import ConfigError, from_dict, load, read_yaml
-from iorthand.security.diagnose import Finding, check_certificate_files, precheck
+from iorthand.security.diagnose import Finding, check_certificate_files, endpoint_is_local, file_problem, precheck
 from iorthand.transport import ZenohConfig
 
 # role → (module, dataclass name). Imported lazily: the core depends on no role package.
@@ -45,6 +52,15 @@ UNBOUND = {
             "certificate sent a command, only the name in it",
     "operator": "off on a secured link: a router generated with bind_operator_keys (the default) drops this "
                 "operator's commands and control queries on the plain keys",
+    "web": "off on a secured link: a router generated with bind_operator_keys (the default) drops the commands and "
+           "control queries the console sends for its operators on the plain keys (the browser then shows \"no "
+           "answer from robot on control/acquire\"): set bind_operator_keys: true, as in deploy/configs/web.yaml",
+}
+
+# The certificate common names (= router user names) a role's configuration may present: the router's ACL
+# (iorthand.security.acl) has subjects with exactly these names. None: not tied to one name.
+FIXED_IDENTITIES: dict[str, set[str]] = {
+    "twin": {"twin"}, "recorder": {"recorder", "replay"}, "web": {"web"}, "bridge": {"bridge"},
 }
 
 
@@ -122,32 +138,176 @@ def _load_json5(path: Path) -> dict[str, Any]:
     return out
 
 
+def _endpoints(section: Any) -> list[str]:
+    endpoints = (section or {}).get("endpoints") or []
+    if isinstance(endpoints, dict):  # per-role form {router: [...], peer: [...]}
+        endpoints = endpoints.get("router", [])
+    return list(endpoints)
+
+
+def _encrypted(endpoint: str) -> bool:
+    return endpoint.startswith(("tls/", "quic/"))
+
+
 def check_router(path: Path) -> Report:
+    """A router reachable from the network (any listen endpoint not on the loopback, Zenoh's default
+    ``tcp/[::]:7447`` included) must encrypt, authenticate and filter: anything else would let whoever reaches
+    the port command the robots, so it is an error (the systemd unit then does not start it). A loopback-only
+    router (development, the demo) may be open: the same findings are warnings there."""
     cfg = _load_json5(path)
     rep = Report("router")
     paths = _router_paths(cfg)
-    listen = cfg.get("listen", {}).get("endpoints") or []
-    if isinstance(listen, dict):
-        listen = listen.get("router", [])
-    if any(not ep.startswith(("tls/", "quic/")) and "127.0.0.1" not in ep and "localhost" not in ep for ep in listen):
-        rep.findings.append(Finding("warning", "listen.endpoints", f"unencrypted endpoint reachable from the network: {listen}"))
+    listen = _endpoints(cfg.get("listen"))
+    exposed = [ep for ep in listen if not endpoint_is_local(ep)]
+    level = "error" if exposed else "warning"
+    clear = [ep for ep in exposed if not _encrypted(ep)]
+    if clear:
+        rep.findings.append(Finding("error", "listen.endpoints", (
+            f"unencrypted endpoint reachable from the network: {', '.join(clear)}: commands, passwords and the "
+            "control key would cross the network in clear and nobody would be authenticated. Listen on "
+            "tls/HOST:PORT (generate the configuration with `iorthand certs router-config`), or on 127.0.0.1 "
+            "for a development router")))
     if paths["listen_certificate"]:
         rep.findings += check_certificate_files(
             Path(paths["root_ca_certificate"]) if paths["root_ca_certificate"] else None,
             Path(paths["listen_certificate"]), Path(paths["listen_private_key"]) if paths["listen_private_key"] else None,
         )
     tls = cfg.get("transport", {}).get("link", {}).get("tls", {}) or {}
+    # Client certificates authenticate only on a TLS listener (a TLS section beside tcp/ endpoints does nothing).
+    mtls = bool(paths["listen_certificate"] and tls.get("enable_mtls") and any(_encrypted(ep) for ep in listen))
     if paths["listen_certificate"] and not tls.get("enable_mtls"):
-        rep.findings.append(Finding("warning", "transport.link.tls.enable_mtls", "off: clients are not authenticated by certificate"))
+        rep.findings.append(Finding(level, "transport.link.tls.enable_mtls", (
+            "off: clients are not authenticated by certificate, and the ACL's certificate names match nobody: "
+            "set it true")))
     usr = (cfg.get("transport", {}).get("auth", {}) or {}).get("usrpwd", {}) or {}
-    if usr.get("dictionary_file") and not Path(usr["dictionary_file"]).exists():
-        rep.findings.append(Finding("error", usr["dictionary_file"], "user dictionary file does not exist"))
+    dictionary = usr.get("dictionary_file")
+    if dictionary and not Path(dictionary).exists():
+        rep.findings.append(Finding("error", dictionary, "user dictionary file does not exist"))
+    elif not dictionary and exposed:
+        # With mTLS a client is still authenticated by its certificate; without it, by nothing.
+        rep.findings.append(Finding("warning" if mtls else "error", "transport.auth.usrpwd", (
+            "no user/password authentication (no dictionary_file)" + (
+                ": a stolen certificate and key are enough to connect" if mtls else
+                " and no client certificates: any client that reaches the router is let in") +
+            ". Set users_file in deployment.yaml (`iorthand certs password NAME` writes it) and regenerate")))
     ac = cfg.get("access_control") or {}
+    who = "every authenticated client" if (mtls or dictionary) else "every client that reaches the router (no one is authenticated)"
     if not ac.get("enabled"):
-        rep.findings.append(Finding("warning", "access_control", "disabled: every authenticated client may do anything"))
+        rep.findings.append(Finding(level, "access_control", (
+            f"disabled: {who} may publish, subscribe and query anything, commands to the robots included"
+            + (": generate the configuration with `iorthand certs router-config`" if exposed else ""))))
     else:
+        if ac.get("default_permission") == "allow":
+            rep.findings.append(Finding(level, "access_control.default_permission", (
+                "allow: a session that matches no subject (another certificate of the CA, a wrong user name) may "
+                "do whatever no rule denies: set it to deny, as `iorthand certs router-config` does")))
         rep.notes.append(f"ACL: {len(ac.get('subjects') or [])} subjects, default {ac.get('default_permission')}")
     return rep
+
+
+def _users(path: Path) -> dict[str, str]:
+    """Zenoh's usrpwd dictionary: ``user:password`` lines."""
+    out: dict[str, str] = {}
+    for line in path.read_text().splitlines():
+        user, sep, password = line.partition(":")
+        if sep:
+            out[user] = password
+    return out
+
+
+def _identity_findings(role: str, obj: Any, data: Any, where: str, zc: ZenohConfig, cn: str | None) -> list[Finding]:
+    """The certificate's common name and the user name must be the ones the router's ACL has for this role:
+    otherwise the session connects and nothing it sends is routed, or it speaks as someone else."""
+    out: list[Finding] = []
+    expected: set[str] | None
+    why = ""
+    # From the loaded config, or the YAML where the role's package is not installed (only zenoh was loaded).
+    robot_id = getattr(obj, "robot_id", None) or (data.get("robot_id") if isinstance(data, dict) else None)
+    operator_id = getattr(obj, "operator_id", None) or (data.get("operator_id") if isinstance(data, dict) else None)
+    if role == "edge" and robot_id:
+        expected = {f"edge-{robot_id}"}
+        why = (f"the router grants the keys of robot {robot_id!r} to edge-{robot_id} only: this edge would "
+               f"connect and be ignored, or act as another robot. Use edge-{robot_id}.pem/.key, or fix robot_id")
+    elif role == "operator" and operator_id:
+        expected = {f"operator-{operator_id}"}
+        why = (f"the router lets operator {operator_id!r} command only with the certificate operator-{operator_id}: "
+               f"every command and control request would be dropped or refused. Use operator-{operator_id}.pem/.key, "
+               "or set operator_id to the name the certificate carries")
+    else:
+        expected = FIXED_IDENTITIES.get(role)
+        why = "the router's ACL has a subject for that name only: nothing this service sends would be routed"
+    names = " or ".join(sorted(expected)) if expected else ""
+    if cn is not None and expected and cn not in expected:
+        out.append(Finding("error", str(zc.tls.certificate if zc.tls else where),
+                           f"certificate CN {cn!r} is not this {role}'s identity {names!r}: {why}"))
+    if zc.username:
+        # The name to match: the role's own where it has one name (a wrong CN is reported above), else the CN.
+        target = next(iter(expected)) if expected and len(expected) == 1 else cn
+        if target is not None and zc.username != target:
+            out.append(Finding("error", f"{where}.username", (
+                f"{zc.username!r} is not {target!r}" + (", the certificate's CN" if target == cn else f", this {role}'s identity")
+                + ": the router's ACL matches a session on its certificate name and its user name together, so this "
+                "one would connect and be silently ignored. Set username to the certificate's name, with its password_file")))
+    return out
+
+
+def _password_findings(where: str, zc: ZenohConfig, router_cfg: dict[str, Any], rep: Report) -> list[Finding]:
+    """Compare this config's user and password with the router's dictionary file, where it can be read."""
+    usr = (router_cfg.get("transport", {}).get("auth", {}) or {}).get("usrpwd", {}) or {}
+    dictionary = usr.get("dictionary_file")
+    if not dictionary:
+        return []
+    if not zc.username:
+        return [Finding("error", f"{where}.username", (
+            f"the router asks every client for a user and password (its dictionary {dictionary}) and none is set: "
+            "set username (the certificate's name) and password_file"))]
+    try:
+        users = _users(Path(dictionary))
+    except OSError as exc:
+        rep.notes.append(f"{where}: the router's dictionary {dictionary} is not readable here ({exc.strerror or exc}): "
+                         "password not compared")
+        return []
+    if zc.username not in users:
+        return [Finding("error", f"{where}.username", (
+            f"user {zc.username!r} is not in the router's dictionary {dictionary}: add it with `iorthand certs "
+            f"password {zc.username}` on the CA machine, install the new users.txt and restart the router"))]
+    if zc.password_file is None or not Path(zc.password_file).exists() or not os.access(zc.password_file, os.R_OK):
+        return []  # precheck reports the file
+    if Path(zc.password_file).read_text().strip() != users[zc.username].strip():
+        return [Finding("error", str(zc.password_file), (
+            f"this is not {zc.username!r}'s password in the router's dictionary {dictionary}: the router would refuse "
+            f"the session. Install {zc.username}.password and users.txt from the same `iorthand certs password` run"))]
+    return []
+
+
+def _web_findings(obj: Any, secured: bool) -> list[Finding]:
+    """The web console: its deployment must let the ``web`` certificate in, its users file and HTTPS files exist."""
+    from iorthand.security import acl
+
+    out: list[Finding] = []
+    dep_path = Path(obj.deployment)
+    if secured and dep_path.is_file() and os.access(dep_path, os.R_OK):
+        try:
+            dep = load(dep_path, acl.Deployment)
+        except ConfigError as exc:
+            out.append(Finding("error", str(dep_path), f"the deployment does not load: {exc}"))
+        else:
+            if not dep.web:
+                out.append(Finding("error", str(dep_path), (
+                    "has no `web: true`: the router generated from it has no subject for certificate web, so the "
+                    "console connects and nothing it sends is routed. Add `web: true` to this file, regenerate "
+                    "router.json5 (`iorthand certs router-config`) and restart the router (docs/DEPLOY.md §5)")))
+            if obj.bind_operator_keys and not dep.bind_operator_keys:  # the other way round: UNBOUND says it
+                out.append(Finding("warning", "bind_operator_keys", (
+                    f"{obj.bind_operator_keys} here but {dep.bind_operator_keys} in {dep_path}: set both alike")))
+    problem = file_problem(Path(obj.users_file), "web users file")
+    if problem:
+        # The console does not start without it; a development console may be checked before its first user.
+        out.append(Finding("error" if secured else "warning", problem.subject, problem.message + (
+            " (add a user with `iorthand web password NAME --users-file FILE`)")))
+    if obj.tls is not None:
+        out += check_certificate_files(None, Path(obj.tls.certificate), Path(obj.tls.private_key))
+    return out
 
 
 def check_file(path: Path, role: str | None = None, router_config: Path | None = None) -> Report:
@@ -182,24 +342,39 @@ def check_file(path: Path, role: str | None = None, router_config: Path | None =
             rep.findings.append(Finding("error", str(obj.users_file), "user dictionary file does not exist"))
         return rep
     sections = _zenoh_sections(obj)
-    if role in UNBOUND and getattr(obj, "bind_operator_keys", True) is False and any(
-        zc.tls is not None or zc.username for _, zc in sections
-    ):
+    secured = any(zc.tls is not None or zc.username for _, zc in sections)
+    if role in UNBOUND and getattr(obj, "bind_operator_keys", True) is False and secured:
         rep.findings.append(Finding("warning", "bind_operator_keys", UNBOUND[role]))
-    router_subjects = _subjects(_load_json5(Path(router_config))) if router_config else None
+    if role == "web":
+        rep.findings += _web_findings(obj, secured)
+    router_cfg = _load_json5(Path(router_config)) if router_config else None
+    router_subjects = _subjects(router_cfg) if router_cfg is not None else None
     for where, zc in sections:
         for f in precheck(zc):
             rep.findings.append(Finding(f.level, f"{where}: {f.subject}" if not f.subject.startswith("zenoh") else f.subject, f.message))
-        if zc.tls is None and any(not ep.startswith(("tcp/127.", "tcp/localhost")) for ep in zc.connect):
+        if zc.tls is None and any(not endpoint_is_local(ep) for ep in zc.connect):
             rep.findings.append(Finding("warning", f"{where}.connect", "plain TCP to a remote router: no encryption, no authentication"))
-        if router_subjects is not None and zc.tls is not None and zc.tls.certificate and Path(zc.tls.certificate).exists():
-            from iorthand.security.certs import common_name, load_certificate
-
-            cn = common_name(load_certificate(Path(zc.tls.certificate)))
-            if cn not in router_subjects:
-                rep.findings.append(Finding("error", str(zc.tls.certificate), f"CN {cn!r} has no subject in the router's ACL: it would connect and be silently ignored"))
+        cn = _common_name(zc)
+        rep.findings += _identity_findings(role, obj, data, where, zc, cn)
+        if router_subjects is not None and cn is not None and cn not in router_subjects:
+            rep.findings.append(Finding("error", str(zc.tls.certificate), f"CN {cn!r} has no subject in the router's ACL: it would connect and be silently ignored"))
+        if router_cfg is not None:
+            rep.findings += _password_findings(where, zc, router_cfg, rep)
         rep.notes.append(f"{where}: {', '.join(zc.connect or zc.listen)}{' with TLS' if zc.tls else ''}{' + user/password' if zc.username else ''}")
     return rep
+
+
+def _common_name(zc: ZenohConfig) -> str | None:
+    """The CN of the certificate a Zenoh section presents; None without one or when it cannot be read (precheck
+    says why)."""
+    if zc.tls is None or not zc.tls.certificate:
+        return None
+    from iorthand.security.certs import CertError, common_name, load_certificate
+
+    try:
+        return common_name(load_certificate(Path(zc.tls.certificate)))
+    except CertError:
+        return None
 
 
 def _cmd(args: argparse.Namespace) -> int:
@@ -217,5 +392,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("check", help="validate a configuration and its certificates without starting anything")
     p.add_argument("--config", required=True, help="edge/operator/twin/recorder YAML, deployment YAML or router JSON5")
     p.add_argument("--role", choices=sorted([*ROLE_CONFIGS, "router"]), help="default: guessed from the file")
-    p.add_argument("--router-config", help="also check that this config's certificate has a subject in that router's ACL")
+    p.add_argument("--router-config", help="also check that this config's certificate has a subject in that router's ACL "
+                   "and, if its user dictionary is readable here, that the password is the one in it")
     p.set_defaults(func=_cmd)

@@ -13,6 +13,7 @@ from pathlib import Path
 import zenoh
 
 from iorthand.config import ConfigError, cli_number
+from iorthand.security.diagnose import endpoint_is_local
 from iorthand.transport import (
     DATAGRAM_MAX_LINKS,
     MAX_LINKS_KEY,
@@ -82,7 +83,15 @@ def _cmd(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise ConfigError("command line", "--datagrams", str(exc)) from None
         config = zenoh.Config.from_json5(json.dumps(settings))
-    run_router(config, ", ".join(_endpoints(config, "listen")))
+    listen = _endpoints(config, "listen")
+    clear = [ep for ep in listen if not endpoint_is_local(ep) and not ep.startswith(("tls/", "quic/"))]
+    if clear:
+        # Not refused: a closed lab or a test's network namespace may want it. But said, at every start: anyone who
+        # reaches that port may command the robots (`iorthand check` refuses such a router configuration).
+        log.warning("listening in clear on %s, reachable from the network: nobody is authenticated and anyone who "
+                    "reaches it may command the robots. Outside a closed lab, run the TLS configuration that "
+                    "`iorthand certs router-config` generates (docs/DEPLOY.md §2)", ", ".join(clear))
+    run_router(config, ", ".join(listen))
     return 0
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 from pathlib import Path
 
@@ -9,8 +11,9 @@ import pytest
 import yaml
 
 from iorthand.check import check_file
+from iorthand.security import acl, certs
 from iorthand.security.lab import Lab, make_lab
-from tests.conftest import iorthand_cmd
+from tests.conftest import ROOT, iorthand_cmd
 
 
 @pytest.fixture(scope="module")
@@ -18,10 +21,12 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Lab:
     return make_lab(tmp_path_factory.mktemp("pki"), 7447, robots=["sim1"], operators={"alice": ["sim1"]})
 
 
-def _edge_yaml(lab: Lab, path: Path, cert: str = "edge-sim1") -> Path:
+def _edge_yaml(lab: Lab, path: Path, cert: str = "edge-sim1", robot_id: str = "sim1", username: str = "edge-sim1",
+               password_file: Path | None = None) -> Path:
     path.write_text(yaml.safe_dump({
-        "robot_id": "sim1",
-        "zenoh": {"connect": [lab.endpoint], "username": "edge-sim1", "password_file": str(lab.directory / "edge-sim1.password"),
+        "robot_id": robot_id,
+        "zenoh": {"connect": [lab.endpoint], "username": username,
+                  "password_file": str(password_file or lab.directory / f"{username}.password"),
                   "tls": {"root_ca": str(lab.directory / "ca.pem"), "certificate": str(lab.directory / f"{cert}.pem"),
                           "private_key": str(lab.directory / f"{cert}.key")}},
         "robot": {"kind": "sim"},
@@ -37,9 +42,10 @@ def test_good_edge_config(lab: Lab, tmp_path: Path) -> None:
 def test_missing_certificate_and_unknown_subject(lab: Lab, tmp_path: Path) -> None:
     rep = check_file(_edge_yaml(lab, tmp_path / "edge.yaml", cert="edge-nope"))
     assert not rep.ok and any("does not exist" in f.message for f in rep.findings)
+    # twin has a subject in the router's ACL, but it is not this edge's identity: that alone is an error.
     rep = check_file(_edge_yaml(lab, tmp_path / "edge2.yaml", cert="twin"), router_config=lab.router_config)
-    assert rep.ok  # twin has a subject
-    (lab.directory / "users.txt").exists()
+    assert not rep.ok and not any("has no subject" in f.message for f in rep.findings)
+    assert any("'twin' is not this edge's identity 'edge-sim1'" in f.message for f in rep.findings), rep.text(Path("e"))
     from iorthand.security import certs
 
     certs.issue(lab.directory, "operator-mallory")
@@ -109,3 +115,143 @@ def test_bind_operator_keys_off_behind_security_is_a_warning(lab: Lab, tmp_path:
     assert [f.subject for f in check_file(dep).findings if f.level == "warning"] == []  # bound by default
     dep.write_text(yaml.safe_dump({**base, "bind_operator_keys": False}))
     assert [f.subject for f in check_file(dep).findings if f.level == "warning"] == ["bind_operator_keys"]
+
+
+def _router(lab: Lab, path: Path, listen: str = "tls/0.0.0.0:7447", **changes: object) -> Path:
+    """The lab's generated router configuration, listening on ``listen``, with parts changed (a dotted key set to
+    None is removed)."""
+    cfg = acl.router_config(lab.deployment)
+    cfg["listen"] = {"endpoints": [listen]}
+    for dotted, value in changes.items():
+        *parents, last = dotted.split(".")
+        node = cfg
+        for part in parents:
+            node = node[part]
+        if value is None:
+            node.pop(last, None)
+        else:
+            node[last] = value
+    path.write_text(json.dumps(cfg))
+    return path
+
+
+def _errors(path: Path) -> dict[str, str]:
+    rep = check_file(path)
+    return {f.subject: f.message for f in rep.findings if f.level == "error"}
+
+
+def test_a_router_reachable_from_the_network_must_encrypt_authenticate_and_filter(lab: Lab, tmp_path: Path) -> None:
+    # What the walkthrough ran: tcp/0.0.0.0 in clear, no ACL, default allow, no user/password, no mTLS. The
+    # router's systemd unit runs check before starting it: every one of these must stop it.
+    assert check_file(_router(lab, tmp_path / "good.json5")).ok  # the generated configuration, on every address
+    assert _errors(_router(lab, tmp_path / "clear.json5", listen="tcp/0.0.0.0:7447")).keys() == {"listen.endpoints"}
+    assert "tls/HOST:PORT" in _errors(tmp_path / "clear.json5")["listen.endpoints"]
+    assert _errors(_router(lab, tmp_path / "noacl.json5", **{"access_control.enabled": False})).keys() == {"access_control"}
+    assert _errors(_router(lab, tmp_path / "allow.json5", **{"access_control.default_permission": "allow"})).keys() == {
+        "access_control.default_permission"}
+    # Neither client certificates nor passwords: nobody is authenticated.
+    open_router = _router(lab, tmp_path / "noauth.json5", **{"transport.link.tls.enable_mtls": False, "transport.auth": None,
+                                                             "access_control.enabled": False})
+    errors = _errors(open_router)
+    assert errors.keys() == {"transport.link.tls.enable_mtls", "transport.auth.usrpwd", "access_control"}
+    assert "no one is authenticated" in errors["access_control"] and "every authenticated" not in errors["access_control"]
+    # mTLS without passwords still authenticates every client: a finding, not an error.
+    rep = check_file(_router(lab, tmp_path / "nopw.json5", **{"transport.auth": None}))
+    assert rep.ok and [f.subject for f in rep.findings if f.level == "warning"] == ["transport.auth.usrpwd"]
+    # Zenoh's default listener (no listen section) is tcp/[::]:7447: in clear, on every address.
+    cfg = json.loads((tmp_path / "good.json5").read_text())
+    del cfg["listen"]
+    (tmp_path / "default.json5").write_text(json.dumps(cfg))
+    assert "listen.endpoints" in _errors(tmp_path / "default.json5")
+    r = subprocess.run(iorthand_cmd("check", "--config", str(open_router)), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "PROBLEMS FOUND" in r.stdout, r.stdout + r.stderr
+
+
+def test_a_loopback_router_may_stay_open_for_development(lab: Lab, tmp_path: Path) -> None:
+    # make demo, the tests and the local-dev files: a router on 127.0.0.1 in clear, without ACL, is fine.
+    for path in (ROOT / "configs" / "router.json5", ROOT / "deploy" / "router" / "router.local-dev.json5"):
+        rep = check_file(path)
+        assert rep.ok, rep.text(path)
+    rep = check_file(_router(lab, tmp_path / "local.json5", listen="tcp/127.0.0.1:7447",
+                             **{"access_control.enabled": False, "transport.auth": None}))
+    assert rep.ok and {f.subject for f in rep.findings} == {"access_control"}, rep.text(Path("local.json5"))
+
+
+def test_the_identity_must_be_the_roles_own(lab: Lab, tmp_path: Path) -> None:
+    def errors(path: Path, **kw: object) -> list[str]:
+        return [f"{f.subject}: {f.message}" for f in check_file(path, **kw).findings if f.level == "error"]
+
+    certs.issue(lab.directory, "edge-sim2")
+    # edge-sim1's certificate on robot sim2: the router gives sim2's keys to edge-sim2 only.
+    said = errors(_edge_yaml(lab, tmp_path / "e1.yaml", robot_id="sim2"))
+    assert len(said) == 2 and "'edge-sim1' is not this edge's identity 'edge-sim2'" in said[0], said
+    assert "username: 'edge-sim1' is not 'edge-sim2'" in said[1], said
+    # An operator's certificate on an edge.
+    assert any("'operator-alice' is not this edge's identity" in e for e in errors(
+        _edge_yaml(lab, tmp_path / "e2.yaml", cert="operator-alice", username="operator-alice")))
+    # The right certificate, another role's user name (and password).
+    said = errors(_edge_yaml(lab, tmp_path / "e3.yaml", username="twin"))
+    assert said == [said[0]] and "'twin' is not 'edge-sim1'" in said[0] and "silently ignored" in said[0], said
+    # An operator whose certificate is another operator's.
+    operator = tmp_path / "operator.yaml"
+    operator.write_text(yaml.safe_dump({
+        "operator_id": "bob", "robot": "sim1", "bind_operator_keys": True,
+        "zenoh": {"connect": [lab.endpoint], "username": "operator-alice",
+                  "password_file": str(lab.directory / "operator-alice.password"),
+                  "tls": {"root_ca": str(lab.directory / "ca.pem"), "certificate": str(lab.directory / "operator-alice.pem"),
+                          "private_key": str(lab.directory / "operator-alice.key")}},
+    }))
+    said = errors(operator)
+    assert any("'operator-alice' is not this operator's identity 'operator-bob'" in e for e in said), said
+    data = yaml.safe_load(operator.read_text())
+    operator.write_text(yaml.safe_dump({**data, "operator_id": "alice"}))
+    assert errors(operator, router_config=lab.router_config) == []
+
+
+def test_the_password_must_be_the_routers(lab: Lab, tmp_path: Path) -> None:
+    wrong = tmp_path / "edge-sim1.password"
+    wrong.write_text("not-the-password\n")
+    os.chmod(wrong, 0o600)
+    path = _edge_yaml(lab, tmp_path / "edge.yaml", password_file=wrong)
+    assert check_file(path).ok  # without the router's dictionary nothing says it is wrong
+    rep = check_file(path, router_config=lab.router_config)
+    assert [f.subject for f in rep.findings if f.level == "error"] == [str(wrong)], rep.text(path)
+    # A user the dictionary does not have (issued after the router's users.txt was installed).
+    certs.issue(lab.directory, "edge-sim9")
+    (tmp_path / "edge-sim9.password").write_text("whatever")
+    os.chmod(tmp_path / "edge-sim9.password", 0o600)
+    rep = check_file(_edge_yaml(lab, tmp_path / "e9.yaml", cert="edge-sim9", robot_id="sim9", username="edge-sim9",
+                                password_file=tmp_path / "edge-sim9.password"), router_config=lab.router_config)
+    assert any("'edge-sim9' is not in the router's dictionary" in f.message for f in rep.findings), rep.text(path)
+
+
+def _web_yaml(lab: Lab, path: Path, deployment: dict, **overrides: object) -> Path:
+    certs.issue(lab.directory, "web")
+    (lab.directory / "web.password").write_text("pw-web")
+    os.chmod(lab.directory / "web.password", 0o600)
+    (path.parent / "deployment.yaml").write_text(yaml.safe_dump(deployment))
+    (path.parent / "web-users.txt").write_text("")
+    path.write_text(yaml.safe_dump({
+        "deployment": "deployment.yaml", "users_file": "web-users.txt", "listen": "127.0.0.1:8443",
+        "bind_operator_keys": True,
+        "zenoh": {"connect": [lab.endpoint], "username": "web", "password_file": str(lab.directory / "web.password"),
+                  "tls": {"root_ca": str(lab.directory / "ca.pem"), "certificate": str(lab.directory / "web.pem"),
+                          "private_key": str(lab.directory / "web.key")}},
+        **overrides,
+    }))
+    return path
+
+
+def test_a_secured_web_console_needs_web_true_and_bound_keys(lab: Lab, tmp_path: Path) -> None:
+    dep = {"certs_dir": str(lab.directory), "robots": ["sim1"], "operators": {"alice": ["sim1"]}}
+    rep = check_file(_web_yaml(lab, tmp_path / "web.yaml", dep))
+    assert rep.role == "web"
+    assert [(f.level, Path(f.subject).name) for f in rep.findings] == [("error", "deployment.yaml")], rep.text(Path("w"))
+    assert "web: true" in rep.findings[0].message and "regenerate" in rep.findings[0].message
+    assert check_file(_web_yaml(lab, tmp_path / "web.yaml", {**dep, "web": True})).ok
+    # bind_operator_keys off behind the router's bound keys: "no answer from robot on control/acquire".
+    rep = check_file(_web_yaml(lab, tmp_path / "web.yaml", {**dep, "web": True}, bind_operator_keys=False))
+    assert rep.ok and "bind_operator_keys" in {f.subject for f in rep.findings if f.level == "warning"}
+    # The development console (plain TCP on loopback, a deployment without web: true) stays fine.
+    rep = check_file(ROOT / "configs" / "web.yaml")
+    assert not [f for f in rep.findings if f.subject == "bind_operator_keys" or "web: true" in f.message]

@@ -1,8 +1,8 @@
 """docs/DEPLOY.md followed on one machine, by its own commands.
 
 The shell blocks of §1 (the CA), §2 (the cloud VM) and §4 (the operator's laptop) run as written, with four
-substitutions: no ``sudo`` (the test is root), no ``pip install`` (this checkout's ``iorthand`` is used), the CA
-folder and the operator's name. Then the router, the twin and the recorder run with the installed configurations,
+substitutions: no ``sudo`` and no ``sudo -u iorthand`` (the test is root), no ``pip install`` (this checkout's
+``iorthand`` is used, also for ``/opt/iorthand/venv/bin/iorthand``), the CA folder and the operator's name. Then the router, the twin and the recorder run with the installed configurations,
 and an edge with ``deploy/configs/edge.yaml`` and its bundle installed as ``deploy/pi-setup.sh`` installs it; it
 is armed through its local socket, and the operator moves the robot while the recorder records; the report is
 written. Everything runs in new mount, network and PID namespaces: /etc is a copy (the documented ``useradd``
@@ -43,8 +43,10 @@ def as_run_here(block: str, ca: Path) -> str:
     for line in block.splitlines():
         if re.search(r"\bpip install\b", line):
             continue  # this checkout is installed already
-        line = line.replace("sudo ", "").replace("~/iorthand-ca", str(ca)).replace("operator-NAME", "operator-dr-martin")
-        line = re.sub(r"(^|do |&& )(~/iorthand/bin/)?iorthand ", rf"\g<1>{BIN}/iorthand ", line)
+        # As root, the service user's checks run as root (the READABLE step checks that user's access).
+        line = line.replace("sudo -u iorthand ", "").replace("sudo ", "")
+        line = line.replace("~/iorthand-ca", str(ca)).replace("operator-NAME", "operator-dr-martin")
+        line = re.sub(r"(^|do |&& )(~/iorthand/bin/|/opt/iorthand/venv/bin/)?iorthand ", rf"\g<1>{BIN}/iorthand ", line)
         lines.append(line)
     return "\n".join(lines) + "\n"
 

@@ -68,7 +68,7 @@ def test_the_pi_can_arm_its_robot() -> None:
     assert edge.local_socket.parent.parent == Path("/run")
 
 
-@pytest.mark.parametrize("name", ["edge", "operator", "twin", "recorder", "replay"])
+@pytest.mark.parametrize("name", ["edge", "operator", "twin", "recorder", "replay", "web"])
 def test_each_deploy_config_loads_as_its_role_and_misses_only_the_installed_files(name: str) -> None:
     # The configurations an installer copies to /etc/iorthand (or ~/.config/iorthand): their role is told from
     # the file, every key loads, and all that is wrong here is that no certificate has been installed.

@@ -262,3 +262,41 @@ def test_identity_gate() -> None:
     gate.operator_gone("alice")
     assert not gate.check_acquire(k, "control/acquire", "alice")[0]
     assert identity.CommandGate().check_command("iorthand/r1/cmd/twist", "cmd/twist", "anyone") == (True, "")
+
+
+def test_a_secret_every_user_can_read_is_an_error(pki: Path, tmp_path: Path) -> None:
+    # The documented modes are root:iorthand 0640 (a service) or 0600 (a laptop); 0644 gives the key to every user.
+    key = tmp_path / "edge-sim1.key"
+    key.write_bytes((pki / "edge-sim1.key").read_bytes())
+    pw = tmp_path / "edge-sim1.password"
+    pw.write_text("secret\n")
+    cfg = ZenohConfig(connect=["tls/127.0.0.1:7447"], username="edge-sim1", password_file=pw,
+                      tls=TlsConfig(root_ca=pki / "ca.pem", certificate=pki / "edge-sim1.pem", private_key=key))
+    for mode in (0o600, 0o640):
+        os.chmod(key, mode)
+        os.chmod(pw, mode)
+        assert diagnose.precheck(cfg) == []
+    os.chmod(key, 0o644)
+    os.chmod(pw, 0o602)
+    found = {f.subject: f for f in diagnose.precheck(cfg)}
+    assert found.keys() == {str(key), str(pw)}
+    assert found[str(key)].level == "error" and "read" in found[str(key)].message
+    assert found[str(pw)].level == "error" and "write" in found[str(pw)].message
+    assert all("chmod 640 (group iorthand" in f.message and "or 600" in f.message for f in found.values())
+    # It must be fixed, but it does not explain a failed connection: the diagnosis does not give it as the cause.
+    assert diagnose.diagnose(cfg, run_probe=False).cause == "not probed"
+
+
+def test_tls_settings_with_a_plain_endpoint_to_another_host_is_an_error(pki: Path) -> None:
+    tls = TlsConfig(root_ca=pki / "ca.pem", certificate=pki / "edge-sim1.pem", private_key=pki / "edge-sim1.key")
+
+    def found(endpoint: str) -> list[tuple[str, str]]:
+        return [(f.level, f.subject) for f in diagnose.precheck(ZenohConfig(connect=[endpoint], tls=tls))]
+
+    assert found("tcp/router.example.org:7447") == [("error", "zenoh.connect")]
+    assert found("tcp/10.0.0.5:7447") == [("error", "zenoh.connect")]
+    assert found("tcp/127.0.0.1:7447") == [("warning", "zenoh.connect")]  # stays on this machine
+    assert found("tcp/[::1]:7447") == [("warning", "zenoh.connect")]
+    assert found("tls/router.example.org:7447") == []
+    assert [diagnose.endpoint_is_local(ep) for ep in ("tcp/localhost:7447", "tcp/0.0.0.0:7447", "tcp/[::]:7447",
+                                                       "unixsock-stream//run/z.sock")] == [True, False, False, True]

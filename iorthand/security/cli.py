@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import json
 import os
 import secrets
@@ -20,6 +21,15 @@ def _init(args: argparse.Namespace) -> int:
 
 
 def _issue(args: argparse.Namespace) -> int:
+    out = Path(args.out) if args.out else Path(args.dir)
+    for name in args.name:
+        certs.check_name(name)
+    existing = [str(p) for name in args.name for p in (out / f"{name}.pem", out / f"{name}.key") if p.exists()]
+    if existing and not args.force:
+        # A new key replaces the one a deployed service uses: it fails at its next start until it gets the new pair.
+        raise certs.CertError(
+            f"{', '.join(existing)} already exist(s): nothing issued. To renew, add --force and install the new "
+            "certificate and key wherever the old ones are deployed, then restart that service (docs/DEPLOY.md §1)")
     for name in args.name:
         issued = certs.issue(Path(args.dir), name, hosts=args.host or None, days=args.days,
                              out_dir=Path(args.out) if args.out else None)
@@ -29,6 +39,10 @@ def _issue(args: argparse.Namespace) -> int:
 
 def _show(args: argparse.Namespace) -> int:
     info = certs.describe(Path(args.file))
+    # Whole days left, counted toward zero: a certificate that expired 1 day and some hours ago has -1, not -2
+    # (timedelta.days rounds down).
+    left = dt.datetime.fromisoformat(str(info["not_after"])) - dt.datetime.now(dt.UTC)
+    info["days_left"] = int(left.total_seconds() / 86400)
     if args.json:
         print(json.dumps(info, indent=2))
     else:
@@ -40,14 +54,23 @@ def _show(args: argparse.Namespace) -> int:
 def _password(args: argparse.Namespace) -> int:
     """Create a random password for ``name``: a 0600 file for the role, a line in the router's dictionary."""
     certs.check_name(args.name)  # the router's user names are the certificates' names
-    password = secrets.token_urlsafe(24)
     out = Path(args.out or Path(args.dir) / f"{args.name}.password")
-    fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(password + "\n")
     users = Path(args.users_file or Path(args.dir) / "users.txt")
     lines = [ln for ln in (users.read_text().splitlines(keepends=True) if users.exists() else [])
              if not ln.startswith(f"{args.name}:")]
+    existing = ([str(out)] if out.exists() else []) + (
+        [f"{users} (a line for {args.name})"] if users.exists() and any(
+            ln.startswith(f"{args.name}:") for ln in users.read_text().splitlines()) else [])
+    if existing and not args.force:
+        # The service that uses the old password would be refused by the router at its next start.
+        raise certs.CertError(
+            f"{args.name} has a password already: {', '.join(existing)}; nothing written. To change it, add --force, "
+            f"then install the new {out.name} where {args.name} runs and the new {users.name} on the router's host, "
+            "and restart both")
+    password = secrets.token_urlsafe(24)
+    fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(password + "\n")
     fd = os.open(users, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as f:
         f.writelines([*lines, acl.users_line(args.name, password)])
@@ -80,6 +103,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", help="where to write (default: --dir)")
     s.add_argument("--host", action="append", help="DNS name or IP in the certificate (the router's; repeatable)")
     s.add_argument("--days", type=cli_number(int, lo=1), default=certs.LEAF_DAYS)
+    s.add_argument("--force", action="store_true", help="replace an existing certificate and key (renewal)")
     s.set_defaults(func=_issue)
     w = cs.add_parser("show", help="inspect a certificate (exit 1 if expired)")
     w.add_argument("file")
@@ -90,6 +114,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pw.add_argument("--dir", default="certs")
     pw.add_argument("--out", help="password file (default: <dir>/<name>.password)")
     pw.add_argument("--users-file", help="router dictionary (default: <dir>/users.txt)")
+    pw.add_argument("--force", action="store_true", help="replace an existing password (and its dictionary line)")
     pw.set_defaults(func=_password)
     r = cs.add_parser("router-config", help="generate the router's JSON5 (TLS + mTLS + user/password + ACL)")
     r.add_argument("--deployment", required=True, help="deployment YAML (see deploy/deployment.example.yaml)")

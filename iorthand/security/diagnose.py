@@ -31,6 +31,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
 from iorthand.security.certs import common_name
+from iorthand.security.hosts import is_loopback
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 
@@ -60,6 +61,9 @@ class Finding:
     level: str  # "error" or "warning"
     subject: str  # a file or a setting
     message: str
+    # False for an error that must be fixed but cannot make a connection fail (a key every user can read): a
+    # failed connection's diagnosis does not give it as the cause.
+    blocks_connection: bool = True
 
     def __str__(self) -> str:
         return f"{self.level}: {self.subject}: {self.message}"
@@ -80,6 +84,35 @@ class Diagnosis:
         if errors:
             parts.append("; ".join(errors))
         return " — ".join(parts)
+
+
+def endpoint_is_local(endpoint: str) -> bool:
+    """Whether a Zenoh endpoint (``tcp/127.0.0.1:7447``, ``tls/[::1]:7447``, ``unixsock-stream/...``) stays on this
+    machine. ``0.0.0.0``, ``[::]`` and any host name other than ``localhost`` do not."""
+    protocol, _, rest = endpoint.partition("/")
+    if protocol.startswith("unixsock"):
+        return True
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    host = address.rpartition(":")[0] if ":" in address else address
+    return is_loopback(host.strip("[]"))
+
+
+MODE_ADVICE = "chmod 640 (group iorthand, the services' user) or 600"
+
+
+def _open_to_all(path: Path, what: str) -> Finding | None:
+    """An error when every user of the machine may read or write a secret (a key, a password)."""
+    mode = Path(path).stat().st_mode & 0o777
+    if not mode & 0o007:  # group-readable is fine: the service group
+        return None
+    how = " and ".join(w for w, bit in (("read", 0o004), ("write", 0o002), ("execute", 0o001)) if mode & bit)
+    return Finding("error", str(path), f"{what} may be {how or 'used'} by every user of this machine (mode {oct(mode)}): "
+                                       f"{MODE_ADVICE}", blocks_connection=False)
+
+
+def file_problem(path: Path | None, what: str) -> Finding | None:
+    """A finding when ``path`` does not exist or this user cannot read it, else None."""
+    return _file_problem(path, what)
 
 
 def _file_problem(path: Path | None, what: str) -> Finding | None:
@@ -123,9 +156,9 @@ def check_certificate_files(
         if problem:
             out.append(problem)
         else:
-            mode = Path(private_key).stat().st_mode & 0o007  # group-readable is fine: the service group
-            if mode:
-                out.append(Finding("warning", str(private_key), f"private key is readable by every user (mode {oct(Path(private_key).stat().st_mode & 0o777)}): chmod 600"))
+            open_problem = _open_to_all(Path(private_key), "the private key")
+            if open_problem:
+                out.append(open_problem)
             try:
                 key = serialization.load_pem_private_key(Path(private_key).read_bytes(), password=None)
             except (ValueError, TypeError) as exc:
@@ -165,7 +198,12 @@ def precheck(cfg: Any) -> list[Finding]:
     if tls is None and uses_tls:
         out.append(Finding("error", "zenoh.tls", "a tls/ endpoint needs zenoh.tls (root_ca, certificate, private_key)"))
     if tls is not None:
-        if not uses_tls and endpoints:
+        clear_remote = [ep for ep in endpoints if not ep.startswith(("tls/", "quic/")) and not endpoint_is_local(ep)]
+        if clear_remote:
+            out.append(Finding("error", "zenoh.connect", (
+                f"TLS is configured but {', '.join(clear_remote)} is not a tls/ endpoint and leaves this machine: "
+                "commands, the password and the control key would cross the network in clear. Use tls/HOST:PORT")))
+        elif not uses_tls and endpoints:
             out.append(Finding("warning", "zenoh.connect", f"TLS is configured but no endpoint uses it ({', '.join(endpoints)}): traffic is NOT encrypted"))
         if tls.root_ca is None:
             out.append(Finding("error", "zenoh.tls.root_ca", "missing: without it the router's certificate cannot be verified"))
@@ -180,8 +218,10 @@ def precheck(cfg: Any) -> list[Finding]:
         problem = _file_problem(cfg.password_file, "password file")
         if problem:
             out.append(problem)
-        elif Path(cfg.password_file).stat().st_mode & 0o007:
-            out.append(Finding("warning", str(cfg.password_file), "password file is readable by every user: chmod 600 (or 640 for the service group)"))
+        else:
+            open_problem = _open_to_all(Path(cfg.password_file), "the password file")
+            if open_problem:
+                out.append(open_problem)
     return out
 
 
@@ -227,7 +267,7 @@ def identity_of(cfg: Any) -> str:
 def diagnose(cfg: Any, entries: dict[str, Any] | None = None, run_probe: bool = True) -> Diagnosis:
     """Pre-checks, then (unless a pre-check already explains it) the child probe."""
     findings = precheck(cfg)
-    errors = [f for f in findings if f.level == "error"]
+    errors = [f for f in findings if f.level == "error" and f.blocks_connection]
     log_text = ""
     cause = None
     if errors:

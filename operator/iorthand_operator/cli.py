@@ -131,7 +131,14 @@ def _run_with_control(args: argparse.Namespace, action) -> int:
     config = operator_config(args)
     client = connect(config)
     try:
-        client.wait_for_state(timeout=10.0)
+        try:
+            client.wait_for_state(timeout=10.0)
+        except TimeoutError as exc:
+            # Connected to the router, but no robot answers: say where to look rather than a traceback.
+            print(f"iorthand operator: {exc}: check that the edge agent of {config.robot!r} runs and is connected to "
+                  f"the router ({', '.join(config.zenoh.connect) or 'no endpoint'}), that robot is the edge's robot_id, "
+                  f"and that the router grants operator-{config.operator_id} that robot", file=sys.stderr)
+            return 4
         # The sender first (its process can take seconds to start on a loaded machine), then control: the lease
         # starts when the first command is ready to go, never before.
         client.start()

@@ -44,9 +44,22 @@ def _password(args: argparse.Namespace) -> int:
         password = secrets.token_urlsafe(12)
     elif args.password_file:
         password = Path(args.password_file).read_text().strip()
+    elif not sys.stdin.isatty():
+        # Piped or redirected: the first line is the password (nobody to ask twice).
+        password = sys.stdin.readline().strip()
+        if not password:
+            print("iorthand web password: no password on stdin (not a terminal): pipe one line, or use "
+                  "--password-file FILE or --generate; nothing written", file=sys.stderr)
+            return 2
     else:
-        password = getpass.getpass(f"new web password for {args.name}: ")
-        if password != getpass.getpass("again: "):
+        try:
+            password = getpass.getpass(f"new web password for {args.name}: ")
+            again = getpass.getpass("again: ")
+        except EOFError:
+            print("iorthand web password: no password typed: use --password-file FILE or --generate; nothing written",
+                  file=sys.stderr)
+            return 2
+        if password != again:
             print("iorthand web password: the two passwords differ; nothing written", file=sys.stderr)
             return 2
     if len(password) < 8:
@@ -80,6 +93,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pw.add_argument("name", type=_name, help="an operator or viewer of the deployment")
     pw.add_argument("--users-file", required=True, help="the web users file (the config's users_file)")
     src = pw.add_mutually_exclusive_group()
-    src.add_argument("--password-file", help="read the password from this file instead of asking")
+    src.add_argument("--password-file", help="read the password from this file instead of asking (without it and "
+                     "without a terminal, the first line of stdin)")
     src.add_argument("--generate", action="store_true", help="generate a random password and print it once")
     pw.set_defaults(func=_password)
