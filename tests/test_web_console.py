@@ -216,7 +216,9 @@ class Stack:
         self.port = free_port()
         (tmp / "web.yaml").write_text(yaml.safe_dump({
             "deployment": "deployment.yaml", "users_file": "web-users.txt", "listen": f"127.0.0.1:{self.port}",
-            "zenoh": {"mode": "client", "connect": [self.endpoint]}}))
+            "zenoh": {"mode": "client", "connect": [self.endpoint]},
+            # The reverse proxy of test_behind_a_reverse_proxy_...: on this host, listed (none is by default).
+            "trusted_proxies": ["127.0.0.1"]}))
         self.start("edge", iorthand_cmd("edge", "--config", str(tmp / "edge.yaml")), "media process")
         self.start("web", iorthand_cmd("web", "--config", str(tmp / "web.yaml")), "web console ready")
         self.session = open_session(client_config(self.endpoint))
@@ -417,6 +419,196 @@ def test_holding_the_deadman_and_dragging_a_stick_moves_the_robot_that_way(stack
         assert abs(moved[2]) < 0.3 * abs(moved[axis])
         w.wait(lambda: not any(w.states[-1].commanded), 2.0, "the robot to stand still")
     page.context.close()
+
+
+# What the page sends, for the tests to read: every twist (the page's socket's send, wrapped; as an init script
+# or evaluated on a page whose socket is open, whose sends then go through it too).
+TWIST_HOOK = """window.__twists = []; { const send = WebSocket.prototype.send;
+  WebSocket.prototype.send = function (d) {
+    try { const m = JSON.parse(d); if (m.type === 'twist') window.__twists.push(m); } catch (e) { /* not JSON */ }
+    return send.call(this, d);
+  }; } null;"""
+# A gamepad the test holds (navigator.getGamepads answers it): its buttons and axes are window.__pad's.
+PAD = """window.__pad = { id: 'test pad', index: 0, connected: true, mapping: 'standard', timestamp: 0, axes: [0, 0, 0, 0],
+  buttons: Array.from({ length: 16 }, () => ({ pressed: false, touched: false, value: 0 })) };
+navigator.getGamepads = () => [window.__pad];"""
+
+
+def desktop_console(browser, url: str, init_script: str = "") -> Any:
+    """The physician's console on a desktop (mouse and keyboard, no touch), in control, focus on nothing."""
+    ctx = browser.new_context(viewport={"width": 1280, "height": 800}, bypass_csp=True)
+    if init_script:
+        ctx.add_init_script(init_script)
+    page = ctx.new_page()
+    page.goto(url + "/")
+    log_in(page, "physician", PASSWORDS["physician"])
+    page.wait_for_url(url + "/")
+    page.wait_for_function("window.iorthand && window.iorthand.socket === 'open'")
+    page.click("#control")
+    page.wait_for_function("document.getElementById('control').textContent === 'Release control'", timeout=10_000)
+    page.evaluate("document.activeElement.blur()")
+    return page
+
+
+def test_a_held_spaces_auto_repeat_does_not_undo_an_estop(stack, browser) -> None:
+    """Found by a red-team run (e8): the physician holding Space (the deadman) and W clicks STOP with the mouse;
+    each auto-repeated keydown of the held Space took the deadman again, the page sent a release then a press, the
+    edge's STOP latch cleared, and W pressed again moved the robot (62 moving commands in 1 s) without Space ever
+    being lifted. Now Space counts only as a press (not a repeat), and after a release only once let go."""
+    page = desktop_console(browser, stack.url, TWIST_HOOK)
+    try:
+        w = stack.watch
+        page.keyboard.down("Space")
+        page.keyboard.down("KeyW")
+        since = time.time_ns()
+        w.wait(lambda: len(w.moving_echoes(since)) > 10, 5.0, "Space and W moving the robot")
+        page.click("#estop")  # with the mouse: Space and W stay down
+        stopped = page.evaluate("window.__twists.length")
+        for _ in range(10):  # the held Space's auto-repeat (Playwright: a keydown of a held key has repeat=true)
+            page.keyboard.down("Space")
+            time.sleep(0.033)
+        page.keyboard.up("KeyW")
+        page.keyboard.down("KeyW")  # W pressed again, Space never let go
+        again = time.time_ns()
+        time.sleep(1.0)
+        moving = len(w.moving_echoes(again))
+        assert moving == 0, f"{moving} moving commands after the e-stop"
+        after = page.evaluate(f"window.__twists.slice({stopped})")
+        assert after and not any(m["deadman"] for m in after), "the page took the deadman again after the e-stop"
+        # Space let go and pressed anew: the deadman is held again and W moves the robot.
+        page.keyboard.up("Space")
+        page.keyboard.down("Space")
+        fresh = time.time_ns()
+        w.wait(lambda: len(w.moving_echoes(fresh)) > 10, 5.0, "a fresh press of Space moving the robot again")
+        page.keyboard.up("KeyW")
+        page.keyboard.up("Space")
+    finally:  # a failing test must not leave the robot's control held
+        page.context.close()
+
+
+def test_a_gamepads_shoulder_button_is_a_deadman_and_its_stick_moves_the_robot(stack, browser) -> None:
+    """Found by a red-team run (e2): the gamepad was read only while the deadman was already held, so its shoulder
+    button never took it. After an e-stop a shoulder button still down counts only once let go and pressed."""
+    page = desktop_console(browser, stack.url, PAD + TWIST_HOOK)
+    try:
+        w = stack.watch
+        limit = w.safety[-1].linear_limit
+        page.evaluate("window.__pad.axes[0] = 0.8; window.__pad.buttons[4].pressed = true; window.__pad.buttons[4].value = 1")
+        since = time.time_ns()
+        w.wait(lambda: len(w.moving_echoes(since)) > 10, 5.0, "the gamepad moving the robot")
+        twists = page.evaluate("window.__twists.slice(-10)")
+        assert all(m["deadman"] for m in twists), twists[-1]
+        assert all(m["linear"][0] == pytest.approx(0.8 * limit, rel=1e-3) and m["linear"][1:] == [0, 0]
+                   for m in twists), (limit, twists[-1])
+        page.click("#estop")  # the shoulder button stays down
+        stopped = page.evaluate("window.__twists.length")
+        time.sleep(0.5)
+        after = page.evaluate(f"window.__twists.slice({stopped})")
+        assert after and not any(m["deadman"] for m in after), "the held shoulder button took the deadman again"
+        page.evaluate("window.__pad.buttons[4].pressed = false")
+        page.wait_for_timeout(100)
+        page.evaluate("window.__pad.buttons[4].pressed = true")
+        page.wait_for_function("window.__twists[window.__twists.length - 1].deadman", timeout=5_000)
+        page.evaluate("window.__pad.buttons[4].pressed = false; window.__pad.axes[0] = 0")
+    finally:  # a failing test must not leave the robot's control held
+        page.context.close()
+
+
+def test_rotating_the_phone_under_a_resting_thumb_lets_go_of_everything(stack, browser) -> None:
+    """Found by a red-team run (e4): HOLD held and a thumb resting on the left stick's centre; the phone rotates,
+    the layout moves the stick, and the thumb's next 1 px commanded full speed (its position against the stick's
+    new place). Now a change of the viewport releases the deadman and the sticks: nothing moves until pressed
+    anew on the new layout."""
+    page = open_console(browser, stack.url)
+    try:
+        page.evaluate(TWIST_HOOK)
+        fingers = Fingers(page)
+        fingers.press(0, *fingers.centre("#deadman"))
+        sx, sy = fingers.centre("#stick-left")
+        fingers.press(1, sx, sy)
+        page.wait_for_function("window.__twists.length > 0 && window.__twists[window.__twists.length - 1].deadman")
+        page.set_viewport_size({"width": 844, "height": 390})  # landscape: the sticks either side of the media
+        page.wait_for_function("!document.getElementById('deadman').classList.contains('held')", timeout=2_000)
+        rotated = page.evaluate("window.__twists.length")
+        fingers.move(1, sx + 1, sy, steps=1)
+        time.sleep(0.3)
+        after = page.evaluate(f"window.__twists.slice({rotated})")
+        assert after and all(not m["deadman"] and not any(m["linear"]) and not any(m["angular"]) for m in after), after[-1]
+        assert "screen layout changed" in page.text_content("#events")
+        fingers.lift(1)
+        fingers.lift(0)
+        page.locator("#deadman").scroll_into_view_if_needed()  # (below the fold on a landscape phone this short)
+        fingers.press(0, *fingers.centre("#deadman"))  # pressed anew: held again
+        page.wait_for_function("window.__twists[window.__twists.length - 1].deadman")
+        fingers.lift(0)
+    finally:  # a failing test must not leave the robot's control held
+        page.context.close()
+
+
+def test_one_log_in_and_one_user_open_a_bounded_number_of_pages(stack, browser) -> None:
+    """Found by a red-team run (e1b): a viewer's log-in opened a thousand pages, and the server's work for them
+    held the physician's commands up past the edge's 150 ms deadman timeout. A log-in has at most 4 pages, a user
+    8 (web config); one more is refused with the reason, which the page shows, and the others go on."""
+    cookies = [_log_in_over_http(stack, "student") for _ in range(3)]
+    ready, done = threading.Event(), threading.Event()
+
+    async def talk() -> dict[str, Any]:
+        import aiohttp
+
+        out: dict[str, Any] = {}
+        async with aiohttp.ClientSession() as s:
+            async def open_page(cookie: str) -> Any:
+                return await s.ws_connect(f"{stack.url}/ws", headers={"Origin": stack.url,
+                                                                    "Cookie": f"iorthand_session={cookie}"})
+
+            async def refusal(cookie: str) -> tuple[dict | None, Any]:
+                ws = await open_page(cookie)
+                return await text_message(ws, 5.0), await ws.receive(timeout=5.0)
+
+            pages = [await open_page(cookies[0]) for _ in range(4)]
+            out["hellos"] = [(await text_message(ws, 5.0) or {}).get("type") for ws in pages]
+            out["login"] = await refusal(cookies[0])
+            pages += [await open_page(cookies[1]) for _ in range(4)]  # another log-in of the same user
+            out["hellos"] += [(await text_message(ws, 5.0) or {}).get("type") for ws in pages[4:]]
+            out["user"] = await refusal(cookies[2])
+            ready.set()
+            await asyncio.get_running_loop().run_in_executor(None, done.wait, 30.0)
+            out["states"] = []
+            for ws in pages:  # the earlier pages go on
+                while (m := await text_message(ws, 5.0)) is None or m["type"] != "state":
+                    pass
+                out["states"].append(m["type"])
+            for ws in pages:
+                await ws.close()
+        return out
+
+    got: list[dict[str, Any]] = []
+    thread = threading.Thread(target=lambda: got.append(asyncio.run(talk())), daemon=True)
+    thread.start()
+    try:
+        assert ready.wait(30), "the pages did not open"
+        # A browser's page of the first log-in: refused, and it shows why.
+        ctx = browser.new_context(viewport={"width": 390, "height": 844}, bypass_csp=True)
+        ctx.add_cookies([{"name": "iorthand_session", "value": cookies[0], "url": stack.url}])
+        page = ctx.new_page()
+        page.goto(stack.url + "/")
+        page.wait_for_function("document.getElementById('status').textContent === 'refused'", timeout=10_000)
+        assert "too many pages: this log-in has 4 open already" in page.text_content("#reason")
+        ctx.close()
+    finally:
+        done.set()
+        thread.join(30)
+    assert got, "the pages' client did not finish"
+    out = got[0]
+    assert out["hellos"] == ["hello"] * 8, out["hellos"]
+    for which, reason in (("login", "this log-in has 4 open already"), ("user", "student has 8 open already")):
+        refused, close = out[which]
+        assert refused["kind"] == "too_many_pages" and reason in refused["reason"], refused
+        assert close.data == 4429 and reason in close.extra, close  # the close frame says why too
+    assert out["states"] == ["state"] * 8
+    wait_until(lambda: not [p for p in stack.stats(cookies[2])["pages"] if p["user"] == "student"], timeout=10.0,
+               message="the student's pages closed")
+    assert stack.stats(cookies[2])["refused"]["too_many_pages"] >= 3
 
 
 def _hide(page) -> None:

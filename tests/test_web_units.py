@@ -64,9 +64,10 @@ def test_a_valid_log_in_clears_no_other_failures_and_guessing_one_account_is_lim
     assert guard.attempt("1.2.3.4", "student", 103.0) == pytest.approx(57.0)  # 3 failures: the address waits
     # Attempts are counted when let through, before their password is checked: at once, only the limit passes.
     assert sum(guard.attempt("9.9.9.9", "nurse", 200.0) == 0 for _ in range(24)) == 3
-    # One account guessed at from many addresses: refused from the 6th on, whichever address asks.
+    # One account guessed at from many addresses: once it has 5 failures, only an address with no failure of its
+    # own gets a try, 5 such tries a window at most: refused from the 11th on, whichever address asks.
     passed = [guard.attempt(f"10.0.0.{i}", "physician", 300.0 + i) == 0 for i in range(30)]
-    assert passed == [True] * 5 + [False] * 25
+    assert passed == [True] * 10 + [False] * 20
     assert guard.attempt("10.0.0.99", "student", 310.0) == 0  # other accounts are not locked by it
 
 
@@ -221,3 +222,51 @@ def test_a_console_reachable_from_the_network_needs_tls() -> None:
         WebConfig(listen="8443").check()
     with pytest.raises(ValueError, match="is not an origin"):
         WebConfig(allowed_origins=["https://proxy.example/"]).check()
+
+
+def test_by_default_no_address_is_a_trusted_proxy_not_even_loopback() -> None:
+    """Found by a red-team run (e7): loopback was a trusted proxy by default, so on a console listening on loopback
+    and reached through an ssh tunnel (or by any local process) a client naming a new X-Forwarded-For each time had
+    20 password guesses a minute instead of 5. A proxy is now trusted only when listed."""
+    forged = {"X-Forwarded-For": "10.9.0.1", "X-Forwarded-Proto": "https"}
+    default = WebConfig().trusted_proxies
+    assert users.peer_of("127.0.0.1", False, forged, default) == users.Peer("127.0.0.1", False)
+    assert users.peer_of("::1", False, forged, default) == users.Peer("::1", False)
+    assert users.peer_of("127.0.0.1", False, forged, ["127.0.0.1"]) == users.Peer("10.9.0.1", True)  # listed
+
+
+def test_an_account_under_attack_stays_open_to_its_user_from_a_clean_address() -> None:
+    """Found by a red-team run (e7): the account's lock (20 failures a minute, from anywhere) was checked before
+    the password, so anyone could lock the physician out with 20 wrong passwords a minute. Through the server's own
+    log-in: the attacker's addresses stay refused, the physician from a clean address logs in."""
+    from iorthand_operator.web import server
+
+    dep = Deployment(robots=["r1"], operators={"alice": ["r1"]}, viewers=["sam"])
+    bridge = server.Bridge(WebConfig(), dep, {"alice": users.hash_password("alice-pw"),
+                                              "sam": users.hash_password("sam-pw")})
+    try:
+        # 20 wrong passwords from 4 addresses, 5 each: the account's limit, each address's limit.
+        for a in range(4):
+            for i in range(5):
+                token, why = bridge.log_in("alice", f"guess-{a}-{i}", f"203.0.113.{a}")
+                assert not token and why == "wrong user name or password", why
+        # The attacker's further guesses are refused unchecked, the right password included.
+        for a in range(4):
+            token, why = bridge.log_in("alice", "alice-pw", f"203.0.113.{a}")
+            assert not token and why.startswith("too many failed log-ins"), why
+        # The physician, from an address that has not failed: in.
+        token, why = bridge.log_in("alice", "alice-pw", "192.0.2.10")
+        assert token and not why and bridge.logins[token].user == "alice"
+        # An address that failed once at another account waits while this one is under attack.
+        assert not bridge.log_in("sam", "wrong", "192.0.2.11")[0]
+        token, why = bridge.log_in("alice", "alice-pw", "192.0.2.11")
+        assert not token and why.startswith("too many failed log-ins"), why
+    finally:
+        bridge.login_pool.shutdown()
+    # Clean addresses' tries at a locked account are limited too: guessing it stays bounded.
+    guard = users.LoginGuard(max_failures=5, window=60.0, max_user_failures=20)
+    for i in range(20):
+        assert guard.attempt(f"203.0.113.{i}", "alice", 100.0) == 0
+    clean = [guard.attempt(f"198.51.100.{i}", "alice", 101.0) == 0 for i in range(30)]
+    assert clean == [True] * 20 + [False] * 10
+    assert guard.attempt("192.0.2.1", "alice", 161.0) == 0  # the window passed

@@ -35,16 +35,27 @@ class WebConfig:
         "loopback names (when it listens on loopback), the TLS certificate's names and allowed_origins' hosts: a "
         "request for any other host is refused (a DNS-rebinding page names its own)",
     )
+    # None listed by default, loopback included: a console on loopback is reached as much through an ssh tunnel or
+    # by a local process as through a proxy, and each of those could name any address in X-Forwarded-For (one more
+    # address per request: 20 password guesses a minute instead of 5). A proxy in front is listed on purpose.
     trusted_proxies: list[str] = setting(
-        default_factory=lambda: ["127.0.0.1", "::1"],
+        default_factory=list,
         help="addresses of reverse proxies whose X-Forwarded-For and X-Forwarded-Proto are believed: the browser's "
-        "address limits its log-in attempts, and HTTPS there makes the session cookie Secure",
+        "address limits its log-in attempts, and HTTPS there makes the session cookie Secure. None by default, "
+        "loopback included: list a proxy on this host as 127.0.0.1 (or ::1)",
     )
     session_hours: float = setting(12.0, lo=0.01, hi=24 * 30, help="how long a log-in lasts")
     state_hz: float = setting(20.0, lo=1.0, hi=60.0, help="robot state pushed to each page per second")
     twist_hz: float = setting(
         60.0, lo=20.0, hi=120.0, help="twists per second a controlling page sends (its hello says so); the server "
         "forwards at most twice that, a quarter second's worth at once, and drops and reports the rest",
+    )
+    max_pages_per_login: int = setting(
+        4, lo=1, hi=1000, help="open pages (websockets) one log-in may have at once; one more is refused, saying why",
+    )
+    max_pages_per_user: int = setting(
+        8, lo=1, hi=1000, help="open pages one user may have at once, over all of its log-ins: a viewer's thousand "
+        "pages held up the physician's commands past the edge's deadman timeout",
     )
     arm_model: str = setting("ur3e", choices=("ur3e", "ur5e"), help="the arm drawn in the 3D view")
     arm_models: dict[str, str] = setting(default_factory=dict, help="robot id → ur3e | ur5e, where not arm_model")

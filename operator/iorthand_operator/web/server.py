@@ -66,6 +66,7 @@ VIDEO_STREAMS = {"camera": keys.VIDEO_CAMERA, "ultrasound": keys.VIDEO_ULTRASOUN
 VIDEO_BACKLOG_BYTES = 256 * 1024
 WS_MAX_BYTES = 64 * 1024  # aiohttp closes a socket whose message is larger; up to it, messages.parse refuses
 MAX_SESSIONS = 10_000
+PAGES_CLOSE_CODE = 4429  # a page beyond max_pages_per_login / max_pages_per_user (the close says why)
 # One user's log-ins beyond this end that user's oldest, never another user's: a viewer logging in over and over
 # filled the table and, at MAX_SESSIONS, evicted the physician's log-in (its page ended, and its control).
 MAX_LOGINS_PER_USER = 16
@@ -200,6 +201,9 @@ class Bridge:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.feeds: dict[str, Feed] = {}
         self.controllers: dict[str, Page] = {}  # robot → the page of this server that holds its control
+        # Pages take and release control on the loop's pool of threads: one check-and-set of controllers at a time
+        # (two pages acquiring at once both found the robot free, and the loser's failure removed the winner).
+        self.control_lock = threading.Lock()
         self._stops: dict[tuple[str, str], tuple[zenoh.Publisher, Sequencer]] = {}
         self._feedback: dict[tuple[str, str], tuple[zenoh.Publisher, Sequencer]] = {}
         self._keyframe_asked: dict[tuple[str, str], float] = {}
@@ -239,6 +243,23 @@ class Bridge:
             del self.logins[token]
         while len(self.logins) >= MAX_SESSIONS:
             self.logins.pop(next(iter(self.logins)))
+
+    def pages(self) -> list[Page]:
+        """Every open page, of every robot (a snapshot: the caller may await while it goes through them)."""
+        return [page for feed in list(self.feeds.values()) for page in list(feed.pages)]
+
+    def page_refused(self, token: str, user: str) -> str:
+        """Why a new page of log-in ``token`` (of ``user``) is refused, "" if it is not: one viewer's thousand pages
+        held up the physician's commands past the edge's deadman timeout (red team, e1b)."""
+        pages = self.pages()
+        per_login, per_user = self.config.max_pages_per_login, self.config.max_pages_per_user
+        if sum(1 for p in pages if p.token == token) >= per_login:
+            return (f"too many pages: this log-in has {per_login} open already (the most it may): close one, "
+                    "then reload this page")
+        if sum(1 for p in pages if p.grant.user == user) >= per_user:
+            return (f"too many pages: {user} has {per_user} open already (the most one user may, over all log-ins): "
+                    "close one, then reload this page")
+        return ""
 
     def user_of(self, request: web.Request) -> users.Grant | None:
         token = request.cookies.get(COOKIE, "")
@@ -445,15 +466,18 @@ class Page:
 
     def _acquire(self, profile: str) -> tuple[bool, str]:
         """Take control of the robot for this page (a blocking query: off the event loop)."""
-        holder = self.bridge.controllers.get(self.robot)
+        controllers = self.bridge.controllers
+        with self.bridge.control_lock:
+            holder = controllers.get(self.robot)
+            if not (holder is self and self.client is not None):
+                if holder is not None and not holder.closed:
+                    return False, f"{self.robot} is controlled by {holder.grant.user} from another page of this console"
+                controllers[self.robot] = self  # claimed: another page's acquire now finds it taken
         if holder is self and self.client is not None:
             try:  # already ours: a profile change
                 return True, self.client.switch_profile(profile).reason
             except ControlRefused as exc:
                 return False, str(exc)
-        if holder is not None and not holder.closed:
-            return False, f"{self.robot} is controlled by {holder.grant.user} from another page of this console"
-        self.bridge.controllers[self.robot] = self
         assert self.bridge.session is not None
         client = OperatorClient(self.bridge.session, self.robot, self.grant.user, external_sender=True,
                                 bind_keys=self.bridge.config.bind_operator_keys,
@@ -463,20 +487,28 @@ class Page:
             reply = client.acquire(profile)
         except (ControlRefused, RuntimeError) as exc:
             client.close()
-            self.bridge.controllers.pop(self.robot, None)
+            self._unclaim()
             return False, str(exc)
         client.start()  # the lease renewal; the page's messages are the command stream
         # The page's twists start once it hears that it holds control: its silence counts from now at the earliest
         # (an acquire that took seconds must not count as silence).
         self.heard_at = max(self.heard_at, time.monotonic())
         self.client = client
+        if self.closed:  # closed while acquiring: its close found no client to release
+            self._release()
+            return False, "page closed"
         log.info("%s controls %s from a web page", self.grant.user, self.robot)
         return True, reply.reason
 
+    def _unclaim(self) -> None:
+        """This page's entry in controllers goes, never another page's."""
+        with self.bridge.control_lock:
+            if self.bridge.controllers.get(self.robot) is self:
+                del self.bridge.controllers[self.robot]
+
     def _release(self) -> None:
         client, self.client = self.client, None
-        if self.bridge.controllers.get(self.robot) is self:
-            del self.bridge.controllers[self.robot]
+        self._unclaim()
         if client is not None:
             client.close()  # releases control (the robot halts) and the user's liveliness token
             log.info("%s released %s", self.grant.user, self.robot)
@@ -779,10 +811,9 @@ async def _logout(request: web.Request) -> web.StreamResponse:
         return web.json_response({"ok": False, "reason": "log-out from another site refused"}, status=403)
     token = request.cookies.get(COOKIE, "")
     bridge.logins.pop(token, None)
-    for feed in bridge.feeds.values():
-        for page in list(feed.pages):
-            if token and page.token == token:
-                await page.end(4401, "logged out")
+    for page in bridge.pages():  # a snapshot: a feed may open, a page close, while one page's end is awaited
+        if token and page.token == token:
+            await page.end(4401, "logged out")
     response = web.json_response({"ok": True})
     response.del_cookie(COOKIE, path="/")
     return response
@@ -824,9 +855,19 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
         raise web.HTTPForbidden(text=f"{grant.user} is not granted robot {robot[:40]!r}")
     ws = web.WebSocketResponse(max_msg_size=WS_MAX_BYTES, heartbeat=5.0)
     await ws.prepare(request)
+    token = request.cookies.get(COOKIE, "")
+    # Counted after the upgrade (no await between the count and the page's adding: pages opened at once are
+    # counted one by one), refused on the socket with the reason, which the page shows.
+    too_many = bridge.page_refused(token, grant.user)
+    if too_many:
+        bridge.refusals.add("too_many_pages", f"{grant.user}: {too_many}")
+        with contextlib.suppress(ConnectionError, RuntimeError):
+            await ws.send_str(json.dumps({"type": "refused", "kind": "too_many_pages", "reason": too_many}))
+            await ws.close(code=PAGES_CLOSE_CODE, message=too_many.encode()[:120])
+        return ws
     request.app["pages"].add(ws)
     feed = bridge.feed(robot)
-    page = Page(bridge, ws, grant, feed, request.transport, token=request.cookies.get(COOKIE, ""))
+    page = Page(bridge, ws, grant, feed, request.transport, token=token)
     feed.pages.add(page)
     await page.send({"type": "hello", "user": grant.user, "role": str(grant.role), "robot": robot,
                      "robots": list(grant.robots), "may_command": grant.may_command(robot),

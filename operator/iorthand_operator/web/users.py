@@ -97,19 +97,28 @@ def format_users(users: dict[str, str]) -> str:
 
 
 class LoginGuard:
-    """Refuses log-ins from an address after ``max_failures`` failures within ``window`` s, and to a user name
-    after ``max_user_failures`` (from any address), for ``window`` s.
+    """Refuses log-ins from an address after ``max_failures`` failures within ``window`` s; and to a user name
+    after ``max_user_failures`` (from any address) within ``window`` s, from every address with failures of its
+    own in that window.
 
     An attempt counts as a failure from the moment it is let through (:meth:`attempt`), before its password is
     checked, so that attempts sent at once cannot all slip in before the first one fails; a success takes back
     only its own attempt (:meth:`succeeded`), never other failures: a valid log-in of one account does not
-    clear the guesses at another from the same address."""
+    clear the guesses at another from the same address.
+
+    An account under attack (its failures at the limit) stays open to an address with no recent failure: the
+    lock refused every address, and anyone could lock the physician out with 20 wrong passwords a minute (red team,
+    e7). A clean address gets one try (its failure makes it unclean for ``window`` s), and such tries are
+    themselves limited to ``max_user_failures`` a window: guessing one account stays bounded (2 × the limit a
+    window), and locking its user out now takes that many fresh addresses a minute, not 20 requests."""
 
     def __init__(self, max_failures: int = 5, window: float = 60.0, max_user_failures: int = 20) -> None:
         self.max_failures = max_failures
         self.max_user_failures = max_user_failures
         self.window = window
-        self._failures: dict[str, list[float]] = {}  # "addr:<address>" / "user:<name>" → failure times
+        # "addr:<address>" / "user:<name>" → failure times; "clean:<name>" → tries let through from a clean
+        # address while that account was locked
+        self._failures: dict[str, list[float]] = {}
 
     def _recent(self, key: str, now: float) -> list[float]:
         recent = [t for t in self._failures.get(key, []) if now - t < self.window]
@@ -119,20 +128,38 @@ class LoginGuard:
             self._failures.pop(key, None)
         return recent
 
+    def _check(self, address: str, now: float, user: str) -> tuple[float, bool]:
+        """(seconds until ``address`` may try ``user`` again, 0: now; whether a try now is a clean address's try
+        at a locked account)."""
+        own = self._recent(f"addr:{address}", now)
+        waits = [0.0]
+        if len(own) >= self.max_failures:
+            waits.append(self.window - (now - own[-self.max_failures]))
+        clean_try = False
+        if user:
+            failures = self._recent(f"user:{user}", now)
+            if len(failures) >= self.max_user_failures:
+                unlocked = self.window - (now - failures[-self.max_user_failures])
+                clean = self._recent(f"clean:{user}", now)
+                if own:  # this address failed lately: it waits for the account's lock or its own failures to pass
+                    waits.append(min(unlocked, self.window - (now - own[-1])))
+                elif len(clean) >= self.max_user_failures:  # clean addresses' tries used up too
+                    waits.append(min(unlocked, self.window - (now - clean[-self.max_user_failures])))
+                else:
+                    clean_try = True
+        return max(waits), clean_try
+
     def blocked(self, address: str, now: float, user: str = "") -> float:
         """Seconds until ``address`` (and ``user``) may try again (0: now)."""
-        waits = [0.0]
-        for key, limit in ((f"addr:{address}", self.max_failures), (f"user:{user}", self.max_user_failures)):
-            recent = self._recent(key, now)
-            if len(recent) >= limit:
-                waits.append(self.window - (now - recent[-limit]))
-        return max(waits)
+        return self._check(address, now, user)[0]
 
     def attempt(self, address: str, user: str, now: float) -> float:
         """Let an attempt through (0.0, counted as a failure until it succeeds) or say how long to wait."""
-        wait = self.blocked(address, now, user)
+        wait, clean_try = self._check(address, now, user)
         if not wait:
             self.failed(address, now, user)
+            if clean_try:
+                self._failures.setdefault(f"clean:{user}", []).append(now)
         return wait
 
     def failed(self, address: str, now: float, user: str = "") -> None:
@@ -143,7 +170,7 @@ class LoginGuard:
 
     def succeeded(self, address: str, user: str, at: float) -> None:
         """The attempt let through at ``at`` was right: it is not a failure after all."""
-        for key in (f"addr:{address}", f"user:{user}"):
+        for key in (f"addr:{address}", f"user:{user}", f"clean:{user}"):
             with contextlib.suppress(KeyError, ValueError):
                 self._failures[key].remove(at)
 

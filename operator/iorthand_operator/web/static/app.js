@@ -3,8 +3,11 @@
 //   held or not; the server forwards each one at once and never repeats one, so if this page stops (closed,
 //   frozen, offline) the edge's own timeout stops the robot;
 // - the deadman is held only while a finger (or the mouse, Space, a gamepad shoulder button) is on it: lifting
-//   it, a touchcancel, the page hidden, the window losing focus or the socket closing all release it, and the
-//   release is sent at once, not on the next tick (a browser throttles the timers of a hidden or busy page).
+//   it, a touchcancel, the page hidden, the window losing focus, the screen's layout changing (a rotation) or the
+//   socket closing all release it, and the release is sent at once, not on the next tick (a browser throttles the
+//   timers of a hidden or busy page);
+// - a release (those, the e-stop, releasing control) holds until the input is let go and pressed anew: a held
+//   Space's auto-repeat, a gamepad's shoulder button still down, a key still down never take it back.
 // Velocities: left stick right = +x, up = +y; right stick up = +z, sideways = turn about z (base frame), scaled
 // to the speed profile's limits that the edge reports (it clips them anyway).
 import { createViewer } from "/static/viewer.js";
@@ -38,6 +41,12 @@ let frame = "base"; // of the twists: the robot's base frame, or the probe's ("t
 // ---------------------------------------------------------------------------------------------- inputs
 
 const input = { deadman: { pointer: false, key: false, pad: false }, left: [0, 0], right: [0, 0], keys: new Set() };
+// After a release, a Space or a shoulder button still down counts only once it has been let go: a keyboard's
+// auto-repeat (a keydown every ~33 ms while Space is held) re-engaged the deadman right after an e-stop clicked
+// with the mouse, and the edge's STOP latch cleared on the release and new press it saw (red team, e8).
+let spaceDown = false; // Space is down as far as this page knows (its keydown came, its keyup not yet)
+let spaceLocked = false; // a release came while Space was down: ignore it until its keyup
+let padLocked = false; // a release came: ignore the gamepad's shoulder buttons until none is pressed
 
 function deadmanHeld() {
   return input.deadman.pointer || input.deadman.key || input.deadman.pad;
@@ -46,6 +55,8 @@ function deadmanHeld() {
 function releaseAll(why) {
   const was = deadmanHeld();
   input.deadman.pointer = input.deadman.key = input.deadman.pad = false;
+  if (spaceDown) spaceLocked = true;
+  padLocked = true;
   input.left = [0, 0];
   input.right = [0, 0];
   input.keys.clear();
@@ -61,6 +72,7 @@ class Stick {
     this.knob = el.querySelector(".knob");
     this.onMove = onMove;
     this.pointer = null;
+    this.geometry = null; // the stick's centre and radius when the finger touched down
     el.addEventListener("pointerdown", (e) => this.start(e));
     el.addEventListener("pointermove", (e) => this.move(e));
     for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) el.addEventListener(type, (e) => this.end(e));
@@ -68,16 +80,20 @@ class Stick {
   start(e) {
     if (this.pointer !== null) return;
     this.pointer = e.pointerId;
+    // Deflection is measured from where the stick was when the finger touched it: the page's content reflowing
+    // under a resting thumb (a status line wrapping) does not move the robot. A rotation moves the finger's own
+    // coordinates too: that releases everything (layoutChanged).
+    const r = this.el.getBoundingClientRect();
+    this.geometry = { x: r.left + r.width / 2, y: r.top + r.height / 2, radius: r.width / 2 };
     this.el.setPointerCapture(e.pointerId);
     this.move(e);
     e.preventDefault();
   }
   move(e) {
-    if (e.pointerId !== this.pointer) return;
-    const r = this.el.getBoundingClientRect();
-    const radius = r.width / 2;
-    let x = (e.clientX - (r.left + radius)) / radius;
-    let y = -(e.clientY - (r.top + r.height / 2)) / radius; // screen up = +
+    if (e.pointerId !== this.pointer || !this.geometry) return;
+    const { radius } = this.geometry;
+    let x = (e.clientX - this.geometry.x) / radius;
+    let y = -(e.clientY - this.geometry.y) / radius; // screen up = +
     const n = Math.hypot(x, y);
     if (n > 1) { x /= n; y /= n; }
     this.knob.style.transform = `translate(${x * radius * 0.6}px, ${-y * radius * 0.6}px)`;
@@ -90,6 +106,7 @@ class Stick {
   }
   centre() {
     this.pointer = null;
+    this.geometry = null;
     this.knob.style.transform = "";
     this.onMove(0, 0);
   }
@@ -125,21 +142,40 @@ document.addEventListener("visibilitychange", () => {
 });
 window.addEventListener("pagehide", () => releaseAll("page closed"));
 window.addEventListener("blur", () => releaseAll("window lost focus"));
+// A rotation (or any change of the viewport) moves the sticks and the deadman from under the fingers, and the
+// fingers' own coordinates with them: a thumb resting on a stick's centre read as a full deflection. Everything is
+// let go (the robot stops); the operator presses again on the new layout.
+function layoutChanged() { releaseAll("screen layout changed"); }
+window.addEventListener("resize", layoutChanged);
+window.addEventListener("orientationchange", layoutChanged);
+screen.orientation?.addEventListener?.("change", layoutChanged);
 document.addEventListener("contextmenu", (e) => e.preventDefault()); // a long press is not a menu
 
 const KEYS = { KeyD: [0, 1], KeyA: [0, -1], KeyW: [1, 1], KeyS: [1, -1], KeyR: [2, 1], KeyF: [2, -1], KeyQ: [5, 1], KeyE: [5, -1] };
 window.addEventListener("keydown", (e) => {
+  if (e.code === "Space") spaceDown = true;
   if (e.target instanceof HTMLInputElement || e.target instanceof HTMLSelectElement) return;
-  if (e.code === "Space") { input.deadman.key = true; e.preventDefault(); }
+  if (e.code === "Space") {
+    e.preventDefault();
+    // Only a press: never the auto-repeat of a held key, nor a Space held since a release (an e-stop, a blur).
+    if (!e.repeat && !spaceLocked) input.deadman.key = true;
+    else if (!e.repeat && !input.deadman.key) {
+      logEvent({ kind: "input", status: "deadman", reason: "let go of Space and press it again to hold the deadman" });
+    }
+  }
   else if (e.code === "KeyX") { estop(); }
   else if (e.code === "KeyB" && !e.repeat) { toggleFrame(); }
   else if (e.code === "KeyH" && !e.repeat) { toggleContact(); }
-  else if (KEYS[e.code]) input.keys.add(e.code);
+  else if (KEYS[e.code] && !e.repeat) input.keys.add(e.code); // a key held since a release counts once pressed anew
 });
 window.addEventListener("keyup", (e) => {
-  if (e.code === "Space" && input.deadman.key) {
-    input.deadman.key = false;
-    if (!deadmanHeld()) sendTwist();
+  if (e.code === "Space") {
+    spaceDown = false;
+    spaceLocked = false;
+    if (input.deadman.key) {
+      input.deadman.key = false;
+      if (!deadmanHeld()) sendTwist();
+    }
   }
   input.keys.delete(e.code);
 });
@@ -150,12 +186,13 @@ function readGamepad() {
   if (!pads.length) { input.deadman.pad = false; return null; }
   const p = pads[0];
   const dz = (v) => (Math.abs(v) < 0.12 ? 0 : v);
-  input.deadman.pad = !!(p.buttons[4]?.pressed || p.buttons[5]?.pressed); // a shoulder button, held
+  const pressed = !!(p.buttons[4]?.pressed || p.buttons[5]?.pressed); // a shoulder button, held
+  if (!pressed) padLocked = false; // let go since the last release: the next press counts
+  input.deadman.pad = pressed && !padLocked;
   return { lx: dz(p.axes[0] || 0), ly: -dz(p.axes[1] || 0), rx: dz(p.axes[2] || 0), ry: -dz(p.axes[3] || 0) };
 }
 
-function twistNow() {
-  const pad = readGamepad();
+function twistNow(pad) {
   const safety = lastState?.safety;
   const lin = safety?.linear_limit || 0.008;
   const ang = safety?.angular_limit || 0.1;
@@ -174,10 +211,12 @@ function twistNow() {
 
 // One twist, sent now: the fixed-rate stream's tick, and a deadman let go (sent at once by the release).
 function sendTwist() {
+  // The gamepad first: its shoulder button is the deadman, and only this reads it (a pad has no events).
+  const pad = readGamepad();
   const held = deadmanHeld() && !document.hidden;
   ui.deadman.classList.toggle("held", held);
   if (!ws || ws.readyState !== WebSocket.OPEN || !mine) return;
-  const t = held ? twistNow() : { linear: [0, 0, 0], angular: [0, 0, 0] };
+  const t = held ? twistNow(pad) : { linear: [0, 0, 0], angular: [0, 0, 0] };
   const round = (a) => a.map((x) => Math.round(x * 1e6) / 1e6);
   seq += 1;
   sentAt.set(seq, performance.now());
@@ -264,6 +303,12 @@ function connect() {
     stats.socket = "closed";
     mine = false;
     releaseAll("connection to the console's server lost");
+    if (e.code === 4429) { // too many pages of this log-in or user: said why; tried again now and then
+      stats.socket = "refused";
+      setStatus("refused", e.reason || "too many pages open", "red");
+      setTimeout(connect, 10_000);
+      return;
+    }
     setStatus("disconnected", `connection closed (${e.code}${e.reason ? `: ${e.reason}` : ""}): reconnecting…`, "grey");
     fetch("/api/me").then((r) => { if (r.status === 401) location.assign("/login"); else setTimeout(connect, 1000); })
       .catch(() => setTimeout(connect, 2000));
