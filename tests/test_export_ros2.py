@@ -12,6 +12,7 @@ the edge encoded."""
 
 from __future__ import annotations
 
+import io
 import math
 import subprocess
 import threading
@@ -25,6 +26,8 @@ import av
 import numpy as np
 import pytest
 import zenoh
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -195,6 +198,40 @@ def test_several_robots_get_prefixed_frames() -> None:
     assert (st.header.frame_id, st.child_frame_id) == ("sim2/base_link", "sim2/base")
     assert joints.name[0] == "sim2/shoulder_pan_joint"
     assert (tf.transforms[0].header.frame_id, tf.transforms[0].child_frame_id) == ("sim2/base", "sim2/tcp")
+
+
+def test_a_message_of_a_robot_the_converter_was_not_made_for_is_counted() -> None:
+    conv = Ros2Converter(["sim1"], get_typestore(Stores.ROS2_JAZZY))
+    msg = ForceSample(force=[0.0, 0.0, 2.0]).stamp(1, t=5)
+    assert conv.convert(Decoded("iorthand/sim2/state/force", "sim2", keys.STATE_FORCE, 7, msg)) == []
+    assert conv.skipped == {"robot not exported": 1}
+
+
+def test_a_killed_recorders_session_is_repaired_and_exported_with_every_robot(tmp_path: Path) -> None:
+    """Found by a red-team run: a recorder killed (SIGKILL) after a second robot began publishing left a manifest
+    naming only the first, and the ROS 2 export left the second out without a word."""
+    folder = tmp_path / "st"
+    folder.mkdir()
+    t0 = time.time_ns()
+    out = io.BytesIO()
+    w = McapWriter(out, compression=CompressionType.ZSTD, chunk_size=4096)
+    w.start("iorthand", "iorthand-recorder")
+    channels = {r: w.register_channel(f"iorthand/{r}/state/force", "msgpack", 0) for r in ("sim1", "sim2")}
+    for seq in range(1, 301):
+        t = t0 + seq * 10_000_000
+        for robot in ("sim1", "sim2") if seq > 250 else ("sim1",):
+            w.add_message(channels[robot], t, ForceSample(force=[0.0, 0.0, 2.0]).stamp(seq, t).encode(), t, seq)
+    w.flush()  # what a flush left on disk before the kill: no footer
+    (folder / "telemetry-0001.mcap").write_bytes(out.getvalue())
+    stale = mf.Manifest(session_id="st", robots=["sim1"], start_t=t0,
+                        keys={"iorthand/sim1/state/force": mf.KeyStats(messages=100)})
+    stale.write(folder)
+    mf.release_writer_lock(folder)  # as the kernel does for a killed process
+    bag = export_ros2(folder, tmp_path / "bag")
+    topics, _types = _read_bag(bag.path)
+    assert len(topics["/sim1/wrench"]) == 300 and len(topics["/sim2/wrench"]) == 50
+    m = mf.Manifest.read(folder)
+    assert m.status == mf.RECOVERED and m.robots == ["sim1"] and "iorthand/sim2/state/force" in m.keys
 
 
 # ------------------------------------------------------------------------------------------------- a recorded session

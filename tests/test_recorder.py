@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import struct
 import subprocess
 import sys
 import time
@@ -15,7 +16,7 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 from mcap.records import ChunkIndex
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType, IndexType, Writer
 
 from iorthand import keys
 from iorthand.config import from_dict
@@ -390,11 +391,32 @@ def test_a_segment_whose_chunks_would_take_more_memory_than_the_recorder_writes_
         check_chunks(Path("t.mcap"), [_chunk(0, 10, 60) for _ in range(5)])
 
 
-@pytest.mark.parametrize("footer", [True, False])
+def _bomb(index_types: IndexType = IndexType.ALL) -> bytes:
+    """A segment of a few kB holding one zstd chunk of 300 MiB."""
+    out = io.BytesIO()
+    w = Writer(out, compression=CompressionType.ZSTD, chunk_size=2**31, index_types=index_types)
+    w.start("iorthand", "crafted")
+    channel = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
+    w.add_message(channel, time.time_ns(), b"\0" * (300 * 2**20), time.time_ns(), 1)
+    w.finish()
+    return out.getvalue()
+
+
+def _without_summary(data: bytes) -> bytes:
+    """The footer's summary_start set to 0: "no summary", so mcap's reader would read the file front to back."""
+    out = bytearray(data)
+    struct.pack_into("<Q", out, len(data) - 8 - 20, 0)  # footer: opcode, length, summary_start, ... magic
+    return bytes(out)
+
+
+@pytest.mark.parametrize("variant", ["footer", "torn", "no summary", "no chunk index"])
 def test_a_decompression_bomb_is_refused_by_name_before_it_is_decompressed(recorder_factory, session_factory,
-                                                                          tmp_path: Path, footer: bool) -> None:
+                                                                          tmp_path: Path, variant: str) -> None:
     """Found by a red-team run: a 20 kB segment whose zstd chunk unpacked to 600 MiB took `iorthand report` to
-    1.33 GB and `export` to 2 GB. A segment with its footer, and one without (which the report repairs first)."""
+    1.33 GB and `export` to 2 GB. A segment with its footer, one without (which the report repairs first), and
+    (a later run) ones whose footer has no summary or whose summary has no chunk index: mcap's reader then
+    decompressed every chunk unchecked (300 MiB chunk in a 10 kB file: report at 697 MB, exit status 0)."""
+    footer = variant != "torn"
     recorder_factory()
     s = session_factory()
     time.sleep(0.3)
@@ -402,13 +424,8 @@ def test_a_decompression_bomb_is_refused_by_name_before_it_is_decompressed(recor
     s.put("iorthand/sim1/state/force", _force(1))
     time.sleep(0.5)
     assert client.stop(s).ok
-    out = io.BytesIO()
-    w = Writer(out, compression=CompressionType.ZSTD, chunk_size=2**31)
-    w.start("iorthand", "crafted")
-    channel = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
-    w.add_message(channel, time.time_ns(), b"\0" * (300 * 2**20), time.time_ns(), 1)
-    w.finish()
-    data = out.getvalue()
+    data = {"no summary": lambda: _without_summary(_bomb()),
+            "no chunk index": lambda: _bomb(IndexType.NONE)}.get(variant, _bomb)()
     assert len(data) < 100_000
     folder = tmp_path / "rec" / "bomb"
     baseline = _report_in_child(folder, tmp_path / "baseline")

@@ -4,10 +4,17 @@ warning edges, hysteresis."""
 from __future__ import annotations
 
 import math
+import time
+from pathlib import Path
 
 import pytest
+from mcap.writer import CompressionType, Writer
 
+from iorthand.protocol import ForceSample, TwistCommand
+from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder import metrics
+from iorthand_cloud.recorder.config import ReportConfig
+from iorthand_cloud.recorder.report import build_report
 from iorthand_cloud.recorder.simulate import expected_events
 
 
@@ -66,3 +73,61 @@ def test_simulation_script_expectations() -> None:
     ev = expected_events(10.0)
     assert ev == {"contact_time": 6.0, "omega_R": 2, "omega_Y": 1, "deadman_stops": 1}
     assert expected_events(20.0)["omega_R"] == 4
+
+
+def _crafted_session(folder: Path, held_until_s: float, operator_ahead_s: float, commands: bool = True,
+                     seconds: float = 20.0) -> Path:
+    """Written straight to MCAP as the recorder would: 3 N of force (contact, below caution) at 100 Hz for the
+    whole session; twist commands at 50 Hz, the deadman held for the first ``held_until_s``, stamped by an
+    operator clock ``operator_ahead_s`` ahead of the edge's."""
+    folder.mkdir()
+    t0 = time.time_ns()
+    messages = []
+    with (folder / "telemetry-0001.mcap").open("wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD)
+        w.start("iorthand", "crafted")
+        force = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
+        twist = w.register_channel("iorthand/sim1/cmd/twist", "msgpack", 0)
+        for i in range(int(seconds * 100)):
+            t = t0 + i * 10_000_000
+            messages.append((t + 1_000_000, force, ForceSample(force=[0, 0, 3.0]).stamp(i + 1, t).encode(), t, i + 1))
+        for i in range(int(seconds * 50) if commands else 0):
+            t = t0 + i * 20_000_000
+            c = TwistCommand(operator="op1", deadman=t - t0 < held_until_s * 1e9)
+            c.stamp(i + 1, t + int(operator_ahead_s * 1e9))
+            messages.append((t + 2_000_000, twist, c.encode(), c.t, i + 1))
+        for log_time, channel, data, publish_time, seq in sorted(messages):
+            w.add_message(channel, log_time, data, publish_time, seq)
+        w.finish()
+    mf.Manifest(session_id=folder.name, status=mf.COMPLETE, start_t=t0, stop_t=t0 + int(seconds * 1e9)).write(folder)
+    return folder
+
+
+def test_contact_counts_only_within_the_teleoperation_window(tmp_path: Path) -> None:
+    """Found by a red-team run: contact for 20 s, the deadman held for the first 10: τ counted all 20 s against
+    t_t = 10 s, ψ 2.004 and φ 460 %."""
+    data = build_report(_crafted_session(tmp_path / "a", 10.0, 0.0), ReportConfig(plots=False))
+    r = data["robots"]["sim1"]
+    assert r["index"]["t_t"] == pytest.approx(9.98, abs=0.03)
+    assert r["index"]["tau"] == pytest.approx(r["index"]["t_t"], abs=0.03) and r["index"]["psi"] <= 1.0
+    assert r["figures_within"] == "teleoperation"
+
+
+def test_an_operator_clock_ahead_of_the_edges_keeps_the_commands(tmp_path: Path) -> None:
+    """Found by a red-team run: an operator laptop 30 s ahead of the edge had every command discarded as
+    implausible (one clock offset per robot, taken across the edge's series and the operator's)."""
+    data = build_report(_crafted_session(tmp_path / "b", 20.0, 30.0), ReportConfig(plots=False))
+    r = data["robots"]["sim1"]
+    assert r["implausible_time"] == 0 and r["commands"] == 1000
+    assert r["index"]["t_t"] == pytest.approx(19.98, abs=0.03)
+    assert r["index"]["tau"] == pytest.approx(19.98, abs=0.05)  # the window put on the edge's clock
+
+
+def test_the_report_says_where_t_t_comes_from(tmp_path: Path) -> None:
+    """Found by a red-team run: without commands, t_t silently became the session's span."""
+    data = build_report(_crafted_session(tmp_path / "c", 0.0, 0.0, commands=False), ReportConfig(plots=False))
+    r = data["robots"]["sim1"]
+    assert r["index"]["t_t"] == pytest.approx(20.0) and r["figures_within"] == "session"
+    assert r["t_t_source"] == "session span: no commands were recorded"
+    report = (tmp_path / "c" / "report" / "report.md").read_text()
+    assert "t_t from the session span: no commands were recorded" in report

@@ -104,13 +104,14 @@ def _cmd_annotate(args: argparse.Namespace) -> int:
 
 
 def _reading(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
-    """A command that reads a session's segments: a segment it cannot read safely is said in one line (exit 1)."""
+    """A command that reads a session's segments: a segment it cannot read safely, or a session it cannot repair
+    first (a disk still full), is said in one line (exit 1)."""
 
     @functools.wraps(command)
     def run(args: argparse.Namespace) -> int:
         try:
             return command(args)
-        except SegmentError as exc:
+        except (SegmentError, OSError) as exc:
             print(f"iorthand {args.command}: {exc}", file=sys.stderr)
             return 1
 
@@ -120,7 +121,7 @@ def _reading(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse
 @_reading
 def _cmd_replay(args: argparse.Namespace) -> int:
     from iorthand_cloud.recorder.manifest import Manifest
-    from iorthand_cloud.recorder.replay import Replayer
+    from iorthand_cloud.recorder.replay import NothingToReplay, Replayer
 
     Manifest.read(Path(args.session))  # a wrong folder is said at once, not after connecting
     session = _session(args)
@@ -135,12 +136,15 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: rp.stop_event.set())
         refused: list[SegmentError] = []
+        nothing: list[NothingToReplay] = []
 
         def run() -> None:
             try:
                 rp.run()
             except SegmentError as exc:  # a later segment: what went before was replayed
                 refused.append(exc)
+            except NothingToReplay as exc:
+                nothing.append(exc)
 
         t = threading.Thread(target=run, name="replay", daemon=True)
         t.start()
@@ -148,6 +152,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             t.join(0.2)
         if refused:
             raise refused[0]
+        if nothing:
+            print(f"replay: {nothing[0]}", file=sys.stderr)
+            return 1
         robots = sorted({keys.split_key(k)[0] for k in rp.stats.per_key})
         print(f"replayed {rp.stats.published} messages as {', '.join(robots) or 'no robot'} ({rp.stats.loops} "
               f"pass(es)), at most {rp.stats.max_late_ms:.1f} ms late; {rp.stats.commands_withheld} operator "
@@ -209,6 +216,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
             from iorthand_cloud.recorder.export_ros2 import export_ros2
 
             bag = export_ros2(args.session, args.out, args.start, args.end, storage=args.storage)
+            if bag.skipped:
+                print("left out: " + ", ".join(f"{n} {why}" for why, n in sorted(bag.skipped.items())),
+                      file=sys.stderr)
             print(f"exported {bag.messages} messages on {len(bag.counts)} topics to {bag.path}")
         else:
             from iorthand_cloud.recorder.export_lerobot import export_lerobot

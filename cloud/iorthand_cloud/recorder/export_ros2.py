@@ -64,6 +64,7 @@ does the reading and writing.
 from __future__ import annotations
 
 import contextlib
+import logging
 import re
 import shutil
 from collections.abc import Collection, Iterable, Iterator, Sequence
@@ -89,7 +90,10 @@ from iorthand.protocol import (
     source_news,
 )
 from iorthand_cloud.recorder.manifest import Manifest
-from iorthand_cloud.recorder.reader import iter_records, read_manifest, session_dir
+from iorthand_cloud.recorder.reader import iter_records, read_manifest, segment_topics, session_dir
+from iorthand_cloud.recorder.repair import repair_if_crashed
+
+log = logging.getLogger("iorthand.recorder")
 
 # UR's joint names, as ur_description and the ROS driver name them (base to wrist).
 JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
@@ -187,6 +191,10 @@ def export_target(session: str | Path, out: str | Path | None, fmt: str) -> tupl
     """The session's folder, its manifest and where an export goes (``out``, else ``<session id>-<fmt>`` beside
     the session): never over something that exists."""
     folder = session_dir(session)
+    # A session whose recorder died: repaired first (as the report does), so that its manifest is up to date.
+    repaired = repair_if_crashed(folder)
+    if repaired:
+        log.warning("%s: %s", folder, repaired)
     manifest = read_manifest(folder)
     path = Path(out) if out else folder / f"{manifest.session_id}-{fmt}"
     if path.exists():
@@ -239,10 +247,11 @@ def iter_decoded(folder: Path, lo: int | None = None, hi: int | None = None,
 
 
 def session_robots(folder: Path) -> list[str]:
-    """The robots of a session: the manifest's list and those of its recorded keys."""
+    """The robots of a session: the manifest's list and those of the keys in its manifest and its segments (a
+    session still being recorded has a manifest up to one manifest_interval old)."""
     m = read_manifest(folder)
     robots = set(m.robots)
-    for key in m.keys:
+    for key in {*m.keys, *segment_topics(folder)}:
         with contextlib.suppress(keys.KeyExprError):  # a service key (annotations): no robot
             robots.add(keys.split_key(key)[0])
     return sorted(robots)
@@ -360,8 +369,10 @@ class Ros2Converter:
             return [BagMessage(ROSOUT, LOG, d.log_time,
                                self._log(msg.t or d.log_time, self._types[LOG].INFO, "iorthand.annotations", text))]
         robot = d.robot
-        if robot not in self._prefix:
-            return []  # not one of the robots this converter was made for
+        if robot not in self._prefix:  # not one of the robots this converter was made for
+            why = "robot not exported"
+            self.skipped[why] = self.skipped.get(why, 0) + 1
+            return []
         out: list[BagMessage] = []
         if robot not in self._static_done:
             self._static_done.add(robot)

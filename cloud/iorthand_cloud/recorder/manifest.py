@@ -4,7 +4,7 @@
 is written atomically (temporary file + rename) so a crash leaves either the previous or the new version.
 
 The process that writes a manifest saying ``recording`` holds the session's writer lock (an advisory ``flock`` on
-``.writer.lock`` in its folder) until it writes another status: :func:`writer_alive` tells a reader (``iorthand
+``.writer.lock`` in its folder) until the recording ends, whether or not its final manifest could be written: :func:`writer_alive` tells a reader (``iorthand
 report``, ``export``, a recorder starting up) whether the session is still being written or its recorder died
 (the kernel releases a killed process's locks at once), so a crashed session is repaired by whoever reads it
 first and a live one is never touched.
@@ -12,15 +12,17 @@ first and a live one is never touched.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
 import platform
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 try:
     import fcntl
@@ -141,19 +143,32 @@ class Manifest:
         known = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
         return cls(keys=keys, segments=segs, **known)
 
-    def write(self, folder: Path, fsync: bool = True) -> None:
+    def write(self, folder: Path, fsync: bool = True, opener: Callable[[Path], BinaryIO] | None = None) -> None:
+        """Write atomically. ``opener`` opens the temporary file (the recorder's, so that a test's full disk is
+        full for the manifest too). A failed write leaves no temporary file behind, and the writer lock as it
+        was: whoever writes a final status releases it (:func:`release_writer_lock`) whether or not it could."""
         if self.status == RECORDING:
             _hold_writer_lock(folder)
         path = folder / MANIFEST
         tmp = folder / (MANIFEST + ".tmp")
-        with tmp.open("w", encoding="utf-8") as f:
-            json.dump(self.to_dict(), f, indent=1, sort_keys=False)
-            f.flush()
-            if fsync:
-                os.fsync(f.fileno())
-        os.replace(tmp, path)
+        data = json.dumps(self.to_dict(), indent=1, sort_keys=False).encode()
+        try:
+            tmp.unlink(missing_ok=True)  # one left by an earlier failure: the opener creates the file afresh
+            f = opener(tmp) if opener else tmp.open("xb")
+            try:
+                f.write(data)
+                f.flush()
+                if fsync:
+                    os.fsync(f.fileno())
+            finally:
+                f.close()
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            raise
         if self.status != RECORDING:
-            _release_writer_lock(folder)
+            release_writer_lock(folder)
 
     @classmethod
     def read(cls, folder: Path) -> Manifest:
@@ -168,6 +183,10 @@ class Manifest:
 # release the lock).
 _writer_locks: dict[Path, int] = {}
 
+# The lock file also carries the reason a recording failed when its manifest could not say so (a full disk):
+# written in place into bytes reserved when the lock is taken, because a full disk has no room for a new file.
+FAILURE_NOTE_BYTES = 1024
+
 
 def _hold_writer_lock(folder: Path) -> None:
     key = Path(folder).resolve()
@@ -178,16 +197,44 @@ def _hold_writer_lock(folder: Path) -> None:
     fd = os.open(key / WRITER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, b" " * FAILURE_NOTE_BYTES, 0)  # the reserve (blank: no failure)
     except BlockingIOError:
         os.close(fd)
         raise RuntimeError(f"{folder}: another process is recording this session") from None
+    except OSError:
+        os.close(fd)
+        raise
     _writer_locks[key] = fd
 
 
-def _release_writer_lock(folder: Path) -> None:
+def release_writer_lock(folder: Path) -> None:
+    """Release this process's writer lock on ``folder`` (nothing if it holds none): the session is no longer
+    being written, so a reader may repair it."""
     fd = _writer_locks.pop(Path(folder).resolve(), None)
     if fd is not None:
         os.close(fd)  # closing the descriptor releases the flock
+
+
+def note_failure(folder: Path, reason: str) -> None:
+    """Keep ``reason`` in the session's lock file, for a later repair (:func:`failure_note`) when the manifest
+    could not be written with it. Raises OSError when even that is impossible."""
+    data = reason.encode()[:FAILURE_NOTE_BYTES].ljust(FAILURE_NOTE_BYTES, b" ")
+    fd = _writer_locks.get(Path(folder).resolve())
+    if fd is not None:  # over the reserved bytes: needs no new room on the disk
+        os.pwrite(fd, data, 0)
+        return
+    with (Path(folder) / WRITER_LOCK).open("r+b" if (Path(folder) / WRITER_LOCK).exists() else "wb") as f:
+        f.write(data)
+
+
+def failure_note(folder: Path) -> str:
+    """The reason :func:`note_failure` kept for this session, "" when there is none."""
+    try:
+        data = (Path(folder) / WRITER_LOCK).read_bytes()[:FAILURE_NOTE_BYTES]
+    except OSError:
+        return ""
+    return data.decode(errors="replace").strip()
 
 
 def writer_alive(folder: Path, quiet_for: float = 10.0) -> bool:

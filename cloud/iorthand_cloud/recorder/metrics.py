@@ -13,6 +13,9 @@ import itertools
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any, TypeVar
+
+_Timed = TypeVar("_Timed", bound=tuple[Any, ...])  # a sample whose first item is its time, s
 
 ALPHA = 230.0
 BETA = 0.25
@@ -128,7 +131,18 @@ def rising_edges(states: Iterable[tuple[float, str]], targets: set[str]) -> list
     return out
 
 
+def teleoperation_window(commands: Sequence[tuple[float, bool]]) -> tuple[float, float] | None:
+    """From the first to the last command sent with the deadman held (None without two of them)."""
+    held = [t for t, deadman in commands if deadman]
+    return (held[0], held[-1]) if len(held) >= 2 else None
+
+
 def teleoperation_time(commands: Sequence[tuple[float, bool]]) -> float:
     """t_t: from the first to the last command sent with the deadman held, s (0 if none)."""
-    held = [t for t, deadman in commands if deadman]
-    return held[-1] - held[0] if len(held) >= 2 else 0.0
+    window = teleoperation_window(commands)
+    return window[1] - window[0] if window else 0.0
+
+
+def within(samples: Iterable[_Timed], window: tuple[float, float]) -> list[_Timed]:
+    """The samples whose time (their first item) lies in ``window``, bounds included."""
+    return [x for x in samples if window[0] <= x[0] <= window[1]]

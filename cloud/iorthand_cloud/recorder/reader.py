@@ -2,16 +2,25 @@
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import heapq
+import os
+import struct
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import msgpack
+import zstandard
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, ChunkIndex, Message
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
+from mcap.summary import Summary
 
 from iorthand_cloud.recorder.manifest import Manifest
 from iorthand_cloud.recorder.segments import MALFORMED_META
@@ -25,6 +34,11 @@ MAX_OVERLAPPING_CHUNK_BYTES = 256 * 2**20
 
 class SegmentError(ValueError):
     """A segment that cannot be read safely; the message names the file and what was wrong."""
+
+
+class CorruptSegment(SegmentError):
+    """A segment whose bytes are not what was written (a CRC that does not match, a record that cannot be
+    parsed); the message names the file and where."""
 
 
 def check_chunks(path: Path, chunks: Collection[ChunkIndex]) -> None:
@@ -74,6 +88,27 @@ def segment_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.mcap") if p.is_file())
 
 
+def segment_topics(folder: str | Path) -> set[str]:
+    """The topics of a session's segments' channels: from the summary of a finished segment, from a front to
+    back read of one without (a segment being written)."""
+    topics: set[str] = set()
+    for path in segment_files(session_dir(folder)):
+        with path.open("rb") as f:
+            try:
+                summary = make_reader(f).get_summary()
+            except Exception:  # no footer yet, or a torn one
+                summary = None
+            if summary is not None and summary.channels:
+                topics.update(c.topic for c in summary.channels.values())
+                continue
+            f.seek(0)
+            with contextlib.suppress(TornTail):  # (the channels before it are kept)
+                for record in stream_records(f, path):
+                    if isinstance(record, Channel):
+                        topics.add(record.topic)
+    return topics
+
+
 def stream_of(path: Path) -> str:
     """``video-0003.mcap`` → ``video``."""
     return path.name.rsplit("-", 1)[0]
@@ -84,46 +119,173 @@ def _iter_file(path: Path, start: int | None, end: int | None,
     stream = stream_of(path)
     with path.open("rb") as f:
         try:
-            reader = make_reader(f)
-            summary = reader.get_summary()
+            summary = make_reader(f).get_summary()
         except Exception:  # no footer yet (a segment being written) or a torn one: its complete records
+            summary = None
+        if summary is None or not summary.chunk_indexes:
+            # No index to seek with (mcap's own reader would then decompress every chunk unchecked): front to
+            # back, each chunk's own size checked.
             f.seek(0)
-            yield from _iter_unfinished(f, path, stream, start, end, topics)
+            yield from _iter_linear(f, path, stream, start, end, topics)
             return
-        check_chunks(path, summary.chunk_indexes if summary is not None else [])
-        # With topics, the chunks' message indexes let the reader skip the other channels' messages.
-        wanted = list(topics) if topics is not None else None
-        for _schema, channel, message in reader.iter_messages(topics=wanted, starting_at=start, ending_before=end,
-                                                              log_time_order=True):
-            yield Record(
-                key=channel.topic, log_time=message.log_time, publish_time=message.publish_time,
-                sequence=message.sequence, data=message.data,
-                malformed=channel.metadata.get(MALFORMED_META) == "true", stream=stream,
-            )
+        yield from _iter_indexed(f, path, stream, summary, start, end, topics)
+
+
+def _iter_indexed(f: BinaryIO, path: Path, stream: str, summary: Summary, start: int | None, end: int | None,
+                  topics: Collection[str] | None) -> Iterator[Record]:
+    """The messages of a finished segment in receive-time order, through its chunk index: only the chunks whose
+    times and channels are wanted are read, each checked (size, CRC) before it is used. Chunks whose times
+    overlap are decompressed together, as mcap's reader does; those that follow one another, one at a time."""
+    chunks = [c for c in summary.chunk_indexes if _chunk_wanted(c, summary, start, end, topics)]
+    # The index's sizes are the chunks' own claims repeated: a crafted index may understate them.
+    check_chunks(path, [dataclasses.replace(c, uncompressed_size=max(c.uncompressed_size, _declared_size(f, path, c)))
+                        for c in chunks])
+    # Ordered by (time, chunk offset, position in the chunk); a chunk enters at its first message's time.
+    queue: list[tuple[int, int, int, Any]] = [(c.message_start_time, c.chunk_start_offset, -1, c) for c in chunks]
+    heapq.heapify(queue)
+    while queue:
+        _t, offset, index, item = heapq.heappop(queue)
+        if index >= 0:
+            yield item
+            continue
+        f.seek(offset)
+        chunk = _read_chunk(f, path, offset)
+        for i, record in enumerate(_chunk_records(path, f"the chunk at byte {offset}", chunk)):
+            if not isinstance(record, Message):
+                continue
+            channel = summary.channels.get(record.channel_id)
+            if channel is None:
+                raise CorruptSegment(f"{path}: the chunk at byte {offset} holds a message on channel "
+                                     f"{record.channel_id}, which the file does not define")
+            if ((start is not None and record.log_time < start) or (end is not None and record.log_time >= end)
+                    or (topics is not None and channel.topic not in topics)):
+                continue
+            heapq.heappush(queue, (record.log_time, offset, i, _record(channel, record, stream)))
+
+
+def _chunk_wanted(c: ChunkIndex, summary: Summary, start: int | None, end: int | None,
+                  topics: Collection[str] | None) -> bool:
+    if (start is not None and c.message_end_time < start) or (end is not None and c.message_start_time >= end):
+        return False
+    if topics is None or not c.message_index_offsets:  # (without message indexes, only reading tells)
+        return True
+    return any(ch in summary.channels and summary.channels[ch].topic in topics for ch in c.message_index_offsets)
+
+
+# A chunk record: opcode, record length, message start and end times, uncompressed size, CRC, compression.
+_CHUNK_HEAD = struct.Struct("<BQQQQII")
+
+
+def _declared_size(f: BinaryIO, path: Path, c: ChunkIndex) -> int:
+    """The largest size the chunk an index entry points to declares, read from its head alone: its own
+    uncompressed size, and its zstd frame's content size."""
+    f.seek(c.chunk_start_offset)
+    head = f.read(_CHUNK_HEAD.size)
+    if len(head) < _CHUNK_HEAD.size or head[0] != Opcode.CHUNK:
+        raise CorruptSegment(f"{path}: the chunk index points to byte {c.chunk_start_offset}, where no chunk is")
+    *_, size, _crc, name_len = _CHUNK_HEAD.unpack(head)
+    name = f.read(min(name_len, 16))
+    f.read(8)  # the compressed data's length
+    where = f"the chunk at byte {c.chunk_start_offset}"
+    _check_chunk_size(path, where, size)
+    frame = _zstd_content_size(path, where, f.read(18)) if name == b"zstd" else 0
+    _check_chunk_size(path, f"{where} (its zstd frame)", frame)
+    return max(size, frame)
+
+
+def _zstd_content_size(path: Path, where: str, data: bytes) -> int:
+    """What a zstd frame says it holds (0 when it does not say): zstd allocates that much, whatever the chunk
+    around it declares."""
+    try:
+        size = zstandard.frame_content_size(data)
+    except zstandard.ZstdError as exc:
+        raise CorruptSegment(f"{path}: {where} is damaged: {exc}") from None
+    return max(size, 0)
+
+
+def _read_chunk(f: BinaryIO, path: Path, offset: int) -> Chunk:
+    try:
+        if f.read(1) != bytes([Opcode.CHUNK]):
+            raise CorruptSegment(f"{path}: the chunk index points to byte {offset}, where no chunk is")
+        f.read(8)
+        return Chunk.read(ReadDataStream(f))
+    except (McapError, struct.error, UnicodeDecodeError) as exc:
+        raise CorruptSegment(f"{path}: the chunk at byte {offset} is damaged: {exc!r}") from None
+
+
+def _chunk_records(path: Path, where: str, chunk: Chunk) -> list[Any]:
+    """The records of a chunk, its size checked before it is decompressed and its CRC after."""
+    _check_chunk_size(path, where, chunk.uncompressed_size)
+    if chunk.compression not in ("", "zstd"):
+        raise SegmentError(f"{path}: {where} is compressed with {chunk.compression[:16]!r}, which the recorder "
+                           "never uses: not read (it was not written by the recorder)")
+    if chunk.compression == "zstd":
+        frame = _zstd_content_size(path, where, chunk.data[:18])
+        _check_chunk_size(path, f"{where} (its zstd frame)", frame)
+        if frame and frame != chunk.uncompressed_size:
+            raise SegmentError(f"{path}: {where} declares {chunk.uncompressed_size} bytes uncompressed, its zstd "
+                               f"frame {frame}: not read (it was not written by the recorder)")
+    try:
+        return breakup_chunk(chunk, validate_crc=True)
+    except CRCValidationError as exc:
+        raise CorruptSegment(f"{path}: {where} is damaged (its CRC does not match: {exc})") from None
+    except Exception as exc:  # zstd errors, records cut short: the bytes are not what was written
+        raise CorruptSegment(f"{path}: {where} is damaged: {exc!r}") from None
+
+
+def _record(channel: Channel, message: Message, stream: str) -> Record:
+    return Record(key=channel.topic, log_time=message.log_time, publish_time=message.publish_time,
+                  sequence=message.sequence, data=message.data,
+                  malformed=channel.metadata.get(MALFORMED_META) == "true", stream=stream)
+
+
+class TornTail(Exception):
+    """The file ends inside a record: what a killed writer leaves (everything before it is whole)."""
 
 
 def stream_records(f: Any, path: Path) -> Iterator[Any]:
     """The records of an MCAP file read front to back (one without a footer too), each chunk's size checked
-    before it is decompressed (:class:`SegmentError`)."""
-    for chunk_or_record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
-        if isinstance(chunk_or_record, Chunk):
-            _check_chunk_size(path, f"the chunk ending at byte {f.tell()}", chunk_or_record.uncompressed_size)
-            yield from breakup_chunk(chunk_or_record)
+    before it is decompressed and every CRC checked. Raises :class:`TornTail` where the file ends inside a
+    record, :class:`CorruptSegment` at a complete record that is damaged (the rest of the file may be good)."""
+    size = os.fstat(f.fileno()).st_size
+    records = StreamReader(f, skip_magic=False, emit_chunks=True, validate_crcs=True).records
+    while True:
+        at = f.tell()
+        try:
+            record = next(records)
+        except StopIteration:
+            return
+        except Exception as exc:
+            if _ends_inside(f, at, size):
+                raise TornTail(f"{path}: readable up to byte {at} of {size}") from None
+            raise CorruptSegment(f"{path}: the record at byte {at} is damaged: {exc!r}") from None
+        if isinstance(record, Chunk):
+            yield from _chunk_records(path, f"the chunk at byte {at}", record)
         else:
-            yield chunk_or_record
+            yield record
 
 
-def _iter_unfinished(f: Any, path: Path, stream: str, start: int | None, end: int | None,
-                     topics: Collection[str] | None = None) -> Iterator[Record]:
-    """The complete records of a segment without a footer, in receive-time order (the torn tail is left out)."""
+def _ends_inside(f: Any, at: int, size: int) -> bool:
+    """Whether the record at byte ``at`` runs past the end of the file (its opcode and length tell)."""
+    if at == 0:  # the magic, then the header record
+        if size < 8:
+            return True
+        at = 8
+    f.seek(at)
+    head = f.read(9)
+    return len(head) < 9 or at + 9 + struct.unpack_from("<Q", head, 1)[0] > size
+
+
+def _iter_linear(f: Any, path: Path, stream: str, start: int | None, end: int | None,
+                 topics: Collection[str] | None = None) -> Iterator[Record]:
+    """The records of a segment read front to back (one without a footer or without a chunk index), in
+    receive-time order (a torn tail is left out)."""
     channels: dict[int, Channel] = {}
     out: list[Record] = []
     try:
         for record in stream_records(f, path):
             _keep(record, channels, out, stream, start, end, topics)
-    except SegmentError:
-        raise
-    except Exception:  # the torn tail: everything before it was taken
+    except TornTail:  # everything before it was taken
         pass
     out.sort(key=lambda r: r.log_time)
     yield from out
@@ -139,9 +301,7 @@ def _keep(record: Any, channels: dict[int, Channel], out: list[Record], stream: 
         ch = channels[record.channel_id]
         if topics is not None and ch.topic not in topics:
             return
-        out.append(Record(key=ch.topic, log_time=record.log_time, publish_time=record.publish_time,
-                          sequence=record.sequence, data=record.data,
-                          malformed=ch.metadata.get(MALFORMED_META) == "true", stream=stream))
+        out.append(_record(ch, record, stream))
 
 
 def iter_records(folder: str | Path, start: int | None = None, end: int | None = None,

@@ -3,7 +3,10 @@
 A segment is readable up to the last complete record (the writer flushes whole chunks at least once a second,
 so a kill -9 loses at most the chunk in progress). The rewrite goes to a temporary file that replaces the
 original only when complete; the manifest's statistics are then recomputed from the files themselves (the
-manifest on disk may be up to one ``manifest_interval`` old) and the session is marked ``recovered``.
+manifest on disk may be up to one ``manifest_interval`` old) and the session is marked ``recovered`` (or
+``failed``, with the reason, when its recorder stopped on an error it could not write into the manifest: see
+:func:`~iorthand_cloud.recorder.manifest.note_failure`). A damaged record (a CRC that does not match) stops the
+rewrite too, but what follows it may be good: the file as it was is kept beside the repaired one.
 """
 
 from __future__ import annotations
@@ -18,7 +21,15 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from iorthand_cloud.recorder import manifest as mf
-from iorthand_cloud.recorder.reader import SegmentError, iter_records, segment_files, stream_of, stream_records
+from iorthand_cloud.recorder.reader import (
+    CorruptSegment,
+    SegmentError,
+    TornTail,
+    iter_records,
+    segment_files,
+    stream_of,
+    stream_records,
+)
 from iorthand_cloud.recorder.segments import COMPRESSION, LIBRARY, PROFILE
 
 log = logging.getLogger("iorthand.recorder")
@@ -29,6 +40,8 @@ class RepairResult:
     path: Path
     messages: int
     lost_bytes: int
+    original: Path | None = None  # the file as it was, kept when the repair stopped at damage, not at a torn tail
+    damage: str = ""
 
 
 def has_footer(path: Path) -> bool:
@@ -41,51 +54,63 @@ def has_footer(path: Path) -> bool:
 
 
 def repair_segment(path: Path) -> RepairResult:
-    """Rewrite ``path`` from its readable records; returns what was recovered."""
+    """Rewrite ``path`` from its readable records; returns what was recovered. Reading stops at a torn tail
+    (what a killed writer leaves: dropped) or at a damaged record (a CRC that does not match...): then what
+    follows may be good, so the file as it was is kept beside the repaired one (``<name>.orig``)."""
     size = path.stat().st_size
     tmp = path.with_suffix(".mcap.repair")
     compression = COMPRESSION.get(stream_of(path), CompressionType.ZSTD)
     messages = 0
     good_offset = 0
-    with path.open("rb") as src, tmp.open("wb") as dst:
-        writer = Writer(dst, compression=compression)
-        writer.start(profile=PROFILE, library=LIBRARY)
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
-        try:
-            for record in stream_records(src, path):
-                if isinstance(record, Schema):
-                    schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
-                elif isinstance(record, Channel):
-                    channels[record.id] = writer.register_channel(
-                        record.topic, record.message_encoding, schemas.get(record.schema_id, 0), record.metadata
-                    )
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    writer.add_message(channels[record.channel_id], record.log_time, record.data,
-                                       record.publish_time, record.sequence)
-                    messages += 1
-                elif isinstance(record, Attachment):
-                    writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
-                                          record.data)
-                elif isinstance(record, Metadata):
-                    writer.add_metadata(record.name, record.metadata)
-                good_offset = src.tell()
-        except SegmentError:  # not a torn tail: a file the recorder did not write is left as it is
-            dst.close()
-            tmp.unlink()
-            raise
-        except Exception as exc:  # the torn tail: everything before it was taken
-            log.info("%s: readable up to byte %d of %d (%s)", path.name, good_offset, size, type(exc).__name__)
-        writer.finish()
-        dst.flush()
-        os.fsync(dst.fileno())
+    damage: CorruptSegment | None = None
+    try:
+        with path.open("rb") as src, tmp.open("wb") as dst:
+            writer = Writer(dst, compression=compression)
+            writer.start(profile=PROFILE, library=LIBRARY)
+            schemas: dict[int, int] = {}
+            channels: dict[int, int] = {}
+            try:
+                for record in stream_records(src, path):
+                    if isinstance(record, Schema):
+                        schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+                    elif isinstance(record, Channel):
+                        channels[record.id] = writer.register_channel(
+                            record.topic, record.message_encoding, schemas.get(record.schema_id, 0), record.metadata
+                        )
+                    elif isinstance(record, Message) and record.channel_id in channels:
+                        writer.add_message(channels[record.channel_id], record.log_time, record.data,
+                                           record.publish_time, record.sequence)
+                        messages += 1
+                    elif isinstance(record, Attachment):
+                        writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
+                                              record.data)
+                    elif isinstance(record, Metadata):
+                        writer.add_metadata(record.name, record.metadata)
+                    good_offset = src.tell()
+            except TornTail as exc:  # everything before it was taken
+                log.info("%s", exc)
+            except CorruptSegment as exc:
+                damage = exc
+            writer.finish()
+            dst.flush()
+            os.fsync(dst.fileno())
+    except BaseException:  # a file the recorder did not write (SegmentError: left as it is), a write error
+        tmp.unlink(missing_ok=True)
+        raise
+    original = None
+    if damage is not None:
+        original = path.with_name(path.name + ".orig")
+        os.replace(path, original)
+        log.error("%s; what follows byte %d is not in the repaired file: the file as it was is kept as %s",
+                  damage, good_offset, original.name)
     os.replace(tmp, path)
-    return RepairResult(path, messages, max(0, size - good_offset))
+    return RepairResult(path, messages, max(0, size - good_offset), original, str(damage or ""))
 
 
 def recompute_stats(folder: Path) -> tuple[dict[str, mf.KeyStats], int, int | None]:
     """Per-key statistics, annotation count and last receive time, from the segment files."""
     from iorthand import keys
+    from iorthand.protocol import message_type_for
 
     stats: dict[str, mf.KeyStats] = {}
     annotations = 0
@@ -98,7 +123,8 @@ def recompute_stats(folder: Path) -> tuple[dict[str, mf.KeyStats], int, int | No
             continue
         st = stats.get(rec.key)
         if st is None:
-            st = stats[rec.key] = mf.KeyStats()
+            cls = message_type_for(rec.key)  # as the recorder names it (the segments do not say it for all keys)
+            st = stats[rec.key] = mf.KeyStats(type=cls.__name__ if cls else "")
         st.observe(len(rec.data), rec.log_time, None if rec.malformed or not rec.sequence else rec.sequence,
                    malformed=rec.malformed)
     return stats, annotations, last
@@ -122,6 +148,7 @@ def repair_session(folder: Path) -> list[RepairResult]:
         log.warning("%s: no readable manifest (%s); rebuilding one from the segments", folder, exc)
         manifest = mf.Manifest(session_id=folder.name)
     by_file = {s.file: s for s in manifest.segments}
+    damaged: list[str] = []
     for path in segment_files(folder):
         if has_footer(path):
             seg = by_file.get(path.name)
@@ -152,6 +179,8 @@ def repair_session(folder: Path) -> list[RepairResult]:
             by_file[path.name] = seg
         seg.status, seg.recovered_messages, seg.lost_bytes = "repaired", res.messages, res.lost_bytes
         seg.messages, seg.bytes = res.messages, path.stat().st_size
+        if res.original is not None:
+            damaged.append(f"{res.damage} (the file as it was is kept as {res.original.name})")
     # The Foxglove copy of the session (iorthand_cloud.foxglove_channels), in its own subfolder: made whole too.
     for path in sorted((folder / "foxglove").glob("*.mcap")):
         if not has_footer(path):
@@ -163,10 +192,15 @@ def repair_session(folder: Path) -> list[RepairResult]:
     # The dropped counter is the recorder's own and cannot be rebuilt from the files: keep the last one written.
     manifest.keys, manifest.annotations = stats, annotations
     if manifest.status == mf.RECORDING:
-        manifest.status = mf.RECOVERED
+        # A recorder that could not write its final manifest (full disk) left the reason in its lock file.
+        failure = mf.failure_note(folder)
+        manifest.status = mf.FAILED if failure else mf.RECOVERED
         manifest.stop_t = last
         manifest.stop_iso = mf.iso(last)
-        manifest.error = manifest.error or "the recorder stopped without closing this session (crash or kill)"
+        why = failure or "the recorder stopped without closing this session (crash or kill)"
+        manifest.error = f"{manifest.error}; {why}" if manifest.error else why
+    if damaged:
+        manifest.error = "; ".join([manifest.error, *damaged] if manifest.error else damaged)
     manifest.repaired = manifest.repaired or bool(results)
     manifest.write(folder)
     return results
@@ -196,8 +230,10 @@ def repair_if_crashed(folder: Path) -> str:
         return ""
     results = repair_session(folder)
     kept = sum(r.messages for r in results)
+    damaged = "".join(f"; {r.damage} (the file as it was is kept as {r.original.name})"
+                      for r in results if r.original is not None)
     return (f"the recorder stopped without closing this session: repaired {len(results)} segment(s), "
-            f"{kept} messages kept, {sum(r.lost_bytes for r in results)} bytes of torn tail dropped")
+            f"{kept} messages kept, {sum(r.lost_bytes for r in results)} bytes of torn tail dropped{damaged}")
 
 
 def repair_all(root: Path) -> dict[str, list[RepairResult]]:

@@ -61,6 +61,10 @@ def _publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
                                      express=qos.express)
 
 
+class NothingToReplay(RuntimeError):
+    """A pass over the replay's window published nothing (looping on it would only spin)."""
+
+
 class Replayer:
     def __init__(
         self, session: zenoh.Session, folder: str | Path, speed: float = 1.0, loop: bool = False,
@@ -70,6 +74,8 @@ class Replayer:
     ) -> None:
         if speed <= 0:
             raise ValueError("speed must be > 0")
+        if start is not None and end is not None and end <= start:
+            raise ValueError(f"--end {end:g} s is not after --start {start:g} s: the window holds nothing")
         self.rename = dict(rename or {})
         for old, new in self.rename.items():
             try:
@@ -100,7 +106,7 @@ class Replayer:
 
     def _wants(self, rec: Record) -> bool:
         if keys.is_command_key(rec.key):
-            self.stats.commands_withheld += 1
+            self.stats.commands_withheld += self.stats.loops == 0  # (counted once, not again at each pass)
             return False
         if rec.malformed and not self.include_malformed:
             return False
@@ -147,7 +153,12 @@ class Replayer:
         try:
             start, end = self._window()
             while not self.stop_event.is_set():
+                before = self.stats.published
                 self._once(start, end)
+                if self.stats.published == before and not self.stop_event.is_set():
+                    raise NothingToReplay(
+                        f"nothing to replay in this window ({self.stats.skipped} recorded messages in it not "
+                        f"replayed, {self.stats.commands_withheld} of them operator commands)")
                 self.stats.loops += 1
                 if not self.loop:
                     break
@@ -164,7 +175,7 @@ class Replayer:
             if self.stop_event.is_set():
                 return
             if not self._wants(rec):
-                self.stats.skipped += 1
+                self.stats.skipped += self.stats.loops == 0
                 continue
             if t0_rec is None:
                 t0_rec, t0_wall = rec.log_time, time.monotonic()

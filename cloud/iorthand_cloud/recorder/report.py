@@ -64,6 +64,12 @@ class RobotSeries:
     implausible_time: int = 0  # messages whose source time strays from their receipt (TIME_OUTLIER_S)
     # (series, entry, source − receive time in ns) until the robot's clock offset is known: see settle
     timed: list[tuple[list[Any], tuple[Any, ...], int]] = field(default_factory=list)
+    usual_offset: dict[int, int] = field(default_factory=dict)  # id(series) → its median source − receive, ns
+
+    def clock_shift(self, series: list[Any], to: list[Any]) -> float:
+        """Seconds to subtract from a time of ``series`` to put it on the clock of ``to`` (through the
+        recorder's receive times, which both share)."""
+        return (self.usual_offset.get(id(series), 0) - self.usual_offset.get(id(to), 0)) / 1e9
 
     def add(self, series: list[Any], entry: tuple[Any, ...], t_ns: int, recv_ns: int) -> None:
         self.timed.append((series, entry, t_ns - recv_ns))
@@ -76,14 +82,18 @@ class RobotSeries:
             if recv_t >= view_t:
                 self.view_age_ms.append((recv_t - view_t) / 1e6)
         self.view_t, self.echo_recv = {}, {}
-        if self.timed:
-            usual = statistics.median_low(offset for _, _, offset in self.timed)
-            for series, entry, offset in self.timed:
-                if abs(offset - usual) > TIME_OUTLIER_S * 1e9:
-                    self.implausible_time += 1
-                else:
-                    series.append(entry)
-            self.timed = []
+        # One usual offset per series: commands carry the operator's clock, the rest the edge's, and the two
+        # may be far apart (an operator's laptop without NTP) without any message being implausible.
+        offsets: dict[int, list[int]] = {}
+        for series, _, offset in self.timed:
+            offsets.setdefault(id(series), []).append(offset)
+        self.usual_offset = {k: statistics.median_low(v) for k, v in offsets.items()}
+        for series, entry, offset in self.timed:
+            if abs(offset - self.usual_offset[id(series)]) > TIME_OUTLIER_S * 1e9:
+                self.implausible_time += 1
+            else:
+                series.append(entry)
+        self.timed = []
         for series in (self.force, self.levels, self.commands, self.safety, self.pose):
             series.sort(key=lambda x: x[0])  # merge order is by receive time; the maths wants source-time order
 
@@ -150,17 +160,33 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
 
 
 def robot_figures(s: RobotSeries, cfg: ReportConfig, session_span: float) -> dict[str, Any]:
-    use_commands = cfg.teleop_time == "commands" and s.commands
-    t_t = metrics.teleoperation_time(s.commands) if use_commands else session_span
-    tau = metrics.contact_time(s.force, cfg.contact_threshold, cfg.max_sample_gap)
     levels = s.levels or [(t, lv, False) for t, lv in
                           metrics.levels_from_force(s.force, cfg.caution, cfg.danger, cfg.hysteresis)]
     red, yellow, edges = metrics.warning_edges(levels)
-    index = metrics.PerformanceIndex(t_t, tau, red, yellow, cfg.alpha, cfg.beta)
+    tau = metrics.contact_time(s.force, cfg.contact_threshold, cfg.max_sample_gap)
+    if cfg.teleop_time == "commands" and s.commands:
+        # τ and the warnings within teleoperation only (ψ = τ/t_t), the window put on each series' clock.
+        window = metrics.teleoperation_window(s.commands) or (math.inf, -math.inf)  # (none: nothing inside)
+        t_t = max(0.0, window[1] - window[0])
+        shift = s.clock_shift(s.commands, s.force)
+        tau = metrics.contact_time(metrics.within(s.force, (window[0] - shift, window[1] - shift)),
+                                   cfg.contact_threshold, cfg.max_sample_gap)
+        shift = s.clock_shift(s.commands, s.levels) if s.levels else shift
+        edges = metrics.within(edges, (window[0] - shift, window[1] - shift))
+        red, yellow = sum(lv == 2 for _, lv in edges), sum(lv == 1 for _, lv in edges)
+        t_t_source, within = "commands: first to last with the deadman held", "teleoperation"
+    elif cfg.teleop_time == "commands":
+        t_t, t_t_source, within = session_span, "session span: no commands were recorded", "session"
+    else:
+        t_t, t_t_source, within = session_span, "session span (teleop_time = session)", "session"
+    # (The last force sample holds for one sample period, which may reach past the end of t_t.)
+    index = metrics.PerformanceIndex(t_t, min(tau, t_t), red, yellow, cfg.alpha, cfg.beta)
     stops = metrics.rising_edges(s.safety, DEADMAN_STATES)
     return {
         "index": index.as_dict(),
         "levels_source": keys.STATE_FORCE_LEVEL if s.levels else f"{keys.STATE_FORCE} thresholds",
+        "t_t_source": t_t_source,
+        "figures_within": within,  # τ and the warnings: "teleoperation" (the t_t window) or the whole "session"
         "warning_edges": [{"t": t, "level": lv} for t, lv in edges],
         "command_latency_ms": _summary(s.latency_ms),
         "view_age_ms": _summary(s.view_age_ms),
@@ -342,6 +368,8 @@ def render_markdown(data: dict[str, Any]) -> str:
             f"| messages with a source time {TIME_OUTLIER_S:g} s off the robot's clock (not used) | "
             f"{r.get('implausible_time', 0)} |",
             "",
+            f"t_t from the {md_text(r['t_t_source'])}; τ and the warnings counted within the "
+            f"{'teleoperation window' if r['figures_within'] == 'teleoperation' else 'whole session'}. "
             f"Warning levels from {md_text(r['levels_source'])}.",
             "",
         ]

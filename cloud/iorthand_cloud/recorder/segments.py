@@ -65,7 +65,7 @@ class Segment:
 
     def __init__(
         self, path: Path, compression: CompressionType, chunk_size: int, attachments: list[Attachment],
-        opener: Callable[[Path], BinaryIO] | None = None,
+        opener: Callable[[Path], BinaryIO] | None = None, clock: Callable[[], int] = time.time_ns,
     ) -> None:
         self.path = path
         self.file: BinaryIO = opener(path) if opener else path.open("xb")
@@ -74,10 +74,10 @@ class Segment:
         self._schemas: dict[str, int] = {}
         self._channels: dict[ChannelSpec, int] = {}
         self.messages = 0
-        self.opened_t = time.time_ns()
+        self.opened_t = clock()
         self.opened_mono = time.monotonic()
         for att in attachments:
-            now = time.time_ns()
+            now = clock()
             self.writer.add_attachment(att.create_time or now, now, att.name, att.media_type, att.data)
 
     def channel(self, spec: ChannelSpec) -> int:
@@ -132,6 +132,7 @@ class Stream:
     on_open: Callable[[Segment], None] | None = None
     on_close: Callable[[Segment], None] | None = None
     opener: Callable[[Path], BinaryIO] | None = None
+    clock: Callable[[], int] = time.time_ns  # wall time, ns (the recording's: see service.RecordingClock)
     current: Segment | None = None
     index: int = 0
     dirty: bool = False
@@ -143,7 +144,7 @@ class Stream:
             self.folder.mkdir(exist_ok=True)
         self.index += 1
         seg = Segment(self.folder / f"{self.name}-{self.index:04d}.mcap", self.compression, self.chunk_size,
-                      self.attachments, self.opener)
+                      self.attachments, self.opener, self.clock)
         self.current = seg
         if self.on_open:
             self.on_open(seg)

@@ -63,7 +63,7 @@ from iorthand_cloud.recorder.segments import COMPRESSION, TELEMETRY, VIDEO, Atta
 
 log = logging.getLogger("iorthand.recorder")
 
-SESSION_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+SESSION_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # (fullmatch: "$" would let a trailing newline through)
 SKIP = "skip"  # a route: not recorded
 SHUTDOWN_DRAIN_S = 10.0  # s a shutdown waits for the writer to record its backlog (and again to close)
 FOXGLOVE = "foxglove"  # the stream of Foxglove channels, and the subfolder of a session it is written into
@@ -71,6 +71,15 @@ FOXGLOVE = "foxglove"  # the stream of Foxglove channels, and the subfolder of a
 
 def recorder_key(name: str) -> str:
     return keys.service_key(keys.RECORDER, name)
+
+
+def session_id_problem(session_id: str) -> str:
+    """Why ``session_id`` cannot name a session folder, "" when it can."""
+    if not SESSION_ID.fullmatch(session_id):
+        return "expected 1-64 of [A-Za-z0-9_.-]"
+    if session_id in (".", ".."):
+        return "it names the output folder or its parent, not a folder of its own"
+    return ""
 
 
 def _keyed_author(query: zenoh.Query | None) -> str | None:
@@ -86,7 +95,28 @@ class _Control:
     action: str
     query: zenoh.Query | None
     payload: bytes = b""
-    recv_ns: int = 0
+    recv_mono: int = 0  # time.monotonic_ns() at receipt: made a wall time by the recording's clock
+
+
+@dataclass(frozen=True)
+class RecordingClock:
+    """The times a recording writes (receive times, start and stop): the wall clock read once, at the start,
+    plus the monotonic time since. A step of the wall clock during the recording (NTP, an operator) would
+    otherwise make a negative duration and receive times out of order."""
+
+    wall0: int
+    mono0: int
+
+    @classmethod
+    def start(cls) -> RecordingClock:
+        return cls(time.time_ns(), time.monotonic_ns())
+
+    def wall(self, mono_ns: int) -> int:
+        """The wall time of a ``time.monotonic_ns()`` reading."""
+        return self.wall0 + mono_ns - self.mono0
+
+    def __call__(self) -> int:
+        return self.wall(time.monotonic_ns())
 
 
 @dataclass
@@ -95,6 +125,7 @@ class _Recording:
     manifest: mf.Manifest
     streams: dict[str, Stream]
     started_t: int
+    clock: RecordingClock
     first_message_t: int = 0
     seg_info: dict[str, mf.SegmentInfo] = field(default_factory=dict)
     last_manifest: float = 0.0
@@ -180,7 +211,7 @@ class RecorderService:
         if self.config.start_on_launch:
             self._accepting = True
             payload = RecorderRequest(session=self.launch_session).stamp(0).encode() if self.launch_session else b""
-            self._inbox.put(_Control(keys.RECORDER_START, None, payload, time.time_ns()))
+            self._inbox.put(_Control(keys.RECORDER_START, None, payload, time.monotonic_ns()))
         log.info("recorder up: recording %s into %s (start/stop on %s)", ", ".join(self.config.key_exprs),
                  root, recorder_key("{start,stop,annotate,status}"))
 
@@ -232,6 +263,9 @@ class RecorderService:
                       2 * SHUTDOWN_DRAIN_S)
         elif self._rec is not None:  # the worker crashed before it closed the recording
             self._stop_recording(None, "recorder shutting down")
+        if self.last_session is not None and not (self._worker is not None and self._worker.is_alive()):
+            # Whatever became of the last recording's manifest, no one writes it any more: readers may repair it.
+            mf.release_writer_lock(self.last_session)
         for d in self._declared:
             with contextlib.suppress(zenoh.ZError):
                 d.undeclare()  # type: ignore[attr-defined]
@@ -254,14 +288,14 @@ class RecorderService:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         if self._accepting:
             data = sample.payload.to_bytes()
-            self._inbox.put((str(sample.key_expr), data, time.time_ns()), len(data))
+            self._inbox.put((str(sample.key_expr), data, time.monotonic_ns()), len(data))
 
     def _query_handler(self, action: str) -> Callable[[zenoh.Query], None]:
         def handler(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             if action == keys.RECORDER_START:
                 self._accepting = True  # samples after this query queue behind it, so none is missed
-            self._inbox.put(_Control(action, query, payload, time.time_ns()))
+            self._inbox.put(_Control(action, query, payload, time.monotonic_ns()))
             if action == keys.RECORDER_STOP:
                 self._accepting = False
 
@@ -300,20 +334,22 @@ class RecorderService:
                 next_status = now + cfg.status_interval
         if self._rec is not None:
             if self._abandon:
-                self._abandon_queue(self._rec)
+                self._discard_queue(self._rec, "recorder shutting down")
             self._stop_recording(None, "recorder shutting down")
 
-    def _abandon_queue(self, rec: _Recording) -> None:
-        """At a shutdown that could not wait for the backlog: what is still queued is counted, not recorded."""
+    def _discard_queue(self, rec: _Recording, reason: str) -> None:
+        """What is still queued when the recording must end at once (a shutdown that could not wait for the
+        backlog, a write error): queries are refused with ``reason``, samples counted as dropped."""
         left = 0
         for item in self._inbox.drain():
             if isinstance(item, _Control):
-                self._refuse(item.query, "recorder shutting down")
+                self._refuse(item.query, reason)
             elif self._routing(item[0]) != SKIP:  # (what is never recorded is no loss)
                 left += 1
         rec.unrecorded += left
-        log.error("session %s: %d queued samples not recorded at shutdown (counted as dropped)",
-                  rec.manifest.session_id, left)
+        if left:
+            log.error("session %s: %d queued samples not recorded (%s; counted as dropped)",
+                      rec.manifest.session_id, left, reason)
 
     def _handle_control(self, item: _Control) -> None:
         if item.action == keys.RECORDER_START:
@@ -351,13 +387,15 @@ class RecorderService:
             self._accepting = False
             self._refuse(item.query, f"malformed start request: {exc}")
             return
-        now = time.time_ns()
+        clock = RecordingClock.start()
+        now = clock.wall0
         session_id = req.session or (
             f"{self.config.session_prefix}-{datetime.now().strftime('%Y%m%d-%H%M%S')}-{now // 1_000_000 % 1000:03d}"
         )
-        if not SESSION_ID.match(session_id):
+        problem = session_id_problem(session_id)
+        if problem:
             self._accepting = False
-            self._refuse(item.query, f"session id {session_id!r} is invalid: expected 1-64 of [A-Za-z0-9_.-]")
+            self._refuse(item.query, f"session id {session_id[:80]!r} is invalid: {problem}")
             return
         folder = self.config.output_dir / session_id
         attachments, warnings = self._calibration_attachments()
@@ -366,7 +404,7 @@ class RecorderService:
             start_t=now, start_iso=mf.iso(now), software=mf.software_versions(), config=to_dict(self.config),
             attachments=[a.name for a in attachments], error="; ".join(warnings),
         )
-        rec = _Recording(folder, manifest, {}, started_t=now, robot_ids=set(manifest.robots),
+        rec = _Recording(folder, manifest, {}, started_t=now, clock=clock, robot_ids=set(manifest.robots),
                          requested=frozenset(manifest.robots))
         try:
             folder.mkdir(parents=True, exist_ok=False)
@@ -398,7 +436,7 @@ class RecorderService:
         self._reply(item.query, st)
         # After the reply (it is not needed to answer): a folder with segments and no manifest is repaired too.
         try:
-            manifest.write(folder, fsync=False)
+            manifest.write(folder, fsync=False, opener=self._opener)
         except OSError as exc:
             self._fail(f"cannot write the manifest of {session_id}: {_describe(exc)}")
             return
@@ -414,14 +452,14 @@ class RecorderService:
 
         def on_close(seg: Segment) -> None:
             info = rec.seg_info[seg.path.name]
-            info.closed_t, info.messages, info.status = time.time_ns(), seg.messages, "closed"
+            info.closed_t, info.messages, info.status = rec.clock(), seg.messages, "closed"
             with contextlib.suppress(OSError):
                 info.bytes = seg.path.stat().st_size
 
         return Stream(
             name=name, folder=rec.folder, compression=compression, max_bytes=int(max_mb * 1024 * 1024),
             max_seconds=self.config.segment_max_s, chunk_size=self.config.chunk_kb * 1024,
-            attachments=attachments, on_open=on_open, on_close=on_close, opener=self._opener,
+            attachments=attachments, on_open=on_open, on_close=on_close, opener=self._opener, clock=rec.clock,
         )
 
     def _foxglove_stream(self, rec: _Recording, attachments: list[Attachment]) -> Stream:
@@ -435,6 +473,7 @@ class RecorderService:
             name=FOXGLOVE, folder=rec.folder / FOXGLOVE, compression=compression,
             max_bytes=int(self.config.video_segment_max_mb * 1024 * 1024), max_seconds=self.config.segment_max_s,
             chunk_size=self.config.chunk_kb * 1024, attachments=attachments, opener=self._opener, make_folder=True,
+            clock=rec.clock,
         )
 
     def _calibration_attachments(self) -> tuple[list[Attachment], list[str]]:
@@ -463,7 +502,7 @@ class RecorderService:
             self._fail(f"cannot close the segments of {rec.manifest.session_id}: {_describe(exc)}")
             self._refuse(query, self._last_error)
             return
-        closed = time.time_ns()
+        closed = rec.clock()
         m = rec.manifest
         m.status, m.stop_t, m.stop_iso = mf.COMPLETE, closed, mf.iso(closed)
         m.dropped = self._dropped(rec)
@@ -473,9 +512,9 @@ class RecorderService:
         self._accepting = False
         st.recording = False
         try:  # before the reply: a report run as soon as stop returns must find the final manifest
-            m.write(rec.folder, fsync=False)
-        except OSError as exc:
-            log.error("session %s: manifest not written: %s", m.session_id, _describe(exc))
+            self._write_final_manifest(rec, fsync=False)
+        finally:
+            mf.release_writer_lock(rec.folder)
         self._reply(query, st)
         t = mf.totals(m.keys)
         log.info("session %s closed (%s): %d messages, %d malformed, %d missing by sequence, %d dropped",
@@ -489,22 +528,42 @@ class RecorderService:
         """Stop the recording after an error, keep what was written, and say so everywhere."""
         rec, self._rec = self._rec, None
         self._accepting = False
-        self._inbox.drain()
+        self._set_error(reason)
         log.error("recording stopped: %s", reason)
         if rec is not None:
-            for stream in rec.streams.values():
-                try:
-                    stream.close()
-                except OSError:
-                    stream.abandon()
-            m = rec.manifest
-            m.status, m.error, m.stop_t, m.stop_iso = mf.FAILED, reason, time.time_ns(), mf.iso(time.time_ns())
             try:
-                m.write(rec.folder)
-            except OSError as exc:
-                log.error("session %s: manifest not written either: %s", m.session_id, _describe(exc))
-        self._set_error(reason)
+                # What waited in the queue is answered and counted, never silently thrown away.
+                self._discard_queue(rec, f"recording {rec.manifest.session_id} stopped: {reason}")
+                for stream in rec.streams.values():
+                    try:
+                        stream.close()
+                    except OSError:
+                        stream.abandon()
+                m = rec.manifest
+                stopped = rec.clock()
+                m.status, m.error, m.stop_t, m.stop_iso = mf.FAILED, reason, stopped, mf.iso(stopped)
+                m.dropped = self._dropped(rec)
+                self._write_final_manifest(rec, fsync=True)
+            finally:
+                mf.release_writer_lock(rec.folder)  # no longer written: readers may repair it
         self._publish_status()
+
+    def _write_final_manifest(self, rec: _Recording, fsync: bool) -> None:
+        """The manifest with its final status; when the disk refuses it, the reason goes where a later repair
+        finds it (:func:`~iorthand_cloud.recorder.manifest.note_failure`), so the session does not read as a
+        crash."""
+        m = rec.manifest
+        try:
+            m.write(rec.folder, fsync=fsync, opener=self._opener)
+            return
+        except OSError as exc:
+            log.error("session %s: manifest not written: %s", m.session_id, _describe(exc))
+            note = m.error if m.status == mf.FAILED else ""
+            note = (f"{note}; " if note else "") + f"final manifest not written: {_describe(exc)}"
+        try:
+            mf.note_failure(rec.folder, note)
+        except OSError as exc:
+            log.error("session %s: the failure could not be noted either: %s", m.session_id, _describe(exc))
 
     def _set_error(self, reason: str) -> None:
         self._last_error = reason
@@ -544,9 +603,10 @@ class RecorderService:
             self._specs[(key, malformed)] = spec
         return spec
 
-    def _write_sample(self, key: str, payload: bytes, recv_ns: int) -> None:
+    def _write_sample(self, key: str, payload: bytes, recv_mono: int) -> None:
         rec = self._rec
         assert rec is not None
+        recv_ns = rec.clock.wall(recv_mono)
         route = self._routing(key)
         if route == SKIP:
             return
@@ -583,7 +643,7 @@ class RecorderService:
             if not rec.first_message_t:
                 # The first message goes to disk at once: "start" is complete when data is in the file.
                 stream.flush(fsync=False)
-                rec.first_message_t = time.time_ns()
+                rec.first_message_t = rec.clock()
             if msg is not None and rec.foxglove is not None:
                 if len(self._inbox) >= self._fox_behind_at:  # behind: the raw recording first
                     self._skip_foxglove(key)
@@ -652,11 +712,11 @@ class RecorderService:
             self._refuse(item.query, "no recording in progress: the annotation was not stored")
             return
         key = recorder_key(keys.RECORDER_ANNOTATIONS)
+        recv_ns = rec.clock.wall(item.recv_mono)
         try:
-            rec.streams[TELEMETRY].write(self._spec(key, False), item.recv_ns, ann.t or item.recv_ns, ann.seq,
-                                         item.payload)
+            rec.streams[TELEMETRY].write(self._spec(key, False), recv_ns, ann.t or recv_ns, ann.seq, item.payload)
             if rec.foxglove is not None:
-                self._write_foxglove(rec.foxglove, rec.streams[FOXGLOVE], key, ann, item.recv_ns, ann.seq)
+                self._write_foxglove(rec.foxglove, rec.streams[FOXGLOVE], key, ann, recv_ns, ann.seq)
         except OSError as exc:
             self._fail(f"cannot write an annotation: {_describe(exc)}")
             self._refuse(item.query, self._last_error)
@@ -676,7 +736,7 @@ class RecorderService:
                 stream.flush(self.config.fsync)
             if time.monotonic() - rec.last_manifest >= self.config.manifest_interval:
                 rec.manifest.dropped = self._dropped(rec)
-                rec.manifest.write(rec.folder, fsync=self.config.fsync)
+                rec.manifest.write(rec.folder, fsync=self.config.fsync, opener=self._opener)
                 rec.last_manifest = time.monotonic()
         except OSError as exc:
             self._fail(f"cannot write session {rec.manifest.session_id}: {_describe(exc)}")
