@@ -33,6 +33,15 @@ def _config(endpoint: str, out: Path, **extra: object) -> RecorderConfig:
     return from_dict(data, RecorderConfig, source="<test>")
 
 
+def _recording_force(session_factory, session_id: str):
+    """A session that publishes force samples, with a recording started under ``session_id``."""
+    s = session_factory()
+    pub = s.declare_publisher("iorthand/sim1/state/force")
+    time.sleep(0.3)  # the recorder's subscription reaches the router first
+    assert client.start(s, session_id=session_id).ok
+    return s, pub
+
+
 def _force(seq: int) -> bytes:
     return ForceSample(force=[0.0, 0.0, 2.0]).stamp(seq).encode()
 
@@ -130,10 +139,7 @@ def test_what_was_queued_at_a_write_error_is_answered_and_counted(router_endpoin
                           opener=lambda p: _SlowFullDisk(p, "xb") if p.suffix == ".mcap" else p.open("xb"))
     svc.start()
     try:
-        s = session_factory()
-        pub = s.declare_publisher("iorthand/sim1/state/force")
-        time.sleep(0.3)
-        assert client.start(s, session_id="dr").ok
+        s, pub = _recording_force(session_factory, "dr")
         _SlowFullDisk.armed.set()
         pub.put(_force(1))  # the first message is flushed at once: the writer blocks on it
         time.sleep(0.2)
@@ -280,10 +286,7 @@ def test_a_wall_clock_step_during_a_recording_keeps_times_in_order(router_endpoi
     svc = RecorderService(_config(router_endpoint, tmp_path / "rec", foxglove={"enabled": False}))
     svc.start()
     try:
-        s = session_factory()
-        pub = s.declare_publisher("iorthand/sim1/state/force")
-        time.sleep(0.3)
-        assert client.start(s, session_id="cs").ok
+        s, pub = _recording_force(session_factory, "cs")
         real, t0 = time.time_ns, time.time_ns()
         for seq in range(1, 101):
             if seq == 51:
