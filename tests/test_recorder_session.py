@@ -175,6 +175,11 @@ def test_export_rrd(recorded) -> None:
     _, folder = recorded
     path, n = export_rrd(folder, folder / "part.rrd", start=1.0, end=3.0)
     assert n > 100 and path.stat().st_size > 1000
+    # As the other exports, never over a file that exists (it replaced one silently).
+    size = path.stat().st_size
+    with pytest.raises(FileExistsError, match=r"part\.rrd exists already"):
+        export_rrd(folder, path)
+    assert path.stat().st_size == size
 
 
 def test_kill9_loses_at_most_a_second_and_is_repaired(router_endpoint, session_factory, tmp_path: Path) -> None:

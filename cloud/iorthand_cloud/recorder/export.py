@@ -39,8 +39,8 @@ from iorthand.protocol import (
     message_type_for,
     source_news,
 )
-from iorthand_cloud.recorder.export_ros2 import H264Sync
-from iorthand_cloud.recorder.reader import iter_records, read_manifest, session_dir
+from iorthand_cloud.recorder.export_ros2 import H264Sync, export_target
+from iorthand_cloud.recorder.reader import iter_records
 
 LEVEL_COLOURS = {0: (0, 170, 0, 255), 1: (230, 190, 0, 255), 2: (220, 0, 0, 255)}
 BATCH_ROWS = 4096  # rows of one entity per send_columns
@@ -152,9 +152,8 @@ class _Robot:
 def export_rrd(session: str | Path, out: str | Path | None = None, start: float | None = None,
                end: float | None = None, video_fps: float = 5.0) -> tuple[Path, int]:
     """Write the .rrd; ``start``/``end`` are seconds from the session's first message. Returns (path, logged)."""
-    folder = session_dir(session)
-    manifest = read_manifest(folder)
-    path = Path(out) if out else folder / f"{manifest.session_id}.rrd"
+    # As the other exports: a killed recorder's session repaired first, never over a file that exists.
+    folder, manifest, path = export_target(session, out, "rrd", default="{session_id}.rrd")
     first = next(iter_records(folder), None)
     t0 = first.log_time if first else 0
     lo = t0 + int(start * 1e9) if start is not None else None

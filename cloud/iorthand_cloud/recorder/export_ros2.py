@@ -187,16 +187,17 @@ class Decoded:
     stream: str = ""  # the recorder's stream it was read from (segments.VIDEO, TELEMETRY)
 
 
-def export_target(session: str | Path, out: str | Path | None, fmt: str) -> tuple[Path, Manifest, Path]:
-    """The session's folder, its manifest and where an export goes (``out``, else ``<session id>-<fmt>`` beside
-    the session): never over something that exists."""
+def export_target(session: str | Path, out: str | Path | None, fmt: str, *,
+                  default: str = "{session_id}-{fmt}") -> tuple[Path, Manifest, Path]:
+    """The session's folder, its manifest and where an export goes (``out``, else ``default`` in the session's
+    folder): never over something that exists."""
     folder = session_dir(session)
     # A session whose recorder died: repaired first (as the report does), so that its manifest is up to date.
     repaired = repair_if_crashed(folder)
     if repaired:
         log.warning("%s: %s", folder, repaired)
     manifest = read_manifest(folder)
-    path = Path(out) if out else folder / f"{manifest.session_id}-{fmt}"
+    path = Path(out) if out else folder / default.format(session_id=manifest.session_id, fmt=fmt)
     if path.exists():
         raise FileExistsError(f"{path} exists already: remove it or choose another --out")
     return folder, manifest, path
