@@ -181,3 +181,51 @@ def test_a_headless_move_stopped_by_somebody_ends_and_does_not_resume(edge_facto
     assert any(r.startswith("stopped: stop from 'nurse'") for r in out[0]["recoveries"]), out[0]["recoveries"]
     time.sleep(0.5)
     assert client.robot_state.tcp_pose[0] == pytest.approx(x, abs=5e-4)  # it did not move again
+
+
+@pytest.mark.parametrize("when", ["during a motion", "during a wait"])
+def test_a_stop_from_somebody_else_ends_the_script(edge_factory, operator_factory, session_factory, when: str) -> None:
+    """Found by a red-team run of the operator side: a nurse's stop during a script ended that step only; the
+    next motion pressed afresh by itself and moved 4.9 mm. The script was the intent for what came before the
+    stop, not after it."""
+    edge = edge_factory("sim1")
+    client = operator_factory("sim1", "op1")
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    twist = [0.005, 0.0, 0.0, 0.0, 0.0, 0.0]
+    script = Script(name="scan", patience=5.0, steps=[
+        ScriptStep(twist=twist, duration=1.5), ScriptStep(wait=1.5), ScriptStep(twist=twist, duration=1.0)])
+    out: list[dict] = []
+    t = threading.Thread(target=lambda: out.append(run_script(client, script)))
+    t.start()
+    wait_until(lambda: np.any(edge._commanded), 5.0, message="the first motion under way")
+    if when == "during a wait":
+        wait_until(lambda: not np.any(edge._commanded), 5.0, message="the wait step")
+    time.sleep(0.3)
+    nurse = session_factory().declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP))
+    nurse.put(StopCommand(operator="nurse", reason="patient coughed").stamp(1).encode())
+    wait_until(lambda: not np.any(edge._commanded), 2.0, message="the robot stopped")
+    x = client.robot_state.tcp_pose[0]
+    t.join(15)
+    time.sleep(0.5)
+    assert client.robot_state.tcp_pose[0] == pytest.approx(x, abs=5e-4)  # nothing moved after it
+    summary = out[0]
+    assert summary["ended_by_stop"].startswith("stop from 'nurse'"), summary["ended_by_stop"]
+    assert len(summary["steps"]) == (1 if when == "during a motion" else 2), summary["steps"]
+
+
+def test_a_scripts_own_stop_step_is_not_a_stop_from_somebody_else(edge_factory, operator_factory) -> None:
+    """Its stop reaches the edge and comes back as the edge's status while the next step already drives: that
+    motion is what the script asked after its stop, and it runs to its end."""
+    edge_factory("sim1")
+    client = operator_factory("sim1", "op1")
+    client.wait_for_state()
+    client.acquire()
+    client.start()
+    x0 = client.robot_state.tcp_pose[0]
+    summary = run_script(client, Script(name="stop-then-go", patience=5.0, steps=[
+        ScriptStep(action="stop", reason="script's own stop"),
+        ScriptStep(twist=[0.005, 0.0, 0.0, 0.0, 0.0, 0.0], duration=1.0)]))
+    assert not summary["ended_by_stop"] and len(summary["steps"]) == 2
+    assert client.robot_state.tcp_pose[0] - x0 == pytest.approx(0.005, abs=0.001), summary["steps"]

@@ -127,6 +127,57 @@ def test_thread_sender_unchanged_without_config(edge_factory, operator_factory) 
     wait_until(lambda: len(op.echoes) > 5, timeout=5, message="echoes")
 
 
+class _HangingPad:
+    """An input device whose read hangs on request (a driver read that never returns), the enable held and the
+    stick deflected: no real device hangs on purpose, so this one stands in for it."""
+
+    name = "hanging pad"
+
+    def __init__(self) -> None:
+        self.hang, self.free = threading.Event(), threading.Event()
+
+    def poll(self, now: float):
+        from iorthand_operator.inputs.base import InputSample
+
+        if self.hang.is_set():
+            self.free.wait(10.0)
+        return InputSample(np.array([0.004, 0.0, 0.0, 0.0, 0.0, 0.0]), True, True, "enable held", [])
+
+    def release_deadman(self) -> None:
+        pass
+
+    def close(self) -> None:
+        self.free.set()
+
+
+@pytest.mark.parametrize("sender", ["thread", "process"])
+def test_a_console_whose_input_thread_stalls_lets_go_of_the_deadman(edge_factory, operator_factory, proc_operator,
+                                                                   sender: str) -> None:
+    """Found by a red-team run: the heartbeat came from the client's own threads (and from every robot state the
+    process sender was given), none of which carries the operator's intent: with the console's input thread hung
+    and the enable held, the robot moved 12 mm in 3 s. The console's input is now its sign of life."""
+    from iorthand_operator.console.controller import ConsoleController
+
+    edge = edge_factory()
+    op = driving(operator_factory(ui_timeout=0.5) if sender == "thread" else proc_operator(ui_timeout=0.5))
+    pad = _HangingPad()
+    console = ConsoleController(op, pad)
+    console.start()
+    try:
+        wait_until(lambda: np.any(commanded(edge)), timeout=10, message="robot moving")
+        pad.hang.set()
+        hung = time.monotonic()
+        wait_until(lambda: not np.any(commanded(edge)), timeout=5, message="robot stopped after the input hung")
+        stopped_after = time.monotonic() - hung
+        x = op.robot_state.tcp_pose[0]
+        time.sleep(1.0)
+        assert op.robot_state.tcp_pose[0] == pytest.approx(x, abs=5e-4)  # and stays stopped
+        assert stopped_after < op.ui_timeout + edge.config.safety.command_timeout + 1.0  # generous: a loaded host
+    finally:
+        pad.free.set()
+        console.stop()
+
+
 def test_a_slow_lease_reply_does_not_read_as_a_frozen_ui(edge_factory, operator_factory) -> None:
     """The lease renewal is a query that can wait on the network; the heartbeat that says "this process is
     alive" must not wait with it. Each renewal here takes 0.8 s (longer than ui_timeout): with the heartbeat on

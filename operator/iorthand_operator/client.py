@@ -34,6 +34,7 @@ import zenoh
 from iorthand import keys
 from iorthand.process import raise_priority
 from iorthand.protocol import (
+    STOP_FROM,
     TWIST_FRAMES,
     AppliedCommand,
     ControlReply,
@@ -154,8 +155,15 @@ class OperatorClient:
         # Monotonic time the edge entered its latest halt that waits for a fresh press or a new grant
         # (recovery.REPRESS, recovery.REACQUIRE): a press after it is fresh intent (CommandStream).
         self._halted_at = -math.inf
+        # The latest stop command that somebody else sent (the nurse at the patient, another console): monotonic
+        # time the edge said so, and its reason. A headless client's motion asked before it ends there
+        # (scripted.drive_for). The stops this client sent itself: (monotonic time, reason).
+        self.stopped_by_other_at = -math.inf
+        self.stopped_by_other = ""
+        self._own_stops: deque[tuple[float, str]] = deque(maxlen=8)
         self._acquire_lock = threading.Lock()
         self._heartbeat = time.monotonic()  # the UI is alive (see CommandStream): beaten by the heartbeat thread
+        self._beats_itself = True
         self._state_t = 0  # source time (ns) of the newest robot state: each command states its age
         # One sequence per key suffix: the edge and the recorder count gaps per key, and the edge checks a signed
         # message's sequence per suffix (a counter shared between control verbs would jump on each of them).
@@ -453,6 +461,7 @@ class OperatorClient:
     def emergency_stop(self, reason: str = "operator e-stop") -> None:
         self.set_twist(np.zeros(3), np.zeros(3), deadman=False)
         self.log_event("stop", Status.STOPPED, f"e-stop sent: {reason}")
+        self._own_stops.append((time.monotonic(), reason))
         self._pub_stop.put(StopCommand(operator=self.operator_id, reason=reason).stamp(self._next_seq(keys.CMD_STOP)).encode())
 
     # ------------------------------------------------------------------ the command stream
@@ -492,9 +501,10 @@ class OperatorClient:
             self._deadman = bool(deadman)
             if not deadman:
                 self._twist[:] = 0.0
+            self._heartbeat = time.monotonic()  # the operator's input is alive: it just said what it wants
             if self._proc_sender is not None:  # shared memory only: microseconds, never blocks on the child
                 self._proc_sender.write(twist=self._twist, deadman=self._deadman, released_at=self._released_at,
-                                        pressed_at=self._pressed_at)
+                                        pressed_at=self._pressed_at, heartbeat=self._heartbeat)
 
     def start(self) -> None:
         """Start the fixed-rate sender, the heartbeat and, while we own the robot, the lease renewal."""
@@ -642,9 +652,25 @@ class OperatorClient:
 
     def _beat(self) -> None:
         """The client's heartbeat, every 50 ms: this process is alive and running Python (see CommandStream). A
-        thread of its own that never waits on the network: a slow lease reply must not read as a frozen UI."""
+        thread of its own that never waits on the network: a slow lease reply must not read as a frozen UI. Only
+        while the client beats for itself (:attr:`beats_itself`)."""
         while not self._stop.wait(0.05):
-            self.beat()
+            if self._beats_itself:
+                self.beat()
+
+    @property
+    def beats_itself(self) -> bool:
+        """True (a headless client): its process being alive is its sign of life. False (a console): only its
+        input's :meth:`set_twist` and :meth:`beat` are, so an input thread that stalls with the deadman held (a
+        device read that never returns) releases the deadman after ``ui_timeout``; the client's own threads no
+        longer speak for the operator."""
+        return self._beats_itself
+
+    @beats_itself.setter
+    def beats_itself(self, value: bool) -> None:
+        self._beats_itself = bool(value)
+        if self._proc_sender is not None:
+            self._proc_sender.link_beats = self._beats_itself
 
     def _renew_lease(self) -> None:
         """While we own the robot, the lease renewal every lease/3 (a query: it may wait up to query_timeout).
@@ -680,9 +706,11 @@ class OperatorClient:
                 log.warning("lost control: %s", exc)
 
     def beat(self) -> None:
-        """The UI is alive: without a beat for ``ui_timeout`` the sender releases the deadman. The process
-        sender has its own beat (its link thread); a frozen interpreter stops both."""
-        self._heartbeat = time.monotonic()
+        """The UI is alive: without a beat for ``ui_timeout`` the sender releases the deadman."""
+        with self._lock:
+            self._heartbeat = time.monotonic()
+            if self._proc_sender is not None:
+                self._proc_sender.write(heartbeat=self._heartbeat)
 
     def close(self) -> None:
         self._stop.set()
@@ -743,6 +771,8 @@ class OperatorClient:
                         self._proc_sender.write(halted_at=self._halted_at)
             if msg.status != self._last_safety_status:
                 self._last_safety_status = msg.status
+                if msg.status == Status.STOPPED and msg.reason.startswith(STOP_FROM) and not self._own_stop(msg.reason):
+                    self.stopped_by_other_at, self.stopped_by_other = time.monotonic(), msg.reason
                 if msg.status in STOP_STATUSES:
                     self.log_event("stop", msg.status, msg.reason or msg.status)
             news = superseded_news(self._last_superseded, msg.superseded) if self._last_superseded is not None else None
@@ -827,6 +857,12 @@ class OperatorClient:
             self._last_refusal_key = None
 
     # ------------------------------------------------------------------ what stands between us and motion
+
+    def _own_stop(self, reason: str) -> bool:
+        """Whether the edge's reason for a stop (``stop from 'alice': <reason>``) is one this client sent lately."""
+        recent = time.monotonic() - 10.0
+        return any(t > recent and reason.startswith(f"{STOP_FROM}{self.operator_id!r}") and reason.endswith(f": {sent}")
+                   for t, sent in self._own_stops)
 
     @property
     def halted_at(self) -> float:

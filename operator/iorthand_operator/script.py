@@ -31,7 +31,7 @@ import numpy as np
 
 from iorthand import stats
 from iorthand.config import setting
-from iorthand.protocol import RobotState
+from iorthand.protocol import RobotState, Status
 from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.scripted import drive_for
 
@@ -92,7 +92,9 @@ def _mm(p: np.ndarray | None) -> list[float] | None:
     return None if p is None else (1000 * p).round(2).tolist()
 
 
-def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -> dict[str, Any]:
+def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0,
+             since: float | None = None) -> dict[str, Any]:
+    """One step. ``since`` (monotonic): a stop from somebody else after it ends a motion (the script's start)."""
     start, sent0, echo0, ev0 = _pos(client), client.sent_count, client.echo_count, client.event_count
     t0 = time.monotonic()
     zero = np.zeros(3)
@@ -102,7 +104,7 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0) -
         tw = np.asarray(step.twist, float)
         client.set_twist(tw[:3], tw[3:], deadman=step.deadman, frame=step.frame)
         if step.deadman and np.any(tw):  # a motion: it goes on through halts until done (drive_for)
-            _, recoveries = drive_for(client, step.duration, patience)
+            _, recoveries = drive_for(client, step.duration, patience, since)
         else:
             time.sleep(step.duration)
     elif step.wait is not None:
@@ -179,7 +181,18 @@ def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
     """Play ``script`` on a started client that holds control; return the JSON-able summary."""
     client.wait_for_echoes()  # the grant's release, sent as the client started, is not the script's
     start, sent0, echo0 = _pos(client), client.sent_count, client.echo_count
-    steps = [run_step(client, step, script.patience) for step in script.steps]
+    # A stop that somebody else sends while the script runs ends it: the script was the intent for what came
+    # before, not for what comes after (its later motions pressed the deadman afresh and moved again).
+    since = time.monotonic()
+    steps: list[dict[str, Any]] = []
+    ended = ""
+    for step in script.steps:
+        steps.append(run_step(client, step, script.patience, since))
+        if client.stopped_by_other_at > since:
+            ended = f"{client.stopped_by_other}: the script ended there; run it again to go on"
+            client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
+            client.log_event("stop", Status.STOPPED, ended)
+            break
     client.set_twist(np.zeros(3), np.zeros(3), deadman=False)
     time.sleep(script.settle)
     end = _pos(client)
@@ -189,6 +202,7 @@ def run_script(client: OperatorClient, script: Script) -> dict[str, Any]:
     refusals = sorted({f"{e.status}: {e.reason}" for e in client.events if e.kind == "refused"})
     return {
         "script": script.name,
+        "ended_by_stop": ended,
         "robot": client.keys.robot,
         "operator": client.operator_id,
         "profile": safety.profile if safety else "",

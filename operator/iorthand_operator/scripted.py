@@ -8,7 +8,6 @@ import time
 import numpy as np
 
 from iorthand import stats
-from iorthand.protocol import STOP_FROM, Status
 from iorthand_operator import recovery
 from iorthand_operator.client import OperatorClient
 
@@ -30,30 +29,32 @@ def _wait_still(client: OperatorClient, timeout: float = 2.0) -> None:
 STALL_S = 0.25
 
 
-def drive_for(client: OperatorClient, seconds: float, patience: float) -> tuple[float, list[str]]:
+def drive_for(client: OperatorClient, seconds: float, patience: float,
+              since: float | None = None) -> tuple[float, list[str]]:
     """Hold the deadman with the client's twist until the edge has driven the robot for ``seconds`` in all
     (accepted the commands: its limits may clip them, a force or workspace limit even to zero).
 
     The intent is clear (the caller asked for this motion), so whatever halts it on the way — a lost lease, a
     dead link — the client takes the step itself (:meth:`recover`) and the motion goes on. A stop command that
     halts it on the way ends it instead: somebody (the nurse at the patient, another operator) stopped the
-    robot after this motion was asked for, and nothing resumes motion without a fresh intent. (A stop from
-    before, such as a script's own ``stop`` step, is recovered from: the motion asked after it is that intent.)
-    Gives up ``patience`` s after it would have finished. Returns (s moved, what it did)."""
+    robot after this motion was asked for (``since``, monotonic: by default now; a script's start), and nothing
+    resumes motion without a fresh intent. (A stop from before, and the client's own, such as a script's
+    ``stop`` step, are recovered from: the motion asked after it is that intent.) Gives up ``patience`` s after
+    it would have finished. Returns (s moved, what it did)."""
     moved, actions = 0.0, []
     last = started = time.monotonic()
+    since = started if since is None else since
     still_since = last
     give_up = last + seconds + patience
     while moved < seconds and time.monotonic() < give_up:
         time.sleep(0.01)
         now = time.monotonic()
+        if client.stopped_by_other_at > since:
+            actions.append(f"stopped: {client.stopped_by_other}")
+            break
         if client.driving():
             moved += now - last
             still_since = now
-        elif client.halted_at > started and client.safety is not None and client.safety.status == Status.STOPPED \
-                and client.safety.reason.startswith(STOP_FROM):
-            actions.append(f"stopped: {client.safety.reason}")
-            break
         elif now - still_since > STALL_S:
             step = client.recover()
             if step.step is not recovery.Step.NONE and (not actions or actions[-1] != f"{step.step.value}: {step.why}"):

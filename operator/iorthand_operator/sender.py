@@ -225,6 +225,9 @@ class ProcessSender:
         self._drain_lock = threading.Lock()
         self.heartbeat_s = heartbeat_s
         self.heartbeat_suspended = False  # test hook: models a frozen UI (no heartbeat, no set_twist)
+        # The link thread beats for a headless client (its process alive is its sign of life); a console's
+        # heartbeat comes with its input's twists instead (OperatorClient.beats_itself).
+        self.link_beats = True
         self.priority = "normal"
         self._args = (zenoh_config, twist_key, robot, operator_id, rate_hz, release_tail, ui_timeout, realtime)
         self.proc: Any = None
@@ -238,9 +241,11 @@ class ProcessSender:
         self.beat()
 
     def write(self, **fields: Any) -> None:
-        """Write fields (and the heartbeat, unless suspended) under the client's lock (caller holds it)."""
-        if not self.heartbeat_suspended:
-            fields.setdefault("heartbeat", time.monotonic())
+        """Write fields under the client's lock (caller holds it). A heartbeat only when one is among them (the
+        operator's input writing its twist), unless suspended: the robot's state or the edge's safety status
+        written on their own threads are no sign that the operator's side is alive."""
+        if self.heartbeat_suspended:
+            fields.pop("heartbeat", None)
         self.shared.write(**fields)
 
     def beat(self) -> None:
@@ -341,7 +346,7 @@ class ProcessSender:
                     self._lost()
                     return
             now = time.monotonic()
-            if now - last_beat >= self.heartbeat_s:
+            if self.link_beats and now - last_beat >= self.heartbeat_s:
                 self.beat()
                 last_beat = now
 

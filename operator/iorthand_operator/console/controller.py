@@ -111,6 +111,9 @@ class ConsoleController:
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
+        # The input loop's twists are the console's sign of life, not the client's own threads: an input thread
+        # that stalls with the deadman held (a device read that never returns) releases it after ui_timeout.
+        self.client.beats_itself = False
         for name, fn in (("input", self._input_loop), ("actions", self._action_loop)):
             t = threading.Thread(target=fn, name=f"operator-{name}", daemon=True)
             t.start()
