@@ -65,4 +65,20 @@ def test_servo_angles_interpolate_and_hold() -> None:
     servos.add(0, 0.0, 0.2)
     servos.add(100 * MS, 0.4, -0.2)
     assert servos.at(25 * MS) == pytest.approx((0.1, 0.1))
-    assert servos.at(10_000 * MS) == pytest.approx((0.4, -0.2))  # published on change: the last value holds
+    # Published on change and as a heartbeat (2 Hz by default): the last value holds for a few heartbeats.
+    assert servos.at(1_000 * MS) == pytest.approx((0.4, -0.2))
+
+
+def test_servo_angles_from_long_ago_are_unknown() -> None:
+    """The red team's case: the servo unit stopped publishing 600 s ago; a frame now has no known camera angle
+    (None, as the robot pose's history says after its own limit), not the angles of 10 minutes ago."""
+    servos = ServoHistory(2.0)  # as the media process built it without a heartbeat rate
+    servos.add(0, 0.30, -0.10)
+    assert servos.at(600_000 * MS) is None
+    assert servos.at(1_400 * MS) == pytest.approx((0.30, -0.10))  # within three heartbeats at 2 Hz
+    assert servos.at(1_600 * MS) is None
+    from iorthand_edge.perception.history import servo_max_age
+
+    slow = ServoHistory(2.0, servo_max_age(0.5))  # a heartbeat every 2 s: 6 s
+    slow.add(0, 0.30, -0.10)
+    assert slow.at(5_900 * MS) == pytest.approx((0.30, -0.10)) and slow.at(6_100 * MS) is None

@@ -58,7 +58,7 @@ from iorthand.security.identity import operator_in_key
 from iorthand.transport import Worker, open_session, publisher
 from iorthand_edge.config import EdgeConfig
 from iorthand_edge.force import contact_wrench
-from iorthand_edge.perception.history import PoseHistory, ServoHistory
+from iorthand_edge.perception.history import PoseHistory, ServoHistory, servo_max_age
 from iorthand_edge.perception.pipeline import PerceptionPipeline
 from iorthand_edge.video import VideoError, VideoStream, make_source
 
@@ -100,10 +100,20 @@ def check_config(config: EdgeConfig) -> None:
     if config.perception is not None:
         # The pipeline's constructor loads and checks the calibration files (PerceptionError says why).
         PerceptionPipeline(config.perception, lambda _t: None, lambda _t: None, lambda _m: None)
-    if config.video is not None and config.perception is None:
-        for stream in (config.video.camera, config.video.ultrasound):
-            if stream is not None and stream.source == "perception":
+    if config.video is not None:
+        for name, stream in (("camera", config.video.camera), ("ultrasound", config.video.ultrasound)):
+            if stream is None or stream.source != "perception":
+                continue
+            if config.perception is None:
                 raise VideoError("video source 'perception' needs the perception section (its camera feeds the video)")
+            # The stream sends the perception camera's images as they are: an H.264 encoder takes only the size
+            # it was opened with, and a JPEG stream's configured size would misstate what it sends.
+            size = config.perception.camera.image_size()
+            if size is not None and tuple(size) != (stream.width, stream.height):
+                raise VideoError(
+                    f"video.{name} ({stream.width}×{stream.height}) takes its frames from the perception camera, "
+                    f"which delivers {size[0]}×{size[1]}: set video.{name}.width/height to {size[0]} and {size[1]}"
+                )
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -128,7 +138,9 @@ class MediaService:
         self._pub_markers: Any = None
         p = config.perception
         self.poses = PoseHistory(p.history_span, p.max_extrapolation) if p is not None else None
-        self.servos = ServoHistory(p.history_span) if p is not None and config.servos is not None else None
+        # Servo angles older than a few of the servo unit's heartbeats are unknown, not held (history.py).
+        self.servos = (ServoHistory(p.history_span, servo_max_age(config.servos.publish_hz))
+                       if p is not None and config.servos is not None else None)
         self.perception: PerceptionPipeline | None = None
         if p is not None:
             self.perception = PerceptionPipeline(p, self.pose_at, self.servo_angles_at, self._publish_markers)

@@ -53,6 +53,36 @@ class CalibrationError(ValueError):
     """A calibration that cannot be made or used; the message says why and what to do."""
 
 
+# The ``units`` each file is written with (and documented with): a file that says anything else (say, "mm and
+# degrees") was written by another tool or edited by hand, and its numbers mean something else. Refused: read
+# as metres and radians, a hand-eye in millimetres puts the camera tens of metres from the TCP.
+INTRINSICS_UNITS = "camera_matrix and rms in px; target sizes in m"
+HANDEYE_UNITS = "m and rad; poses are [x, y, z, rx, ry, rz] with a rotation vector"
+# The camera rides on the TCP: a hand-eye translation this long is a file in other units (or a failed solve).
+MAX_HANDEYE_TRANSLATION_M = 0.5
+# Servo angles of a pan/tilt mount, in rad: a half turn either way (a value beyond is degrees, or another mount).
+MAX_SERVO_ANGLE_RAD = math.pi
+# A rotation vector's length is its angle, at most a half turn (more is written as the opposite rotation).
+_MAX_ROTVEC = math.pi + 1e-6
+
+
+def _check_units(units: str, expected: str) -> None:
+    if units != expected:
+        raise ValueError(f"units: the file says {units!r}; iorthand reads only {expected!r} (convert the values and "
+                         "write that units string, or recalibrate with `iorthand calibrate`)")
+
+
+def _check_pose(name: str, pose: list[float]) -> None:
+    distance = math.dist(pose[:3], (0.0, 0.0, 0.0))
+    if distance >= MAX_HANDEYE_TRANSLATION_M:
+        raise ValueError(f"{name}: the camera would be {distance:.3g} m from the TCP (at most "
+                         f"{MAX_HANDEYE_TRANSLATION_M:g} m): the translation must be in metres (millimetres?)")
+    angle = math.dist(pose[3:], (0.0, 0.0, 0.0))
+    if angle > _MAX_ROTVEC:
+        raise ValueError(f"{name}: the rotation vector's angle is {angle:.3g}, more than π rad: the rotation must be "
+                         "a rotation vector in radians (degrees?)")
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Files
 
@@ -68,14 +98,20 @@ class IntrinsicsCalibration:
     views: int = setting(0, lo=0)
     target: str = ""
     date: str = ""
-    units: str = "camera_matrix and rms in px; target sizes in m"
+    units: str = INTRINSICS_UNITS
 
     def check(self) -> None:
+        _check_units(self.units, INTRINSICS_UNITS)
         if any(len(row) != 3 for row in self.camera_matrix):
             raise ValueError("camera_matrix must be 3×3")
         k = np.asarray(self.camera_matrix)
         if k[0, 0] <= 0 or k[1, 1] <= 0 or not np.allclose(k[2], [0, 0, 1]):
             raise ValueError("camera_matrix must be [[fx,0,cx],[0,fy,cy],[0,0,1]] with positive focal lengths")
+        cx, cy = float(k[0, 2]), float(k[1, 2])
+        if not (0 < cx < self.image_width and 0 < cy < self.image_height):
+            raise ValueError(f"camera_matrix: the principal point ({cx:g}, {cy:g}) px lies outside the "
+                             f"{self.image_width}×{self.image_height} image (a matrix for another image size or "
+                             "other units)")
         if len(self.dist_coeffs) not in (4, 5, 8, 12, 14):
             raise ValueError(f"dist_coeffs must have 4, 5, 8, 12 or 14 values, got {len(self.dist_coeffs)}")
 
@@ -106,7 +142,15 @@ class HandEyeCalibration:
     residual_translation: float = setting(0.0, lo=0.0)  # m, RMS spread of the target's pose in the base frame
     residual_rotation: float = setting(0.0, lo=0.0)  # rad, likewise
     date: str = ""
-    units: str = "m and rad; poses are [x, y, z, rx, ry, rz] with a rotation vector"
+    units: str = HANDEYE_UNITS
+
+    def check(self) -> None:
+        _check_units(self.units, HANDEYE_UNITS)
+        _check_pose("tcp_camera", self.tcp_camera)
+        _check_pose("tilt_camera", self.tilt_camera)
+        for name, angle in (("pan", self.pan), ("tilt", self.tilt)):
+            if abs(angle) > MAX_SERVO_ANGLE_RAD:
+                raise ValueError(f"{name}: {angle:g} is beyond ±π: the servo angles must be in radians (degrees?)")
 
     @property
     def image_size(self) -> tuple[int, int]:

@@ -96,13 +96,34 @@ def _lerp_angles(a: tuple[float, float], b: tuple[float, float], s: float) -> tu
     return (a[0] + (b[0] - a[0]) * s, a[1] + (b[1] - a[1]) * s)
 
 
+# The servo unit publishes state/servo on every change and, while still, as a heartbeat every 1/publish_hz s
+# (servos.publish_hz, 2 Hz by default). The newest angles hold for a frame until this many heartbeats went
+# missing: then the servo unit (or its link) is gone and the camera's angle is unknown: a frozen state never
+# passes for a live one.
+SERVO_STALE_HEARTBEATS = 3.0
+DEFAULT_SERVO_PUBLISH_HZ = 2.0  # servos.publish_hz's default: when the heartbeat rate is not known
+
+
+def servo_max_age(publish_hz: float | None = None) -> float:
+    """s the newest servo state holds for a later frame: :data:`SERVO_STALE_HEARTBEATS` heartbeat periods at
+    ``publish_hz`` (the servo config's; :data:`DEFAULT_SERVO_PUBLISH_HZ` when unknown)."""
+    hz = DEFAULT_SERVO_PUBLISH_HZ if publish_hz is None else publish_hz
+    if not hz > 0:
+        raise ValueError(f"servo publish_hz must be positive, got {hz!r}")
+    return SERVO_STALE_HEARTBEATS / hz
+
+
 class ServoHistory(_TimedHistory[tuple[float, float]]):
     """(pan, tilt) in rad over time, linearly interpolated.
 
-    Servo states are published on change, so by default the newest angles hold for any later time.
+    Servo states are published on change and as a heartbeat, so the newest angles hold for a later time, but only
+    for ``max_extrapolation_s`` (default :func:`servo_max_age` at the default heartbeat rate): after that the
+    angles are unknown (None), and the markers seen in such a frame are not published.
     """
 
     def __init__(self, span_s: float = 2.0, max_extrapolation_s: float | None = None) -> None:
+        if max_extrapolation_s is None:
+            max_extrapolation_s = servo_max_age()
         super().__init__(_lerp_angles, span_s, max_extrapolation_s)
 
     def add(self, t_ns: int, pan: float, tilt: float) -> None:

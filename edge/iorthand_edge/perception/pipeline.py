@@ -156,7 +156,8 @@ class PerceptionPipeline:
             self._warn(
                 "no robot pose at the frame's capture time: markers seen but not published (is the robot state flowing?)"
                 if t_base_tcp is None else
-                "no servo angles at the frame's capture time: markers seen but not published (is the servo state flowing?)"
+                "no servo angles at the frame's capture time (none received, or the newest is older than a few "
+                "servo heartbeats): markers seen but not published (is the servo state flowing?)"
             )
         elif detections and t_base_tcp is not None and angles is not None:
             pan, tilt = angles

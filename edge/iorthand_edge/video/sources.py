@@ -86,6 +86,14 @@ class OpenCVSource(FrameSource):
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.config.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.config.height)
         cap.set(cv2.CAP_PROP_FPS, self.config.fps)
+        # Cameras often ignore the requested mode. H.264 takes only the configured size: say so now, naming both
+        # sizes (JPEG frames carry their own size). A backend that reports 0 is checked at the first frame.
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if self.config.codec == "h264" and w > 0 and h > 0 and (w, h) != (self.config.width, self.config.height):
+            cap.release()
+            raise VideoError(f"{self.description} delivers {w}×{h} frames, the H.264 stream is configured for "
+                             f"{self.config.width}×{self.config.height}: set the stream's width/height to the "
+                             "device's size")
         self._cap = cap
 
     def grab(self) -> Image | None:

@@ -17,6 +17,13 @@ A source that cannot be opened, fails, or gives no frame for ``stall_timeout`` s
 ``retry_interval`` s (a USB camera that enumerates after the edge starts, or is unplugged and plugged back).
 Every attempt sends a ``VideoFrame`` with no image and ``failure`` set, through the same slot so that it
 never overtakes a frame captured before it: the twin shows why the picture stopped instead of a frozen one.
+A source that delivers frames of another size than an H.264 stream is configured for counts as failed (the
+notice names both sizes): x264 takes only the size it was opened with.
+
+Neither thread ends on an error. A frame the sender cannot encode or ``put()`` (an FFmpeg or Zenoh error, a bug)
+is lost, and a failure notice saying why is sent in its place; the next frame is tried afresh. A silent stream
+would leave every viewer with its last picture, frozen, as if live. ``error`` is the capture side's problem or
+the sender's, each cleared only by the side that set it, once it works again.
 """
 
 from __future__ import annotations
@@ -86,7 +93,7 @@ def encode_frame(source: str, item: Captured, config: StreamConfig, h264: H264En
     encoder holds it back, which ``zerolatency`` never does)."""
     if item.image is None:
         frame = VideoFrame(source=source, width=config.width, height=config.height, encoding=config.codec,
-                           failure=item.failure)
+                           failure=item.failure[:256])
         if h264 is not None:
             h264.request_keyframe()  # whoever watches starts again when the source is back
         return frame.stamp(item.seq, item.t_ns)
@@ -124,7 +131,9 @@ class VideoStream:
         self._seq = 0  # every item handed to the sender: frames and failure notices
         self.sent = 0
         self.bytes_sent = 0
-        self.error = ""
+        self.send_failures = 0  # frames the sender could not encode or put()
+        self._capture_error = ""  # why the source gives no frames; cleared by the capture thread
+        self._send_error = ""  # why the last frame could not be sent; cleared by the sender
         self._pub: Any = None
         self.before_send: Callable[[], None] | None = None  # run before each frame is encoded (the media process's
         # drain of the viewers' reports)
@@ -147,6 +156,11 @@ class VideoStream:
             self.h264.viewer_asks_keyframe()
         if self.bitrate is not None and sets_bitrate:
             self.bitrate.on_feedback(feedback.received, feedback.lost, feedback.delay_p90)
+
+    @property
+    def error(self) -> str:
+        """Why the stream delivers no pictures now ("" while it does): the source's problem or the sender's."""
+        return self._send_error or self._capture_error
 
     @property
     def dropped(self) -> int:
@@ -172,7 +186,7 @@ class VideoStream:
             try:
                 fn(stop)
             except Exception as exc:
-                self.error = f"{type(exc).__name__}: {exc}"
+                self._capture_error = f"{type(exc).__name__}: {exc}"
                 log.exception("video %s stopped", self.name)
 
         return run
@@ -190,6 +204,10 @@ class VideoStream:
             except (VideoError, cv2.error) as exc:
                 # A missing or failed camera must not take the robot down: report, and try again.
                 self._failed(str(exc))
+            except Exception as exc:  # a bug in a source: as visible as a failed camera, and retried the same way
+                if f"internal error: {exc!r}" != self._capture_error:
+                    log.exception("video %s: internal error in %s", self.name, self.source.description)
+                self._failed(f"internal error: {exc!r}")
             finally:
                 self.source.close()
             stop.wait(self.config.retry_interval)
@@ -202,15 +220,16 @@ class VideoStream:
             image = self.source.grab()
             t_ns = time.time_ns()
             if image is not None:
+                self._check_size(image)
                 last_frame = time.monotonic()
                 self.captured += 1
                 skipped = self.slot.dropped
                 self.slot.put(Captured(self._next_seq(), t_ns, image))
                 if self.bitrate is not None:
                     self.bitrate.on_capture(self.slot.dropped - skipped)
-                if self.error:
+                if self._capture_error:
                     log.info("video %s: %s delivers frames again", self.name, self.source.description)
-                    self.error = ""
+                    self._capture_error = ""
             elif time.monotonic() - last_frame > self.config.stall_timeout:
                 raise VideoError(f"no frame from {self.source.description} for {self.config.stall_timeout:g} s")
             if self.source.paced:
@@ -222,11 +241,22 @@ class VideoStream:
             else:
                 next_tick = time.monotonic()  # a slow source: never burst to catch up
 
+    def _check_size(self, image: Image) -> None:
+        """Raise VideoError for a frame an H.264 stream cannot take (another size than configured)."""
+        if self.h264 is None:
+            return  # JPEG frames carry their own size
+        h, w = image.shape[:2]
+        if (w, h) != (self.h264.width, self.h264.height):
+            raise VideoError(
+                f"{self.source.description} delivers {w}×{h} frames, the H.264 stream is configured for "
+                f"{self.h264.width}×{self.h264.height}: set video.{self.name}.width/height to the source's size"
+            )
+
     def _failed(self, reason: str) -> None:
         self.failures += 1
-        if reason != self.error:  # once per change, not at every retry
+        if reason != self._capture_error:  # once per change, not at every retry
             log.error("video %s: %s (retrying every %g s)", self.name, reason, self.config.retry_interval)
-        self.error = reason
+        self._capture_error = reason
         self.slot.put(Captured(self._next_seq(), time.time_ns(), None, failure=reason))
 
     def _next_seq(self) -> int:
@@ -238,21 +268,52 @@ class VideoStream:
             item = self.slot.take(timeout=0.2)
             if item is None or self._pub is None:
                 continue
-            if self.before_send is not None:
-                self.before_send()
-            if self.h264 is not None and self.bitrate is not None:
-                self.h264.set_bitrate(self.bitrate.decide(time.monotonic()))
-                if self.bitrate.reason:
-                    log.info("video %s: %s", self.name, self.bitrate.reason)
-                    self.bitrate.reason = ""
-            frame = encode_frame(self.name, item, self.config, self.h264)
-            if frame is None:
-                continue
-            frame.seq = self.sent + 1  # frames sent, not captured: see the module's docstring
-            payload = frame.encode()
-            t0 = time.perf_counter()
-            self._pub.put(payload)  # BLOCK: a full uplink shows here
-            if self.bitrate is not None:
-                self.bitrate.on_put(time.perf_counter() - t0)
+            try:
+                self._send(item)
+            except Exception as exc:  # this frame is lost; the next is tried afresh (see the module's docstring)
+                self._send_failed(item, exc)
+
+    def _send(self, item: Captured) -> None:
+        if self.before_send is not None:
+            self.before_send()
+        if self.h264 is not None and self.bitrate is not None:
+            self.h264.set_bitrate(self.bitrate.decide(time.monotonic()))
+            if self.bitrate.reason:
+                log.info("video %s: %s", self.name, self.bitrate.reason)
+                self.bitrate.reason = ""
+        frame = encode_frame(self.name, item, self.config, self.h264)
+        if frame is None:
+            return
+        frame.seq = self.sent + 1  # frames sent, not captured: see the module's docstring
+        payload = frame.encode()
+        t0 = time.perf_counter()
+        self._pub.put(payload)  # BLOCK: a full uplink shows here
+        if self.bitrate is not None:
+            self.bitrate.on_put(time.perf_counter() - t0)
+        self.sent += 1
+        self.bytes_sent += len(payload)
+        if self._send_error and item.image is not None:
+            log.info("video %s: frames are sent again", self.name)
+            self._send_error = ""
+
+    def _send_failed(self, item: Captured, exc: Exception) -> None:
+        """A frame that could not be encoded or put(): say why, in a failure notice in its place (which may not
+        get through either, when the put failed), and keep the stream going."""
+        self.send_failures += 1
+        detail = str(exc) if isinstance(exc, VideoError) else f"{type(exc).__name__}: {exc}"
+        reason = f"frame not sent: {detail}"
+        if reason != self._send_error:  # once per change, not at every frame
+            if isinstance(exc, VideoError | zenoh.ZError):
+                log.error("video %s: %s", self.name, reason)
+            else:
+                log.exception("video %s: %s", self.name, reason)
+        self._send_error = reason
+        if self.h264 is not None:
+            self.h264.request_keyframe()  # the viewers lost a frame: the next one they can start from
+        try:
+            notice = VideoFrame(source=self.name, width=self.config.width, height=self.config.height,
+                                encoding=self.config.codec, failure=reason[:256]).stamp(self.sent + 1, item.t_ns)
+            self._pub.put(notice.encode())
             self.sent += 1
-            self.bytes_sent += len(payload)
+        except Exception as notice_exc:  # the link itself: nothing more can be said through it now
+            log.debug("video %s: the failure notice was not sent either: %s", self.name, notice_exc)
