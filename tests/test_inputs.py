@@ -81,12 +81,24 @@ def test_keyboard_hold_is_inferred_from_repeats() -> None:
 
 
 def test_keyboard_toggle_and_actions() -> None:
+    """A terminal reports presses only: a second press soon after the first is a held key's repeat or a second tap
+    meant to turn the deadman off, and nothing tells which. It turns it off, never leaves it on (found by a
+    red-team run: a tap 0.4 s after the first was taken for a repeat, and the deadman stayed on)."""
     kb = KeyboardInput()
     kb.key("space", 0.0)
-    kb.key("space", 0.05)  # a repeat of the held toggle key must not flip it back
     assert kb.poll(0.1).deadman
-    kb.key("space", 1.0)
-    assert not kb.poll(1.1).deadman
+    kb.key("space", 0.4)  # a second tap soon after
+    assert not kb.poll(0.45).deadman
+    kb.key("space", 0.43)  # and the repeats of a key held down keep it off, never flicker it back on
+    kb.key("space", 0.46)
+    assert not kb.poll(0.5).deadman
+    kb.key("space", 1.5)  # a press after a pause turns it on
+    assert kb.poll(1.6).deadman
+    kb.key("space", 1.7)  # held: its repeats turn it off
+    assert not kb.poll(1.8).deadman
+    kb.key("space", 3.0)
+    kb.key("space", 4.0)
+    assert not kb.poll(4.1).deadman
     kb.key("t", 2.0)
     kb.key("t", 2.03)  # repeat: one torch toggle, not two
     kb.key("x", 2.0)
@@ -115,6 +127,9 @@ def test_unknown_keymaps_fail_with_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="notakey"):
         load_keymap(str(bad))
     assert load_keymap(str(CONFIGS / "keymap-default.yaml")).keys == KeymapConfig().keys
+    bad.write_text("keys: {space: deadman, w: +linear_x, x: +linear_y, escape: -linear_y}\n")
+    with pytest.raises(ConfigError, match="no key is bound to 'estop'"):  # it loaded: a console with no stop key
+        load_keymap(str(bad))
 
 
 def test_gamepad_through_sdl_injected_events() -> None:

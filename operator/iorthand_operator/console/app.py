@@ -211,6 +211,12 @@ class OperatorConsole(App[int]):
         # post_message is thread-safe and does not wait: the input thread must never block on the UI.
         self.post_message(UiAction(action))
 
+    def on_app_blur(self, _event: events.AppBlur) -> None:
+        """The terminal lost focus: the keys typed next go elsewhere, so none counts as held any more and a
+        toggled deadman is let go (the robot stops; pressing it again is the operator's fresh intent)."""
+        if self.keyboard is not None:
+            self.keyboard.release_all()
+
     def on_ui_action(self, message: UiAction) -> None:
         self.ui_action(message.action)
 

@@ -76,6 +76,9 @@ class KeymapConfig:
                 raise ValueError(f"keys.{key}: unknown binding {binding!r} (expected ±<axis>, deadman or one of {list(ACTIONS)})")
         if self.deadman_mode == "toggle" and "deadman" not in self.keys.values():
             raise ValueError("keys: toggle deadman mode needs a key bound to 'deadman'")
+        if "estop" not in self.keys.values():
+            # The console's own stop keys (x, escape) stand in only where the keymap leaves them unbound.
+            raise ValueError("keys: no key is bound to 'estop': a console must always be able to stop the robot")
 
 
 def load_keymap(spec: str | None, search_dir: Path | None = None) -> KeymapConfig:
@@ -121,8 +124,13 @@ class KeyboardInput(InputDevice):
                 self._held_until[binding] = now + (c.repeat_hold if repeat else c.initial_hold)
                 self._deadman_until = now + c.deadman_expire
             elif binding == "deadman":
-                if not repeat:  # a held toggle key must not flicker on/off with each repeat
-                    self._deadman_on = not self._deadman_on
+                # A press soon after the last may be a repeat of a held key or a second tap meant to turn it off:
+                # either way it turns the deadman off, never on (a tap meant as "off" was read as a repeat and
+                # left it on). Only a press after a pause turns it on; holding the key turns it off again.
+                if self._deadman_on:
+                    self._deadman_on = False
+                elif not repeat:
+                    self._deadman_on = True
                 self._deadman_until = now + c.deadman_expire
             elif not repeat or binding == "estop":  # a held action key triggers once; a stop, always
                 self._actions.append(binding)
