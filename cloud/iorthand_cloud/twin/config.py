@@ -114,6 +114,11 @@ class ViewerConfig:
     image_fps: float = setting(10.0, lo=0.1, hi=60.0, help="images per second and source at most")
     markers_hz: float = setting(10.0, lo=0.1, hi=100.0)
     stale_after: float = setting(0.5, lo=0.05, hi=10.0, help="s without force: arrow grey")
+    media_stale_after: float = setting(2.0, lo=0.1, hi=60.0, help="s without a camera/ultrasound picture or a "
+                                       "markers message: that image or those markers are cleared from the view "
+                                       "(a frozen picture never passes for a live one). Default: the edge's video "
+                                       "stall_timeout (2 s), after which the edge itself declares the source failed; "
+                                       "at least two periods of image_fps and markers_hz")
 
     def check(self) -> None:
         try:
@@ -128,6 +133,10 @@ class ViewerConfig:
                              "everyone may")
         if self.serve and self.grpc_port != 0 and self.grpc_port == self.web_port:
             raise ValueError("grpc_port and web_port must differ")
+        slowest = min(self.image_fps, self.markers_hz)
+        if self.media_stale_after < 2.0 / slowest:
+            raise ValueError(f"media_stale_after: {self.media_stale_after:g} s is shorter than two periods of "
+                             f"image_fps/markers_hz ({slowest:g} Hz): live pictures would flicker off between frames")
 
 
 @dataclass

@@ -284,6 +284,7 @@ class TwinService:
         key = keys.RobotKeys(robot).key(keys.PLAN_PREVIEW)
         reply: ControlReply | None = None
         reason = ""
+        asked = time.monotonic()  # the edge issues the token after this: its ghost is drawn until asked + ttl
         try:
             for r in self.session.get(key, payload=req.encode(), timeout=self.config.preview_timeout):
                 if r.ok is not None:
@@ -311,7 +312,7 @@ class TwinService:
         if self.viz is not None and ev is not None:  # (None: a robot beyond max_robots, never drawn)
             self.viz.feeder.event(ev)
             if detail:
-                self.viz.feeder.preview(robot, detail)
+                self.viz.feeder.preview(robot, detail, sent_mono=asked)
         log.info("robot %s: %s", robot, text)
         return reply
 

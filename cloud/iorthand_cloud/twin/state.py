@@ -48,6 +48,9 @@ class Event:
     t: int  # ns since the epoch (source time when known)
     level: str
     text: str
+    # True when ``t`` is this machine's clock (the twin's own news: online/offline, previews), not the edge's:
+    # the viewer puts such events on the robot's timeline by its estimate of the edge's clock (viz.py).
+    cloud_clock: bool = False
 
 
 @dataclass
@@ -212,10 +215,10 @@ class TwinStore:
             if online:
                 twin.seen_alive = True
                 twin.offline_reason = ""
-                ev = Event(robot, time.time_ns(), "INFO", "edge online (liveliness token alive/edge)")
+                ev = Event(robot, time.time_ns(), "INFO", "edge online (liveliness token alive/edge)", cloud_clock=True)
             else:
                 twin.offline_reason = reason or "edge liveliness token gone"
-                ev = Event(robot, time.time_ns(), "ERROR", f"edge OFFLINE: {twin.offline_reason}")
+                ev = Event(robot, time.time_ns(), "ERROR", f"edge OFFLINE: {twin.offline_reason}", cloud_clock=True)
             twin.events.append(ev)
             return ev, new
 
@@ -225,7 +228,7 @@ class TwinStore:
             twin, _ = self._robot(robot)
             if twin is None:
                 return None
-            ev = Event(robot, time.time_ns(), level, text)
+            ev = Event(robot, time.time_ns(), level, text, cloud_clock=True)
             twin.events.append(ev)
             return ev
 
@@ -309,13 +312,15 @@ class TwinStore:
             if isinstance(sf, SafetyStatus):
                 snap.armed, snap.owner, snap.profile = sf.armed, sf.owner, sf.profile
                 snap.safety_status, snap.safety_reason, snap.limits_hit = sf.status, sf.reason, list(sf.limits_hit)
-                snap.force_level, snap.force_stale = sf.force_level, sf.force_stale
             fs = twin.latest(keys.STATE_FORCE)
             if isinstance(fs, ForceSample):
                 snap.force, snap.torque = list(fs.force), list(fs.torque)
             fl = twin.latest(keys.STATE_FORCE_LEVEL)
             if isinstance(fl, ForceLevelState):
-                snap.force_level, snap.force_stale, snap.force_value = fl.level, fl.stale, fl.value
+                snap.force_value = fl.value
+            snap.force_level, snap.force_stale = _newest_force_level(
+                sf if isinstance(sf, SafetyStatus) else None, fl if isinstance(fl, ForceLevelState) else None,
+                snap.force_level, snap.force_stale)
             sv = twin.latest(keys.STATE_SERVO)
             if isinstance(sv, ServoState):
                 snap.servo_pan, snap.servo_tilt = sv.pan, sv.tilt
@@ -336,6 +341,20 @@ class TwinStore:
                     ))
             snap.events = [f"{e.level} {e.text}"[:200] for e in list(twin.events)[-16:]]
         return snap.stamp(0, now_ns)
+
+
+def _newest_force_level(sf: SafetyStatus | None, fl: ForceLevelState | None, level: int,
+                        stale: bool) -> tuple[int, bool]:
+    """The force level and its staleness from the newer (by the edge's time ``t``) of the safety status and the
+    force level state, both stamped by the same edge. An older one must never overwrite a newer one: a force
+    level read a second ago said "safe, fresh" while the safety status of now says "stale". At the same time,
+    the more alarming of the two (stale first, then the higher level)."""
+    candidates = [(m.t, m.force_stale, m.force_level) for m in (sf,) if m is not None]
+    candidates += [(m.t, m.stale, m.level) for m in (fl,) if m is not None]
+    if not candidates:
+        return level, stale
+    _, newest_stale, newest_level = max(candidates)  # by t, then stale (True > False), then level
+    return newest_level, newest_stale
 
 
 __all__ = ["Event", "RobotTwin", "TwinStore"]
