@@ -46,7 +46,7 @@ def test_good_config_loads_with_defaults(tmp_path: Path) -> None:
         (GOOD.replace("robot_id: lab1\n", ""), "robot_id", "missing"),
         (GOOD.replace('connect: ["tcp/127.0.0.1:7447"]', "connect: []"), "zenoh", "router endpoint"),
         (GOOD.replace("kind: sim", "kind: ur") , "", "auto_arm is allowed only"),
-        (GOOD + "safety: {command_timeout: .nan}\n", "safety.command_timeout", "finite"),
+        (GOOD.replace("profile: local}", "profile: local, command_timeout: .nan}"), "safety.command_timeout", "finite"),
         (GOOD + "perception: {camera: {kind: synthetic, fps: 15}}\nvideo: {camera: {source: perception, fps: 30}}\n",
          "", "video.camera.fps 30 must be perception.camera.fps 15"),
         # A box written in millimetres: its + faces would never be met.
@@ -72,12 +72,22 @@ def test_errors_name_file_key_and_expectation(tmp_path: Path, text: str, key: st
 def test_a_named_pose_or_a_start_outside_the_workspace_is_said(tmp_path: Path) -> None:
     """They load (the box may be narrowed on purpose), but every move there is refused: `iorthand check` and the
     agent's start say so."""
-    cfg = load_edge_config(write(tmp_path, GOOD + "goto: {poses: {home: [0.30, 0.0, 0.60, 3.14, 0, 0]}}\n"
-                                                   "robot: {kind: sim, initial_pose: [0.9, 0.0, 0.2, 3.14, 0, 0]}\n"))
+    cfg = load_edge_config(write(tmp_path, GOOD.replace("robot: {kind: sim}", "robot: {kind: sim, initial_pose: "
+                                                        "[0.9, 0.0, 0.2, 3.14, 0, 0]}")
+                                 + "goto: {poses: {home: [0.30, 0.0, 0.60, 3.14, 0, 0]}}\n"))
     said = dict(cfg.warnings())
     assert said["goto.poses.home"].startswith("[0.3, 0.0, 0.6] lies outside safety.workspace")
     assert "robot.initial_pose" in said
     assert not dict(load_edge_config(write(tmp_path, GOOD)).warnings()).keys() & {"goto.poses.home", "robot.initial_pose"}
+
+
+def test_a_key_written_twice_is_refused_with_both_lines(tmp_path: Path) -> None:
+    """YAML keeps the last of two equal keys and says nothing: a script step `{duration: 1, duration: 100}` ran for
+    100 s (found by a red-team run). Every configuration file goes through this loader."""
+    twice = GOOD.replace("safety: {auto_arm: true, profile: local}",
+                         "safety:\n  auto_arm: true\n  command_timeout: 0.15\n  command_timeout: 1.5")
+    with pytest.raises(ConfigError, match=r"line 8, column 3: the key 'command_timeout' appears twice \(first at line 7\)"):
+        load_edge_config(write(tmp_path, twice))
 
 
 def test_unreadable_and_corrupt_files(tmp_path: Path) -> None:

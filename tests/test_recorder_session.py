@@ -292,7 +292,8 @@ def test_export_shows_why_a_video_stopped_instead_of_its_last_picture(monkeypatc
             logged.append((path, item))
 
     monkeypatch.setattr(export, "iter_records", lambda *_: iter(records))
-    monkeypatch.setattr(export, "read_manifest", lambda _: SimpleNamespace(session_id="s"))
+    monkeypatch.setattr(export, "export_target",
+                        lambda session, out, *_, **__: (tmp_path, SimpleNamespace(session_id="s"), tmp_path / "s.rrd"))
     monkeypatch.setattr(export.rr, "RecordingStream", Spy)
     export.export_rrd(tmp_path, tmp_path / "s.rrd", video_fps=0.0)
     kinds = [type(item).__name__ for _, item in logged]
