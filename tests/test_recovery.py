@@ -157,15 +157,21 @@ def test_a_script_completes_its_motion_after_a_3_s_blackout(relayed_client) -> N
     assert client.robot_state.tcp_pose[1] - y0 == pytest.approx(0.010, abs=0.002), result
 
 
-def test_a_headless_move_stopped_by_somebody_ends_and_does_not_resume(edge_factory, operator_factory,
-                                                                      session_factory) -> None:
-    """Found by a red-team run of the operator side: `iorthand operator move` pressed afresh by itself after a
-    nurse's stop, and the robot moved again 0.29 s later. A stop that comes during the motion ends it."""
+def _driving(edge_factory, operator_factory):
+    """An edge for sim1, and op1's client holding control with its sender started."""
     edge = edge_factory("sim1")
     client = operator_factory("sim1", "op1")
     client.wait_for_state()
     client.acquire()
     client.start()
+    return edge, client
+
+
+def test_a_headless_move_stopped_by_somebody_ends_and_does_not_resume(edge_factory, operator_factory,
+                                                                      session_factory) -> None:
+    """Found by a red-team run of the operator side: `iorthand operator move` pressed afresh by itself after a
+    nurse's stop, and the robot moved again 0.29 s later. A stop that comes during the motion ends it."""
+    edge, client = _driving(edge_factory, operator_factory)
     out: list[dict] = []
     t = threading.Thread(target=lambda: out.append(move(client, np.array([0.005, 0.0, 0.0]), np.zeros(3), 3.0,
                                                         patience=5.0)))
@@ -188,11 +194,7 @@ def test_a_stop_from_somebody_else_ends_the_script(edge_factory, operator_factor
     """Found by a red-team run of the operator side: a nurse's stop during a script ended that step only; the
     next motion pressed afresh by itself and moved 4.9 mm. The script was the intent for what came before the
     stop, not after it."""
-    edge = edge_factory("sim1")
-    client = operator_factory("sim1", "op1")
-    client.wait_for_state()
-    client.acquire()
-    client.start()
+    edge, client = _driving(edge_factory, operator_factory)
     twist = [0.005, 0.0, 0.0, 0.0, 0.0, 0.0]
     script = Script(name="scan", patience=5.0, steps=[
         ScriptStep(twist=twist, duration=1.5), ScriptStep(wait=1.5), ScriptStep(twist=twist, duration=1.0)])
@@ -218,11 +220,7 @@ def test_a_stop_from_somebody_else_ends_the_script(edge_factory, operator_factor
 def test_a_scripts_own_stop_step_is_not_a_stop_from_somebody_else(edge_factory, operator_factory) -> None:
     """Its stop reaches the edge and comes back as the edge's status while the next step already drives: that
     motion is what the script asked after its stop, and it runs to its end."""
-    edge_factory("sim1")
-    client = operator_factory("sim1", "op1")
-    client.wait_for_state()
-    client.acquire()
-    client.start()
+    _, client = _driving(edge_factory, operator_factory)
     x0 = client.robot_state.tcp_pose[0]
     summary = run_script(client, Script(name="stop-then-go", patience=5.0, steps=[
         ScriptStep(action="stop", reason="script's own stop"),
