@@ -167,6 +167,13 @@ def _driving(edge_factory, operator_factory):
     return edge, client
 
 
+def _nurse_stops(session_factory, edge, reason: str) -> None:
+    """A stop from another session (the nurse at the patient), and the robot stopped by it."""
+    nurse = session_factory().declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP))
+    nurse.put(StopCommand(operator="nurse", reason=reason).stamp(1).encode())
+    wait_until(lambda: not np.any(edge._commanded), 2.0, message="the robot stopped")
+
+
 def test_a_headless_move_stopped_by_somebody_ends_and_does_not_resume(edge_factory, operator_factory,
                                                                       session_factory) -> None:
     """Found by a red-team run of the operator side: `iorthand operator move` pressed afresh by itself after a
@@ -178,9 +185,7 @@ def test_a_headless_move_stopped_by_somebody_ends_and_does_not_resume(edge_facto
     t.start()
     wait_until(lambda: np.any(edge._commanded), 5.0, message="the move under way")
     time.sleep(0.3)
-    nurse = session_factory().declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP))
-    nurse.put(StopCommand(operator="nurse", reason="patient moved").stamp(1).encode())
-    wait_until(lambda: not np.any(edge._commanded), 2.0, message="the robot stopped")
+    _nurse_stops(session_factory, edge, "patient moved")
     x = client.robot_state.tcp_pose[0]
     t.join(10)
     assert out and not out[0]["completed"], out
@@ -205,9 +210,7 @@ def test_a_stop_from_somebody_else_ends_the_script(edge_factory, operator_factor
     if when == "during a wait":
         wait_until(lambda: not np.any(edge._commanded), 5.0, message="the wait step")
     time.sleep(0.3)
-    nurse = session_factory().declare_publisher(keys.RobotKeys("sim1").key(keys.CMD_STOP))
-    nurse.put(StopCommand(operator="nurse", reason="patient coughed").stamp(1).encode())
-    wait_until(lambda: not np.any(edge._commanded), 2.0, message="the robot stopped")
+    _nurse_stops(session_factory, edge, "patient coughed")
     x = client.robot_state.tcp_pose[0]
     t.join(15)
     time.sleep(0.5)
