@@ -230,3 +230,36 @@ def test_a_scripts_own_stop_step_is_not_a_stop_from_somebody_else(edge_factory, 
         ScriptStep(twist=[0.005, 0.0, 0.0, 0.0, 0.0, 0.0], duration=1.0)]))
     assert not summary["ended_by_stop"] and len(summary["steps"]) == 2
     assert client.robot_state.tcp_pose[0] - x0 == pytest.approx(0.005, abs=0.001), summary["steps"]
+
+
+def test_a_console_that_hears_nothing_from_the_edge_says_so_instead_of_nothing_to_do(relayed_client) -> None:
+    """Found by a red-team run of the operator side: the hint came from the last safety status however old, so with
+    the link dead it went on saying that nothing stood between the operator and motion."""
+    _edge, emu, client = relayed_client
+    client.start()
+    client.acquire()
+    client.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+    time.sleep(0.2)
+    client.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)  # a fresh press: nothing stands in the way
+    wait_until(lambda: client.next_step().step is recovery.Step.NONE, 5.0, message="ready to move")
+    emu.blackout(True)
+    try:
+        wait_until(lambda: client.next_step().step is recovery.Step.WAIT, 5.0, message="the edge's silence said")
+        assert "no safety status from the edge for" in client.next_step().why
+    finally:
+        emu.blackout(False)
+
+
+def test_driving_is_judged_on_the_monotonic_clock(edge_factory, operator_factory, monkeypatch) -> None:
+    """Found by a red-team run of the operator side: the wall clock stepped back (NTP) made the last echo look
+    fresh for the size of the step, and a headless motion's checks for a halt or a stop were blind meanwhile."""
+    import iorthand_operator.client as client_module
+
+    _, client = _driving(edge_factory, operator_factory)
+    client.set_twist([0.002, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+    wait_until(client.driving, 5.0, message="driving")
+    client.muted = True  # no command goes out any more: the last echo ages
+    real = time.time_ns
+    monkeypatch.setattr(client_module.time, "time_ns", lambda: real() - 5_000_000_000)  # the clock steps back 5 s
+    time.sleep(0.3)
+    assert not client.driving()

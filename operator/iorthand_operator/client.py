@@ -81,6 +81,7 @@ class Echo:
     echoed_ns: int
     accepted: bool
     status: str
+    echoed_mono: float = 0.0  # monotonic time it arrived: what "lately" is measured on (a wall clock may step)
 
     @property
     def rtt_ms(self) -> float:
@@ -104,6 +105,9 @@ MAX_VITALS = 16
 TOKEN_RETRIES = 4
 TOKEN_RETRY_S = 0.25
 RENEW_RETRY_S = 0.2  # s between attempts while a lease renewal fails (see OperatorClient._renew_lease)
+# A safety status older than this is none (next_step): the edge sends one at safety_rate_hz (20 Hz by default, 1 Hz
+# at the least) and on every change.
+SAFETY_STALE_S = 2.0
 # A sender process that dies is started again, unless it died this many times within this many seconds: then the
 # client gives control up and says why (OperatorClient._restart_sender).
 SENDER_LOSSES = 3
@@ -177,6 +181,7 @@ class OperatorClient:
         self.send_times: list[float] = []  # monotonic send instants, for jitter figures
         self.robot_state: RobotState | None = None
         self.safety: SafetyStatus | None = None
+        self.safety_at = -math.inf  # monotonic time the newest safety status arrived
         self.last_refusal: AppliedCommand | None = None
         self.owner = False
         self.lease = 0.0
@@ -763,7 +768,7 @@ class OperatorClient:
     def _on_safety(self, sample: zenoh.Sample) -> None:
         msg = self._decode(SafetyStatus, sample)
         if msg is not None and self._from_the_edge(msg, keys.STATE_SAFETY, str(sample.key_expr)):
-            self.safety = msg
+            self.safety, self.safety_at = msg, time.monotonic()
             if msg.status != self._last_safety_status and msg.status in recovery.REPRESS | recovery.REACQUIRE:
                 with self._lock:
                     self._halted_at = time.monotonic()
@@ -826,7 +831,7 @@ class OperatorClient:
             self.log_event("stop", "edge_offline", "edge agent went offline (liveliness lost)")
 
     def _on_applied(self, sample: zenoh.Sample) -> None:
-        now = time.time_ns()
+        now, mono = time.time_ns(), time.monotonic()
         msg = self._decode(AppliedCommand, sample)
         if msg is None or msg.operator != self.operator_id or \
                 not self._from_the_edge(msg, keys.STATE_APPLIED, str(sample.key_expr)):
@@ -841,7 +846,7 @@ class OperatorClient:
                 # we drive, a renewal that cannot get through loses nothing.
                 self._renewed_at = max(self._renewed_at, time.monotonic() - max(0, now - sent) / 1e9)
             if sent is not None:
-                self.echoes.append(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status))
+                self.echoes.append(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status, mono))
                 self.echo_count += 1
         if sent is not None:
             self.link.echoed(msg.cmd_seq, sent, now)
@@ -870,7 +875,13 @@ class OperatorClient:
         return self._halted_at
 
     def next_step(self) -> recovery.NextStep:
-        """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`)."""
+        """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`). A safety
+        status older than SAFETY_STALE_S is none: the edge publishes one 20 times a second, and an old one said
+        "nothing stands between you and motion" while the link or the edge was down."""
+        age = time.monotonic() - self.safety_at
+        if self.safety is not None and age > SAFETY_STALE_S:
+            return recovery.NextStep(recovery.Step.WAIT, f"no safety status from the edge for {age:.1f} s: the link "
+                                                         "or the edge is down")
         fresh = self._deadman and self._pressed_at > max(self._halted_at, self._press_from)
         old = self._deadman and self._pressed_at < self._press_from
         return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down, old)
@@ -898,8 +909,10 @@ class OperatorClient:
         """The edge accepted a command of ours with the deadman held within the last ``within`` s (its limits may
         have clipped the twist, even to zero at a force or workspace limit: that is driving, not a halt)."""
         echo = self.echoes[-1] if self.echoes else None
+        # On the monotonic clock: a wall clock stepped back by NTP made every echo look fresh for as long as the
+        # step, and a headless motion's checks for a halt or a stop were blind meanwhile.
         return (echo is not None and echo.accepted and echo.status != Status.NO_DEADMAN
-                and time.time_ns() - echo.echoed_ns <= within * 1e9)
+                and time.monotonic() - echo.echoed_mono <= within)
 
     def wait_for_echoes(self, timeout: float = 0.5) -> None:
         """Wait until every command sent so far has its echo (or ``timeout``): counts of sends and echoes taken
