@@ -31,7 +31,16 @@ from pathlib import Path
 from typing import Any
 
 from iorthand.config import ConfigError, from_dict, load, read_yaml
-from iorthand.security.diagnose import Finding, check_certificate_files, endpoint_is_local, file_problem, precheck
+from iorthand.security import acl, identity
+from iorthand.security.diagnose import (
+    Finding,
+    check_certificate_files,
+    clear_beyond_loopback,
+    endpoint_is_local,
+    file_problem,
+    is_encrypted,
+    precheck,
+)
 from iorthand.transport import ZenohConfig
 
 # role → (module, dataclass name). Imported lazily: the core depends on no role package.
@@ -60,7 +69,8 @@ UNBOUND = {
 # The certificate common names (= router user names) a role's configuration may present: the router's ACL
 # (iorthand.security.acl) has subjects with exactly these names. None: not tied to one name.
 FIXED_IDENTITIES: dict[str, set[str]] = {
-    "twin": {"twin"}, "recorder": {"recorder", "replay"}, "web": {"web"}, "bridge": {"bridge"},
+    **{service: {service} for service in acl.SERVICES}, "recorder": {"recorder", acl.REPLAY},
+    acl.WEB: {acl.WEB}, acl.BRIDGE: {acl.BRIDGE},
 }
 
 
@@ -145,10 +155,6 @@ def _endpoints(section: Any) -> list[str]:
     return list(endpoints)
 
 
-def _encrypted(endpoint: str) -> bool:
-    return endpoint.startswith(("tls/", "quic/"))
-
-
 def check_router(path: Path) -> Report:
     """A router reachable from the network (any listen endpoint not on the loopback, Zenoh's default
     ``tcp/[::]:7447`` included) must encrypt, authenticate and filter: anything else would let whoever reaches
@@ -160,7 +166,7 @@ def check_router(path: Path) -> Report:
     listen = _endpoints(cfg.get("listen"))
     exposed = [ep for ep in listen if not endpoint_is_local(ep)]
     level = "error" if exposed else "warning"
-    clear = [ep for ep in exposed if not _encrypted(ep)]
+    clear = clear_beyond_loopback(listen)
     if clear:
         rep.findings.append(Finding("error", "listen.endpoints", (
             f"unencrypted endpoint reachable from the network: {', '.join(clear)}: commands, passwords and the "
@@ -174,7 +180,7 @@ def check_router(path: Path) -> Report:
         )
     tls = cfg.get("transport", {}).get("link", {}).get("tls", {}) or {}
     # Client certificates authenticate only on a TLS listener (a TLS section beside tcp/ endpoints does nothing).
-    mtls = bool(paths["listen_certificate"] and tls.get("enable_mtls") and any(_encrypted(ep) for ep in listen))
+    mtls = bool(paths["listen_certificate"] and tls.get("enable_mtls") and any(is_encrypted(ep) for ep in listen))
     if paths["listen_certificate"] and not tls.get("enable_mtls"):
         rep.findings.append(Finding(level, "transport.link.tls.enable_mtls", (
             "off: clients are not authenticated by certificate, and the ACL's certificate names match nobody: "
@@ -225,13 +231,15 @@ def _identity_findings(role: str, obj: Any, data: Any, where: str, zc: ZenohConf
     robot_id = getattr(obj, "robot_id", None) or (data.get("robot_id") if isinstance(data, dict) else None)
     operator_id = getattr(obj, "operator_id", None) or (data.get("operator_id") if isinstance(data, dict) else None)
     if role == "edge" and robot_id:
-        expected = {f"edge-{robot_id}"}
-        why = (f"the router grants the keys of robot {robot_id!r} to edge-{robot_id} only: this edge would "
-               f"connect and be ignored, or act as another robot. Use edge-{robot_id}.pem/.key, or fix robot_id")
+        name = identity.edge_common_name(robot_id)
+        expected = {name}
+        why = (f"the router grants the keys of robot {robot_id!r} to {name} only: this edge would "
+               f"connect and be ignored, or act as another robot. Use {name}.pem/.key, or fix robot_id")
     elif role == "operator" and operator_id:
-        expected = {f"operator-{operator_id}"}
-        why = (f"the router lets operator {operator_id!r} command only with the certificate operator-{operator_id}: "
-               f"every command and control request would be dropped or refused. Use operator-{operator_id}.pem/.key, "
+        name = identity.operator_common_name(operator_id)
+        expected = {name}
+        why = (f"the router lets operator {operator_id!r} command only with the certificate {name}: "
+               f"every command and control request would be dropped or refused. Use {name}.pem/.key, "
                "or set operator_id to the name the certificate carries")
     else:
         expected = FIXED_IDENTITIES.get(role)
@@ -282,8 +290,6 @@ def _password_findings(where: str, zc: ZenohConfig, router_cfg: dict[str, Any], 
 
 def _web_findings(obj: Any, secured: bool) -> list[Finding]:
     """The web console: its deployment must let the ``web`` certificate in, its users file and HTTPS files exist."""
-    from iorthand.security import acl
-
     out: list[Finding] = []
     dep_path = Path(obj.deployment)
     if secured and dep_path.is_file() and os.access(dep_path, os.R_OK):

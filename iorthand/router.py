@@ -13,7 +13,7 @@ from pathlib import Path
 import zenoh
 
 from iorthand.config import ConfigError, cli_number
-from iorthand.security.diagnose import endpoint_is_local
+from iorthand.security.diagnose import clear_beyond_loopback
 from iorthand.transport import (
     DATAGRAM_MAX_LINKS,
     MAX_LINKS_KEY,
@@ -84,7 +84,7 @@ def _cmd(args: argparse.Namespace) -> int:
             raise ConfigError("command line", "--datagrams", str(exc)) from None
         config = zenoh.Config.from_json5(json.dumps(settings))
     listen = _endpoints(config, "listen")
-    clear = [ep for ep in listen if not endpoint_is_local(ep) and not ep.startswith(("tls/", "quic/"))]
+    clear = clear_beyond_loopback(listen)
     if clear:
         # Not refused: a closed lab or a test's network namespace may want it. But said, at every start: anyone who
         # reaches that port may command the robots (`iorthand check` refuses such a router configuration).

@@ -52,6 +52,7 @@ from typing import Any
 from iorthand import channels, keys
 from iorthand.channels import Channel, Kind, OperatorKey, Role
 from iorthand.config import setting
+from iorthand.security.identity import edge_common_name, operator_common_name
 from iorthand.transport import ROUTER_LEASE_MS, SHM_POOL_SIZE, TX_QUEUE_SIZE, announced_lease, rate_limits
 
 ALL_MESSAGES = [
@@ -185,7 +186,7 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
 
     for robot in dep.robots:
         k = keys.RobotKeys(robot)
-        sid = f"edge-{robot}"
+        sid = edge_common_name(robot)
         add(sid, [
             _rule(f"{sid}-publish", ["put", "delete"], ["ingress"], [k.key(s) for s in _grants(table, Role.EDGE, Kind.PUT)]),
             _rule(f"{sid}-serve", ["declare_queryable", "reply"], ["ingress"],
@@ -211,7 +212,7 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
         ]
 
     for op, robots in dep.operators.items():
-        sid = f"operator-{op}"
+        sid = operator_common_name(op)
         rks = [keys.RobotKeys(r) for r in robots]
         rl = [
             _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all for k in rks] + services),

@@ -221,7 +221,8 @@ def describe(path: Path) -> dict[str, object]:
         "ca": is_ca,
         "not_before": cert.not_valid_before_utc.isoformat(),
         "not_after": cert.not_valid_after_utc.isoformat(),
-        "days_left": left.days,
+        # Whole days, counted toward zero: one that expired a day and some hours ago has -1 (timedelta.days: -2).
+        "days_left": int(left.total_seconds() / 86400),
         "expired": now > cert.not_valid_after_utc,
         "subject_alt_names": sans,
         "serial": f"{cert.serial_number:x}",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
 import secrets
@@ -31,18 +30,13 @@ def _issue(args: argparse.Namespace) -> int:
             f"{', '.join(existing)} already exist(s): nothing issued. To renew, add --force and install the new "
             "certificate and key wherever the old ones are deployed, then restart that service (docs/DEPLOY.md §1)")
     for name in args.name:
-        issued = certs.issue(Path(args.dir), name, hosts=args.host or None, days=args.days,
-                             out_dir=Path(args.out) if args.out else None)
+        issued = certs.issue(Path(args.dir), name, hosts=args.host or None, days=args.days, out_dir=out)
         print(f"{name}: {issued.certificate} {issued.private_key}")
     return 0
 
 
 def _show(args: argparse.Namespace) -> int:
     info = certs.describe(Path(args.file))
-    # Whole days left, counted toward zero: a certificate that expired 1 day and some hours ago has -1, not -2
-    # (timedelta.days rounds down).
-    left = dt.datetime.fromisoformat(str(info["not_after"])) - dt.datetime.now(dt.UTC)
-    info["days_left"] = int(left.total_seconds() / 86400)
     if args.json:
         print(json.dumps(info, indent=2))
     else:

@@ -86,6 +86,16 @@ class Diagnosis:
         return " — ".join(parts)
 
 
+def is_encrypted(endpoint: str) -> bool:
+    """A Zenoh endpoint whose link is TLS (``tls/``, ``quic/``)."""
+    return endpoint.startswith(("tls/", "quic/"))
+
+
+def clear_beyond_loopback(endpoints: list[str]) -> list[str]:
+    """The endpoints that leave this machine unencrypted."""
+    return [ep for ep in endpoints if not is_encrypted(ep) and not endpoint_is_local(ep)]
+
+
 def endpoint_is_local(endpoint: str) -> bool:
     """Whether a Zenoh endpoint (``tcp/127.0.0.1:7447``, ``tls/[::1]:7447``, ``unixsock-stream/...``) stays on this
     machine. ``0.0.0.0``, ``[::]`` and any host name other than ``localhost`` do not."""
@@ -112,10 +122,6 @@ def _open_to_all(path: Path, what: str) -> Finding | None:
 
 def file_problem(path: Path | None, what: str) -> Finding | None:
     """A finding when ``path`` does not exist or this user cannot read it, else None."""
-    return _file_problem(path, what)
-
-
-def _file_problem(path: Path | None, what: str) -> Finding | None:
     if path is None:
         return None
     p = Path(path)
@@ -127,7 +133,7 @@ def _file_problem(path: Path | None, what: str) -> Finding | None:
 
 
 def _load_cert(path: Path, what: str, out: list[Finding]) -> x509.Certificate | None:
-    problem = _file_problem(path, what)
+    problem = file_problem(path, what)
     if problem:
         out.append(problem)
         return None
@@ -152,7 +158,7 @@ def check_certificate_files(
         out.append(Finding("error", str(private_key), "a private_key without its certificate"))
     key = None
     if private_key:
-        problem = _file_problem(private_key, "private key")
+        problem = file_problem(private_key, "private key")
         if problem:
             out.append(problem)
         else:
@@ -194,11 +200,11 @@ def precheck(cfg: Any) -> list[Finding]:
     out: list[Finding] = []
     tls = cfg.tls
     endpoints = [*cfg.connect, *cfg.listen]
-    uses_tls = any(ep.startswith(("tls/", "quic/")) for ep in endpoints)
+    uses_tls = any(is_encrypted(ep) for ep in endpoints)
     if tls is None and uses_tls:
         out.append(Finding("error", "zenoh.tls", "a tls/ endpoint needs zenoh.tls (root_ca, certificate, private_key)"))
     if tls is not None:
-        clear_remote = [ep for ep in endpoints if not ep.startswith(("tls/", "quic/")) and not endpoint_is_local(ep)]
+        clear_remote = clear_beyond_loopback(endpoints)
         if clear_remote:
             out.append(Finding("error", "zenoh.connect", (
                 f"TLS is configured but {', '.join(clear_remote)} is not a tls/ endpoint and leaves this machine: "
@@ -215,7 +221,7 @@ def precheck(cfg: Any) -> list[Finding]:
     if cfg.username and cfg.password_file is None:
         out.append(Finding("error", "zenoh.password_file", f"username {cfg.username!r} needs a password_file"))
     if cfg.password_file is not None:
-        problem = _file_problem(cfg.password_file, "password file")
+        problem = file_problem(cfg.password_file, "password file")
         if problem:
             out.append(problem)
         else:

@@ -23,6 +23,17 @@ from dataclasses import dataclass, field
 from iorthand import channels, keys
 
 OPERATOR_CN_PREFIX = "operator-"
+EDGE_CN_PREFIX = "edge-"
+
+
+def edge_common_name(robot: str) -> str:
+    """The certificate (and router user) name of ``robot``'s edge, as the router's ACL knows it."""
+    return f"{EDGE_CN_PREFIX}{robot}"
+
+
+def operator_common_name(operator: str) -> str:
+    """The certificate (and router user) name of an operator, as the router's ACL knows it."""
+    return f"{OPERATOR_CN_PREFIX}{operator}"
 
 
 def operator_from_common_name(cn: str) -> str | None:

@@ -7,7 +7,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from iorthand.security import acl, certs
+from iorthand.security import acl, certs, identity
 from iorthand.transport import TlsConfig, ZenohConfig
 
 
@@ -50,7 +50,8 @@ def make_lab(
         robots=robots, operators=operators, viewers=viewers or [], bind_operator_keys=bind_operator_keys, web=web,
     )
     dep.check()
-    names = ["router", "twin", "recorder", "replay", *(f"edge-{r}" for r in robots), *(f"operator-{o}" for o in operators),
+    names = ["router", "twin", "recorder", "replay", *map(identity.edge_common_name, robots),
+             *map(identity.operator_common_name, operators),
              *(f"viewer-{v}" for v in dep.viewers), *(["web"] if web else [])]
     lab = Lab(directory, f"tls/127.0.0.1:{port}", dep, directory / "router.json5")
     lines = []

@@ -94,10 +94,7 @@ def segment_topics(folder: str | Path) -> set[str]:
     topics: set[str] = set()
     for path in segment_files(session_dir(folder)):
         with path.open("rb") as f:
-            try:
-                summary = make_reader(f).get_summary()
-            except Exception:  # no footer yet, or a torn one
-                summary = None
+            summary = _summary(f)
             if summary is not None and summary.channels:
                 topics.update(c.topic for c in summary.channels.values())
                 continue
@@ -109,6 +106,14 @@ def segment_topics(folder: str | Path) -> set[str]:
     return topics
 
 
+def _summary(f: BinaryIO) -> Summary | None:
+    """A segment's summary; None without one, or with no footer yet (a segment being written) or a torn one."""
+    try:
+        return make_reader(f).get_summary()
+    except Exception:
+        return None
+
+
 def stream_of(path: Path) -> str:
     """``video-0003.mcap`` → ``video``."""
     return path.name.rsplit("-", 1)[0]
@@ -118,10 +123,7 @@ def _iter_file(path: Path, start: int | None, end: int | None,
                topics: Collection[str] | None = None) -> Iterator[Record]:
     stream = stream_of(path)
     with path.open("rb") as f:
-        try:
-            summary = make_reader(f).get_summary()
-        except Exception:  # no footer yet (a segment being written) or a torn one: its complete records
-            summary = None
+        summary = _summary(f)
         if summary is None or not summary.chunk_indexes:
             # No index to seek with (mcap's own reader would then decompress every chunk unchecked): front to
             # back, each chunk's own size checked.

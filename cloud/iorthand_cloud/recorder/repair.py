@@ -43,6 +43,11 @@ class RepairResult:
     original: Path | None = None  # the file as it was, kept when the repair stopped at damage, not at a torn tail
     damage: str = ""
 
+    @property
+    def damage_note(self) -> str:
+        """What stopped the repair and where the file as it was is kept ("" when it stopped at a torn tail)."""
+        return f"{self.damage} (the file as it was is kept as {self.original.name})" if self.original else ""
+
 
 def has_footer(path: Path) -> bool:
     try:
@@ -179,8 +184,8 @@ def repair_session(folder: Path) -> list[RepairResult]:
             by_file[path.name] = seg
         seg.status, seg.recovered_messages, seg.lost_bytes = "repaired", res.messages, res.lost_bytes
         seg.messages, seg.bytes = res.messages, path.stat().st_size
-        if res.original is not None:
-            damaged.append(f"{res.damage} (the file as it was is kept as {res.original.name})")
+        if res.damage_note:
+            damaged.append(res.damage_note)
     # The Foxglove copy of the session (iorthand_cloud.foxglove_channels), in its own subfolder: made whole too.
     for path in sorted((folder / "foxglove").glob("*.mcap")):
         if not has_footer(path):
@@ -230,8 +235,7 @@ def repair_if_crashed(folder: Path) -> str:
         return ""
     results = repair_session(folder)
     kept = sum(r.messages for r in results)
-    damaged = "".join(f"; {r.damage} (the file as it was is kept as {r.original.name})"
-                      for r in results if r.original is not None)
+    damaged = "".join(f"; {r.damage_note}" for r in results if r.damage_note)
     return (f"the recorder stopped without closing this session: repaired {len(results)} segment(s), "
             f"{kept} messages kept, {sum(r.lost_bytes for r in results)} bytes of torn tail dropped{damaged}")
 

@@ -349,8 +349,11 @@ def _newest_force_level(sf: SafetyStatus | None, fl: ForceLevelState | None, lev
     force level state, both stamped by the same edge. An older one must never overwrite a newer one: a force
     level read a second ago said "safe, fresh" while the safety status of now says "stale". At the same time,
     the more alarming of the two (stale first, then the higher level)."""
-    candidates = [(m.t, m.force_stale, m.force_level) for m in (sf,) if m is not None]
-    candidates += [(m.t, m.stale, m.level) for m in (fl,) if m is not None]
+    candidates = []
+    if sf is not None:
+        candidates.append((sf.t, sf.force_stale, sf.force_level))
+    if fl is not None:
+        candidates.append((fl.t, fl.stale, fl.level))
     if not candidates:
         return level, stale
     _, newest_stale, newest_level = max(candidates)  # by t, then stale (True > False), then level

@@ -507,8 +507,7 @@ class Visualizer:
         suffix, frame = data
         path = f"robots/{robot}/tcp/camera/image" if suffix == keys.VIDEO_CAMERA else f"robots/{robot}/ultrasound"
         if frame.failure:  # no picture rather than a frozen one that reads as live; the event log says why
-            self._log(path, rr.Clear(recursive=False))
-            drawn.media_seen.pop(path, None)
+            self._clear_media(drawn, path)
             return
         drawn.media_seen[path] = time.monotonic()
         if frame.encoding == "h264":

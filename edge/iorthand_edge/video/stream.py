@@ -308,11 +308,11 @@ class VideoStream:
             else:
                 log.exception("video %s: %s", self.name, reason)
         self._send_error = reason
-        if self.h264 is not None:
-            self.h264.request_keyframe()  # the viewers lost a frame: the next one they can start from
         try:
-            notice = VideoFrame(source=self.name, width=self.config.width, height=self.config.height,
-                                encoding=self.config.codec, failure=reason[:256]).stamp(self.sent + 1, item.t_ns)
+            # A notice as the capture side's (its keyframe request included: the viewers lost a frame).
+            notice = encode_frame(self.name, Captured(self.sent + 1, item.t_ns, None, failure=reason), self.config,
+                                  self.h264)
+            assert notice is not None  # (a notice always is one)
             self._pub.put(notice.encode())
             self.sent += 1
         except Exception as notice_exc:  # the link itself: nothing more can be said through it now
