@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import threading
 import time
 
@@ -356,3 +357,105 @@ def test_the_console_never_starts_latched_and_names_the_key_after_every_halt(edg
 
     asyncio.run(run())
     ctrl.stop()
+
+
+def test_a_safety_status_that_stopped_coming_is_shown_as_old(session_factory, operator_factory) -> None:
+    """Found by a review of the operator side: armed, owner and status showed the last safety status however old,
+    so with the link dead the screen went on saying "armed / op1 / ok" as if current. Older than the client's bound
+    (SAFETY_STALE_S, the one its hint uses), each row says how old it is."""
+    from iorthand_operator.client import SAFETY_STALE_S
+
+    robot = "stalebot"  # no edge: only our messages reach this robot's keys
+    _client, ctrl, app = _console(operator_factory, robot=robot)
+    pub = publisher(session_factory(), keys.RobotKeys(robot).key(keys.STATE_SAFETY))
+
+    async def run() -> tuple[str, str, str]:
+        async with app.run_test(size=(160, 50)) as pilot:
+            for seq in range(1, 60):  # the edge's 20 Hz status, until the console has it
+                pub.put(SafetyStatus(armed=True, owner="op1", status="ok", profile="local").stamp(seq).encode())
+                await pilot.pause(0.05)
+                if app.view_model.armed:
+                    break
+            await pilot.pause(0.2)
+            fresh = _text(app, "status")
+            # The link dies: no more status.
+            await _wait(lambda: app.view_model.hint.startswith("no safety status"), SAFETY_STALE_S + 2.0,
+                        "the status older than the client's bound")
+            await pilot.pause(0.2)
+            old, profile = _text(app, "status"), _text(app, "profile")
+            await pilot.press("ctrl+c")
+        return fresh, old, profile
+
+    try:
+        fresh, old, profile = asyncio.run(run())
+    finally:
+        ctrl.stop()
+    assert "yes" in fresh and "stale" not in fresh
+    # Connected while the robot's status arrives; not once it has stopped (its liveliness heard once said so).
+    assert "test router  connected" in fresh and "test router  no data" in old, (fresh, old)
+    for row in (r"armed\s+yes \(stale \d", r"owner\s+op1 \(stale \d", r"status\s+ok \(stale \d", r"edge off \(stale \d"):
+        assert re.search(row, old), (row, old)
+    assert "local (stale" in profile
+
+
+def test_the_deadman_row_shows_what_the_command_stream_sends(edge_factory, operator_factory) -> None:
+    """Found by a review of the operator side: "deadman sent ON" came from the input device, while without a grant
+    the stream sent nothing and under a new grant it sent the deadman released until a fresh press."""
+    edge_factory()
+    client = operator_factory()
+    device = KeyboardInput(KeymapConfig())
+    ctrl = ConsoleController(client, device, ConsoleSettings())
+    client.wait_for_state()
+    client.start()
+
+    def poll(seconds: float) -> ConsoleView:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            ctrl.poll_once(time.monotonic())
+            time.sleep(0.02)
+        return ctrl.view()
+
+    device.key("space", time.monotonic())  # the deadman toggled on before control is held
+    v = poll(0.3)
+    assert device.poll(time.monotonic()).deadman and client.sent_count == 0
+    assert not v.deadman, "nothing is sent without a grant"
+    client.acquire()
+    v = poll(0.5)
+    assert client.sent_count > 0 and client.echoes and client.echoes[-1].status == "deadman_released"
+    assert not v.deadman and not any(v.command), "the new grant's stream sends the deadman released"
+    assert v.hint.startswith("press SPACE"), v.hint
+    device.key("space", time.monotonic())  # off
+    poll(0.1)
+    device.key("space", time.monotonic() + 1.0)  # and on again after a pause: a fresh press
+    wait_until(lambda: poll(0.05).deadman, 3.0, message="the fresh press sent")
+    wait_until(lambda: client.safety.deadman, 3.0, message="the edge seeing the deadman held")
+    ctrl.stop()
+
+
+def test_a_key_read_during_a_stall_is_stamped_when_it_was_read(operator_factory) -> None:
+    """Found by a review of the operator side: keys were stamped when the UI handled them, so a move key pressed
+    and let go while the UI stalled counted as held for initial_hold after the stall, and moved the robot then."""
+    client = operator_factory("stallbot", "op1")  # no edge: the device's sample is what is checked
+    device = KeyboardInput(KeymapConfig(deadman_mode="motion", initial_hold=0.4))
+    app = OperatorConsole(ConsoleController(client, device, ConsoleSettings()))
+    pressed: dict[str, float] = {}
+
+    def press_during_the_stall() -> None:
+        time.sleep(0.1)
+        pressed["at"] = time.monotonic()
+        app.post_message(events.Key("w", "w"))  # read now (textual stamps it so), handled after the stall
+
+    async def run() -> tuple[bool, float]:
+        async with app.run_test(size=(160, 50)) as pilot:
+            await pilot.pause(0.2)
+            threading.Thread(target=press_during_the_stall, daemon=True).start()
+            time.sleep(1.0)  # the UI stalls (a slow render, a swapped-out terminal): nothing handled meanwhile
+            await _wait(lambda: "at" in pressed and bool(device._last_event), 3.0, "the key handled")
+            held = device.poll(time.monotonic()).deadman
+            stamped = device._last_event["w"]
+            await pilot.press("ctrl+c")
+        return held, stamped
+
+    held, stamped = asyncio.run(run())
+    assert abs(stamped - pressed["at"]) < 0.1, (stamped, pressed["at"])
+    assert not held, "a key pressed 0.9 s ago, initial_hold 0.4 s: no longer held"

@@ -1,12 +1,19 @@
-"""Link statistics (pure): RTT percentiles, jitter, loss from sequence numbers, grading."""
+"""Link statistics: RTT percentiles, jitter, loss from sequence numbers, grading (pure); and what the operator
+client feeds them (against a real router and a simulated edge)."""
 
 from __future__ import annotations
 
 import math
+import time
+from types import ModuleType
 
 import pytest
 
+from iorthand.transport import ZenohConfig, open_session
+from iorthand_operator.bench.linkemu import LinkEmulator, LinkProfile
+from iorthand_operator.client import OperatorClient
 from iorthand_operator.link import BAD, GOOD, NONE, WARN, LinkThresholds, LinkWindow, gap_loss, grade, jitter
+from tests.conftest import wait_until
 
 MS = 1_000_000
 
@@ -85,5 +92,97 @@ def test_a_window_nobody_reads_stays_bounded() -> None:
         w.sent(i, t)
         w.echoed(i, t, t + 5 * MS)
         w.state(i, t)
-    kept = len(w._sent) + len(w._echoes) + len(w._states) + len(w._echoed)
+    kept = len(w._sent) + len(w._echoes) + len(w._states) + len(w._answers)
     assert kept <= 4 * 2 * 64, kept  # ~2 s of each at 60 Hz
+
+
+def test_a_new_grant_counts_its_own_commands_only() -> None:
+    """Each grant's commands are seq 1, 2, ...: an earlier grant's echo is no answer to a new grant's command."""
+    w = LinkWindow(window_s=5.0, echo_grace_s=0.1)
+    t0 = 10**12
+    for i in range(1, 101):  # grant 1: every command echoed
+        w.sent((i, t0 + i * MS), t0 + i * MS)
+        w.echoed((i, t0 + i * MS), t0 + i * MS, t0 + i * MS + MS)
+    w.new_grant()
+    t1 = t0 + 200 * MS
+    for i in range(1, 51):  # grant 2, same sequence numbers: nothing arrives
+        w.sent((i, t1 + i * MS), t1 + i * MS)
+    w.echoed((3, t0 + 3 * MS), t0 + 3 * MS, t1 + 60 * MS)  # a late echo of grant 1's command 3
+    q = w.snapshot(t1 + 400 * MS)
+    assert q.uplink_loss == 1.0 and q.sent == 50
+
+
+class _SteppedWallClock(ModuleType):
+    """The ``time`` module with its wall clock ``offset_s`` away: NTP stepping this machine's clock (root could step
+    the real one; a test cannot)."""
+
+    def __init__(self, offset_s: float) -> None:
+        super().__init__("time")
+        self._offset_ns = int(offset_s * 1e9)
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(time, name)
+
+    def time_ns(self) -> int:
+        return time.time_ns() + self._offset_ns
+
+    def time(self) -> float:
+        return self.time_ns() / 1e9
+
+
+def test_round_trips_are_timed_on_the_monotonic_clock(edge_factory, operator_factory, monkeypatch) -> None:
+    """Found by a review of the operator side: the wall clock stepped back 0.5 s between a command's send and its
+    echo made the RTT -499 ms (measured on the code before; and an hour-long step back held an hour of sends in the
+    window). Here the client's wall clock is 0.5 s behind the one that stamps the commands, as for every command in
+    flight at a step."""
+    import iorthand_operator.client as client_module
+
+    edge_factory()
+    client = operator_factory()
+    client.wait_for_state()
+    client.start()
+    client.acquire()
+    client.set_twist([0.0] * 3, [0.0] * 3, deadman=True)  # a held deadman: a command every tick, each echoed
+    wait_until(lambda: client.echo_count > 10, 5.0, message="echoes")
+    monkeypatch.setattr(client_module, "time", _SteppedWallClock(-0.5))
+    mark = client.echo_count
+    wait_until(lambda: client.echo_count > mark + 60, 5.0, message="echoes after the step")
+    rtts = [e.rtt_ms for e in client.echoes_since(mark)]
+    assert min(rtts) >= 0.0 and max(rtts) < 250.0, (min(rtts), max(rtts))
+    q = client.link_quality()
+    assert 0.0 <= q.rtt_p50_ms <= q.rtt_p95_ms < 250.0, q
+
+
+def test_a_dead_link_after_a_new_grant_reads_as_total_loss(router_endpoint, edge_factory) -> None:
+    """Found by a review of the operator side: sends and echoes were matched by the sequence number alone, which
+    restarts with each grant, so after a new grant on a dead link every command found an echo of the grant before
+    and the uplink loss read 0 % (measured on the code before: 0.0 with 90 commands sent into the dead link)."""
+    edge_factory("sim1")
+    host, port = router_endpoint.split("/", 1)[1].rsplit(":", 1)
+    emu = LinkEmulator(("127.0.0.1", 0), (host, int(port)), LinkProfile(0.0, 0.0)).start()
+    session = open_session(ZenohConfig(mode="client", connect=[f"tcp/127.0.0.1:{emu.port}"], lease_ms=2000,
+                                       shared_memory=False))
+    client = OperatorClient(session, "sim1", "op1")
+    try:
+        client.wait_for_state()
+        client.start()
+        client.acquire()
+        client.set_twist([0.0] * 3, [0.0] * 3, deadman=True)
+        wait_until(lambda: client.echo_count >= 150, 10.0, message="150 echoes under the first grant")
+        assert client.link_quality().uplink_loss == 0.0
+        client.release()
+        client.acquire()  # a new grant: its commands are seq 1, 2, ... again
+        client.set_twist([0.0] * 3, [0.0] * 3, deadman=True)  # pressed afresh
+        emu.blackout(True)  # the link dies: nothing sent from here on is echoed
+        marks = client.sent_count, client.echo_count
+        time.sleep(1.5)
+        q = client.link_quality()
+        sent, echoed = client.sent_count - marks[0], client.echo_count - marks[1]
+    finally:
+        emu.blackout(False)
+        client.close()
+        session.close()
+        emu.close()
+    assert sent > 60 and echoed <= 3, (sent, echoed)  # (an echo may have been on its way as the link died)
+    # All but the few commands of the new grant that crossed before the link died.
+    assert q.uplink_loss > 0.9, q

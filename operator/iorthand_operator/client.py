@@ -74,18 +74,20 @@ class ControlRefused(RuntimeError):
 
 @dataclass(slots=True)  # 100 000 of them are kept: no per-object dict
 class Echo:
-    """One command's round trip: sent by us, applied (or refused) by the edge, echoed back."""
+    """One command's round trip: sent by us, applied (or refused) by the edge, echoed back. Its times are
+    monotonic: a wall clock stepped by NTP between the send and the echo made round trips of -500 ms."""
 
     seq: int
-    sent_ns: int
-    echoed_ns: int
+    sent_ns: int  # the command's own time stamp (wall clock): with ``seq``, which command this echo answers
+    echoed_ns: int  # wall clock when the echo arrived (to line echoes up with other records, not to time them)
     accepted: bool
     status: str
-    echoed_mono: float = 0.0  # monotonic time it arrived: what "lately" is measured on (a wall clock may step)
+    sent_mono: float  # monotonic time the command was sent
+    echoed_mono: float  # monotonic time the echo arrived: what "lately" is measured on
 
     @property
     def rtt_ms(self) -> float:
-        return (self.echoed_ns - self.sent_ns) / 1e6
+        return (self.echoed_mono - self.sent_mono) * 1e3
 
 
 @dataclass
@@ -105,9 +107,12 @@ MAX_VITALS = 16
 TOKEN_RETRIES = 4
 TOKEN_RETRY_S = 0.25
 RENEW_RETRY_S = 0.2  # s between attempts while a lease renewal fails (see OperatorClient._renew_lease)
-# A safety status older than this is none (next_step): the edge sends one at safety_rate_hz (20 Hz by default, 1 Hz
-# at the least) and on every change.
+# A safety status older than this is none (next_step) or shown as old (the console): the edge sends one at
+# safety_rate_hz (20 Hz by default, 1 Hz at the least) and on every change.
 SAFETY_STALE_S = 2.0
+# The deadman flag of the last command sent is what the stream sends only if that command went out within this
+# long (a few periods, and the process sender's records arrive up to ~50 ms late): a quiet stream sends none.
+SENT_LATELY_S = 0.25
 # A sender process that dies is started again, unless it died this many times within this many seconds: then the
 # client gives control up and says why (OperatorClient._restart_sender).
 SENDER_LOSSES = 3
@@ -173,11 +178,16 @@ class OperatorClient:
         # message's sequence per suffix (a counter shared between control verbs would jump on each of them).
         self._seq_other: defaultdict[str, Sequencer] = defaultdict(Sequencer)
         self.bind_keys = bind_keys  # commands and control queries on keys carrying our id (ACL-bound)
-        self._sent: OrderedDict[int, int] = OrderedDict()  # seq → send time (ns), bounded; an echo takes its entry
+        # (seq, the command's time stamp) → monotonic send instant, bounded; an echo takes its entry. The sequence
+        # alone restarts with every grant: an echo of an earlier grant's command matched a new one.
+        self._sent: OrderedDict[tuple[int, int], float] = OrderedDict()
         self.echoes: deque[Echo] = deque(maxlen=100_000)  # the newest (~28 min at 60 Hz): bounded for long sessions
         self.echo_count = 0  # every echo ever appended: marks for echoes_since (the deque drops its oldest)
         self.sent_count = 0
         self.last_sent_ns = 0
+        # The deadman flag of the last command sent and its monotonic send instant (sending_deadman).
+        self.last_sent_deadman = False
+        self.last_sent_at = -math.inf
         self.send_times: list[float] = []  # monotonic send instants, for jitter figures
         self.robot_state: RobotState | None = None
         self.safety: SafetyStatus | None = None
@@ -348,6 +358,7 @@ class OperatorClient:
             self._seq_other[keys.CMD_STOP] = stop
             if self._proc_sender is not None:
                 self._proc_sender.write(key=key, key_gen=self._key_gen, press_from=self._press_from)
+        self.link.new_grant()  # the loss counts this grant's commands
 
     def _next_seq(self, suffix: str) -> int:
         with self._lock:
@@ -438,7 +449,8 @@ class OperatorClient:
         return list(self.events)[len(self.events) - n:] if n > 0 else []
 
     def link_quality(self, now_ns: int | None = None) -> LinkQuality:
-        return self.link.snapshot(time.time_ns() if now_ns is None else now_ns)
+        """The link's figures at ``now_ns`` (monotonic; default now)."""
+        return self.link.snapshot(time.monotonic_ns() if now_ns is None else now_ns)
 
     def release(self) -> ControlReply | None:
         self.set_twist(np.zeros(3), np.zeros(3), deadman=False)
@@ -577,9 +589,9 @@ class OperatorClient:
         self.log_event("sender", "failed", self.sender_down)
         self.release()
 
-    def _on_send_record(self, seq: int, t_ns: int, mono: float) -> None:
+    def _on_send_record(self, seq: int, t_ns: int, mono: float, grant: int, deadman: bool) -> None:
         """One send by the sender process (called by its link thread, or by an echo arriving first)."""
-        self._record_send(seq, t_ns, mono)
+        self._record_send(seq, t_ns, mono, grant, deadman)
 
     def _raise_priority(self) -> None:
         """Best effort: make the sender hard to delay. Two things delay a Python thread that wakes on time:
@@ -614,7 +626,7 @@ class OperatorClient:
         if out is None:
             return None
         cmd, payload = out
-        self._record_send(cmd.seq, cmd.t, time.monotonic())
+        self._record_send(cmd.seq, cmd.t, time.monotonic(), int(self._stream.key_gen), cmd.deadman)
         assert self._pub_twist is not None, "the thread sender's publisher"
         self._pub_twist.put(payload)
         return cmd
@@ -643,17 +655,22 @@ class OperatorClient:
         self.beat()  # the caller's message is the sign of life
         return self._send(state_t)
 
-    def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
+    def _record_send(self, seq: int, t_ns: int, mono: float, grant: int, deadman: bool) -> None:
+        """One command sent: ``seq``, ``t_ns`` and ``deadman`` as on it, ``mono`` its monotonic send instant,
+        under ``grant`` (a key_gen)."""
         with self._lock:
-            self._sent[seq] = t_ns
+            self._sent[(seq, t_ns)] = mono
             while len(self._sent) > 4096:
                 self._sent.popitem(last=False)
             self.sent_count += 1
             self.last_sent_ns = t_ns
+            self.last_sent_deadman, self.last_sent_at = deadman, mono
             self.send_times.append(mono)
             if len(self.send_times) > 400_000:  # ~2 h at 60 Hz: keep memory bounded on long sessions
                 del self.send_times[:100_000]
-        self.link.sent(seq, t_ns)
+            current = grant == self._key_gen
+        if current:  # (a record of the grant before, read after a new one, is none of the new grant's loss)
+            self.link.sent((seq, t_ns), int(mono * 1e9))
 
     def _beat(self) -> None:
         """The client's heartbeat, every 50 ms: this process is alive and running Python (see CommandStream). A
@@ -763,7 +780,7 @@ class OperatorClient:
             if self._proc_sender is not None:
                 with self._lock:
                     self._proc_sender.write(state_t=msg.t)
-            self.link.state(msg.seq, time.time_ns())
+            self.link.state(msg.seq, time.monotonic_ns())
 
     def _on_safety(self, sample: zenoh.Sample) -> None:
         msg = self._decode(SafetyStatus, sample)
@@ -838,18 +855,19 @@ class OperatorClient:
             return
         if self._proc_sender is not None:
             self._proc_sender.drain()  # the send record left the child before the command: take it now
+        cmd = (msg.cmd_seq, msg.cmd_t)  # the very command this echo answers, whatever the grant
         with self._lock:
-            sent = self._sent.pop(msg.cmd_seq, None)  # one echo per command: a repeat is not a second answer
+            sent = self._sent.pop(cmd, None)  # one echo per command: a repeat is not a second answer
             if sent is not None and msg.accepted and self._key:
                 # The edge signed this with our key (checked above): it held us as its owner when our command
                 # arrived, and an authentic command renews the edge's lease as a renewal does (Supervisor): while
                 # we drive, a renewal that cannot get through loses nothing.
-                self._renewed_at = max(self._renewed_at, time.monotonic() - max(0, now - sent) / 1e9)
+                self._renewed_at = max(self._renewed_at, sent)
             if sent is not None:
-                self.echoes.append(Echo(msg.cmd_seq, sent, now, msg.accepted, msg.status, mono))
+                self.echoes.append(Echo(msg.cmd_seq, msg.cmd_t, now, msg.accepted, msg.status, sent, mono))
                 self.echo_count += 1
         if sent is not None:
-            self.link.echoed(msg.cmd_seq, sent, now)
+            self.link.echoed(cmd, int(sent * 1e9), int(mono * 1e9))
             if self.echo_listener is not None:
                 self.echo_listener(self.echoes[-1], msg)
         if not msg.accepted:
@@ -874,14 +892,29 @@ class OperatorClient:
         """Monotonic time the edge entered its latest halt that waits for a fresh press or a new grant."""
         return self._halted_at
 
+    def safety_age(self, now: float | None = None) -> float:
+        """s since the newest safety status arrived at monotonic ``now`` (default now); inf before the first."""
+        return (time.monotonic() if now is None else now) - self.safety_at
+
+    def safety_stale(self, now: float | None = None) -> bool:
+        """The newest safety status is older than SAFETY_STALE_S: it no longer says what the edge's state is (the
+        edge publishes one 20 times a second)."""
+        return self.safety is not None and self.safety_age(now) > SAFETY_STALE_S
+
+    def sending_deadman(self, now: float | None = None) -> bool:
+        """Whether the command stream sends the deadman held: its last command said so and went out within
+        SENT_LATELY_S. Not the input's deadman: without a grant the stream sends nothing, and under a new grant it
+        sends the deadman released until a fresh press (CommandStream)."""
+        now = time.monotonic() if now is None else now
+        return self.last_sent_deadman and now - self.last_sent_at <= SENT_LATELY_S
+
     def next_step(self) -> recovery.NextStep:
-        """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`). A safety
-        status older than SAFETY_STALE_S is none: the edge publishes one 20 times a second, and an old one said
-        "nothing stands between you and motion" while the link or the edge was down."""
-        age = time.monotonic() - self.safety_at
-        if self.safety is not None and age > SAFETY_STALE_S:
-            return recovery.NextStep(recovery.Step.WAIT, f"no safety status from the edge for {age:.1f} s: the link "
-                                                         "or the edge is down")
+        """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`). A stale
+        safety status (safety_stale) is none: an old one said "nothing stands between you and motion" while the
+        link or the edge was down."""
+        if self.safety_stale():
+            return recovery.NextStep(recovery.Step.WAIT, f"no safety status from the edge for {self.safety_age():.1f} "
+                                                         "s: the link or the edge is down")
         fresh = self._deadman and self._pressed_at > max(self._halted_at, self._press_from)
         old = self._deadman and self._pressed_at < self._press_from
         return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down, old)

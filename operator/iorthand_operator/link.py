@@ -3,14 +3,20 @@
 The operator sends twists with sequence numbers; the edge echoes every one it receives on ``state/applied``
 (accepted or refused). From that:
 
-- **RTT**: echo receive time − send time, both on this machine's clock (no clock sync needed).
+- **RTT**: echo receive time − send time, both on this machine's monotonic clock (no clock sync needed, and a
+  wall clock stepped by NTP between a send and its echo cannot make a round trip negative or an hour long).
 - **Jitter**: the mean absolute difference of consecutive RTTs (RFC 3550's idea, without its smoothing),
   i.e. how irregular the delay is — what trips a deadman timeout, more than a constant delay does.
 - **Uplink loss**: commands sent in the window that were never echoed. A command counts only once it is
   older than ``echo_grace`` (its echo may still be on its way), so a healthy link reads 0 %, not a few %.
+  Sends and echoes are matched by the command's identity (the client's: its sequence number and its own time
+  stamp, both of which the echo carries back), never by the sequence alone: that restarts with every grant of
+  control, and an earlier grant's echoes matched the new grant's commands (a dead uplink read 0 %). A new grant
+  (:meth:`LinkWindow.new_grant`) starts the count afresh: the loss shown is that of the commands that can move
+  the robot now.
 - **Downlink loss**: gaps in the edge's ``state/robot`` sequence numbers.
 
-Everything takes explicit times (ns) so tests drive it without a clock. The console colours each figure
+Everything takes explicit monotonic times (ns) so tests drive it without a clock. The console colours each figure
 against :class:`LinkThresholds`.
 """
 
@@ -20,6 +26,7 @@ import itertools
 import math
 import threading
 from collections import deque
+from collections.abc import Hashable
 from dataclasses import dataclass
 
 from iorthand import stats
@@ -118,30 +125,42 @@ def gap_loss(seqs: list[int]) -> float:
 
 
 class LinkWindow:
-    """Thread-safe sliding window of sends, echoes and state sequence numbers (times in ns)."""
+    """Thread-safe sliding window of sends, echoes and state sequence numbers (monotonic times in ns). A send is
+    named by ``cmd``, anything hashable that identifies that one command (not only its sequence number)."""
 
     def __init__(self, window_s: float = 5.0, echo_grace_s: float = 0.5) -> None:
         self.window_ns = int(window_s * 1e9)
         self.grace_ns = int(echo_grace_s * 1e9)
         self._lock = threading.Lock()
-        self._sent: deque[tuple[int, int]] = deque()  # (send ns, seq)
-        self._echoed: dict[int, int] = {}  # seq → rtt ns, for seqs still in _sent
+        self._sent: deque[tuple[int, Hashable]] = deque()  # (send ns, cmd)
+        # cmd → rtt ns, or None while unanswered, for the commands in _sent (an echo of any other is no answer)
+        self._answers: dict[Hashable, int | None] = {}
         self._echoes: deque[tuple[int, float]] = deque()  # (echo ns, rtt ms), arrival order
         self._states: deque[tuple[int, int]] = deque()  # (receive ns, seq)
 
     # Each insert also drops what is two windows old (amortised O(1)): a client nobody asks for a snapshot (a
     # scripted operator running for hours) must not keep every send, echo and state it ever saw. Two windows, not
     # one: a snapshot may be taken a little behind the newest insert (an echo stamped after it was asked for).
-    def sent(self, seq: int, t_ns: int) -> None:
+    def sent(self, cmd: Hashable, t_ns: int) -> None:
         with self._lock:
-            self._sent.append((t_ns, seq))
+            self._sent.append((t_ns, cmd))
+            self._answers.setdefault(cmd, None)
             self._trim(t_ns - self.window_ns)
 
-    def echoed(self, seq: int, sent_ns: int, echo_ns: int) -> None:
+    def echoed(self, cmd: Hashable, sent_ns: int, echo_ns: int) -> None:
         with self._lock:
-            self._echoed[seq] = echo_ns - sent_ns
+            if cmd in self._answers:
+                self._answers[cmd] = echo_ns - sent_ns
             self._echoes.append((echo_ns, (echo_ns - sent_ns) / 1e6))
             self._trim(echo_ns - self.window_ns)
+
+    def new_grant(self) -> None:
+        """A new grant of control: the commands sent under the one before can move nothing any more, and their
+        echoes answered them only; the loss counts the new grant's commands from here (the round trips measured
+        stay: they are the link's, whatever the grant)."""
+        with self._lock:
+            self._sent.clear()
+            self._answers.clear()
 
     def state(self, seq: int, t_ns: int) -> None:
         with self._lock:
@@ -151,8 +170,8 @@ class LinkWindow:
     def _trim(self, now_ns: int) -> None:
         cut = now_ns - self.window_ns
         while self._sent and self._sent[0][0] < cut:
-            _, seq = self._sent.popleft()
-            self._echoed.pop(seq, None)
+            _, cmd = self._sent.popleft()
+            self._answers.pop(cmd, None)
         while self._echoes and self._echoes[0][0] < cut:
             self._echoes.popleft()
         while self._states and self._states[0][0] < cut:
@@ -162,8 +181,8 @@ class LinkWindow:
         with self._lock:
             self._trim(now_ns)
             rtts = [r for _, r in self._echoes]
-            due = [seq for t, seq in self._sent if t <= now_ns - self.grace_ns]
-            missing = sum(1 for seq in due if seq not in self._echoed)
+            due = [cmd for t, cmd in self._sent if t <= now_ns - self.grace_ns]
+            missing = sum(1 for cmd in due if self._answers.get(cmd) is None)
             state_seqs = [s for _, s in self._states]
             sent = len(self._sent)
         return LinkQuality(

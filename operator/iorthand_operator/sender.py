@@ -14,9 +14,9 @@ Safety: if the parent's heartbeat is older than ``ui_timeout`` the child treats 
 twists with ``deadman=False`` for ``release_tail``, then quiet): a frozen UI must not keep the robot moving.
 The child exits when the parent dies (PR_SET_PDEATHSIG, a parent-pid check every tick, a broken pipe).
 
-Child → parent: one record per send (seq, send time, monotonic send instant, grant) through a pipe, written before
-the put, so the parent can match the edge's echo to its send time exactly as with the thread sender; and, if the
-child fails, why (``E``), before it exits with code 1.
+Child → parent: one record per send (seq, send time, monotonic send instant, grant, deadman flag) through a pipe,
+written before the put, so the parent can match the edge's echo to its send time exactly as with the thread sender
+and show what the stream sends; and, if the child fails, why (``E``), before it exits with code 1.
 
 A child that ends while the parent did not ask it to (killed, crashed) is reported to the parent
 (``on_lost``, with how it ended), which may start another with :meth:`ProcessSender.start`: the new child goes on
@@ -57,7 +57,8 @@ _SIZE = 18
 _FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "heartbeat": _HEARTBEAT, "stop": _STOP,
            "state_t": _STATE_T, "key_gen": _KEY_GEN, "pressed_at": _PRESSED, "press_from": _PRESS_FROM, "halted_at": _HALTED,
            "frame": _FRAME}
-_RECORD = struct.Struct("<qqdd")  # seq, t (ns), monotonic send instant (s), the grant (key_gen) seq counts in
+# seq, t (ns), monotonic send instant (s), the grant (key_gen) seq counts in, the command's deadman flag
+_RECORD = struct.Struct("<qqdd?")
 
 
 @contextlib.contextmanager
@@ -211,7 +212,7 @@ class ProcessSender:
         ui_timeout: float,
         realtime: bool,
         lock: threading.Lock,
-        on_record: Callable[[int, int, float], None],
+        on_record: Callable[[int, int, float, int, bool], None],  # (seq, t ns, monotonic instant, grant, deadman)
         on_lost: Callable[[str], None] | None = None,
         heartbeat_s: float = 0.05,
     ) -> None:
@@ -321,9 +322,9 @@ class ProcessSender:
                 while conn.poll(0):
                     msg = conn.recv_bytes()
                     if msg[:1] == b"S":
-                        seq, t_ns, mono, key_gen = _RECORD.unpack(msg[1:])
+                        seq, t_ns, mono, key_gen, deadman = _RECORD.unpack(msg[1:])
                         self.last_sent = (key_gen, seq)
-                        self._on_record(seq, t_ns, mono)
+                        self._on_record(seq, t_ns, mono, int(key_gen), deadman)
                     elif msg[:1] == b"R":
                         self.priority = msg[1:].decode()
                         self._ready.set()
@@ -442,7 +443,8 @@ def _child_loop(conn, array, key, zenoh_config, twist_key: str, stream: CommandS
                               TWIST_FRAMES[int(vals[_FRAME])])
             if out is not None:
                 cmd, payload = out
-                conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic(), stream.key_gen))
+                conn.send_bytes(b"S" + _RECORD.pack(cmd.seq, cmd.t, time.monotonic(), stream.key_gen,
+                                                          cmd.deadman))
                 pub.put(payload)
             return True
 

@@ -400,8 +400,8 @@ class BenchClient(OperatorClient):
         super().__init__(*args, **kwargs)
         self._bench_sub = self.session.declare_subscriber(self.keys.key(keys.STATE_APPLIED), self._bench_on_applied)
 
-    def _record_send(self, seq: int, t_ns: int, mono: float) -> None:
-        super()._record_send(seq, t_ns, mono)
+    def _record_send(self, seq: int, t_ns: int, mono: float, grant: int, deadman: bool) -> None:
+        super()._record_send(seq, t_ns, mono, grant, deadman)
         with self._lock:
             self.bench_sent.append((seq, t_ns))
 

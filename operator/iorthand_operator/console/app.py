@@ -28,11 +28,16 @@ from textual.widgets import Footer, OptionList, RichLog, Static
 from iorthand.protocol import printable
 from iorthand_operator.client import ControlRefused
 from iorthand_operator.console.controller import ConsoleController, ConsoleView
-from iorthand_operator.inputs.keyboard import KeyboardInput
+from iorthand_operator.inputs.keyboard import KeyboardInput, read_time
 
 
 def _yes(flag: bool, yes: str = "yes", no: str = "no") -> Text:
     return Text(yes if flag else no, style="bold green" if flag else "bold red")
+
+
+def _stale(text: str, old: str) -> Text:
+    """A value from a safety status that is no longer current, with its age: "yes (stale 3.2 s)"."""
+    return Text(f"{text} ({old})", style="grey50")
 
 
 def _fmt(values: list[float], unit: str, prec: int = 1) -> str:
@@ -198,7 +203,7 @@ class OperatorConsole(App[int]):
         if len(self.screen_stack) > 1:
             return  # the pose screen has the keys; holding a move key there must not move the robot
         key = event.key
-        if self.keyboard is not None and self.keyboard.key(key, time.monotonic()):
+        if self.keyboard is not None and self.keyboard.key(key, read_time(event.time, time.monotonic())):
             event.stop()
             return
         # With a gamepad the keyboard still stops the robot and opens the pose list.
@@ -274,10 +279,21 @@ class OperatorConsole(App[int]):
         t.add_row("router", Text(v.router or "—") + Text("  connected" if v.connected else "  no data", style="green" if v.connected else "red"))
         online = {"online": "bold green", "offline": "bold red"}.get(v.robot_online, "grey50")
         t.add_row("robot", Text(v.robot_online.upper(), style=online) + Text("" if v.state_fresh else "  (no fresh state)", style="yellow"))
-        t.add_row("armed", _yes(v.armed))
-        t.add_row("owner", Text(v.owner or "nobody", style="bold green" if v.we_own else "bold yellow"))
-        t.add_row("deadman", Text.assemble("sent ", _yes(v.deadman, "ON", "off"), "  edge ", _yes(v.edge_deadman, "ON", "off")))
-        t.add_row("status", Text(f"{v.edge_status} {v.edge_reason}".strip() or "—", style="red" if v.edge_reason and v.edge_status not in ("ok", "idle") else ""))
+        old = v.safety_stale
+        if old:  # the edge's last word, however old: greyed and aged, never green
+            t.add_row("armed", _stale("yes" if v.armed else "no", old))
+            t.add_row("owner", _stale(v.owner or "nobody", old))
+            edge = _stale("ON" if v.edge_deadman else "off", old)
+        else:
+            t.add_row("armed", _yes(v.armed))
+            t.add_row("owner", Text(v.owner or "nobody", style="bold green" if v.we_own else "bold yellow"))
+            edge = _yes(v.edge_deadman, "ON", "off")
+        t.add_row("deadman", Text.assemble("sent ", _yes(v.deadman, "ON", "off"), "  edge ", edge))
+        status = f"{v.edge_status} {v.edge_reason}".strip() or "—"
+        if old:
+            t.add_row("status", _stale(status, old))
+        else:
+            t.add_row("status", Text(status, style="red" if v.edge_reason and v.edge_status not in ("ok", "idle") else ""))
         if v.hint:
             t.add_row("next", Text(v.hint, style="bold yellow"))
         return t
@@ -321,7 +337,8 @@ class OperatorConsole(App[int]):
 
     def _profile(self, v: ConsoleView) -> Table:
         t = self._table()
-        t.add_row("profile", Text(v.profile or "—", style="bold cyan"))
+        t.add_row("profile", _stale(v.profile or "—", v.safety_stale) if v.safety_stale else
+                  Text(v.profile or "—", style="bold cyan"))
         t.add_row("frame", Text("probe (tool)" if v.frame == "tool" else "base", style="bold" if v.frame == "tool" else ""))
         t.add_row("contact", Text(v.contact or "off", style="bold magenta" if v.contact else ""))
         if v.task:

@@ -53,9 +53,12 @@ class ConsoleView:
     owner: str = ""
     we_own: bool = False
     edge_deadman: bool = False
-    deadman: bool = False  # what we send
+    deadman: bool = False  # what the command stream sends (not the input's: OperatorClient.sending_deadman)
     edge_status: str = ""
     edge_reason: str = ""
+    # "stale 3.2 s" when the safety status behind armed, owner, status, the edge's deadman and the profile is older
+    # than the client's bound (OperatorClient.safety_stale): those rows are then history, not the edge's state.
+    safety_stale: str = ""
     hint: str = ""  # what to do before the robot moves again, with the key that does it ("" when nothing)
     force: ForceView = field(default_factory=lambda: force_view(None, 0.0, 0.0, 1.0))
     wrench: list[float] = field(default_factory=list)
@@ -229,7 +232,9 @@ class ConsoleController:
         v = ConsoleView(router=self.router, sent=c.sent_count)
         state = c.robot_state
         v.state_fresh = state is not None and now - c.robot_state_at <= s.state_stale_after
-        v.connected = v.state_fresh or c.edge_alive is not None
+        # Connected: something from the robot arrives through the router. Not "its liveliness was ever heard of":
+        # an edge gone offline, or a link gone dead, left "connected" on the screen.
+        v.connected = v.state_fresh or (c.safety is not None and not c.safety_stale(now))
         v.robot_online = {True: "online", False: "offline", None: "unknown"}[c.edge_alive]
         if c.edge_alive is None and v.state_fresh:
             v.robot_online = "online"
@@ -243,7 +248,9 @@ class ConsoleController:
             v.angular_limit_deg_s = math.degrees(safety.angular_limit)
             v.limits_hit = list(safety.limits_hit)
             v.edge_judged, v.edge_superseded = safety.received, safety.superseded
-        v.deadman = self.sample.deadman
+            if c.safety_stale(now):
+                v.safety_stale = f"stale {c.safety_age(now):.1f} s"
+        v.deadman = c.sending_deadman(now)
         v.frame = c.frame
         if safety is not None:
             v.contact = f"holding {safety.contact_target:g} N" if safety.contact_target >= 0 else ""
@@ -264,7 +271,7 @@ class ConsoleController:
         v.input_name = self.device.name
         v.input_connected = self.sample.connected
         v.input_status = self.sample.status
-        tw = self.sample.twist
+        tw = self.sample.twist if v.deadman else np.zeros(6)  # a released deadman sends a zero twist
         v.command = [*(1000 * tw[:3]), *(math.degrees(a) for a in tw[3:])]
         if c.markers is None:
             v.markers_note = "no marker data"

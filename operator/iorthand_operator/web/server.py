@@ -354,7 +354,8 @@ class Page:
         self._sent_video = dict.fromkeys(VIDEO_STREAMS, -1)  # seq of the last frame sent, per stream
         self._video_stats = {name: [0, 0] for name in VIDEO_STREAMS}  # frames sent, skipped since the last report
         self._feedback_at = dict.fromkeys(VIDEO_STREAMS, 0.0)
-        self._pending: dict[int, int] = {}  # command seq → the page's message id
+        # (command seq, its time stamp) → the page's message id: the sequence alone restarts with every grant
+        self._pending: dict[tuple[int, int], int] = {}
         self._last_events: dict[str, Event | None] = {"watch": None, "client": None}
         self._notices = messages.Notices()
         self._twists = messages.TwistBudget(bridge.config.twist_hz)
@@ -411,7 +412,7 @@ class Page:
         seen = min(msg.seen, newest.t) if newest is not None else 0
         cmd = client.send_now(msg.linear, msg.angular, msg.deadman, seen, msg.frame)
         if cmd is not None:
-            self._pending[cmd.seq] = msg.id
+            self._pending[(cmd.seq, cmd.t)] = msg.id
             while len(self._pending) > 512:
                 self._pending.pop(next(iter(self._pending)))
 
@@ -515,7 +516,7 @@ class Page:
 
     def _on_echo(self, echo: Echo, _msg: Any) -> None:
         """A command of ours came back from the edge (a Zenoh thread): tell the page, for its round trip."""
-        page_id = self._pending.pop(echo.seq, None)
+        page_id = self._pending.pop((echo.seq, echo.sent_ns), None)
         if page_id is not None and self.bridge.loop is not None:
             reply = {"type": "echo", "id": page_id, "accepted": echo.accepted, "status": echo.status}
             self.bridge.loop.call_soon_threadsafe(lambda: asyncio.ensure_future(self.send(reply)))
