@@ -170,3 +170,16 @@ def test_gamepad_through_sdl_injected_events() -> None:
         assert s.connected and not s.deadman
     finally:
         pad.close()
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"axes": {"linear_x": {"axis": 0}, "angular_z": {"axis": 0}}}, "axes.angular_z: axis 0 already drives linear_x"),
+    ({"turbo_button": 4}, "turbo_button: button 4 is the enable \\(deadman\\) button"),
+    ({"buttons": {"estop": 5}}, "buttons.estop: button 5 is the turbo button"),
+    ({"buttons": {"estop": 1, "torch": 1}}, "buttons.torch: button 1 is already 'estop'"),
+])
+def test_a_gamepad_mapping_with_one_control_for_two_things_is_refused(change, message) -> None:
+    """Found by a review of the operator side: a mapping that put two twist components on one stick axis, or the
+    turbo on the enable button (every motion at turbo speed), loaded without a word."""
+    with pytest.raises(ConfigError, match=message):
+        _pad(**change)

@@ -10,7 +10,7 @@ import pytest
 
 from iorthand.config import ConfigError, from_dict, load
 from iorthand_operator.script import Script, run_script
-from tests.conftest import iorthand_cmd
+from tests.conftest import ROOT, iorthand_cmd
 
 SCRIPT = """
 name: test
@@ -32,6 +32,42 @@ def test_script_validation() -> None:
         from_dict({"steps": [{"twist": [0, 0], "duration": 1}]}, Script)
     with pytest.raises(ConfigError, match="action"):
         from_dict({"steps": [{"action": "dance"}]}, Script)
+
+
+@pytest.mark.parametrize(("step", "index", "kind", "field"), [
+    ({"wait": 1.0, "duration": 5.0}, 1, "wait", "duration"),
+    ({"wait": 1.0, "frame": "tool"}, 1, "wait", "frame"),
+    ({"action": "stop", "torch_on": True}, 1, "stop", "torch_on"),  # at its old default value: still no torch
+    ({"action": "torch", "reason": "why"}, 1, "torch", "reason"),
+    ({"twist": [0.01, 0, 0, 0, 0, 0], "duration": 1.0, "profile": "remote"}, 1, "twist", "profile"),
+    ({"action": "servo", "pan_deg": 10, "deadman": False}, 1, "servo", "deadman"),
+    ({"action": "silence", "duration": 0.5, "frame": "base"}, 1, "silence", "frame"),
+])
+def test_a_step_refuses_what_does_not_apply_to_its_kind(step, index, kind, field, tmp_path: Path) -> None:
+    """Found by a review of the operator side: a field for another kind of step was taken and ignored
+    (``{wait: 1, duration: 5}`` waited 1 s, ``{action: stop, torch_on: true}`` left the torch as it was)."""
+    path = tmp_path / "s.yaml"
+    path.write_text(json.dumps({"steps": [{"wait": 0.1}, step]}))  # (JSON is YAML)
+    with pytest.raises(ConfigError) as err:
+        load(path, Script)
+    assert err.value.key == f"steps[{index}]", err.value
+    assert f"a {kind} step does not take {field!r}" in str(err.value), err.value
+
+
+def test_steps_that_would_do_nothing_are_refused() -> None:
+    with pytest.raises(ConfigError, match=r"steps\[0\]: a silence step needs a duration > 0 s"):
+        from_dict({"steps": [{"action": "silence"}]}, Script)
+    with pytest.raises(ConfigError, match="a servo step needs pan_deg, tilt_deg or both"):
+        from_dict({"steps": [{"action": "servo", "duration": 1.0}]}, Script)
+    with pytest.raises(ConfigError, match="turns contact off does not take 'contact_force'"):
+        from_dict({"steps": [{"action": "contact", "contact_on": False, "contact_force": 4.0}]}, Script)
+    with pytest.raises(ConfigError, match="deadman released sends a zero twist"):
+        from_dict({"steps": [{"twist": [0.01, 0, 0, 0, 0, 0], "duration": 1.0, "deadman": False}]}, Script)
+    from_dict({"steps": [{"twist": [0] * 6, "duration": 1.0, "deadman": False}]}, Script)  # released on purpose
+
+
+def test_the_demo_script_loads() -> None:
+    assert len(load(ROOT / "configs" / "demo-script.yaml", Script).steps) > 10
 
 
 def test_run_script_moves_and_reports(edge_factory, operator_factory, tmp_path: Path) -> None:

@@ -24,7 +24,7 @@ a halt on the way is recovered from by the script itself (its intent is clear), 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -36,37 +36,68 @@ from iorthand_operator.client import ControlRefused, OperatorClient
 from iorthand_operator.scripted import drive_for
 
 STEP_ACTIONS = ("stop", "torch", "servo", "profile", "silence", "contact")
+# The fields each kind of step takes besides the one that names its kind. A field given to a kind it does not apply
+# to is refused: it would be ignored, and the script would not do what it says (``{wait: 1, duration: 5}`` waited
+# 1 s; ``{action: stop, torch_on: true}`` stopped and left the torch as it was).
+STEP_FIELDS = {
+    "twist": ("duration", "frame", "deadman"),
+    "wait": (),
+    "stop": ("reason", "duration"),
+    "torch": ("torch_on", "brightness", "duration"),
+    "servo": ("pan_deg", "tilt_deg", "duration"),
+    "profile": ("profile", "duration"),
+    "silence": ("duration",),
+    "contact": ("contact_on", "contact_force", "duration"),
+}
 
 
 @dataclass
 class ScriptStep:
+    """One step. Every field is None until given, so that one given to a kind of step it does not apply to is seen
+    even at its default value; run_step applies the defaults the comments name."""
+
     twist: list[float] | None = setting(None, length=6, lo=-10.0, hi=10.0)
-    frame: str = setting("base", choices=("base", "tool"), help="of the twist: base, or the probe's frame")
-    duration: float = setting(0.0, lo=0.0, hi=3600.0)
-    deadman: bool = True
+    frame: str | None = setting(None, choices=("base", "tool"), help="of the twist: base (default), or the probe's")
+    duration: float | None = setting(None, lo=0.0, hi=3600.0, help="s; after an action, s before the next step")
+    deadman: bool | None = None  # of a twist: held (default) or released
     wait: float | None = setting(None, lo=0.0, hi=3600.0)
     action: str | None = setting(None, choices=STEP_ACTIONS)
-    reason: str = "script stop"
-    torch_on: bool = True
-    brightness: float = setting(1.0, lo=0.0, hi=1.0)
+    reason: str | None = None  # of a stop; default "script stop"
+    torch_on: bool | None = None  # default on
+    brightness: float | None = setting(None, lo=0.0, hi=1.0, help="default 1")
     pan_deg: float | None = setting(None, lo=-180.0, hi=180.0)
     tilt_deg: float | None = setting(None, lo=-180.0, hi=180.0)
-    profile: str = ""
-    contact_on: bool = True  # action contact: on (holding contact_force) or off
+    profile: str | None = None
+    contact_on: bool | None = None  # action contact: on (holding contact_force; default) or off
     contact_force: float | None = setting(None, lo=0.5, hi=50.0, help="N; default: the edge's contact.target")
 
     def check(self) -> None:
         given = [k for k in ("twist", "wait", "action") if getattr(self, k) is not None]
         if len(given) != 1:
             raise ValueError(f"a step needs exactly one of twist, wait, action (got {given or 'none'})")
-        if self.twist is not None and self.duration <= 0:
-            raise ValueError("a twist step needs a duration > 0 s")
-        if self.action == "profile" and not self.profile:
+        kind, takes = self.kind, STEP_FIELDS[self.kind]
+        for f in fields(self):
+            if f.name not in (given[0], *takes) and getattr(self, f.name) is not None:
+                also = f"it takes {', '.join(takes)}" if takes else "its 'wait' is its duration"
+                raise ValueError(f"a {kind} step does not take {f.name!r} ({also})")
+        if kind == "twist" and self.deadman is False and any(self.twist or ()):
+            raise ValueError("a twist step with the deadman released sends a zero twist: give zeros, or a wait step")
+        if kind in ("twist", "silence") and not self.seconds > 0:
+            raise ValueError(f"a {kind} step needs a duration > 0 s")
+        if kind == "profile" and not self.profile:
             raise ValueError("a profile step needs 'profile'")
+        if kind == "servo" and self.pan_deg is None and self.tilt_deg is None:
+            raise ValueError("a servo step needs pan_deg, tilt_deg or both")
+        if kind == "contact" and self.contact_on is False and self.contact_force is not None:
+            raise ValueError("a contact step that turns contact off does not take 'contact_force'")
 
     @property
     def kind(self) -> str:
         return "twist" if self.twist is not None else "wait" if self.wait is not None else str(self.action)
+
+    @property
+    def seconds(self) -> float:
+        return 0.0 if self.duration is None else self.duration
 
 
 @dataclass
@@ -102,40 +133,42 @@ def run_step(client: OperatorClient, step: ScriptStep, patience: float = 30.0,
     recoveries: list[str] = []
     if step.twist is not None:
         tw = np.asarray(step.twist, float)
-        client.set_twist(tw[:3], tw[3:], deadman=step.deadman, frame=step.frame)
-        if step.deadman and np.any(tw):  # a motion: it goes on through halts until done (drive_for)
-            _, recoveries = drive_for(client, step.duration, patience, since)
+        deadman = step.deadman is not False
+        client.set_twist(tw[:3], tw[3:], deadman=deadman, frame=step.frame or "base")
+        if deadman and np.any(tw):  # a motion: it goes on through halts until done (drive_for)
+            _, recoveries = drive_for(client, step.seconds, patience, since)
         else:
-            time.sleep(step.duration)
+            time.sleep(step.seconds)
     elif step.wait is not None:
         client.set_twist(zero, zero, deadman=False)
         time.sleep(step.wait)
     elif step.action == "stop":
-        client.emergency_stop(step.reason)
-        time.sleep(step.duration)
+        client.emergency_stop(step.reason if step.reason is not None else "script stop")
+        time.sleep(step.seconds)
     elif step.action == "torch":
-        client.set_torch(step.torch_on, step.brightness)
-        time.sleep(step.duration)
+        client.set_torch(step.torch_on is not False, 1.0 if step.brightness is None else step.brightness)
+        time.sleep(step.seconds)
     elif step.action == "servo":
         client.send_servo(
             None if step.pan_deg is None else np.radians(step.pan_deg),
             None if step.tilt_deg is None else np.radians(step.tilt_deg),
         )
-        time.sleep(step.duration)
+        time.sleep(step.seconds)
     elif step.action == "profile":
+        profile = step.profile or ""
         try:
-            client.switch_profile(step.profile)
+            client.switch_profile(profile)
         except ControlRefused as exc:
-            client.log_event("refused", "profile", f"profile {step.profile!r} refused: {exc}")
-        time.sleep(step.duration)
+            client.log_event("refused", "profile", f"profile {profile!r} refused: {exc}")
+        time.sleep(step.seconds)
     elif step.action == "contact":
         try:
-            client.set_contact(step.contact_on, step.contact_force)
+            client.set_contact(step.contact_on is not False, step.contact_force)
         except ControlRefused as exc:
             client.log_event("refused", "contact", f"contact mode: {exc}")
-        time.sleep(step.duration)
+        time.sleep(step.seconds)
     elif step.action == "silence":
-        after_sent, after_receipt = _silence(client, step.duration) or (None, None)
+        after_sent, after_receipt = _silence(client, step.seconds) or (None, None)
         silence = {"deadman_stop_ms": after_sent, "deadman_stop_after_receipt_ms": after_receipt}
     end = _pos(client)
     echoes = client.echoes_since(echo0)

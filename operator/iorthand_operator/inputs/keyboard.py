@@ -40,6 +40,14 @@ MOTION_BINDINGS = {f"{sign}{axis}" for axis in TWIST_AXES for sign in "+-"}
 BINDINGS = MOTION_BINDINGS | set(ACTIONS) | {"deadman"}
 
 
+def read_time(stamped: float, now: float) -> float:
+    """The time to give a key event: when the terminal's input was read (``stamped``: textual stamps each event
+    as its input thread parses it, on the monotonic clock), not ``now``, when a UI that stalled got round to it. A
+    key pressed and let go during a stall then no longer counts as held for ``initial_hold`` after it. A stamp in
+    the future or over a minute old is from some other clock: ``now``."""
+    return stamped if now - 60.0 <= stamped <= now else now
+
+
 def valid_key_name(name: str) -> bool:
     m = _KEY_RE.match(name)
     if not m:

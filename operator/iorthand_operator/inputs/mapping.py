@@ -40,16 +40,31 @@ class GamepadConfig:
     hat: int | None = setting(0, lo=0, hi=7, help="hat for camera pan (x) and tilt (y); null: none")
 
     def check(self) -> None:
-        for name in self.axes:
+        # One control, one meaning: a stick on two twist components moves the tool diagonally when it is pushed
+        # straight, a turbo on the enable button doubles every motion the deadman allows, and a button with two
+        # meanings does both (an e-stop on the torch button stops the robot whenever the torch is switched).
+        by_axis: dict[int, str] = {}
+        for name, m in self.axes.items():
             if name not in TWIST_AXES:
                 raise ValueError(f"axes.{name}: unknown twist component (expected one of {list(TWIST_AXES)})")
+            if m.axis in by_axis:
+                raise ValueError(f"axes.{name}: axis {m.axis} already drives {by_axis[m.axis]}: one axis, one twist "
+                                 "component")
+            by_axis[m.axis] = name
+        by_button: dict[int, str] = {self.enable_button: "the enable (deadman) button"}
+        if self.turbo_button is not None:
+            if self.turbo_button == self.enable_button:
+                raise ValueError(f"turbo_button: button {self.turbo_button} is the enable (deadman) button: every "
+                                 "motion would be at turbo speed")
+            by_button[self.turbo_button] = "the turbo button"
         for action, button in self.buttons.items():
             if action not in ACTIONS:
                 raise ValueError(f"buttons.{action}: unknown action (expected one of {list(ACTIONS)})")
             if not isinstance(button, int) or not 0 <= button < 64:
                 raise ValueError(f"buttons.{action}: expected a button index 0–63, got {button!r}")
-            if button == self.enable_button:
-                raise ValueError(f"buttons.{action}: button {button} is the enable (deadman) button")
+            if button in by_button:
+                raise ValueError(f"buttons.{action}: button {button} is {by_button[button]}")
+            by_button[button] = f"already {action!r}"
         if not self.axes:
             raise ValueError("axes: map at least one twist component to an axis")
 
