@@ -155,6 +155,40 @@ def test_a_source_bug_is_reported_and_retried_not_silence() -> None:
     assert stream.failures >= 2
 
 
+def test_a_source_whose_close_raises_is_reported_and_reopened_not_a_dead_stream() -> None:
+    """A driver that fails to release a device that vanished: the notices say so and the stream keeps retrying
+    (the close() error used to end the capture thread after one notice, and join() raised it)."""
+
+    class BadRelease(SizedSource):
+        description = "a camera whose release fails"
+
+        def __init__(self, size: tuple[int, int]) -> None:
+            super().__init__(size)
+            self.opened = 0
+
+        def open(self) -> None:
+            self.opened += 1
+
+        def grab(self) -> np.ndarray:
+            raise VideoError("the camera was unplugged")
+
+        def close(self) -> None:
+            raise OSError("release failed")
+
+    config = StreamConfig(width=64, height=48, fps=30, codec="jpeg", retry_interval=0.05)
+    pub = Recorder()
+    source = BadRelease((64, 48))
+    stream = run(source, config, pub, lambda _s, frames: sum(bool(f.failure) for f in frames) >= 3)
+    notices = pub.snapshot()
+    assert source.opened >= 3
+    assert all(
+        "the camera was unplugged" in f.failure
+        and "closing a camera whose release fails failed: OSError: release failed" in f.failure
+        for f in notices
+    )
+    assert "release failed" in stream.error
+
+
 def test_a_perception_fed_video_of_another_size_refuses_to_start() -> None:
     perception = {"camera": {"kind": "synthetic", "width": 640, "height": 480, "fps": 15}}
     bad = edge_config("tcp/127.0.0.1:1", perception=perception,

@@ -436,7 +436,9 @@ class MediaProcess:
             for name, suffix, stream in (("camera", keys.VIDEO_CAMERA, video and video.camera),
                                          ("ultrasound", keys.VIDEO_ULTRASOUND, video and video.ultrasound)):
                 if stream:
-                    frame = VideoFrame(source=name, width=stream.width, height=stream.height, failure=reason[:256])
+                    # The stream's encoding: a viewer of an H.264 stream shows the notice as one of its frames.
+                    frame = VideoFrame(source=name, width=stream.width, height=stream.height, encoding=stream.codec,
+                                       failure=reason[:256])
                     publisher(self._session, self.keys.key(suffix)).put(frame.stamp(0).encode())
         except zenoh.ZError as exc:
             log.warning("could not publish why the media process stopped: %s", exc)

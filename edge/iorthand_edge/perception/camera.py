@@ -1,11 +1,13 @@
 """Camera sources behind one interface: a device through cv2.VideoCapture, a video file, a synthetic camera.
 
-Every :class:`Frame` carries its capture timestamp (``time.time_ns()`` when the frame was grabbed), which is
-what the robot pose is interpolated at.
+Every :class:`Frame` carries its capture timestamp, which is what the robot pose is interpolated at: for a device,
+the time its driver stamped the frame when it is known (:func:`device_frame_time_ns`), else ``time.time_ns()``
+when the frame was grabbed.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -22,6 +24,44 @@ from .config import (
     SyntheticCameraConfig,
     VideoFileCameraConfig,
 )
+
+# A device's frames wait in the driver's buffers until grabbed: OpenCV's V4L2 backend queues 4, so a reader slower
+# than the camera got a frame up to 4 periods old, stamped "now". 2 keeps one buffer filling while the reader holds
+# the other; 1 would halve the frame rate of a UVC camera (it drops every frame that starts while no buffer is
+# queued, i.e. the one after each grab).
+DEVICE_BUFFERS = 2
+DRIVER_STAMP_MAX_AGE_NS = 2_000_000_000  # an older driver stamp is not read as this frame's capture time
+DRIVER_STAMP_AHEAD_NS = 2_000_000  # a stamp this much ahead of "now" still counts (clocks read one after the other)
+
+
+def device_frame_time_ns(pos_msec: float, wall_ns: int, mono_ns: int) -> int:
+    """The capture time (wall clock, ns) of the frame a device capture has just grabbed.
+
+    ``pos_msec``: CAP_PROP_POS_MSEC read after the grab; ``wall_ns``/``mono_ns``: ``time.time_ns()`` and
+    ``time.monotonic_ns()`` read right after the grab. OpenCV's V4L2 backend answers with the timestamp the driver
+    put on the buffer when the frame was captured: CLOCK_MONOTONIC on current drivers (UVC), CLOCK_REALTIME on
+    some old ones; 0 before the first frame. Other backends answer a stream position or -1. The stamp is taken
+    when it reads as a time in either clock that is not ahead of now and at most
+    :data:`DRIVER_STAMP_MAX_AGE_NS` old (the clocks are decades apart, a stream position is the device's uptime
+    away from both); otherwise ``wall_ns``, when the frame was grabbed: late by however long it waited in the
+    driver's buffers."""
+    if not math.isfinite(pos_msec) or pos_msec <= 0:
+        return wall_ns
+    stamp_ns = round(pos_msec * 1e6)
+    for now_ns in (mono_ns, wall_ns):
+        age_ns = now_ns - stamp_ns
+        if -DRIVER_STAMP_AHEAD_NS <= age_ns <= DRIVER_STAMP_MAX_AGE_NS:
+            return wall_ns - max(age_ns, 0)
+    return wall_ns
+
+
+def open_device_capture(device: int | str) -> cv2.VideoCapture:
+    """A cv2.VideoCapture on a device (index or path) holding at most :data:`DEVICE_BUFFERS` frames where the
+    backend lets that be set (V4L2 does; others ignore it, and their frames' stamps say how old they are)."""
+    capture = cv2.VideoCapture(device)
+    if capture.isOpened():
+        capture.set(cv2.CAP_PROP_BUFFERSIZE, DEVICE_BUFFERS)
+    return capture
 
 
 class CameraError(RuntimeError):
@@ -82,13 +122,18 @@ class _CaptureSource(CameraSource):
         # Stamp between grab and retrieve: grab returns when the frame has arrived, retrieve only decodes it.
         if not self._capture.grab():
             return None
-        t_ns = time.time_ns()
+        t_ns = self._stamp(time.time_ns(), time.monotonic_ns())
         ok, image = self._capture.retrieve()
         if not ok or image is None:
             return None
         frame = Frame(image, t_ns, self._count)
         self._count += 1
         return frame
+
+    def _stamp(self, wall_ns: int, mono_ns: int) -> int:
+        """The capture time of the frame just grabbed, read at ``wall_ns``: that (a file's frames are stamped as
+        they are read, as a live camera's would be)."""
+        return wall_ns
 
     def close(self) -> None:
         if self._capture is not None:
@@ -105,7 +150,7 @@ class DeviceCamera(_CaptureSource):
 
     def open(self) -> None:
         c = self.config
-        capture = cv2.VideoCapture(c.path) if c.path else cv2.VideoCapture(c.index)
+        capture = open_device_capture(c.path or c.index)
         if not capture.isOpened():
             capture.release()
             raise CameraError(f"cannot open {self.description}: no such device, or it is busy or not readable")
@@ -125,6 +170,10 @@ class DeviceCamera(_CaptureSource):
                 f"{self.description} delivers {frame.size[0]}×{frame.size[1]}, not the requested size; "
                 "set camera.width/height to a mode the camera supports (and calibrate at that size)"
             )
+
+    def _stamp(self, wall_ns: int, mono_ns: int) -> int:
+        assert self._capture is not None
+        return device_frame_time_ns(self._capture.get(cv2.CAP_PROP_POS_MSEC), wall_ns, mono_ns)
 
     def read(self) -> Frame:
         frame = self._grab()

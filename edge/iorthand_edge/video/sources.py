@@ -9,6 +9,7 @@ frame as real speckle does when the probe moves.
 from __future__ import annotations
 
 import math
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from functools import lru_cache
@@ -17,6 +18,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from iorthand_edge.perception.camera import device_frame_time_ns, open_device_capture
 from iorthand_edge.video.config import StreamConfig
 
 Image = NDArray[np.uint8]
@@ -40,6 +42,11 @@ class FrameSource(ABC):
 
     def close(self) -> None:  # noqa: B027 (optional)
         pass
+
+    def frame_time_ns(self, returned_ns: int) -> int:
+        """The capture time (wall clock, ns) of the frame grab() returned at ``returned_ns``: that, unless the
+        source knows better (a device's driver stamp: its frames may have waited in buffers)."""
+        return returned_ns
 
 
 class PatternSource(FrameSource):
@@ -77,10 +84,11 @@ class OpenCVSource(FrameSource):
         self.config = config
         self.description = f"video device {config.device!r}"
         self._cap: cv2.VideoCapture | None = None
+        self._frame_ns: int | None = None  # the driver's capture time of the last frame grab() returned
 
     def open(self) -> None:
         device: int | str = int(self.config.device) if self.config.device.isdigit() else self.config.device
-        cap = cv2.VideoCapture(device)
+        cap = open_device_capture(device)
         if not cap.isOpened():
             raise VideoError(f"cannot open video device {self.config.device!r}: is it plugged in and free?")
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.config.width)
@@ -99,8 +107,15 @@ class OpenCVSource(FrameSource):
     def grab(self) -> Image | None:
         if self._cap is None:
             raise VideoError("video device used before open()")
-        ok, frame = self._cap.read()
+        self._frame_ns = None
+        if not self._cap.grab():
+            return None
+        self._frame_ns = device_frame_time_ns(self._cap.get(cv2.CAP_PROP_POS_MSEC), time.time_ns(), time.monotonic_ns())
+        ok, frame = self._cap.retrieve()
         return frame if ok else None
+
+    def frame_time_ns(self, returned_ns: int) -> int:
+        return returned_ns if self._frame_ns is None else self._frame_ns
 
     def close(self) -> None:
         if self._cap is not None:

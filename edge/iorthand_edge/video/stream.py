@@ -194,23 +194,40 @@ class VideoStream:
     def join(self, timeout: float = 2.0) -> None:
         for w in self._workers:
             w.join(timeout)
-        self.source.close()
+        if problem := self._close_source():  # the media process still closes the other streams and its session
+            log.error("video %s: %s", self.name, problem)
 
     def _capture_loop(self, stop: threading.Event) -> None:
         while not stop.is_set():
-            try:
-                self.source.open()
-                self._capture(stop)
-            except (VideoError, cv2.error) as exc:
-                # A missing or failed camera must not take the robot down: report, and try again.
-                self._failed(str(exc))
-            except Exception as exc:  # a bug in a source: as visible as a failed camera, and retried the same way
-                if f"internal error: {exc!r}" != self._capture_error:
-                    log.exception("video %s: internal error in %s", self.name, self.source.description)
-                self._failed(f"internal error: {exc!r}")
-            finally:
-                self.source.close()
+            reason = self._capture_until_failure(stop)
+            # A source whose close() raises (a driver that fails to release a device that vanished) is reported and
+            # reopened like any other failure: the exception must not end this thread, leaving the stream dead.
+            closing = self._close_source()
+            if reason or closing:
+                self._failed("; ".join(r for r in (reason, closing) if r))
             stop.wait(self.config.retry_interval)
+
+    def _capture_until_failure(self, stop: threading.Event) -> str:
+        """Open the source and capture until stopped ("") or until it fails (why)."""
+        try:
+            self.source.open()
+            self._capture(stop)
+        except (VideoError, cv2.error) as exc:
+            # A missing or failed camera must not take the robot down: report, and try again.
+            return str(exc)
+        except Exception as exc:  # a bug in a source: as visible as a failed camera, and retried the same way
+            if f"internal error: {exc!r}" != self._capture_error:
+                log.exception("video %s: internal error in %s", self.name, self.source.description)
+            return f"internal error: {exc!r}"
+        return ""
+
+    def _close_source(self) -> str:
+        """Close the source; why that failed, or ""."""
+        try:
+            self.source.close()
+        except Exception as exc:
+            return f"closing {self.source.description} failed: {type(exc).__name__}: {exc}"
+        return ""
 
     def _capture(self, stop: threading.Event) -> None:
         """Grab frames on schedule until stopped; raise VideoError when the source stalls."""
@@ -218,7 +235,7 @@ class VideoStream:
         next_tick = last_frame = time.monotonic()
         while not stop.is_set():
             image = self.source.grab()
-            t_ns = time.time_ns()
+            t_ns = self.source.frame_time_ns(time.time_ns())
             if image is not None:
                 self._check_size(image)
                 last_frame = time.monotonic()
