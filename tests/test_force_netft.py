@@ -12,12 +12,16 @@ import numpy as np
 import pytest
 
 from iorthand.protocol import ForceLevel
-from iorthand_edge.force.config import NetFTSensorConfig
+from iorthand_edge.force.config import ForceConfig, NetFTSensorConfig
 from iorthand_edge.force.levels import LevelConfig, LevelTracker
+from iorthand_edge.force.monitor import ForceMonitor
 from iorthand_edge.force.sensors import (
+    FROZEN_AFTER_S,
+    FROZEN_MIN_RECORDS,
     RDT_SET_BIAS,
     RDT_START_REALTIME,
     RDT_STOP,
+    FreezeDetector,
     NetFTSensor,
     decode_rdt_record,
     decode_rdt_request,
@@ -28,7 +32,9 @@ from iorthand_edge.force.sensors import (
 
 
 class NetFTResponder:
-    """A minimal Net F/T box: streams 36-byte records to whoever sent START, applies BIAS, stops on STOP."""
+    """A minimal Net F/T box: streams 36-byte records to whoever sent START, applies BIAS, stops on STOP. Its
+    counts carry a few counts of noise, as a live gauge's do; ``frozen`` makes it repeat its last reading with
+    advancing sequence numbers (a stuck acquisition)."""
 
     def __init__(self, wrench_counts: tuple[int, ...] = (1_500_000, -250_000, -7_000_000, 10_000, 0, -20_000)) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -43,6 +49,9 @@ class NetFTResponder:
         self.spike: tuple[int, ...] | None = None  # counts of one record to send before the next normal one
         self.status = 0
         self.seq = 0
+        self.frozen = False
+        self._rng = np.random.default_rng(7)
+        self._reading = self.counts.copy()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="netft-responder", daemon=True)
         self._thread.start()
@@ -70,7 +79,9 @@ class NetFTResponder:
                     self.sock.sendto(encode_rdt_record(self.seq, self.seq, 0, self.spike), self.client)
                     self.spike = None
                 self.seq += 1
-                record = encode_rdt_record(self.seq, self.seq, self.status, tuple(int(c) for c in self.counts - self.bias))
+                if not self.frozen:
+                    self._reading = self.counts - self.bias + self._rng.integers(-2, 3, 6)
+                record = encode_rdt_record(self.seq, self.seq, self.status, tuple(int(c) for c in self._reading))
                 self.sock.sendto(record, self.client)
 
     def close(self) -> None:
@@ -115,7 +126,7 @@ def test_streams_and_scales_counts(responder: NetFTResponder) -> None:
     sensor.start()
     try:
         sample = read_until(sensor, lambda s: True)
-        assert sample.wrench == pytest.approx([1.5, -0.25, -7.0, 0.01, 0.0, -0.02])
+        assert sample.wrench == pytest.approx([1.5, -0.25, -7.0, 0.01, 0.0, -0.02], abs=1e-5)
         assert abs(sample.t_ns - time.time_ns()) < 5e9
         assert responder.commands[0] == RDT_START_REALTIME
     finally:
@@ -150,8 +161,8 @@ def test_bias_on_request(responder: NetFTResponder) -> None:
     try:
         read_until(sensor, lambda s: abs(s.wrench[2]) > 1.0)
         sensor.zero()
-        sample = read_until(sensor, lambda s: abs(s.wrench[2]) < 1e-9)
-        assert np.allclose(sample.wrench, 0.0)
+        sample = read_until(sensor, lambda s: abs(s.wrench[2]) < 1e-4)
+        assert np.allclose(sample.wrench, 0.0, atol=1e-4)
         assert RDT_SET_BIAS in responder.commands
     finally:
         sensor.close()
@@ -188,5 +199,58 @@ def test_no_device_gives_no_samples_and_a_reason() -> None:
         for _ in range(5):
             assert sensor.read(0.01) is None
         assert sensor.errors >= 1 and "refused" in sensor.last_error.lower()
+    finally:
+        sensor.close()
+
+
+def test_a_freeze_needs_both_a_quarter_second_and_enough_identical_records() -> None:
+    detector = FreezeDetector()
+    reading = (1, 2, 3, 4, 5, 6)
+    # A burst of identical records arriving together (a datagram storm) is not a quarter second of them.
+    assert not any(detector.add(reading, 10.0) for _ in range(10 * FROZEN_MIN_RECORDS))
+    # Nor are a few identical records spread over a long time (a sensor sending slowly, with a chance repeat).
+    detector = FreezeDetector()
+    assert not any(detector.add(reading, 10.0 + i) for i in range(FROZEN_MIN_RECORDS - 1))
+    # 1 kHz of one reading: frozen once the run has lasted FROZEN_AFTER_S; back as soon as the values change.
+    detector = FreezeDetector()
+    frozen_at = next(i for i in range(1000) if detector.add(reading, i / 1000))
+    assert frozen_at == round(FROZEN_AFTER_S * 1000)
+    assert not detector.add((1, 2, 3, 4, 5, 7), 1.0) and not detector.frozen
+
+
+def test_a_live_sensors_noise_is_never_taken_for_a_freeze() -> None:
+    rng = np.random.default_rng(3)
+    detector = FreezeDetector()
+    base = np.array([1_500_000, -250_000, -7_000_000, 10_000, 0, -20_000])
+    assert not any(
+        detector.add(tuple(int(c) for c in base + rng.integers(-2, 3, 6)), i / 7000) for i in range(70_000)
+    )  # 10 s at 7 kHz
+
+
+def test_a_frozen_sensor_goes_stale_as_a_silent_one_and_says_why(responder: NetFTResponder) -> None:
+    """The box keeps sending one reading with advancing sequence numbers: no sample once it is frozen, so the levels
+    go stale (the supervisor stops); the error says frozen, once; samples come back when the values move."""
+    sensor = NetFTSensor(NetFTSensorConfig(host="127.0.0.1", port=responder.port))
+    sensor.start()
+    changes = []
+    monitor = ForceMonitor(ForceConfig(), sensor, changes.append)
+    try:
+        monitor.tick(read_until(sensor, lambda s: True), time.monotonic())
+        assert not monitor.state.stale
+        errors = sensor.errors
+        responder.frozen = True
+        frozen_since = time.monotonic()
+        deadline = frozen_since + 5.0
+        while not monitor.state.stale and time.monotonic() < deadline:
+            monitor.tick(sensor.read(0.005), time.monotonic())
+        assert monitor.state.stale and changes[-1].stale, "a frozen sensor never went stale"
+        assert time.monotonic() - frozen_since >= FROZEN_AFTER_S  # the quarter second of identical records
+        assert sensor.errors == errors + 1 and sensor.last_error.startswith("frozen: the same reading")
+        received = sensor.received
+        for _ in range(20):  # still frozen: records arrive, none is a sample
+            assert sensor.read(0.01) is None
+        assert sensor.received > received and sensor.errors == errors + 1  # the error is counted once a spell
+        responder.frozen = False
+        read_until(sensor, lambda s: True)  # noise again: samples again
     finally:
         sensor.close()

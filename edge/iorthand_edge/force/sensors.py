@@ -208,11 +208,54 @@ def seq_newer(a: int, b: int) -> bool:
     return 0 < (a - b) % 2**32 < 2**31
 
 
+# A live strain-gauge sensor's counts always carry noise in their last digits (several counts on each of six
+# gauges): two identical consecutive records are already unlikely, a quarter second of them means the box keeps
+# sending one stuck reading (a hung acquisition, a frozen DSP) with advancing sequence numbers. 0.25 s is 25 records
+# at RDT's slowest useful rate (100 Hz) and 250–7000 at the usual 1–7 kHz: far from a chance repeat, and short
+# enough that the supervisor (stale after ``levels.stale_after`` without a sample) stops within ~0.35 s of a
+# freeze. Both bounds must hold, so a burst of records arriving together cannot pass for a quarter second.
+FROZEN_AFTER_S = 0.25
+FROZEN_MIN_RECORDS = 25
+
+
+class FreezeDetector:
+    """Whether a stream of readings is stuck: the same values for :data:`FROZEN_AFTER_S` and at least
+    :data:`FROZEN_MIN_RECORDS` consecutive records. Pure: the caller gives each reading's arrival time."""
+
+    def __init__(self, after_s: float = FROZEN_AFTER_S, min_records: int = FROZEN_MIN_RECORDS) -> None:
+        self.after_s = after_s
+        self.min_records = min_records
+        self._values: tuple[int, ...] | None = None
+        self._since = 0.0  # arrival time of the first record of the current run of identical values
+        self._run = 0  # records in that run
+        self.frozen = False
+
+    def add(self, values: tuple[int, ...], now: float) -> bool:
+        """Note one record's values; True while the stream is frozen (this record is not a measurement)."""
+        if values != self._values:
+            self._values, self._since, self._run = values, now, 1
+            self.frozen = False
+            return False
+        self._run += 1
+        self.frozen = self._run >= self.min_records and now - self._since >= self.after_s
+        return self.frozen
+
+    def describe(self, now: float) -> str:
+        return (
+            f"frozen: the same reading in {self._run} consecutive records over {now - self._since:.2f} s "
+            "with advancing sequence numbers (a live sensor always shows noise): no sample until it changes"
+        )
+
+
 class NetFTSensor(ForceSensor):
+    """A frozen box (the same counts with advancing sequence numbers: :class:`FreezeDetector`) gives no samples,
+    as a silent one: the levels go stale and the supervisor stops; ``last_error`` says it is frozen."""
+
     RESTART_AFTER = 1.0  # s of silence before the streaming request is sent again (the box may have rebooted)
 
     def __init__(self, config: NetFTSensorConfig) -> None:
         self.config = config
+        self._freeze = FreezeDetector()
         self._sock: socket.socket | None = None
         self._last_rdt: int | None = None
         self._last_packet = 0.0
@@ -282,8 +325,14 @@ class NetFTSensor(ForceSensor):
             if self._last_rdt is not None and not seq_newer(record.rdt_sequence, self._last_rdt):
                 continue  # a late, reordered datagram: older than what we have
             self._last_rdt = record.rdt_sequence
-            self._last_packet = time.monotonic()
             self.received += 1
+            arrived = time.monotonic()
+            was_frozen = self._freeze.frozen
+            if self._freeze.add(record.counts, arrived):
+                if not was_frozen:  # once per spell: the monitor logs each new error
+                    self._error(self._freeze.describe(arrived))
+                continue  # not a sample; nor a sign of life: the streaming request is re-sent as after silence
+            self._last_packet = arrived
             wrenches.append(rdt_wrench(record, self.config.counts_per_force, self.config.counts_per_torque))
             t_ns = time.time_ns()
         if not wrenches:
