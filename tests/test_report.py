@@ -131,3 +131,42 @@ def test_the_report_says_where_t_t_comes_from(tmp_path: Path) -> None:
     assert r["t_t_source"] == "session span: no commands were recorded"
     report = (tmp_path / "c" / "report" / "report.md").read_text()
     assert "t_t from the session span: no commands were recorded" in report
+
+
+def _two_operators_session(folder: Path, ahead_s: dict[str, float], seconds: float = 20.0) -> Path:
+    """Force (3 N) at 100 Hz for the whole session; op1 commands (deadman held) at 50 Hz in the first half,
+    op2 in the second, each stamped by its own clock, ``ahead_s`` ahead of the edge's."""
+    folder.mkdir()
+    t0 = time.time_ns()
+    messages = []
+    with (folder / "telemetry-0001.mcap").open("wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD)
+        w.start("iorthand", "crafted")
+        force = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
+        twist = {op: w.register_channel(f"iorthand/sim1/cmd/twist/{op}", "msgpack", 0) for op in ahead_s}
+        for i in range(int(seconds * 100)):
+            t = t0 + i * 10_000_000
+            messages.append((t + 1_000_000, force, ForceSample(force=[0, 0, 3.0]).stamp(i + 1, t).encode(), t, i + 1))
+        half = int(seconds * 25)
+        for n, (op, ahead) in enumerate(ahead_s.items()):
+            for i in range(half):
+                t = t0 + (n * half + i) * 20_000_000
+                c = TwistCommand(operator=op, deadman=True).stamp(i + 1, t + int(ahead * 1e9))
+                messages.append((t + 2_000_000, twist[op], c.encode(), c.t, i + 1))
+        for log_time, channel, data, publish_time, seq in sorted(messages):
+            w.add_message(channel, log_time, data, publish_time, seq)
+        w.finish()
+    mf.Manifest(session_id=folder.name, status=mf.COMPLETE, start_t=t0, stop_t=t0 + int(seconds * 1e9)).write(folder)
+    return folder
+
+
+@pytest.mark.parametrize("ahead", [{"op1": 0.0, "op2": 60.0}, {"op1": 45.0, "op2": -3.0}, {"op1": 0.0, "op2": 5.0}])
+def test_each_operator_has_its_own_clock_offset(tmp_path: Path, ahead: dict[str, float]) -> None:
+    """Found by a review: one clock offset for all of a robot's commands: with two operators whose clocks
+    differ by more than 10 s, one operator's commands were all discarded as implausible (500 of 1000) and
+    t_t was half the session; with 2-9 s apart the window would have been stretched or shrunk instead."""
+    data = build_report(_two_operators_session(tmp_path / "s", ahead), ReportConfig(plots=False))
+    r = data["robots"]["sim1"]
+    assert r["implausible_time"] == 0 and r["commands"] == 1000
+    assert r["index"]["t_t"] == pytest.approx(19.98, abs=0.03)  # op1's first to op2's last, on one clock
+    assert r["index"]["tau"] == pytest.approx(19.98, abs=0.05)  # the window put on the edge's clock

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import dataclasses
 import heapq
+import io
 import os
 import struct
-from collections.abc import Collection, Iterator
+import zlib
+from array import array
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -15,11 +19,27 @@ from typing import Any, BinaryIO
 import msgpack
 import zstandard
 from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
+from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, ChunkIndex, Message
-from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.stream_reader import CRCValidationError, breakup_chunk
 from mcap.summary import Summary
 
 from iorthand_cloud.recorder.manifest import Manifest
@@ -30,6 +50,9 @@ from iorthand_cloud.recorder.segments import MALFORMED_META
 # by the recorder: a few kB of zstd can declare gigabytes, and reading it would exhaust the machine's memory.
 MAX_CHUNK_BYTES = 64 * 2**20
 MAX_OVERLAPPING_CHUNK_BYTES = 256 * 2**20
+# The longest record the recorder writes: a chunk (its data, uncompressed at worst, and its fields); a record
+# (an attachment: the calibration files) is far shorter.
+MAX_RECORD_BYTES = MAX_CHUNK_BYTES + 2**20
 
 
 class SegmentError(ValueError):
@@ -245,65 +268,236 @@ class TornTail(Exception):
     """The file ends inside a record: what a killed writer leaves (everything before it is whole)."""
 
 
+_MAGIC = b"\x89MCAP0\r\n"
+_HEAD = struct.Struct("<BQ")  # a record's opcode and the length of what follows
+# How each kind of record is read (a message's data is what its length leaves after its fields).
+_READERS: dict[int, Callable[[ReadDataStream], Any]] = {
+    Opcode.HEADER: Header.read, Opcode.FOOTER: Footer.read, Opcode.SCHEMA: Schema.read,
+    Opcode.CHANNEL: Channel.read, Opcode.CHUNK: Chunk.read, Opcode.MESSAGE_INDEX: MessageIndex.read,
+    Opcode.CHUNK_INDEX: ChunkIndex.read, Opcode.ATTACHMENT: Attachment.read,
+    Opcode.ATTACHMENT_INDEX: AttachmentIndex.read, Opcode.STATISTICS: Statistics.read,
+    Opcode.METADATA: Metadata.read, Opcode.METADATA_INDEX: MetadataIndex.read,
+    Opcode.SUMMARY_OFFSET: SummaryOffset.read, Opcode.DATA_END: DataEnd.read,
+}
+_PARSE_ERRORS = (McapError, struct.error, UnicodeDecodeError, ValueError)
+
+
+class _Exact(ReadDataStream):
+    """mcap's stream, which returns a short read as if it were whole: here running short is an error."""
+
+    def read(self, length: int) -> bytes:
+        data = super().read(length)
+        if len(data) < length:
+            raise EndOfFile()
+        return data
+
+
+def _parse(opcode: int, body: bytes, length: int) -> tuple[Any, int]:
+    """The record ``body`` holds and how many of its bytes the record's own fields take."""
+    stream = _Exact(io.BytesIO(body))
+    record = Message.read(stream, length) if opcode == Opcode.MESSAGE else _READERS[opcode](stream)
+    return record, stream.count
+
+
+def _heads(f: Any, path: Path, size: int) -> Iterator[tuple[int, int, int]]:
+    """(offset, opcode, length) of each record of the first ``size`` bytes of an MCAP file that the file holds
+    whole, front to back up to the footer. Raises :class:`TornTail` where the file ends inside a record,
+    :class:`CorruptSegment` where a record's length runs past the end but the record is not cut short (see
+    :func:`_past_the_end`)."""
+    fd = f.fileno()
+    magic = os.pread(fd, len(_MAGIC), 0)
+    if magic != _MAGIC:
+        if len(magic) < len(_MAGIC) and _MAGIC.startswith(magic):
+            raise TornTail(f"{path}: readable up to byte 0 of {size}")
+        raise CorruptSegment(f"{path}: not an MCAP file (it begins {magic!r})")
+    at = len(_MAGIC)
+    while at < size:
+        head = os.pread(fd, _HEAD.size, at)
+        if len(head) < _HEAD.size:
+            raise TornTail(f"{path}: readable up to byte {at} of {size}")
+        opcode, length = _HEAD.unpack(head)
+        if at + _HEAD.size + length > size:
+            raise _past_the_end(f, path, at, opcode, length, size)
+        yield at, opcode, length
+        if opcode == Opcode.FOOTER:
+            return
+        at += _HEAD.size + length
+
+
+def _past_the_end(f: Any, path: Path, at: int, opcode: int, length: int, size: int) -> Exception:
+    """The verdict on a record whose length runs past the end of the file. A torn tail (a killed writer: the
+    file ends inside the last record, which was being written; what is dropped was never whole) only when the
+    record is cut short by its own fields too, the file holds no more after its head than the longest record
+    the recorder writes, and no whole chunk follows its head. Otherwise its length is damaged (a bit flip), and
+    the records after it may be whole: :class:`CorruptSegment`, so that a repair keeps the file as it was."""
+    held = size - at - _HEAD.size
+    why = ""
+    if held > MAX_RECORD_BYTES:
+        why = f"the file holds {held} bytes after its head, more than any record the recorder writes"
+    elif opcode != Opcode.MESSAGE and opcode not in _READERS:
+        why = f"its kind (opcode {opcode:#04x}) is none that MCAP knows"
+    else:
+        body = os.pread(f.fileno(), held, at + _HEAD.size)
+        if opcode != Opcode.MESSAGE:  # (a message's own length is the record's: nothing to compare)
+            with contextlib.suppress(*_PARSE_ERRORS):
+                _record, used = _parse(opcode, body, held)
+                why = f"its own fields end after {used} bytes, inside the file"
+        if not why:
+            chunk_at = _whole_chunk_in(body)
+            if chunk_at is not None:
+                why = f"a whole chunk follows its head at byte {at + _HEAD.size + chunk_at}"
+    if not why:
+        return TornTail(f"{path}: readable up to byte {at} of {size}")
+    return CorruptSegment(f"{path}: the record at byte {at} says it is {length} bytes long, past the end of the "
+                          f"file ({size} bytes), but {why}: its length is damaged, and what follows it may be whole")
+
+
+def _whole_chunk_in(data: bytes) -> int | None:
+    """Where in ``data`` a whole chunk record begins (its fields add up to its length and it ends inside
+    ``data``), or None. A chance match in compressed bytes would need 8 length bytes that fit and fields that
+    add up to them: far rarer than the one bit flip this looks for."""
+    at = data.find(bytes([Opcode.CHUNK]))
+    while at >= 0:
+        if at + _HEAD.size <= len(data):
+            _op, length = _HEAD.unpack_from(data, at)
+            end = at + _HEAD.size + length
+            if end <= len(data):
+                with contextlib.suppress(*_PARSE_ERRORS):
+                    chunk, used = _parse(Opcode.CHUNK, data[at + _HEAD.size:end], length)
+                    if used == length and chunk.compression in ("", "zstd"):
+                        return at
+        at = data.find(bytes([Opcode.CHUNK]), at + 1)
+    return None
+
+
+def _top_records(f: Any, path: Path, size: int) -> Iterator[tuple[int, Any]]:
+    """(offset, record) of each top-level record of the first ``size`` bytes of an MCAP file. Every record's
+    length must be what its fields take: mcap's own reader skips any excess as padding, so a length made larger
+    by a bit flip silently dropped the records it covered."""
+    for at, opcode, length in _heads(f, path, size):
+        where = f"the record at byte {at}"
+        if opcode != Opcode.MESSAGE and opcode not in _READERS:
+            raise CorruptSegment(f"{path}: {where} is damaged: its kind (opcode {opcode:#04x}) is none that MCAP "
+                                 "knows")
+        if length > MAX_RECORD_BYTES:
+            raise CorruptSegment(f"{path}: {where} says it is {length} bytes long, more than any record the "
+                                 "recorder writes: its length is damaged (or the recorder did not write it)")
+        f.seek(at + _HEAD.size)
+        try:
+            record, used = _parse(opcode, f.read(length), length)
+        except EndOfFile:
+            raise CorruptSegment(f"{path}: {where} says it is {length} bytes long, its own fields more: its "
+                                 "length is damaged, and what follows it may be whole") from None
+        except _PARSE_ERRORS as exc:
+            raise CorruptSegment(f"{path}: {where} is damaged: {exc!r}") from None
+        if used != length:
+            raise CorruptSegment(f"{path}: {where} says it is {length} bytes long, its own fields {used}: its "
+                                 "length is damaged, and what follows it may be whole")
+        if isinstance(record, DataEnd) and record.data_section_crc:
+            _check_data_crc(f, path, at, record.data_section_crc)
+        yield at, record
+
+
+def _check_data_crc(f: Any, path: Path, end: int, expected: int) -> None:
+    """The CRC of everything before the data end record (written by writers that compute it)."""
+    crc, at = 0, 0
+    while at < end:
+        block = os.pread(f.fileno(), min(2**20, end - at), at)
+        if not block:
+            break
+        crc, at = zlib.crc32(block, crc), at + len(block)
+    if crc != expected:
+        raise CorruptSegment(f"{path}: the data section is damaged (its CRC does not match: {crc:#010x}, "
+                             f"{expected:#010x} written)")
+
+
 def stream_records(f: Any, path: Path) -> Iterator[Any]:
     """The records of an MCAP file read front to back (one without a footer too), each chunk's size checked
     before it is decompressed and every CRC checked. Raises :class:`TornTail` where the file ends inside a
     record, :class:`CorruptSegment` at a complete record that is damaged (the rest of the file may be good)."""
-    size = os.fstat(f.fileno()).st_size
-    records = StreamReader(f, skip_magic=False, emit_chunks=True, validate_crcs=True).records
-    while True:
-        at = f.tell()
-        try:
-            record = next(records)
-        except StopIteration:
-            return
-        except Exception as exc:
-            if _ends_inside(f, at, size):
-                raise TornTail(f"{path}: readable up to byte {at} of {size}") from None
-            raise CorruptSegment(f"{path}: the record at byte {at} is damaged: {exc!r}") from None
+    for at, record in _top_records(f, path, os.fstat(f.fileno()).st_size):
         if isinstance(record, Chunk):
             yield from _chunk_records(path, f"the chunk at byte {at}", record)
         else:
             yield record
 
 
-def _ends_inside(f: Any, at: int, size: int) -> bool:
-    """Whether the record at byte ``at`` runs past the end of the file (its opcode and length tell)."""
-    if at == 0:  # the magic, then the header record
-        if size < 8:
-            return True
-        at = 8
-    f.seek(at)
-    head = f.read(9)
-    return len(head) < 9 or at + 9 + struct.unpack_from("<Q", head, 1)[0] > size
+# Memory a message held for reordering takes beyond its data (the record, its place in the heap).
+_HELD_OVERHEAD = 200
+
+
+def _start_times(f: Any, path: Path, size: int) -> array[int]:
+    """The first receive time of each chunk and loose message of a file, in file order, from their heads alone
+    (nothing decompressed: 8 bytes per record). Where the file ends early or is damaged, as far as it goes
+    (reading it stops there too)."""
+    out: array[int] = array("Q")
+    fd = f.fileno()
+    with contextlib.suppress(TornTail, CorruptSegment):
+        for at, opcode, _length in _heads(f, path, size):
+            if opcode == Opcode.CHUNK:  # message start time, first of the chunk's fields
+                out.extend(struct.unpack("<Q", os.pread(fd, 8, at + _HEAD.size).ljust(8, b"\0")))
+            elif opcode == Opcode.MESSAGE:  # channel id, sequence, then log time
+                out.extend(struct.unpack("<Q", os.pread(fd, 8, at + _HEAD.size + 6).ljust(8, b"\0")))
+    return out
 
 
 def _iter_linear(f: Any, path: Path, stream: str, start: int | None, end: int | None,
                  topics: Collection[str] | None = None) -> Iterator[Record]:
-    """The records of a segment read front to back (one without a footer or without a chunk index), in
-    receive-time order (a torn tail is left out)."""
+    """The messages of a segment read front to back (one without a footer or without a chunk index), in
+    receive-time order (a torn tail is left out). A message is held only until no later chunk can start before
+    it (the heads say when each starts): the recorder writes in time order, so one chunk at a time is held;
+    a file that would hold more than :data:`MAX_OVERLAPPING_CHUNK_BYTES` is refused (before, the whole file
+    was decompressed into memory to be sorted, however many chunks of up to 64 MiB each it declared)."""
+    size = os.fstat(f.fileno()).st_size
+    later = _start_times(f, path, size)
+    for i in range(len(later) - 2, -1, -1):  # the earliest start of each record and all after it
+        later[i] = min(later[i], later[i + 1])
     channels: dict[int, Channel] = {}
-    out: list[Record] = []
+    held: list[tuple[int, int, Record]] = []  # (receive time, file order, record): a heap
+    held_bytes, order, timed = 0, 0, 0
     try:
-        for record in stream_records(f, path):
-            _keep(record, channels, out, stream, start, end, topics)
+        for at, top in _top_records(f, path, size):
+            inner = _chunk_records(path, f"the chunk at byte {at}", top) if isinstance(top, Chunk) else [top]
+            kept = [r for r in (_keep(x, channels, stream, start, end, topics) for x in inner) if r is not None]
+            if not isinstance(top, (Chunk, Message)):
+                continue
+            timed += 1
+            mark = later[timed] if timed < len(later) else None
+            if not held:  # (the usual case, in time order: the chunk's messages go out without the heap)
+                kept.sort(key=lambda r: r.log_time)
+                n = len(kept) if mark is None else bisect.bisect_right(kept, mark, key=lambda r: r.log_time)
+                yield from kept[:n]
+                kept = kept[n:]
+            for record in kept:
+                heapq.heappush(held, (record.log_time, order, record))
+                order += 1
+                held_bytes += len(record.data) + _HELD_OVERHEAD
+            while held and (mark is None or held[0][0] <= mark):
+                held_bytes -= len(held[0][2].data) + _HELD_OVERHEAD
+                yield heapq.heappop(held)[2]
+            if held_bytes > MAX_OVERLAPPING_CHUNK_BYTES:
+                raise SegmentError(f"{path}: its chunks are out of time order and read in order would hold "
+                                   f"{held_bytes / 2**20:.0f} MiB at byte {at}, more than the "
+                                   f"{MAX_OVERLAPPING_CHUNK_BYTES // 2**20} MiB a recording's segment needs: not "
+                                   "read (it was not written by the recorder)")
     except TornTail:  # everything before it was taken
         pass
-    out.sort(key=lambda r: r.log_time)
-    yield from out
+    while held:
+        yield heapq.heappop(held)[2]
 
 
-def _keep(record: Any, channels: dict[int, Channel], out: list[Record], stream: str, start: int | None,
-          end: int | None, topics: Collection[str] | None) -> None:
+def _keep(record: Any, channels: dict[int, Channel], stream: str, start: int | None, end: int | None,
+          topics: Collection[str] | None) -> Record | None:
     if isinstance(record, Channel):
         channels[record.id] = record
     elif isinstance(record, Message) and record.channel_id in channels:
         if (start is not None and record.log_time < start) or (end is not None and record.log_time >= end):
-            return
+            return None
         ch = channels[record.channel_id]
         if topics is not None and ch.topic not in topics:
-            return
-        out.append(_record(ch, record, stream))
+            return None
+        return _record(ch, record, stream)
+    return None
 
 
 def iter_records(folder: str | Path, start: int | None = None, end: int | None = None,

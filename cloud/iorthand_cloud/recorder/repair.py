@@ -5,8 +5,11 @@ so a kill -9 loses at most the chunk in progress). The rewrite goes to a tempora
 original only when complete; the manifest's statistics are then recomputed from the files themselves (the
 manifest on disk may be up to one ``manifest_interval`` old) and the session is marked ``recovered`` (or
 ``failed``, with the reason, when its recorder stopped on an error it could not write into the manifest: see
-:func:`~iorthand_cloud.recorder.manifest.note_failure`). A damaged record (a CRC that does not match) stops the
-rewrite too, but what follows it may be good: the file as it was is kept beside the repaired one.
+:func:`~iorthand_cloud.recorder.manifest.note_failure`). A damaged record (a CRC that does not match, a length
+that is not what its fields take) stops the rewrite too, but what follows it may be good: the file as it was is
+kept beside the repaired one. A length that runs past the end of the file is a torn tail only when the record is
+cut short by its own fields too, could be one the recorder writes, and no whole chunk follows it
+(:func:`~iorthand_cloud.recorder.reader.stream_records`); otherwise it is damage.
 """
 
 from __future__ import annotations
@@ -190,9 +193,13 @@ def repair_session(folder: Path) -> list[RepairResult]:
     for path in sorted((folder / "foxglove").glob("*.mcap")):
         if not has_footer(path):
             try:
-                repair_segment(path)
+                res = repair_segment(path)
             except SegmentError as exc:
                 set_aside(path, exc)
+                damaged.append(f"{exc}: set aside as {path.name}.refused")
+                continue
+            if res.damage_note:  # (said in the manifest, as the session's own segments' damage is)
+                damaged.append(res.damage_note)
     stats, annotations, last = recompute_stats(folder)
     # The dropped counter is the recorder's own and cannot be rebuilt from the files: keep the last one written.
     manifest.keys, manifest.annotations = stats, annotations

@@ -62,17 +62,19 @@ class RobotSeries:
     pose: list[tuple[float, list[float]]] = field(default_factory=list)
     malformed: int = 0
     implausible_time: int = 0  # messages whose source time strays from their receipt (TIME_OUTLIER_S)
-    # (series, entry, source − receive time in ns) until the robot's clock offset is known: see settle
-    timed: list[tuple[list[Any], tuple[Any, ...], int]] = field(default_factory=list)
-    usual_offset: dict[int, int] = field(default_factory=dict)  # id(series) → its median source − receive, ns
+    # (series, entry, source − receive time in ns, whose clock) until the clocks' offsets are known: see settle
+    timed: list[tuple[list[Any], tuple[Any, ...], int, str]] = field(default_factory=list)
+    usual_offset: dict[int, int] = field(default_factory=dict)  # id(series) → its clock's source − receive, ns
 
     def clock_shift(self, series: list[Any], to: list[Any]) -> float:
         """Seconds to subtract from a time of ``series`` to put it on the clock of ``to`` (through the
         recorder's receive times, which both share)."""
         return (self.usual_offset.get(id(series), 0) - self.usual_offset.get(id(to), 0)) / 1e9
 
-    def add(self, series: list[Any], entry: tuple[Any, ...], t_ns: int, recv_ns: int) -> None:
-        self.timed.append((series, entry, t_ns - recv_ns))
+    def add(self, series: list[Any], entry: tuple[Any, ...], t_ns: int, recv_ns: int, clock: str = "") -> None:
+        """``entry`` (its time first, in s) into ``series`` at :meth:`settle`; ``clock`` names whose clock stamped
+        it where a series mixes clocks (each operator's commands: one laptop may be a minute off another's)."""
+        self.timed.append((series, entry, t_ns - recv_ns, clock))
 
     def settle(self) -> None:
         """Each message into its series, unless its source time strays from the robot's usual offset; each
@@ -82,17 +84,22 @@ class RobotSeries:
             if recv_t >= view_t:
                 self.view_age_ms.append((recv_t - view_t) / 1e6)
         self.view_t, self.echo_recv = {}, {}
-        # One usual offset per series: commands carry the operator's clock, the rest the edge's, and the two
-        # may be far apart (an operator's laptop without NTP) without any message being implausible.
-        offsets: dict[int, list[int]] = {}
-        for series, _, offset in self.timed:
-            offsets.setdefault(id(series), []).append(offset)
-        self.usual_offset = {k: statistics.median_low(v) for k, v in offsets.items()}
-        for series, entry, offset in self.timed:
-            if abs(offset - self.usual_offset[id(series)]) > TIME_OUTLIER_S * 1e9:
+        # One usual offset per clock of each series: commands carry their operator's clock, the rest the edge's,
+        # and any two may be far apart (an operator's laptop without NTP) without any message being implausible.
+        offsets: dict[tuple[int, str], list[int]] = {}
+        for series, _, offset, clock in self.timed:
+            offsets.setdefault((id(series), clock), []).append(offset)
+        usual = {k: statistics.median_low(v) for k, v in offsets.items()}
+        # A series with several clocks is put on the one that stamped most of it (the others shifted onto it).
+        for (sid, clock), _values in sorted(offsets.items(), key=lambda e: (len(e[1]), e[0][1]), reverse=True):
+            self.usual_offset.setdefault(sid, usual[(sid, clock)])
+        for series, entry, offset, clock in self.timed:
+            own = usual[(id(series), clock)]
+            if abs(offset - own) > TIME_OUTLIER_S * 1e9:
                 self.implausible_time += 1
-            else:
-                series.append(entry)
+                continue
+            shift = (own - self.usual_offset[id(series)]) / 1e9
+            series.append((entry[0] - shift, *entry[1:]) if shift else entry)
         self.timed = []
         for series in (self.force, self.levels, self.commands, self.safety, self.pose):
             series.sort(key=lambda x: x[0])  # merge order is by receive time; the maths wants source-time order
@@ -117,7 +124,7 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
             robot, suffix = keys.split_key(rec.key)
         except keys.KeyExprError:
             continue
-        suffix = keys.channel_suffix(suffix)  # an operator's own command key (bind_operator_keys) is its channel's
+        raw_suffix, suffix = suffix, keys.channel_suffix(suffix)  # an operator's own command key is its channel's
         if not keys.is_robot_id(robot):
             foreign += 1
             continue
@@ -134,7 +141,8 @@ def _load(folder: Path, cfg: ReportConfig) -> tuple[dict[str, RobotSeries], list
                 s.add(s.levels, (lv.t / 1e9, lv.level, lv.stale), lv.t, rec.log_time)
             elif suffix == keys.CMD_TWIST:
                 c = TwistCommand.decode(rec.data)
-                s.add(s.commands, (c.t / 1e9, c.deadman), c.t, rec.log_time)
+                # Each operator's clock apart: the key (bound to its certificate, bind_operator_keys) and the name.
+                s.add(s.commands, (c.t / 1e9, c.deadman), c.t, rec.log_time, f"{raw_suffix} {c.operator}")
                 if c.view_t:
                     s.view_t[(c.operator, c.seq)] = c.view_t
             elif suffix == keys.STATE_APPLIED:
