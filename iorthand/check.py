@@ -12,6 +12,9 @@ common name and the user name must be the role's identity as the router's ACL kn
 ``operator-<operator_id>``, ``twin``, ...). With ``--router-config`` it also checks that the router's ACL has a
 subject for this certificate — a session that matches no subject connects and is then silently ignored, the
 hardest failure to see — and, where the router's user dictionary is readable, that the password is the one in it.
+An edge's, operator's or web console's ``bind_operator_keys`` must be its deployment's, as ``--deployment``, the
+router's ACL (``--router-config``) or the web console's own deployment file says it: otherwise commands are
+refused by the router or not heard by the edge, or the router binds less than the configuration expects.
 
 A router reachable from the network must listen on TLS, with mTLS, user/password and an ACL whose default is
 deny: anything less is an error (the systemd unit then does not start it); a loopback-only router (development,
@@ -303,9 +306,6 @@ def _web_findings(obj: Any, secured: bool) -> list[Finding]:
                     "has no `web: true`: the router generated from it has no subject for certificate web, so the "
                     "console connects and nothing it sends is routed. Add `web: true` to this file, regenerate "
                     "router.json5 (`iorthand certs router-config`) and restart the router (docs/DEPLOY.md §5)")))
-            if obj.bind_operator_keys and not dep.bind_operator_keys:  # the other way round: UNBOUND says it
-                out.append(Finding("warning", "bind_operator_keys", (
-                    f"{obj.bind_operator_keys} here but {dep.bind_operator_keys} in {dep_path}: set both alike")))
     problem = file_problem(Path(obj.users_file), "web users file")
     if problem:
         # The console does not start without it; a development console may be checked before its first user.
@@ -316,7 +316,68 @@ def _web_findings(obj: Any, secured: bool) -> list[Finding]:
     return out
 
 
-def check_file(path: Path, role: str | None = None, router_config: Path | None = None) -> Report:
+def _recorder_findings(obj: Any, replay: bool) -> list[Finding]:
+    """The recorder's folder must be one it can write (a replay's, read): otherwise the service starts and every
+    recording is refused. A calibration file it cannot read is left out of every recording."""
+    out: list[Finding] = []
+    root = Path(obj.output_dir)
+    there = root  # the folder itself, or the nearest existing folder above it (the recorder creates the rest)
+    while not there.exists() and there != there.parent:
+        there = there.parent
+    need, what = (os.R_OK | os.X_OK, "readable") if replay else (os.W_OK | os.X_OK, "writable")
+    if not there.is_dir():
+        out.append(Finding("error", "output_dir", f"{root}: {there} is not a folder: no recording can be "
+                           + ("read" if replay else "made")))
+    elif not os.access(there, need):
+        out.append(Finding("error", "output_dir", f"{root}: {there} is not {what} by this user (uid {os.getuid()}): "
+                           + ("no recording can be read" if replay else "every recording would be refused")))
+    for path in obj.calibration_files:
+        problem = file_problem(Path(path), "calibration file")
+        if problem:
+            out.append(Finding("warning", problem.subject, problem.message + ": recordings are made without it"))
+    return out
+
+
+def _deployed_bindings(role: str, obj: Any, secured: bool, deployment: Path | None,
+                       router_cfg: dict[str, Any] | None, router_config: Path | None, rep: Report) -> list[tuple[bool, str]]:
+    """The deployment's ``bind_operator_keys`` as each source given says it: ``--deployment``, the router's ACL
+    (``--router-config``), and a secured web console's own deployment file; with where it was read."""
+    out: list[tuple[bool, str]] = []
+    files = [Path(deployment)] if deployment else []
+    if role == "web" and secured and Path(obj.deployment) not in files:
+        files.append(Path(obj.deployment))  # (_web_findings reports one that is missing or does not load)
+    for dep_path in files:
+        if not dep_path.is_file() or not os.access(dep_path, os.R_OK):
+            if dep_path == deployment:
+                rep.findings.append(Finding("error", str(dep_path), "deployment file missing or not readable"))
+            continue
+        try:
+            out.append((load(dep_path, acl.Deployment).bind_operator_keys, str(dep_path)))
+        except ConfigError as exc:
+            if dep_path == deployment:
+                rep.findings.append(Finding("error", str(dep_path), f"the deployment does not load: {exc}"))
+    bound = acl.bound_operator_keys(router_cfg) if router_cfg is not None else None
+    if bound is not None:
+        out.append((bound, f"{router_config} (its operators' command rules)"))
+    return out
+
+
+def _binding_finding(role: str, value: bool, deployed: bool, where: str) -> Finding:
+    """An edge, operator or web console whose ``bind_operator_keys`` is not its deployment's."""
+    if deployed:  # this config is unbound, the router is bound
+        why = ("operators command on .../cmd/<kind>/<their id>, which this edge does not listen to" if role == "edge"
+               else f"the router drops this {role}'s commands and control queries on the plain keys")
+    else:
+        why = (("operators command on the plain keys, which this edge does not listen to" if role == "edge" else
+                f"the edges of this deployment listen on the plain keys, not on this {role}'s own")
+               + "; and the router holds no operator to its own keys (a weaker binding than this configuration's)")
+    return Finding("error", "bind_operator_keys", (
+        f"{str(value).lower()} here but {str(deployed).lower()} in {where}: {why}. Set it alike on the deployment, "
+        "its router (`iorthand certs router-config`), the edges and the operators"))
+
+
+def check_file(path: Path, role: str | None = None, router_config: Path | None = None,
+               deployment: Path | None = None) -> Report:
     path = Path(path)
     if path.suffix in (".json5", ".json") and role in (None, "router"):
         return check_router(path)
@@ -349,11 +410,20 @@ def check_file(path: Path, role: str | None = None, router_config: Path | None =
         return rep
     sections = _zenoh_sections(obj)
     secured = any(zc.tls is not None or zc.username for _, zc in sections)
-    if role in UNBOUND and getattr(obj, "bind_operator_keys", True) is False and secured:
-        rep.findings.append(Finding("warning", "bind_operator_keys", UNBOUND[role]))
+    router_cfg = _load_json5(Path(router_config)) if router_config else None
+    bind = getattr(obj, "bind_operator_keys", None)  # (None: the role's package is not installed here)
+    if role in UNBOUND and bind is not None:
+        # A mismatch: commands refused by the router's ACL, or not heard by the edge, or a weaker binding than
+        # the deployment's; only the deployment (or the router made from it) tells.
+        known = _deployed_bindings(role, obj, secured, deployment, router_cfg, router_config, rep)
+        rep.findings += [_binding_finding(role, bind, deployed, where) for deployed, where in known if deployed != bind]
+        if bind is False and secured and not known:  # (UNBOUND: behind the default deployment)
+            rep.findings.append(Finding("warning", "bind_operator_keys", UNBOUND[role]))
     if role == "web":
         rep.findings += _web_findings(obj, secured)
-    router_cfg = _load_json5(Path(router_config)) if router_config else None
+    if role == "recorder" and hasattr(obj, "output_dir"):  # (not when only its zenoh section was loaded)
+        replay = any(_common_name(zc) == acl.REPLAY or zc.username == acl.REPLAY for _, zc in sections)
+        rep.findings += _recorder_findings(obj, replay)
     router_subjects = _subjects(router_cfg) if router_cfg is not None else None
     for where, zc in sections:
         for f in precheck(zc):
@@ -386,7 +456,8 @@ def _common_name(zc: ZenohConfig) -> str | None:
 def _cmd(args: argparse.Namespace) -> int:
     path = Path(args.config)
     try:
-        rep = check_file(path, args.role, Path(args.router_config) if args.router_config else None)
+        rep = check_file(path, args.role, Path(args.router_config) if args.router_config else None,
+                         Path(args.deployment) if args.deployment else None)
     except ConfigError as exc:
         print(f"{path}: does not load: {exc}")
         return 2
@@ -400,4 +471,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--role", choices=sorted([*ROLE_CONFIGS, "router"]), help="default: guessed from the file")
     p.add_argument("--router-config", help="also check that this config's certificate has a subject in that router's ACL "
                    "and, if its user dictionary is readable here, that the password is the one in it")
+    p.add_argument("--deployment", help="the deployment YAML: an edge's, operator's or web console's "
+                   "bind_operator_keys must be the deployment's (a mismatch: commands refused or not heard)")
     p.set_defaults(func=_cmd)

@@ -204,7 +204,8 @@ def test_the_identity_must_be_the_roles_own(lab: Lab, tmp_path: Path) -> None:
     said = errors(operator)
     assert any("'operator-alice' is not this operator's identity 'operator-bob'" in e for e in said), said
     data = yaml.safe_load(operator.read_text())
-    operator.write_text(yaml.safe_dump({**data, "operator_id": "alice"}))
+    # (bind_operator_keys as the lab's router: not bound)
+    operator.write_text(yaml.safe_dump({**data, "operator_id": "alice", "bind_operator_keys": False}))
     assert errors(operator, router_config=lab.router_config) == []
 
 
@@ -249,9 +250,116 @@ def test_a_secured_web_console_needs_web_true_and_bound_keys(lab: Lab, tmp_path:
     assert [(f.level, Path(f.subject).name) for f in rep.findings] == [("error", "deployment.yaml")], rep.text(Path("w"))
     assert "web: true" in rep.findings[0].message and "regenerate" in rep.findings[0].message
     assert check_file(_web_yaml(lab, tmp_path / "web.yaml", {**dep, "web": True})).ok
-    # bind_operator_keys off behind the router's bound keys: "no answer from robot on control/acquire".
-    rep = check_file(_web_yaml(lab, tmp_path / "web.yaml", {**dep, "web": True}, bind_operator_keys=False))
-    assert rep.ok and "bind_operator_keys" in {f.subject for f in rep.findings if f.level == "warning"}
+    # bind_operator_keys off behind the router's bound keys: "no answer from robot on control/acquire" (it was
+    # a warning, and the other way round one too).
+    for bind in (False, True):
+        rep = check_file(_web_yaml(lab, tmp_path / "web.yaml", {**dep, "web": True, "bind_operator_keys": not bind},
+                                   bind_operator_keys=bind))
+        said = [f.message for f in rep.findings if f.subject == "bind_operator_keys"]
+        assert not rep.ok and len(said) == 1 and said[0].startswith(f"{str(bind).lower()} here but "
+                                                                      f"{str(not bind).lower()} in "), said
     # The development console (plain TCP on loopback, a deployment without web: true) stays fine.
     rep = check_file(ROOT / "configs" / "web.yaml")
     assert not [f for f in rep.findings if f.subject == "bind_operator_keys" or "web: true" in f.message]
+
+
+@pytest.mark.parametrize("role", ["edge", "operator"])
+def test_bind_operator_keys_must_be_the_deployments(lab: Lab, tmp_path: Path, role: str) -> None:
+    """Found by a review: an edge's or operator's bind_operator_keys was never compared with the deployment's
+    (commands refused by the router's ACL or not heard by the edge; or a weaker binding than deployed), only
+    warned about when off on a secured link."""
+    if role == "edge":
+        path = _edge_yaml(lab, tmp_path / "edge.yaml")
+    else:
+        path = tmp_path / "operator.yaml"
+        path.write_text(yaml.safe_dump({
+            "operator_id": "alice", "robot": "sim1",
+            "zenoh": {"connect": [lab.endpoint], "username": "operator-alice",
+                      "password_file": str(lab.directory / "operator-alice.password"),
+                      "tls": {"root_ca": str(lab.directory / "ca.pem"),
+                              "certificate": str(lab.directory / "operator-alice.pem"),
+                              "private_key": str(lab.directory / "operator-alice.key")}},
+        }))
+    data = yaml.safe_load(path.read_text())
+    dep = tmp_path / "deployment.yaml"
+    bound_router = tmp_path / "router-bound.json5"
+    base = {"certs_dir": str(lab.directory), "robots": ["sim1"], "operators": {"alice": ["sim1"]}}
+    bound_router.write_text(acl.to_json5(acl.router_config(acl.Deployment(**base, bind_operator_keys=True))))
+    for ours in (False, True):
+        path.write_text(yaml.safe_dump({**data, "bind_operator_keys": ours}))
+        for deployed in (False, True):
+            dep.write_text(yaml.safe_dump({**base, "bind_operator_keys": deployed}))
+            rep = check_file(path, deployment=dep)
+            said = [f for f in rep.findings if f.subject == "bind_operator_keys"]
+            if ours == deployed:
+                assert said == [], rep.text(path)
+                continue
+            assert not rep.ok and [f.level for f in said] == ["error"], rep.text(path)
+            assert said[0].message.startswith(f"{str(ours).lower()} here but {str(deployed).lower()} in {dep}: ")
+        # The router's ACL says it too (the lab's router does not bind, this one does).
+        for router, deployed in ((lab.router_config, False), (bound_router, True)):
+            said = [f for f in check_file(path, router_config=router).findings if f.subject == "bind_operator_keys"]
+            assert [f.level for f in said if f.level == "error"] == ([] if ours == deployed else ["error"])
+            if ours != deployed:
+                assert f"here but {str(deployed).lower()} in {router} (its operators' command rules)" in said[0].message
+    rep = check_file(path, deployment=tmp_path / "nope.yaml")
+    assert any(f.subject == str(tmp_path / "nope.yaml") and f.level == "error" for f in rep.findings)
+
+
+def test_the_routers_binding_is_read_back_from_its_acl() -> None:
+    base = {"robots": ["r1"], "operators": {"alice": ["r1"]}, "web": True}
+    for bind in (False, True):
+        assert acl.bound_operator_keys(acl.router_config(acl.Deployment(**base, bind_operator_keys=bind))) is bind
+    assert acl.bound_operator_keys(acl.router_config(acl.Deployment(robots=["r1"]))) is None  # no operator
+    assert acl.bound_operator_keys({"mode": "router"}) is None
+
+
+def test_a_recorder_folder_it_cannot_write_is_an_error(tmp_path: Path) -> None:
+    """Found by a review: `iorthand check` said OK for a recorder whose output_dir could never be made (every
+    recording refused once the service ran) and whose calibration file was missing (left out of every
+    recording without a word at check time)."""
+    (tmp_path / "afile").write_text("")
+    path = tmp_path / "recorder.yaml"
+    path.write_text(yaml.safe_dump({
+        "zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7447"]},
+        "output_dir": str(tmp_path / "afile" / "recordings"),
+        "calibration_files": [str(tmp_path / "hand-eye.yaml")],
+    }))
+    rep = check_file(path)
+    said = {(f.level, f.subject): f.message for f in rep.findings}
+    assert not rep.ok and "is not a folder: no recording can be made" in said[("error", "output_dir")]
+    assert "recordings are made without it" in said[("warning", str(tmp_path / "hand-eye.yaml"))]
+    path.write_text(yaml.safe_dump({"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7447"]},
+                                    "output_dir": str(tmp_path / "new" / "recordings")}))
+    assert check_file(path).ok  # a folder the recorder creates
+
+
+def test_a_recorder_folder_the_service_user_cannot_write_is_an_error(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """As the service user (DEPLOY: `sudo -u iorthand iorthand check`), here nobody: root may write anywhere."""
+    import shutil
+    import tempfile
+
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        pytest.skip("running as another user needs root and setpriv")
+    folder = Path(tempfile.mkdtemp(prefix="check-recorder-"))  # (pytest's own folders are closed to others)
+    try:
+        folder.chmod(0o755)
+        (folder / "recordings").mkdir(mode=0o755)
+        configs = {}
+        (folder / "replay.password").write_text("pw")
+        replay = {"username": "replay", "password_file": str(folder / "replay.password")}
+        for name, extra in (("recorder", {}), ("replay", replay)):
+            configs[name] = folder / f"{name}.yaml"
+            configs[name].write_text(yaml.safe_dump({
+                "zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7447"], **extra},
+                "output_dir": str(folder / "recordings"),
+            }))
+            configs[name].chmod(0o644)
+        out = {name: subprocess.run(["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups",
+                                     *iorthand_cmd("check", "--config", str(p), "--role", "recorder")],
+                                    capture_output=True, text=True, timeout=60).stdout for name, p in configs.items()}
+        assert "is not writable by this user (uid 65534): every recording would be refused" in out["recorder"]
+        assert "replay.yaml: recorder configuration" in out["replay"] and "output_dir" not in out["replay"], out
+        # (a replay only reads the recordings)
+    finally:
+        shutil.rmtree(folder)

@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 import getpass
 import logging
+import os
 import secrets
+import stat
 import sys
+import tempfile
 from pathlib import Path
 
 from iorthand.config import ConfigError, load
@@ -66,11 +69,57 @@ def _password(args: argparse.Namespace) -> int:
         print("iorthand web password: at least 8 characters; nothing written", file=sys.stderr)
         return 2
     current[args.name] = users.hash_password(password)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.touch(mode=0o600, exist_ok=True)
-    path.write_text(users.format_users(current))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        old = _replace(path, users.format_users(current))
+    except OSError as exc:
+        why = " (run it as root, e.g. with sudo, as docs/DEPLOY.md does)" if isinstance(exc, PermissionError) else ""
+        print(f"iorthand web password: cannot write {path}: {exc.strerror or exc}{why}; nothing written, the file "
+              "is as it was", file=sys.stderr)
+        return 2
     print(f"{args.name}: web password set in {path}" + (f": {password}" if args.generate else ""))
+    hint = permission_hint(path, old, os.getuid())
+    if hint:
+        print(hint)
     return 0
+
+
+def _replace(path: Path, text: str) -> os.stat_result | None:
+    """Write ``path`` whole or not at all (a full disk or a kill used to leave it truncated: every user locked
+    out), through a temporary file that takes the owner, group and mode of the file it replaces; a new file is
+    0600. Returns the replaced file's status (None: it is new)."""
+    try:
+        old: os.stat_result | None = path.stat()
+    except FileNotFoundError:
+        old = None
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")  # (0600)
+    try:
+        with os.fdopen(fd, "w") as f:
+            if old is not None:
+                os.fchown(f.fileno(), old.st_uid, old.st_gid)  # (the service reads it through its group)
+                os.fchmod(f.fileno(), stat.S_IMODE(old.st_mode))
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return old
+
+
+def permission_hint(path: Path, old: os.stat_result | None, uid: int) -> str:
+    """What to do about the users file's permissions after writing it: a new one is 0600 and its writer's, which
+    the console's service user cannot read; an existing one keeps its owner, group and mode, but one every user
+    may read is refused by ``iorthand check``."""
+    if old is None:
+        who = "root" if uid == 0 else "you"
+        return (f"{path} is new: 0600, readable by {who} only. The console reads it as its service user: "
+                f"`sudo chgrp iorthand {path} && sudo chmod 0640 {path}` (later runs keep its owner, group and mode)")
+    if old.st_mode & stat.S_IROTH:
+        return (f"warning: {path} is readable by every user (mode {stat.S_IMODE(old.st_mode):04o}, kept): "
+                f"`sudo chmod o-rwx {path}` (`iorthand check` refuses it)")
+    return ""
 
 
 def _name(text: str) -> str:
