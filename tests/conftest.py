@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -207,6 +208,22 @@ def ur_controller() -> Iterator[EmulatorProcess]:
         yield emulator
         with contextlib.suppress(OSError, RuntimeError):
             print("emulator events:", *emulator.status()["events"], sep="\n  ")
+
+
+@contextlib.contextmanager
+def small_disk(tmp_path: Path, size: str) -> Iterator[Path]:
+    """A tmpfs of ``size`` (mount's syntax: "64k", "1m") under ``tmp_path``: a disk that really fills up (root
+    only; the test is skipped elsewhere)."""
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a tmpfs needs root")
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=True)
 
 
 def wait_until(predicate, timeout: float = 5.0, interval: float = 0.01, message: str = "condition") -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import errno
 import io
 import os
-import shutil
 import struct
 import subprocess
 import threading
@@ -25,7 +24,7 @@ from iorthand_cloud.recorder.config import RecorderConfig
 from iorthand_cloud.recorder.reader import CorruptSegment, SegmentError, iter_records
 from iorthand_cloud.recorder.repair import repair_if_crashed, repair_segment
 from iorthand_cloud.recorder.service import RecorderService
-from tests.conftest import wait_until
+from tests.conftest import small_disk, wait_until
 
 
 def _config(endpoint: str, out: Path, **extra: object) -> RecorderConfig:
@@ -60,16 +59,8 @@ def _writer_lock_free(folder: Path) -> bool:
 @pytest.fixture
 def small_tmpfs(tmp_path: Path):
     """A 1 MiB tmpfs: a disk that really fills up, for the manifest as well as the segments (root only)."""
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("mounting a tmpfs needs root")
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)]).returncode != 0:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with small_disk(tmp_path, "1m") as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=True)
 
 
 def test_a_full_disk_releases_the_session_and_keeps_the_reason(router_endpoint, session_factory,

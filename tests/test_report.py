@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import pytest
@@ -75,11 +76,10 @@ def test_simulation_script_expectations() -> None:
     assert expected_events(20.0)["omega_R"] == 4
 
 
-def _crafted_session(folder: Path, held_until_s: float, operator_ahead_s: float, commands: bool = True,
-                     seconds: float = 20.0) -> Path:
-    """Written straight to MCAP as the recorder would: 3 N of force (contact, below caution) at 100 Hz for the
-    whole session; twist commands at 50 Hz, the deadman held for the first ``held_until_s``, stamped by an
-    operator clock ``operator_ahead_s`` ahead of the edge's."""
+def _write_session(folder: Path, seconds: float, commands: Callable[[int], Iterable[tuple[str, int, TwistCommand]]]
+                   ) -> Path:
+    """A session written straight to MCAP as the recorder would: 3 N of force (contact, below caution) at 100 Hz
+    for ``seconds``, and the twist commands ``commands(t0)`` gives: (key, receive time, stamped command)."""
     folder.mkdir()
     t0 = time.time_ns()
     messages = []
@@ -87,20 +87,31 @@ def _crafted_session(folder: Path, held_until_s: float, operator_ahead_s: float,
         w = Writer(f, compression=CompressionType.ZSTD)
         w.start("iorthand", "crafted")
         force = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
-        twist = w.register_channel("iorthand/sim1/cmd/twist", "msgpack", 0)
         for i in range(int(seconds * 100)):
             t = t0 + i * 10_000_000
             messages.append((t + 1_000_000, force, ForceSample(force=[0, 0, 3.0]).stamp(i + 1, t).encode(), t, i + 1))
-        for i in range(int(seconds * 50) if commands else 0):
-            t = t0 + i * 20_000_000
-            c = TwistCommand(operator="op1", deadman=t - t0 < held_until_s * 1e9)
-            c.stamp(i + 1, t + int(operator_ahead_s * 1e9))
-            messages.append((t + 2_000_000, twist, c.encode(), c.t, i + 1))
+        channels: dict[str, int] = {}
+        for key, log_time, c in commands(t0):
+            if key not in channels:
+                channels[key] = w.register_channel(key, "msgpack", 0)
+            messages.append((log_time, channels[key], c.encode(), c.t, c.seq))
         for log_time, channel, data, publish_time, seq in sorted(messages):
             w.add_message(channel, log_time, data, publish_time, seq)
         w.finish()
     mf.Manifest(session_id=folder.name, status=mf.COMPLETE, start_t=t0, stop_t=t0 + int(seconds * 1e9)).write(folder)
     return folder
+
+
+def _crafted_session(folder: Path, held_until_s: float, operator_ahead_s: float, commands: bool = True,
+                     seconds: float = 20.0) -> Path:
+    """Force for the whole session; twist commands at 50 Hz, the deadman held for the first ``held_until_s``,
+    stamped by an operator clock ``operator_ahead_s`` ahead of the edge's."""
+    def twists(t0: int) -> Iterator[tuple[str, int, TwistCommand]]:
+        for i in range(int(seconds * 50) if commands else 0):
+            t = t0 + i * 20_000_000
+            c = TwistCommand(operator="op1", deadman=t - t0 < held_until_s * 1e9)
+            yield "iorthand/sim1/cmd/twist", t + 2_000_000, c.stamp(i + 1, t + int(operator_ahead_s * 1e9))
+    return _write_session(folder, seconds, twists)
 
 
 def test_contact_counts_only_within_the_teleoperation_window(tmp_path: Path) -> None:
@@ -134,30 +145,16 @@ def test_the_report_says_where_t_t_comes_from(tmp_path: Path) -> None:
 
 
 def _two_operators_session(folder: Path, ahead_s: dict[str, float], seconds: float = 20.0) -> Path:
-    """Force (3 N) at 100 Hz for the whole session; op1 commands (deadman held) at 50 Hz in the first half,
-    op2 in the second, each stamped by its own clock, ``ahead_s`` ahead of the edge's."""
-    folder.mkdir()
-    t0 = time.time_ns()
-    messages = []
-    with (folder / "telemetry-0001.mcap").open("wb") as f:
-        w = Writer(f, compression=CompressionType.ZSTD)
-        w.start("iorthand", "crafted")
-        force = w.register_channel("iorthand/sim1/state/force", "msgpack", 0)
-        twist = {op: w.register_channel(f"iorthand/sim1/cmd/twist/{op}", "msgpack", 0) for op in ahead_s}
-        for i in range(int(seconds * 100)):
-            t = t0 + i * 10_000_000
-            messages.append((t + 1_000_000, force, ForceSample(force=[0, 0, 3.0]).stamp(i + 1, t).encode(), t, i + 1))
+    """Force for the whole session; op1 commands (deadman held) at 50 Hz in the first half, op2 in the second,
+    each on its own key and stamped by its own clock, ``ahead_s`` ahead of the edge's."""
+    def twists(t0: int) -> Iterator[tuple[str, int, TwistCommand]]:
         half = int(seconds * 25)
         for n, (op, ahead) in enumerate(ahead_s.items()):
             for i in range(half):
                 t = t0 + (n * half + i) * 20_000_000
                 c = TwistCommand(operator=op, deadman=True).stamp(i + 1, t + int(ahead * 1e9))
-                messages.append((t + 2_000_000, twist[op], c.encode(), c.t, i + 1))
-        for log_time, channel, data, publish_time, seq in sorted(messages):
-            w.add_message(channel, log_time, data, publish_time, seq)
-        w.finish()
-    mf.Manifest(session_id=folder.name, status=mf.COMPLETE, start_t=t0, stop_t=t0 + int(seconds * 1e9)).write(folder)
-    return folder
+                yield f"iorthand/sim1/cmd/twist/{op}", t + 2_000_000, c
+    return _write_session(folder, seconds, twists)
 
 
 @pytest.mark.parametrize("ahead", [{"op1": 0.0, "op2": 60.0}, {"op1": 45.0, "op2": -3.0}, {"op1": 0.0, "op2": 5.0}])

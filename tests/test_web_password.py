@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import stat
-import subprocess
 from pathlib import Path
 
 import pytest
 
 from iorthand_operator.web import cli, users
+from tests.conftest import small_disk
 
 
 def _set(path: Path, name: str, tmp_path: Path) -> int:
@@ -57,16 +56,8 @@ def test_an_existing_users_file_keeps_its_owner_group_and_mode(
 @pytest.fixture
 def full_tmpfs(tmp_path: Path):
     """A small tmpfs filled up: a disk that is really full (root only)."""
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("mounting a tmpfs needs root")
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)]).returncode != 0:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with small_disk(tmp_path, "64k") as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=True)
 
 
 def test_a_full_disk_leaves_the_users_file_as_it_was(
