@@ -14,15 +14,17 @@ import pytest
 from iorthand.protocol import ForceLevel
 from iorthand_edge.force.config import ForceConfig, NetFTSensorConfig
 from iorthand_edge.force.levels import LevelConfig, LevelTracker
-from iorthand_edge.force.monitor import ForceMonitor
+from iorthand_edge.force.monitor import ForceMonitor, stale_message
 from iorthand_edge.force.sensors import (
     FROZEN_AFTER_S,
     FROZEN_MIN_RECORDS,
     RDT_SET_BIAS,
     RDT_START_REALTIME,
     RDT_STOP,
+    ForceSensor,
     FreezeDetector,
     NetFTSensor,
+    WrenchSample,
     decode_rdt_record,
     decode_rdt_request,
     encode_rdt_record,
@@ -254,3 +256,54 @@ def test_a_frozen_sensor_goes_stale_as_a_silent_one_and_says_why(responder: NetF
         read_until(sensor, lambda s: True)  # noise again: samples again
     finally:
         sensor.close()
+
+
+def test_the_stale_line_says_why_when_the_sensor_does(responder: NetFTResponder, caplog: pytest.LogCaptureFixture) -> None:
+    """A frozen box goes stale: the log line says "frozen", not only how long there was no sample."""
+    sensor = NetFTSensor(NetFTSensorConfig(host="127.0.0.1", port=responder.port))
+    sensor.start()
+    monitor = ForceMonitor(ForceConfig(), sensor, [].append)
+    try:
+        monitor.tick(read_until(sensor, lambda s: True), time.monotonic())
+        responder.frozen = True
+        deadline = time.monotonic() + 5.0
+        with caplog.at_level("ERROR", logger="iorthand.edge.force"):
+            while not monitor.state.stale and time.monotonic() < deadline:
+                monitor.tick(sensor.read(0.005), time.monotonic())
+        assert monitor.state.stale
+        (line,) = [r.getMessage() for r in caplog.records if "stale" in r.getMessage()]
+        assert "no sample for" in line and "(frozen: the same reading" in line, line
+    finally:
+        sensor.close()
+
+
+class _Scripted(ForceSensor):
+    """Stands in for a sensor's software side (no device): gives the samples and errors a test sets."""
+
+    def __init__(self) -> None:
+        self.sample: WrenchSample | None = None
+
+    def start(self) -> None: ...
+
+    def read(self, timeout: float) -> WrenchSample | None:
+        sample, self.sample = self.sample, None
+        return sample
+
+    def zero(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def test_the_stale_line_blames_no_error_from_before_the_last_sample(caplog: pytest.LogCaptureFixture) -> None:
+    """``last_error`` keeps the sensor's last complaint forever: one from before the last sample did not stop it."""
+    sensor = _Scripted()
+    monitor = ForceMonitor(ForceConfig(), sensor, [].append)
+    sensor.errors, sensor.last_error = 1, "garbage packet: 35 bytes"
+    sensor.sample = WrenchSample(np.zeros(6), time.time_ns())
+    monitor.tick(sensor.read(0.0), 10.0)
+    with caplog.at_level("ERROR", logger="iorthand.edge.force"):
+        monitor.tick(None, 11.0)  # silent: stale, no error since the sample
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert line.startswith("force sensor stale: no sample for 1000 ms —") and "garbage" not in line, line
+    assert stale_message(0.25, "sensor reports status 0x00000001") == (
+        "force sensor stale: no sample for 250 ms (sensor reports status 0x00000001) — stopping, contact motion refused")

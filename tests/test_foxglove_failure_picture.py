@@ -35,7 +35,7 @@ def live_view() -> tuple[FoxgloveLive, FoxgloveConverter, list[tuple[str, str, b
     live = FoxgloveLive(FoxgloveLiveConfig())
     logged: list[tuple[str, str, bytes]] = []
     live._channel = lambda ch: Logged(ch, logged)  # type: ignore[method-assign]
-    return live, FoxgloveConverter(video=True), logged
+    return live, FoxgloveConverter(video=True), logged  # as the live view makes it
 
 
 def jpeg(value: int) -> bytes:

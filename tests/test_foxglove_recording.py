@@ -5,6 +5,7 @@ CompressedVideo that a decoder plays, and the raw recording (manifest, report, r
 
 from __future__ import annotations
 
+import io
 import itertools
 import json
 import math
@@ -27,6 +28,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf import descriptor_pool, message_factory
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from mcap.reader import make_reader
+from PIL import Image
 
 from iorthand import geometry, keys
 from iorthand.protocol import (
@@ -206,6 +208,50 @@ def test_converter_keeps_state_per_robot_and_leaves_video_out_on_request() -> No
     assert not no_video.handles(key(keys.VIDEO_CAMERA)) and no_video.convert(key(keys.VIDEO_CAMERA), frame) == []
 
 
+def _shown(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(CompressedImage.FromString(data).data)).convert("RGB"))
+
+
+def test_a_video_failure_notice_replaces_the_last_picture_in_a_recording() -> None:
+    """An image panel keeps the last image it was given: without a picture of its own, a failure notice left a
+    recording showing the last frame as if live."""
+    conv = fx.FoxgloveConverter()
+    key = keys.RobotKeys("sim1").key(keys.VIDEO_CAMERA)
+    t0 = 1_000_000_000_000
+
+    def camera(msg: VideoFrame) -> list[str]:
+        return [m.channel.topic for m in conv.convert(key, msg)]
+
+    assert camera(VideoFrame(width=64, height=48, data=b"\xff\xd8\xff\xd9").stamp(1, t=t0)) == ["/sim1/camera"]
+    notice = VideoFrame(width=640, height=480, failure="cannot open video device '0'")
+    out = conv.convert(key, notice.stamp(2, t=t0 + 1))
+    assert [m.channel.topic for m in out] == ["/sim1/camera", "/sim1/events"], "no picture replaced the last frame"
+    picture = CompressedImage.FromString(out[0].data)
+    assert out[0].channel.schema_name == "foxglove.CompressedImage" and out[0].t == t0 + 1
+    assert picture.format == "jpeg" and picture.frame_id == "sim1/camera"
+    assert (picture.timestamp.seconds, picture.timestamp.nanos) == divmod(t0 + 1, 1_000_000_000)
+    image = _shown(out[0].data)
+    assert image.shape == (480, 640, 3) and image.mean() < 60  # the stream's size, dark: not the last frame
+    # The source retrying: one picture per NOTICE_INTERVAL_NS of source time, at once for another failure, and
+    # afresh when the edge's clock went back.
+    assert camera(notice.stamp(3, t=t0 + fx.NOTICE_INTERVAL_NS)) == []
+    assert camera(notice.stamp(4, t=t0 + 1 + fx.NOTICE_INTERVAL_NS)) == ["/sim1/camera"]
+    other = VideoFrame(width=640, height=480, failure="media process down")
+    assert camera(other.stamp(5, t=t0 + 2 + fx.NOTICE_INTERVAL_NS)) == ["/sim1/camera", "/sim1/events"]
+    assert camera(other.stamp(6, t=t0)) == ["/sim1/camera"]
+    # Back to pictures, then failing again: a picture at once.
+    assert camera(VideoFrame(width=64, height=48, data=b"\xff\xd8\xff\xd9").stamp(7, t=t0 + 10)) == [
+        "/sim1/camera", "/sim1/events"]
+    assert camera(notice.stamp(8, t=t0 + 11)) == ["/sim1/camera", "/sim1/events"]
+    # An H.264 stream gets a keyframe of its size; a caller that draws its own notices turns them off.
+    h264 = conv.convert(keys.RobotKeys("sim1").key(keys.VIDEO_ULTRASOUND),
+                        VideoFrame(width=320, height=240, encoding="h264", failure="frame not sent").stamp(9, t=t0))
+    assert h264[0].channel.schema_name == "foxglove.CompressedVideo"
+    assert CompressedVideo.FromString(h264[0].data).data.startswith((b"\x00\x00\x00\x01", b"\x00\x00\x01"))
+    quiet = fx.FoxgloveConverter(failure_pictures=False)
+    assert [m.channel.topic for m in quiet.convert(key, notice.stamp(10, t=t0))] == ["/sim1/events"]
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Reading a session's Foxglove files back
 
@@ -296,7 +342,8 @@ def _publish_sim2(s: Any) -> dict[str, int]:
         pubs[keys.VIDEO_CAMERA].put(VideoFrame(width=4, height=2, data=data, failure=failure).stamp(seq).encode())
     pubs[keys.MARKERS].put(Markers(markers=[], failure="no camera").stamp(1).encode())
     pubs[keys.STATE_ROBOT].put(b"\xc1 not msgpack")  # malformed: stored raw, never converted
-    return {"messages": 27, "safety_changes": 5, "refusals": 3, "pictures": 4, "events": 3}
+    # 4 frames and one notice picture (the second notice follows within NOTICE_INTERVAL_NS)
+    return {"messages": 27, "safety_changes": 5, "refusals": 3, "pictures": 5, "events": 3}
 
 
 def test_a_recorded_session_opens_in_foxglove_one_message_per_source(recorder, session_factory, tmp_path) -> None:
@@ -378,6 +425,9 @@ def test_a_recorded_session_opens_in_foxglove_one_message_per_source(recorder, s
     assert len(topics["/sim2/refusals"]) == len(refused) == expected_sim2["refusals"]
     assert all("deadman released" in r.msg.message for r in topics["/sim2/refusals"])
     assert len(topics["/sim2/camera"]) == expected_sim2["pictures"]
+    # The failure shows where it happened: after the last frame before it, a picture that says so.
+    assert [r.msg.data.startswith(b"\xff\xd8frame") for r in topics["/sim2/camera"]] == [True] * 2 + [False] + [True] * 2
+    assert _shown(topics["/sim2/camera"][2].msg.SerializeToString()).mean() < 60
     events = [r.msg.message for r in topics["/sim2/events"]]
     assert len(events) == expected_sim2["events"] and "camera unplugged" in events[0] and "no camera" in events[2]
     assert "/sim2/tf" not in topics  # its only robot state was malformed

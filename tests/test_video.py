@@ -357,6 +357,45 @@ class IrregularCamera(CameraSource):
         self._interrupted.set()
 
 
+class DriverStampedCamera(IrregularCamera):
+    """As IrregularCamera, but each frame carries a driver's capture stamp 80 ms before it is read (frames that
+    waited in the device's buffers), as a V4L2 camera's can; ``stamps`` keeps each image number's."""
+
+    def __init__(self, count: int) -> None:
+        super().__init__(count)
+        self.stamps: dict[int, int] = {}
+
+    def read(self) -> Frame:
+        frame = super().read()
+        frame.t_ns -= 80_000_000
+        self.stamps[frame.index] = frame.t_ns
+        return frame
+
+
+def test_the_camera_video_carries_each_perception_frames_capture_time() -> None:
+    """A video frame fed by the perception camera is stamped with that frame's capture time (its markers carry
+    the same), not with the time the video thread received it (which was 80 ms late here)."""
+    perception = from_dict({"camera": {"kind": "synthetic", "width": 64, "height": 48, "fps": 30.0}}, PerceptionConfig)
+    camera = DriverStampedCamera(10)
+    pipeline = PerceptionPipeline(perception, lambda _t: None, lambda _t: None, lambda _m: None, camera=camera)
+    config = StreamConfig(width=64, height=48, fps=30, codec="jpeg", source="perception")
+    stream = VideoStream("camera", keys.VIDEO_CAMERA, config, make_source(config, lambda: 0.0, pipeline.next_image))
+    pub = Recorder()
+    stop = threading.Event()
+    stream.start_with(pub, stop)
+    pipeline.start()
+    try:
+        wait_until(lambda: len(pub.frames) + stream.dropped == 10, timeout=10.0, message="the camera's 10 images")
+    finally:
+        pipeline.stop()
+        stop.set()
+        stream.join()
+    assert pub.frames
+    for f in pub.frames:
+        number = round(float(decode_frame(f).mean()) / 5)
+        assert f.t == camera.stamps[number], (number, (f.t - camera.stamps[number]) / 1e6)
+
+
 def test_the_camera_video_sends_each_perception_image_once_whatever_its_rate() -> None:
     """The stream takes the perception camera's images as they arrive: none twice, none skipped, in order, even
     when the camera's rate is irregular and above the stream's. (Polling at the stream's own rate sent some twice

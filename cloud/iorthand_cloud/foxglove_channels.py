@@ -20,8 +20,9 @@ topic                       schema                                          made
 ``/<robot>/markers/tf``     ``foxglove.FrameTransforms``                    every ``markers`` with at least one
                                                                             marker: base → marker_<id>
 ``/<robot>/camera``         ``foxglove.CompressedImage`` (jpeg, png) or     every ``video/camera`` frame with a
-                            ``foxglove.CompressedVideo`` (h264, h265:       picture (a frame carrying ``failure``
-                            one Annex B access unit per message)            has none: it goes to ``events``)
+                            ``foxglove.CompressedVideo`` (h264, h265:       picture; for a failure notice (no
+                            one Annex B access unit per message)            picture) a "VIDEO FAILED" one, at most
+                                                                            every NOTICE_INTERVAL_NS per failure
 ``/<robot>/ultrasound``     as ``camera``                                   every ``video/ultrasound`` frame
 ``/<robot>/force``          JSON ``iorthand.Force`` (fx fy fz tx ty tz      every ``state/force`` (Plot panel)
                             norm, N and N·m)
@@ -48,17 +49,27 @@ several robots (and their ``-replay`` ids) never share a tree:
 - ``<robot>/camera``, ``<robot>/ultrasound``: the ``frame_id`` of the images (no transform is published for
   them: the camera's pan/tilt chain is the edge's calibration).
 
+A video failure notice has no picture, and an image panel keeps the last one it was given: frozen, as if live
+(in a recording too, where the failure then shows nowhere but in the events log). So the converter puts a
+picture on the image topic for it (``failure_pictures``): a dark one that says "VIDEO FAILED" with the reason and
+since when (:func:`failure_picture`), as a JPEG, or for an H.264 stream as one H.264 keyframe of the stream's
+size (a viewer decodes it without the frames before it).
+
 Message timestamps are the source times (``t``) of the iorthand messages; the MCAP ``log_time`` the recorder
 writes is its receive time, as for the raw channels.
 """
 
 from __future__ import annotations
 
+import datetime as dt
 import functools
+import io
 import json
 import math
+import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import Any
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
@@ -70,6 +81,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.descriptor import FileDescriptor
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import Message as ProtoMessage
+from PIL import Image, ImageDraw, ImageFont
 
 from iorthand import geometry, keys
 from iorthand.protocol import (
@@ -129,6 +141,12 @@ LEVEL_COLOURS: dict[int, tuple[float, float, float, float]] = {
 STALE_COLOUR = (0.5, 0.5, 0.5, 1.0)
 PROBE_COLOUR = (0.85, 0.85, 0.9, 1.0)
 MARKER_COLOUR = (0.1, 0.4, 0.9, 0.8)
+
+# Failure notice pictures.
+NOTICE_MAX_SIDE = 4096  # px: a notice claiming a bigger frame is drawn at most this big (it is only text)
+# At most one notice picture per stream this often, of source time: the edge's source retries every second or
+# so, and a flood of notices must not keep the converter drawing (viewers that join still see one soon).
+NOTICE_INTERVAL_NS = 500_000_000
 
 Quaternion = tuple[float, float, float, float]  # x, y, z, w (Foxglove's order)
 
@@ -370,6 +388,54 @@ def video_message(robot: str, source: str, msg: VideoFrame) -> CompressedImage |
     return out
 
 
+def notice_image(text: str, width: int, height: int) -> Image.Image:
+    """A dark picture of ``width``×``height`` saying ``VIDEO FAILED`` and ``text`` (wrapped to fit)."""
+    width, height = max(16, min(width, NOTICE_MAX_SIDE)), max(16, min(height, NOTICE_MAX_SIDE))
+    image = Image.new("RGB", (width, height), (40, 0, 0))
+    draw = ImageDraw.Draw(image)
+    size = max(8, min(width // 24, height // 12))
+    font = ImageFont.load_default(size=size)
+    lines = ["VIDEO FAILED", *textwrap.wrap(text, max(8, int(width / (0.6 * size)) - 2))]
+    y = size
+    for i, line in enumerate(lines):
+        draw.text((size, y), line, fill=(255, 80, 80) if i == 0 else (235, 235, 235), font=font)
+        y += int(1.4 * size)
+    return image
+
+
+@functools.lru_cache(maxsize=16)
+def _notice_data(text: str, width: int, height: int, encoding: str) -> bytes:
+    """The notice encoded as the stream's frames are (cached: notices repeat at every retry of the source)."""
+    image = notice_image(text, width, height)
+    if encoding != "h264":
+        buf = io.BytesIO()
+        image.save(buf, format="JPEG", quality=80)
+        return buf.getvalue()
+    import av  # only for H.264 streams (imported when first needed: it loads FFmpeg)
+
+    codec = av.CodecContext.create("libx264", "w")
+    codec.width, codec.height = image.width // 2 * 2, image.height // 2 * 2  # 4:2:0 wants even sides
+    codec.pix_fmt, codec.time_base = "yuv420p", Fraction(1, 1000)
+    codec.options = {"preset": "ultrafast", "tune": "zerolatency"}
+    frame = av.VideoFrame.from_image(image.crop((0, 0, codec.width, codec.height))).reformat(format="yuv420p")
+    frame.pts = 0
+    return b"".join(bytes(p) for p in [*codec.encode(frame), *codec.encode(None)])
+
+
+def failure_picture(robot: str, name: str, msg: VideoFrame, since_ns: int) -> CompressedImage | CompressedVideo:
+    """What the image topic ``name`` shows for a failure notice: the failure (failing since ``since_ns``) as a
+    picture of the stream's size (a JPEG, or for an H.264 stream a keyframe, which a decoder takes without the
+    frames before it)."""
+    when = dt.datetime.fromtimestamp(since_ns / 1e9, dt.UTC).strftime("%H:%M:%S UTC")
+    text = f"{msg.failure} (since {when}: this is not a live picture)"
+    h264 = msg.encoding == "h264"
+    out = CompressedVideo(format="h264") if h264 else CompressedImage(format="jpeg")
+    out.data = _notice_data(text, msg.width, msg.height, "h264" if h264 else "jpeg")
+    _timestamp(out.timestamp, max(msg.t, 0))
+    out.frame_id = frame_id(robot, name)
+    return out
+
+
 def _log(name: str, t_ns: int, level: int, text: str) -> Log:
     out = Log(level=level, message=text, name=name)  # type: ignore[arg-type]
     _timestamp(out.timestamp, t_ns)
@@ -449,7 +515,9 @@ class FoxgloveConverter:
     """Turns decoded messages into serialized Foxglove messages. One instance per thread: it keeps per-robot
     state (the last safety status, the last force level, each source's last failure) and caches channels.
 
-    ``video=False`` leaves camera and ultrasound pictures out (they double the disk a recording takes)."""
+    ``video=False`` leaves camera and ultrasound pictures out (they double the disk a recording takes);
+    ``failure_pictures=False`` leaves out the picture that replaces the last frame at a video failure notice
+    (for a caller that draws its own)."""
 
     # The raw key suffixes that have a Foxglove channel; the twin subscribes to exactly these.
     SUFFIXES: tuple[str, ...] = (
@@ -457,14 +525,17 @@ class FoxgloveConverter:
         keys.MARKERS, keys.VIDEO_CAMERA, keys.VIDEO_ULTRASOUND,
     )
 
-    def __init__(self, video: bool = True) -> None:
+    def __init__(self, video: bool = True, failure_pictures: bool = True) -> None:
         self.video = video
+        self.failure_pictures = failure_pictures
         self._channels: dict[tuple[str, str], FoxgloveChannel] = {}
         self._routes: dict[str, tuple[str, Handler] | None] = {}
         self._safety: dict[str, str] = {}
         self._level: dict[str, int | None] = {}
         self._probe: dict[str, tuple[int, int | None]] = {}  # robot → (source time, level) of its last probe
         self._failure: dict[str, str] = {}
+        # video key → (its failure, source time of its first notice, of the last notice drawn)
+        self._notices: dict[str, tuple[str, int, int]] = {}
         self._handlers: dict[str, Handler] = {
             keys.STATE_ROBOT: self._robot, keys.STATE_FORCE: self._force, keys.STATE_FORCE_LEVEL: self._force_level,
             keys.STATE_SAFETY: self._safety_status, keys.STATE_APPLIED: self._applied, keys.MARKERS: self._markers,
@@ -558,10 +629,29 @@ class FoxgloveConverter:
     def _video(self, name: str, robot: str, key: str, msg: VideoFrame) -> list[FoxgloveMessage]:
         out = self._source_news(robot, key, f"{msg.source} video", msg.t, msg.failure)
         frame = video_message(robot, name, msg)
+        if frame is None and self.failure_pictures and (since := self._notice_due(key, msg)) is not None:
+            frame = failure_picture(robot, name, msg, since)
         if frame is not None:
             schema = "CompressedImage" if isinstance(frame, CompressedImage) else "CompressedVideo"
             out.insert(0, self._proto(robot, name, schema, key, frame, msg.t))
         return out
+
+    def _notice_due(self, key: str, msg: VideoFrame) -> int | None:
+        """For a failure notice whose picture is due, when the failure began (its first notice's source time);
+        None for a frame, or for a notice within NOTICE_INTERVAL_NS of the last picture drawn for the same
+        failure. A clock that went back (an edge restarted) draws afresh."""
+        if not msg.failure:
+            self._notices.pop(key, None)
+            return None
+        reason, since, drawn = self._notices.get(key, ("", msg.t, 0))
+        if msg.failure != reason or msg.t < drawn:
+            since = msg.t
+        elif msg.t - drawn < NOTICE_INTERVAL_NS:
+            return None
+        if len(self._notices) >= 1000:  # keys come from the network: never an unbounded table
+            self._notices.clear()
+        self._notices[key] = (msg.failure, since, msg.t)
+        return since
 
     def _source_news(self, robot: str, key: str, what: str, t: int, failure: str) -> list[FoxgloveMessage]:
         log = source_log(robot, what, t, self._failure.get(key, ""), failure)
@@ -572,7 +662,8 @@ class FoxgloveConverter:
 
 __all__ = [
     "SCHEMAS", "SOURCE_META", "FoxgloveChannel", "FoxgloveConverter", "FoxgloveMessage", "annotation_log",
-    "file_descriptor_set", "force_level_sample", "force_sample", "frame_id", "marker_scene", "marker_transforms",
-    "probe_scene", "refusal_log", "robot_transforms", "safety_log", "source_log", "topic",
+    "failure_picture", "file_descriptor_set", "force_level_sample", "force_sample", "frame_id", "marker_scene",
+    "marker_transforms", "notice_image", "probe_scene", "refusal_log", "robot_transforms", "safety_log",
+    "source_log", "topic",
     "video_message", "x_axis_to",
 ]

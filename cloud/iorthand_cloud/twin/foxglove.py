@@ -15,114 +15,32 @@ The server is read-only: it advertises no capability, so clients can subscribe, 
 set parameters. It declares Zenoh subscribers of its own: the rerun side's rate gates and lazy decoding stay as
 they are, and neither view waits for the other.
 
-A video failure notice (the edge's camera failed, or its media process is down) has no picture, and an image
-panel keeps the last one it was given: frozen, as if live. So each notice also puts a picture on the image topic:
-a dark one that says "VIDEO FAILED" with the reason and the time (:func:`failure_picture`), as a JPEG, or for an
-H.264 stream as one H.264 keyframe of the stream's size. The ``events`` log says it too (the converter's).
+A video failure notice has no picture, and an image panel keeps the last one it was given: the converter puts a
+"VIDEO FAILED" picture on the image topic for it (``FoxgloveConverter(failure_pictures=True)``), here as in a
+recording, so a frozen picture never passes for a live one.
 """
 
 from __future__ import annotations
 
 import contextlib
-import datetime as dt
-import functools
-import io
 import logging
-import textwrap
 import threading
 import time
-from fractions import Fraction
 from typing import Any
 
 import foxglove
 import zenoh
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
-from PIL import Image, ImageDraw, ImageFont
 
 from iorthand import keys
-from iorthand.protocol import DecodeError, Message, VideoFrame, message_type_for
+from iorthand.protocol import DecodeError, message_type_for
 from iorthand.transport import Inbox, Worker
-from iorthand_cloud.foxglove_channels import (
-    VIDEO_TOPICS,
-    FoxgloveChannel,
-    FoxgloveConverter,
-    FoxgloveMessage,
-    frame_id,
-)
+from iorthand_cloud.foxglove_channels import VIDEO_TOPICS, FoxgloveChannel, FoxgloveConverter
 
 from .config import FoxgloveLiveConfig
 
 log = logging.getLogger("iorthand.twin.foxglove")
 
 SERVER_NAME = "iorthand twin"
-NOTICE_MAX_SIDE = 4096  # px: a notice claiming a bigger frame is drawn at most this big (it is only text)
-NOTICE_INTERVAL_NS = 500_000_000  # at most one notice picture per stream this often (viewers that join see one)
-
-
-def notice_image(text: str, width: int, height: int) -> Image.Image:
-    """A dark picture of ``width``×``height`` saying ``VIDEO FAILED`` and ``text`` (wrapped to fit)."""
-    width, height = max(16, min(width, NOTICE_MAX_SIDE)), max(16, min(height, NOTICE_MAX_SIDE))
-    image = Image.new("RGB", (width, height), (40, 0, 0))
-    draw = ImageDraw.Draw(image)
-    size = max(8, min(width // 24, height // 12))
-    font = ImageFont.load_default(size=size)
-    lines = ["VIDEO FAILED", *textwrap.wrap(text, max(8, int(width / (0.6 * size)) - 2))]
-    y = size
-    for i, line in enumerate(lines):
-        draw.text((size, y), line, fill=(255, 80, 80) if i == 0 else (235, 235, 235), font=font)
-        y += int(1.4 * size)
-    return image
-
-
-@functools.lru_cache(maxsize=16)
-def _notice_data(text: str, width: int, height: int, encoding: str) -> bytes:
-    """The notice encoded as the stream's frames are (cached: notices repeat at every retry of the source)."""
-    image = notice_image(text, width, height)
-    if encoding != "h264":
-        buf = io.BytesIO()
-        image.save(buf, format="JPEG", quality=80)
-        return buf.getvalue()
-    import av  # only for H.264 streams (PyAV is what their edge encodes with)
-
-    codec = av.CodecContext.create("libx264", "w")
-    codec.width, codec.height = image.width // 2 * 2, image.height // 2 * 2  # 4:2:0 wants even sides
-    codec.pix_fmt, codec.time_base = "yuv420p", Fraction(1, 1000)
-    codec.options = {"preset": "ultrafast", "tune": "zerolatency"}
-    frame = av.VideoFrame.from_image(image.crop((0, 0, codec.width, codec.height))).reformat(format="yuv420p")
-    frame.pts = 0
-    return b"".join(bytes(p) for p in [*codec.encode(frame), *codec.encode(None)])
-
-
-def failure_picture(robot: str, name: str, msg: VideoFrame, since_ns: int) -> CompressedImage | CompressedVideo:
-    """What the image topic ``name`` shows for a failure notice: the failure (failing since ``since_ns``) as a
-    picture of the stream's size (a JPEG, or for an H.264 stream a keyframe, which a decoder takes without the
-    frames before it)."""
-    when = dt.datetime.fromtimestamp(since_ns / 1e9, dt.UTC).strftime("%H:%M:%S UTC")
-    text = f"{msg.failure} (since {when}: this is not a live picture)"
-    h264 = msg.encoding == "h264"
-    out = CompressedVideo(format="h264") if h264 else CompressedImage(format="jpeg")
-    out.data = _notice_data(text, msg.width, msg.height, "h264" if h264 else "jpeg")
-    out.timestamp.seconds, out.timestamp.nanos = divmod(max(msg.t, 0), 1_000_000_000)
-    out.frame_id = frame_id(robot, name)
-    return out
-
-
-def failure_messages(conv: FoxgloveConverter, key: str, msg: Message, since_ns: int) -> list[FoxgloveMessage]:
-    """For a video failure notice on ``key`` (failing since ``since_ns``), the notice picture on its image
-    topic; else nothing."""
-    if not isinstance(msg, VideoFrame) or not msg.failure:
-        return []
-    try:
-        robot, suffix = keys.split_key(key)
-    except keys.KeyExprError:
-        return []
-    name = VIDEO_TOPICS.get(suffix)
-    if name is None:
-        return []
-    picture = failure_picture(robot, name, msg, since_ns)
-    schema = "CompressedVideo" if isinstance(picture, CompressedVideo) else "CompressedImage"
-    return [FoxgloveMessage(conv.channel(robot, name, schema, key), picture.SerializeToString(), msg.t)]
 
 
 class FoxgloveLive:
@@ -137,8 +55,6 @@ class FoxgloveLive:
         self._video = Inbox(8, keep="newest")
         self._channels: dict[FoxgloveChannel, foxglove.Channel] = {}
         self._lock = threading.Lock()  # two worker threads create channels
-        # video key → (its failure, receive time of its first notice, of the last one drawn)
-        self._failures: dict[str, tuple[str, int, int]] = {}
         self._declared: list[Any] = []
         self._workers: list[Worker] = []
         self.sent = 0  # messages handed to the server
@@ -222,8 +138,6 @@ class FoxgloveLive:
             return
         try:
             out = conv.convert(key, msg)
-            if conv.video and isinstance(msg, VideoFrame) and (since := self._notice_due(key, msg, recv_ns)):
-                out = [*failure_messages(conv, key, msg, since), *out]
         except Exception as exc:  # a conversion bug costs that message, never the live view (or the twin)
             self.errors += 1
             if self.errors == 1 or self.errors % 1000 == 0:
@@ -232,24 +146,6 @@ class FoxgloveLive:
         for m in out:
             self._channel(m.channel).log(m.data, log_time=recv_ns)
             self.sent += 1
-
-    def _notice_due(self, key: str, msg: VideoFrame, recv_ns: int) -> int | None:
-        """For a failure notice whose picture is due, when the failure began (its first notice's receive time);
-        None for a frame, or a notice within NOTICE_INTERVAL_NS of the last picture drawn for the same failure
-        (the source retries every second or so; a flood of notices must not keep this thread drawing). Only the
-        video thread calls it."""
-        if not msg.failure:
-            self._failures.pop(key, None)
-            return None
-        reason, since, drawn = self._failures.get(key, ("", recv_ns, 0))
-        if msg.failure != reason:
-            since, drawn = recv_ns, 0
-        elif recv_ns - drawn < NOTICE_INTERVAL_NS:
-            return None
-        if len(self._failures) >= 1000:  # keys come from the network: never an unbounded table
-            self._failures.clear()
-        self._failures[key] = (msg.failure, since, recv_ns)
-        return since
 
     def _channel(self, ch: FoxgloveChannel) -> foxglove.Channel:
         channel = self._channels.get(ch)

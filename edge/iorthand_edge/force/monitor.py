@@ -46,6 +46,13 @@ def _level_value(value: float) -> float:
     return WIRE_LIMIT if wire is None else wire
 
 
+def stale_message(silent_s: float, sensor_error: str) -> str:
+    """The log line of a stale spell: how long without a sample and, when the sensor said why (a Net F/T that
+    froze, garbage, a bad status), its reason."""
+    why = f" ({sensor_error})" if sensor_error else ""
+    return f"force sensor stale: no sample for {1000 * silent_s:.0f} ms{why} — stopping, contact motion refused"
+
+
 class ForceMonitor:
     def __init__(self, config: ForceConfig, sensor: ForceSensor, on_change: Callable[[LevelState], None]) -> None:
         self.config = config
@@ -65,6 +72,7 @@ class ForceMonitor:
         self._pub_level: zenoh.Publisher | None = None
         self._last_level_pub = 0.0
         self._reported_errors = 0
+        self._errors_at_sample = 0  # the sensor's error count at its last sample: errors since may say why it stopped
         self._not_a_number = False  # the newest sample held a NaN
         self._next_retry = 0.0
         # Signs the level for the owner's client (the agent sets Supervisor.for_owner): the owner believes only
@@ -144,7 +152,7 @@ class ForceMonitor:
                 next_tick = time.monotonic()
 
     def _report_errors(self) -> None:
-        errors = getattr(self.sensor, "errors", 0)
+        errors = self.sensor.errors
         if errors != self._reported_errors:
             log.warning("force sensor: %d invalid samples so far, last: %s", errors, self.sensor.last_error)
             self._reported_errors = errors
@@ -155,6 +163,7 @@ class ForceMonitor:
         if sample is not None:
             self.tracker.add(sample.wrench if sample.batch is None else sample.batch, now)
             self.samples += 1
+            self._errors_at_sample = self.sensor.errors
             self.last_wrench = [float(v) for v in sample.wrench]
             wire = [on_the_wire(v) for v in self.last_wrench]
             if (None in wire) != self._not_a_number:
@@ -172,10 +181,9 @@ class ForceMonitor:
         if changed:
             if state.stale and not self.state.stale:
                 self.stale_since = now
-                log.error(
-                    "force sensor stale: no sample for %.0f ms — stopping, contact motion refused",
-                    1000 * (now - state.last_sample),
-                )
+                # Only an error since the last sample explains the silence (last_error keeps an old one).
+                why = self.sensor.last_error if self.sensor.errors != self._errors_at_sample else ""
+                log.error("%s", stale_message(now - state.last_sample, why))
             elif not state.stale and self.state.stale:
                 log.info("force sensor fresh again (level %d)", state.level)
             else:

@@ -87,8 +87,8 @@ class PerceptionPipeline:
         self._bits: dict[int, np.ndarray] = {}  # each seen marker's printed pattern, for the edge refinement
         self.filters = MarkerFilters(config.filter)
         self.stats = PipelineStats()
-        # The newest camera image (shared with the video stream through next_image, so one camera serves both).
-        self._image: np.ndarray | None = None
+        # The newest camera frame (shared with the video stream through next_image, so one camera serves both).
+        self._image: Frame | None = None
         self._image_arrived = threading.Condition()
         self.failure: str | None = None
         self._camera = camera
@@ -226,9 +226,10 @@ class PerceptionPipeline:
         n = r_camera_base @ np.asarray(normal, dtype=float)
         return n / np.linalg.norm(n)
 
-    def next_image(self, after: np.ndarray | None, timeout: float) -> np.ndarray | None:
-        """The camera's newest image once it is another than ``after``, waiting up to ``timeout`` s for it (None
-        if none came). The video stream takes each image as it arrives, before the markers are looked for."""
+    def next_image(self, after: Frame | None, timeout: float) -> Frame | None:
+        """The camera's newest frame once it is another than ``after``, waiting up to ``timeout`` s for it (None
+        if none came). The video stream takes each image as it arrives, before the markers are looked for, and
+        stamps it with the frame's capture time (the driver's, when the camera has it), not its own receipt."""
         with self._image_arrived:
             self._image_arrived.wait_for(lambda: self._image is not None and self._image is not after, timeout)
             image = self._image
@@ -302,7 +303,7 @@ class PerceptionPipeline:
         while not self._stop.is_set():
             frame = camera.read()
             with self._image_arrived:
-                self._image = frame.image
+                self._image = frame
                 self._image_arrived.notify_all()
             self._publish(self.process(frame))
             if self.failure is not None:  # cleared only once frames flow again, so a flapping camera stays failed

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from iorthand_edge.perception.camera import device_frame_time_ns, open_device_capture
+from iorthand_edge.perception.camera import Frame, device_frame_time_ns, open_device_capture
 from iorthand_edge.video.config import StreamConfig
 
 Image = NDArray[np.uint8]
@@ -211,29 +211,35 @@ class SharedFrameSource(FrameSource):
     """Each image another component captured (the perception camera), as it arrives: one camera device feeds
     both the marker detection and the video stream. grab() waits up to :data:`WAIT` s for the next image and
     returns None if none came. Paced by the camera: polling it at the stream's own rate sent each image up to a
-    period late, and at the camera's rate, with the two clocks drifting, would skip some and find none at others."""
+    period late, and at the camera's rate, with the two clocks drifting, would skip some and find none at others.
+    Each video frame carries the perception frame's capture time (its markers carry the same), not the time this
+    thread received it."""
 
     description = "the perception camera"
     paced = True
     WAIT = 0.2  # s: how soon a stop (or a stalled camera) is noticed
 
-    def __init__(self, next_image: Callable[[Image | None, float], Image | None]) -> None:
+    def __init__(self, next_image: Callable[[Frame | None, float], Frame | None]) -> None:
         self._next_image = next_image
-        self._last: Image | None = None
+        self._last: Frame | None = None
 
     def open(self) -> None:
         pass
 
     def grab(self) -> Image | None:
-        image = self._next_image(self._last, self.WAIT)
-        if image is not None:
-            self._last = image
-        return image
+        frame = self._next_image(self._last, self.WAIT)
+        if frame is None:
+            return None
+        self._last = frame
+        return frame.image
+
+    def frame_time_ns(self, returned_ns: int) -> int:
+        return returned_ns if self._last is None else self._last.t_ns
 
 
 def make_source(
     config: StreamConfig, contact_force: Callable[[], float],
-    shared_frame: Callable[[Image | None, float], Image | None] | None = None,
+    shared_frame: Callable[[Frame | None, float], Frame | None] | None = None,
 ) -> FrameSource:
     if config.source == "perception":
         if shared_frame is None:
