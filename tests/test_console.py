@@ -398,6 +398,74 @@ def test_a_safety_status_that_stopped_coming_is_shown_as_old(session_factory, op
     assert "local (stale" in profile
 
 
+def test_a_dead_link_reads_dead_in_the_link_figures(operator_factory) -> None:
+    """Found by a review of the operator side: with no robot state for 1.4 s the link panel read downlink 0 % and
+    RTT 20 ms, all green (gaps were counted only between states that arrived). The client's real link window is
+    fed at explicit times (no edge: a healthy second, then silence) and the controller's view taken at them."""
+    from iorthand_operator.link import BAD
+
+    client = operator_factory("deadlinkbot", "op1")
+    settings = ConsoleSettings()
+    ctrl = ConsoleController(client, KeyboardInput(KeymapConfig()), settings)
+
+    def ns(t: float) -> int:
+        return int(t * 1e9)
+
+    t0 = 1000.0
+    for i in range(125):  # states at 125 Hz, each command echoed after 20 ms
+        t = t0 + i * 0.008
+        client.link.state(i, ns(t))
+        client.link.sent((i, ns(t)), ns(t))
+        client.link.echoed((i, ns(t)), ns(t), ns(t + 0.020))
+    last = t0 + 124 * 0.008
+    live = ctrl.view(last + 0.1).link
+    assert [r.colour for r in live] == ["green"] * 3 and live[2].text == "0.0 % / 0.0 %", live
+    rtt, jit, loss = ctrl.view(last + 1.4).link
+    assert loss.text == "0.0 % / 100.0 % (no state for 1.4 s)" and loss.colour == "red", loss
+    assert rtt.text.startswith("no echo for 1.4 s") and rtt.colour == "red", rtt
+    assert jit.text.endswith("(old)") and jit.colour == "grey50", jit
+    assert client.link_quality(ns(last + 1.4), settings.state_stale_after).overall(settings.link) == BAD
+    # The bound is the console's "no fresh state" setting, the one its robot row uses.
+    ctrl.settings = ConsoleSettings(state_stale_after=2.0)
+    assert ctrl.view(last + 1.4).link[2].text == "0.0 % / 0.0 %"
+
+
+def test_camera_and_torch_rows_say_how_old_they_are(session_factory, operator_factory) -> None:
+    """Found by a review of the operator side: the camera (servo) and torch rows showed the last state however old,
+    with the edge gone a "torch on" from minutes ago looked current. Older than the bound the edge's heartbeat
+    implies (ACTUATOR_STALE_S), each row is greyed and says how old it is."""
+    from iorthand.protocol import ServoState, TorchState
+    from iorthand_operator.client import ACTUATOR_STALE_S
+
+    robot = "servobot"  # no edge: only our messages reach this robot's keys
+    client = operator_factory(robot, "op1")
+    ctrl = ConsoleController(client, KeyboardInput(KeymapConfig()), ConsoleSettings())
+    k = keys.RobotKeys(robot)
+    servo_pub = publisher(session_factory(), k.key(keys.STATE_SERVO))
+    torch_pub = publisher(session_factory(), k.key(keys.STATE_TORCH))
+
+    def arrived() -> bool:
+        servo_pub.put(ServoState(pan=0.1745, tilt=-0.0873).stamp(1).encode())
+        torch_pub.put(TorchState(on=True, brightness=0.8).stamp(1).encode())
+        return client.servo is not None and client.torch is not None
+
+    wait_until(arrived, 5.0, message="servo and torch state at the client")
+    now = time.monotonic()
+    app = OperatorConsole(ctrl)  # not run: its input panel is rendered from the view below
+
+    def rows(v: ConsoleView) -> dict[str, tuple[str, str]]:
+        """The input panel's rows: label → (text, style)."""
+        labels, values = app._input(v).columns[0]._cells, app._input(v).columns[1]._cells
+        return {str(k): (str(c), str(getattr(c, "style", ""))) for k, c in zip(labels, values, strict=True)}
+
+    fresh = rows(ctrl.view(now))
+    assert fresh["camera"] == ("pan +10° tilt -5°", "") and fresh["torch"] == ("on 80 %", ""), fresh
+    old = rows(ctrl.view(now + ACTUATOR_STALE_S + 1.0))
+    assert re.fullmatch(r"pan \+10° tilt -5° \(stale 2\.\d s\)", old["camera"][0]), old
+    assert re.fullmatch(r"on 80 % \(stale 2\.\d s\)", old["torch"][0]), old
+    assert old["camera"][1] == old["torch"][1] == "grey50", old
+
+
 def test_the_deadman_row_shows_what_the_command_stream_sends(edge_factory, operator_factory) -> None:
     """Found by a review of the operator side: "deadman sent ON" came from the input device, while without a grant
     the stream sent nothing and under a new grant it sent the deadman released until a fresh press."""
@@ -459,3 +527,15 @@ def test_a_key_read_during_a_stall_is_stamped_when_it_was_read(operator_factory)
     held, stamped = asyncio.run(run())
     assert abs(stamped - pressed["at"]) < 0.1, (stamped, pressed["at"])
     assert not held, "a key pressed 0.9 s ago, initial_hold 0.4 s: no longer held"
+
+
+def test_a_keymap_warning_is_in_the_console_log(operator_factory) -> None:
+    """The load-time warning goes to stderr, behind the console's screen: the console's log says it too."""
+    client = operator_factory("keymapbot", "op1")  # no edge: only the log is checked
+    ctrl = ConsoleController(client, KeyboardInput(KeymapConfig(name="mine", deadman_mode="motion")), ConsoleSettings())
+    ctrl.start()
+    try:
+        events = ctrl.view().events
+    finally:
+        ctrl.stop()
+    assert any("warning" in e and "key 'space' is bound to 'deadman'" in e for e in events), events

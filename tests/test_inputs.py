@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -183,3 +184,24 @@ def test_a_gamepad_mapping_with_one_control_for_two_things_is_refused(change, me
     turbo on the enable button (every motion at turbo speed), loaded without a word."""
     with pytest.raises(ConfigError, match=message):
         _pad(**change)
+
+
+def test_a_deadman_key_in_motion_mode_is_named_at_load(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Found by a review of the operator side: ``deadman_mode: motion`` with the default keys kept space bound to
+    deadman, and pressing it silently did nothing. A warning at load names the key and why (not a refusal)."""
+    path = tmp_path / "keymap-mine.yaml"
+    path.write_text("name: mine\ndeadman_mode: motion\n")  # the default keys: space → deadman
+    with caplog.at_level(logging.WARNING, logger="iorthand.operator"):
+        km = load_keymap(str(path))
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "key 'space' is bound to 'deadman', which does nothing with deadman_mode: motion" \
+        in warned[0] and str(path) in warned[0], warned
+    kb = KeyboardInput(km)
+    assert kb.warnings() == km.warnings() and "'space'" in kb.warnings()[0]
+    kb.key("space", 10.0)
+    assert not kb.poll(10.1).deadman  # what the warning says: it does nothing
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="iorthand.operator"):
+        load_keymap("hold", CONFIGS)  # motion mode with no deadman key
+        load_keymap(str(CONFIGS / "keymap-default.yaml"))  # toggle mode: space is its deadman
+    assert not caplog.records and KeyboardInput(KeymapConfig()).warnings() == []

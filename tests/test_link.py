@@ -69,6 +69,41 @@ def test_downlink_loss_from_state_sequences() -> None:
     assert w.snapshot(t0 + 20 * MS).downlink_loss == pytest.approx(1 / 11)
 
 
+def test_a_dead_downlink_reads_100_percent_and_old_round_trips_their_age() -> None:
+    """Found by a review of the operator side: gaps were counted only between states that arrived, so 1.4 s after
+    the last state the downlink read 0 % and the RTT its last healthy 20 ms, all green, until the window emptied."""
+    w, t = LinkWindow(window_s=5.0), LinkThresholds()
+    t0 = 10**12
+    for i in range(125):  # a healthy second: states at 125 Hz, every command echoed after 20 ms
+        w.state(i, t0 + i * 8 * MS)
+        w.sent(i, t0 + i * 8 * MS)
+        w.echoed(i, t0 + i * 8 * MS, t0 + i * 8 * MS + 20 * MS)
+    last = t0 + 124 * 8 * MS
+    q = w.snapshot(last + 100 * MS)
+    assert q.downlink_loss == 0.0 and q.overall(t) == GOOD
+    q = w.snapshot(last + 1400 * MS)  # then nothing for 1.4 s
+    assert q.downlink_loss == 1.0 and q.overall(t) == BAD
+    assert q.no_state_s == pytest.approx(1.4)
+    assert q.rtt_old_s == pytest.approx(1.38) and q.rtt_p95_ms == pytest.approx(20.0)  # said to be that old
+    assert q.grades(t)["downlink_loss"] == BAD and q.grades(t)["rtt"] == BAD and q.grades(t)["jitter"] == NONE
+    assert w.snapshot(last + 100 * MS).rtt_old_s == 0.0
+    # The bound is the caller's (the console's state_stale_after): under it, still a link.
+    assert w.snapshot(last + 1400 * MS, state_stale_after=2.0).downlink_loss == 0.0
+
+
+def test_echoes_that_still_arrive_are_current_whatever_the_state_stream() -> None:
+    w = LinkWindow(window_s=5.0)
+    t0 = 10**12
+    w.state(1, t0)
+    for i in range(100):  # the state stream dead, the echoes (another key) still coming
+        w.sent(i, t0 + i * 10 * MS)
+        w.echoed(i, t0 + i * 10 * MS, t0 + i * 10 * MS + 15 * MS)
+    q = w.snapshot(t0 + 1000 * MS)
+    assert q.downlink_loss == 1.0 and q.rtt_old_s == 0.0 and q.grades(LinkThresholds())["rtt"] == GOOD
+    # Before the first state nothing says one is coming: no figure, not a dead link.
+    assert math.isnan(LinkWindow().snapshot(t0).downlink_loss)
+
+
 def test_grades_against_thresholds() -> None:
     t = LinkThresholds(rtt_warn_ms=50, rtt_bad_ms=100)
     assert grade(10, 50, 100) == GOOD

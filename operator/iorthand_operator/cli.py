@@ -155,8 +155,17 @@ def _run_with_control(args: argparse.Namespace, action) -> int:
         client.session.close()
 
 
+def move_velocity(vx: float, vy: float, vz: float) -> np.ndarray:
+    """The linear velocity of ``operator move``; all zero is a mistake (it would take control, hold it for
+    --seconds and move nothing), refused before anything connects."""
+    if not (vx or vy or vz):
+        raise ConfigError("command line", "--vx/--vy/--vz", "all zero: the move would move nothing; "
+                          "give at least one velocity in m/s (e.g. --vx 0.02)")
+    return np.array([vx, vy, vz])
+
+
 def _move(args: argparse.Namespace) -> int:
-    linear = np.array([args.vx, args.vy, args.vz])
+    linear = move_velocity(args.vx, args.vy, args.vz)
     return _run_with_control(args, lambda c: move(c, linear, np.zeros(3), args.seconds, args.patience))
 
 

@@ -62,7 +62,7 @@ from iorthand.protocol import (
 from iorthand.security import auth, identity
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query
 from iorthand_operator import recovery
-from iorthand_operator.link import LinkQuality, LinkWindow
+from iorthand_operator.link import STATE_STALE_S, LinkQuality, LinkWindow
 from iorthand_operator.sender import CommandStream, ProcessSender, run_fixed_rate
 
 log = logging.getLogger("iorthand.operator")
@@ -110,6 +110,10 @@ RENEW_RETRY_S = 0.2  # s between attempts while a lease renewal fails (see Opera
 # A safety status older than this is none (next_step) or shown as old (the console): the edge sends one at
 # safety_rate_hz (20 Hz by default, 1 Hz at the least) and on every change.
 SAFETY_STALE_S = 2.0
+# A servo or torch state older than this is shown as old (the console): the edge publishes each on change and as a
+# heartbeat at servos/torch publish_hz (2 Hz by default), and calls the servo angles unknown after three missed
+# heartbeats (iorthand_edge.perception.history.SERVO_STALE_HEARTBEATS); so does this side, at the default rate.
+ACTUATOR_STALE_S = 3 / 2.0
 # The deadman flag of the last command sent is what the stream sends only if that command went out within this
 # long (a few periods, and the process sender's records arrive up to ~50 ms late): a quiet stream sends none.
 SENT_LATELY_S = 0.25
@@ -216,7 +220,9 @@ class OperatorClient:
         # receive time (monotonic), at most MAX_VITALS names (a flood of names cannot grow it).
         self.vitals: dict[str, tuple[SensorReading, float]] = {}
         self.servo: ServoState | None = None
+        self.servo_at = -math.inf  # monotonic receive time of servo
         self.torch: TorchState | None = None
+        self.torch_at = -math.inf  # monotonic receive time of torch
         self.markers: Markers | None = None
         self.markers_at = 0.0
         self.robot_state_at = 0.0
@@ -448,9 +454,10 @@ class OperatorClient:
         n = min(self.event_count - mark, len(self.events))
         return list(self.events)[len(self.events) - n:] if n > 0 else []
 
-    def link_quality(self, now_ns: int | None = None) -> LinkQuality:
-        """The link's figures at ``now_ns`` (monotonic; default now)."""
-        return self.link.snapshot(time.monotonic_ns() if now_ns is None else now_ns)
+    def link_quality(self, now_ns: int | None = None, state_stale_after: float = STATE_STALE_S) -> LinkQuality:
+        """The link's figures at ``now_ns`` (monotonic; default now); no robot state for ``state_stale_after`` s
+        is a dead downlink (LinkWindow.snapshot)."""
+        return self.link.snapshot(time.monotonic_ns() if now_ns is None else now_ns, state_stale_after)
 
     def release(self) -> ControlReply | None:
         self.set_twist(np.zeros(3), np.zeros(3), deadman=False)
@@ -827,12 +834,12 @@ class OperatorClient:
     def _on_servo(self, sample: zenoh.Sample) -> None:
         msg = self._decode(ServoState, sample)
         if msg is not None:
-            self.servo = msg
+            self.servo, self.servo_at = msg, time.monotonic()
 
     def _on_torch(self, sample: zenoh.Sample) -> None:
         msg = self._decode(TorchState, sample)
         if msg is not None:
-            self.torch = msg
+            self.torch, self.torch_at = msg, time.monotonic()
 
     def _on_markers(self, sample: zenoh.Sample) -> None:
         msg = self._decode(Markers, sample)

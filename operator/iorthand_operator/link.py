@@ -14,7 +14,10 @@ The operator sends twists with sequence numbers; the edge echoes every one it re
   control, and an earlier grant's echoes matched the new grant's commands (a dead uplink read 0 %). A new grant
   (:meth:`LinkWindow.new_grant`) starts the count afresh: the loss shown is that of the commands that can move
   the robot now.
-- **Downlink loss**: gaps in the edge's ``state/robot`` sequence numbers.
+- **Downlink loss**: gaps in the edge's ``state/robot`` sequence numbers — and 100 % once no state has arrived
+  for longer than ``state_stale_after`` (gaps are counted only between states that arrived, so a dead link read
+  0 %). The round trips measured before then are old: when the newest echo is older than that bound too, the
+  figures carry its age (``rtt_old_s``) and are graded by it (a dead link showed its last healthy RTT for a window).
 
 Everything takes explicit monotonic times (ns) so tests drive it without a clock. The console colours each figure
 against :class:`LinkThresholds`.
@@ -33,6 +36,9 @@ from iorthand import stats
 
 GOOD, WARN, BAD, NONE = "good", "warn", "bad", "none"
 GRADE_COLOURS = {GOOD: "green", WARN: "yellow", BAD: "red", NONE: "grey50"}
+# s without a robot state after which there is no fresh state: the console's default (ConsoleSettings) and the
+# link figures' (the edge publishes its state at 125 Hz; half a second of none is a dead downlink, not a gap).
+STATE_STALE_S = 0.5
 
 
 @dataclass
@@ -67,11 +73,18 @@ class LinkQuality:
     downlink_loss: float  # fraction of state messages missing (sequence gaps)
     echoes: int
     sent: int
+    # s since the newest robot state when that is longer than the bound (downlink_loss is then 1), else 0
+    no_state_s: float = 0.0
+    # s since the newest echo when no state is fresh and no echo is either: the RTT and jitter figures are that
+    # old (what they say is the link as it was, not as it is), else 0
+    rtt_old_s: float = 0.0
 
     def grades(self, t: LinkThresholds) -> dict[str, str]:
+        # Old round trips are graded by their age: at least that long, for all anyone here can tell.
+        rtt = 1e3 * self.rtt_old_s if self.rtt_old_s else self.rtt_p95_ms
         return {
-            "rtt": grade(self.rtt_p95_ms, t.rtt_warn_ms, t.rtt_bad_ms),
-            "jitter": grade(self.jitter_ms, t.jitter_warn_ms, t.jitter_bad_ms),
+            "rtt": grade(rtt, t.rtt_warn_ms, t.rtt_bad_ms),
+            "jitter": NONE if self.rtt_old_s else grade(self.jitter_ms, t.jitter_warn_ms, t.jitter_bad_ms),
             "uplink_loss": grade(self.uplink_loss, t.loss_warn, t.loss_bad),
             "downlink_loss": grade(self.downlink_loss, t.loss_warn, t.loss_bad),
         }
@@ -137,6 +150,9 @@ class LinkWindow:
         self._answers: dict[Hashable, int | None] = {}
         self._echoes: deque[tuple[int, float]] = deque()  # (echo ns, rtt ms), arrival order
         self._states: deque[tuple[int, int]] = deque()  # (receive ns, seq)
+        # Newest arrivals, kept past the window: how long the link has been silent is what a dead one shows.
+        self._last_state_ns: int | None = None
+        self._last_echo_ns: int | None = None
 
     # Each insert also drops what is two windows old (amortised O(1)): a client nobody asks for a snapshot (a
     # scripted operator running for hours) must not keep every send, echo and state it ever saw. Two windows, not
@@ -152,6 +168,7 @@ class LinkWindow:
             if cmd in self._answers:
                 self._answers[cmd] = echo_ns - sent_ns
             self._echoes.append((echo_ns, (echo_ns - sent_ns) / 1e6))
+            self._last_echo_ns = max(echo_ns, self._last_echo_ns or echo_ns)
             self._trim(echo_ns - self.window_ns)
 
     def new_grant(self) -> None:
@@ -165,6 +182,7 @@ class LinkWindow:
     def state(self, seq: int, t_ns: int) -> None:
         with self._lock:
             self._states.append((t_ns, seq))
+            self._last_state_ns = max(t_ns, self._last_state_ns or t_ns)
             self._trim(t_ns - self.window_ns)
 
     def _trim(self, now_ns: int) -> None:
@@ -177,7 +195,9 @@ class LinkWindow:
         while self._states and self._states[0][0] < cut:
             self._states.popleft()
 
-    def snapshot(self, now_ns: int) -> LinkQuality:
+    def snapshot(self, now_ns: int, state_stale_after: float = STATE_STALE_S) -> LinkQuality:
+        """The figures at ``now_ns``; no robot state for longer than ``state_stale_after`` s is a dead downlink
+        (before the first state there is no downlink figure at all: nothing says one is coming)."""
         with self._lock:
             self._trim(now_ns)
             rtts = [r for _, r in self._echoes]
@@ -185,12 +205,20 @@ class LinkWindow:
             missing = sum(1 for cmd in due if self._answers.get(cmd) is None)
             state_seqs = [s for _, s in self._states]
             sent = len(self._sent)
+            last_state, last_echo = self._last_state_ns, self._last_echo_ns
+        no_state = rtt_old = 0.0
+        if last_state is not None and (now_ns - last_state) / 1e9 > state_stale_after:
+            no_state = (now_ns - last_state) / 1e9
+            if rtts and last_echo is not None and (now_ns - last_echo) / 1e9 > state_stale_after:
+                rtt_old = (now_ns - last_echo) / 1e9
         return LinkQuality(
             rtt_p50_ms=stats.percentile(rtts, 50),
             rtt_p95_ms=stats.percentile(rtts, 95),
             jitter_ms=jitter(rtts),
             uplink_loss=missing / len(due) if due else math.nan,
-            downlink_loss=gap_loss(state_seqs),
+            downlink_loss=1.0 if no_state else gap_loss(state_seqs),
             echoes=len(rtts),
             sent=sent,
+            no_state_s=no_state,
+            rtt_old_s=rtt_old,
         )

@@ -36,7 +36,8 @@ def _yes(flag: bool, yes: str = "yes", no: str = "no") -> Text:
 
 
 def _stale(text: str, old: str) -> Text:
-    """A value from a safety status that is no longer current, with its age: "yes (stale 3.2 s)"."""
+    """A value from the edge that is no longer current (a safety status, a servo or torch state), with its age:
+    "yes (stale 3.2 s)"."""
     return Text(f"{text} ({old})", style="grey50")
 
 
@@ -352,6 +353,7 @@ class OperatorConsole(App[int]):
         t = self._table()
         t.add_row("device", v.input_name)
         t.add_row("state", Text(v.input_status or "—", style="" if v.input_connected else "bold red"))
-        t.add_row("camera", v.camera or "—")
-        t.add_row("torch", v.torch or "—")
+        # The edge's last word, however old: greyed and aged once its heartbeat has stopped, never as if current.
+        t.add_row("camera", _stale(v.camera, v.camera_stale) if v.camera_stale else v.camera or "—")
+        t.add_row("torch", _stale(v.torch, v.torch_stale) if v.torch_stale else v.torch or "—")
         return t

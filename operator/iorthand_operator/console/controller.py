@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from iorthand_operator import recovery
-from iorthand_operator.client import ControlRefused, OperatorClient
+from iorthand_operator.client import ACTUATOR_STALE_S, ControlRefused, OperatorClient
 from iorthand_operator.console.model import (
     ForceView,
     LinkRow,
@@ -33,6 +33,7 @@ from iorthand_operator.console.model import (
     link_rows,
     next_profile,
     sparkline,
+    stale_note,
     vitals_line,
 )
 from iorthand_operator.console.settings import ConsoleSettings
@@ -82,7 +83,9 @@ class ConsoleView:
     markers_note: str = ""  # why there are no markers, when it is not that none are in view
     markers_failed: bool = False  # the edge reports a camera failure (the note says which)
     camera: str = ""
+    camera_stale: str = ""  # "stale 3.2 s" when the servo state is older than ACTUATOR_STALE_S ("" while current)
     torch: str = ""
+    torch_stale: str = ""  # likewise for the torch state
     events: list[str] = field(default_factory=list)
     sent: int = 0
     edge_judged: int = 0  # commands the edge's supervisor judged
@@ -117,6 +120,9 @@ class ConsoleController:
         # The input loop's twists are the console's sign of life, not the client's own threads: an input thread
         # that stalls with the deadman held (a device read that never returns) releases it after ui_timeout.
         self.client.beats_itself = False
+        # Logged at load too, but that line is behind the console's screen: what does nothing is said here.
+        for warning in self.device.warnings():
+            self.client.log_event("warning", "input", warning)
         for name, fn in (("input", self._input_loop), ("actions", self._action_loop)):
             t = threading.Thread(target=fn, name=f"operator-{name}", daemon=True)
             t.start()
@@ -267,7 +273,7 @@ class ConsoleController:
             p = state.tcp_pose
             v.tcp_pose_mm_deg = [1000 * p[0], 1000 * p[1], 1000 * p[2], *(math.degrees(a) for a in p[3:])]
             v.tcp_speed_mm_s = 1000 * float(np.linalg.norm(state.tcp_speed[:3]))
-        v.link = link_rows(c.link_quality(), s.link)
+        v.link = link_rows(c.link_quality(int(now * 1e9), s.state_stale_after), s.link)
         v.input_name = self.device.name
         v.input_connected = self.sample.connected
         v.input_status = self.sample.status
@@ -283,8 +289,10 @@ class ConsoleController:
             v.markers = sorted(m.id for m in c.markers.markers)
         if c.servo is not None:
             v.camera = f"pan {math.degrees(c.servo.pan):+.0f}° tilt {math.degrees(c.servo.tilt):+.0f}°"
+            v.camera_stale = stale_note(now - c.servo_at, ACTUATOR_STALE_S)
         if c.torch is not None:
             v.torch = f"{'on' if c.torch.on else 'off'} {100 * c.torch.brightness:.0f} %"
+            v.torch_stale = stale_note(now - c.torch_at, ACTUATOR_STALE_S)
         v.events = [
             f"{time.strftime('%H:%M:%S', time.localtime(e.t))} {e.kind:<7} {e.status}: {e.reason}" for e in list(c.events)[-50:]
         ]

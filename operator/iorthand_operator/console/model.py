@@ -53,6 +53,11 @@ def vitals_line(vitals: Mapping[str, tuple[SensorReading, float]], now: float, o
     return " · ".join(parts)
 
 
+def stale_note(age: float, stale_after: float) -> str:
+    """"stale 3.2 s" for a state ``age`` s old when that is more than ``stale_after``; "" while it is current."""
+    return f"stale {age:.1f} s" if age > stale_after else ""
+
+
 def sparkline(values: Sequence[float], width: int = 30, top: float | None = None) -> str:
     """The last ``width`` values as block characters scaled to ``top`` (default: their maximum)."""
     vals = [v for v in list(values)[-width:] if math.isfinite(v)]
@@ -79,12 +84,17 @@ class LinkRow:
 
 def link_rows(q: LinkQuality, t: LinkThresholds) -> list[LinkRow]:
     g = q.grades(t)
+    rtt = f"{fmt_ms(q.rtt_p50_ms)} / {fmt_ms(q.rtt_p95_ms)}"
+    jit = fmt_ms(q.jitter_ms)
+    if q.rtt_old_s:  # a dead link: what was measured before it died, said to be that old
+        rtt, jit = f"no echo for {q.rtt_old_s:.1f} s (was {rtt})", f"{jit} (old)"
+    down = fmt_pct(q.downlink_loss) + (f" (no state for {q.no_state_s:.1f} s)" if q.no_state_s else "")
     return [
-        LinkRow("RTT p50/p95", f"{fmt_ms(q.rtt_p50_ms)} / {fmt_ms(q.rtt_p95_ms)}", GRADE_COLOURS[g["rtt"]]),
-        LinkRow("jitter", fmt_ms(q.jitter_ms), GRADE_COLOURS[g["jitter"]]),
+        LinkRow("RTT p50/p95", rtt, GRADE_COLOURS[g["rtt"]]),
+        LinkRow("jitter", jit, GRADE_COLOURS[g["jitter"]]),
         LinkRow(
             "loss up/down",
-            f"{fmt_pct(q.uplink_loss)} / {fmt_pct(q.downlink_loss)}",
+            f"{fmt_pct(q.uplink_loss)} / {down}",
             GRADE_COLOURS[max(g["uplink_loss"], g["downlink_loss"], key=_rank)],
         ),
     ]

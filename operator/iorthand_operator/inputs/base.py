@@ -62,6 +62,10 @@ class InputDevice(ABC):
         """Forget a deadman the device keeps on by itself (a toggle): after an e-stop or a halt, only a new
         press may count as the operator's intent. A held button or key needs no forgetting: it is let go."""
 
+    def warnings(self) -> list[str]:
+        """What in the device's configuration does nothing (the console shows each in its log at start)."""
+        return []
+
     def control_name(self, binding: str) -> str:
         """What the operator presses for ``binding`` ("deadman", "acquire", ...), as the screen names it."""
         return binding

@@ -19,6 +19,7 @@ of :data:`ACTIONS`, or ``deadman``. A keymap with an unknown key name or binding
 
 from __future__ import annotations
 
+import logging
 import re
 import threading
 from dataclasses import dataclass, field
@@ -28,6 +29,8 @@ import numpy as np
 
 from iorthand.config import load, setting
 from iorthand_operator.inputs.base import ACTIONS, TWIST_AXES, InputDevice, InputSample
+
+log = logging.getLogger("iorthand.operator.keyboard")
 
 _NAMED_KEYS = {
     "space", "escape", "enter", "tab", "backspace", "delete", "insert", "home", "end", "pageup", "pagedown",
@@ -88,6 +91,15 @@ class KeymapConfig:
             # The console's own stop keys (x, escape) stand in only where the keymap leaves them unbound.
             raise ValueError("keys: no key is bound to 'estop': a console must always be able to stop the robot")
 
+    def warnings(self) -> list[str]:
+        """What in this keymap does nothing, said so (not refused: a keymap that sets deadman_mode: motion and
+        keeps the default keys has space bound to deadman)."""
+        if self.deadman_mode != "motion":
+            return []
+        return [f"keymap {self.name!r}: key {key!r} is bound to 'deadman', which does nothing with deadman_mode: "
+                f"motion (holding a move key is the deadman there); bind it to something else or remove it"
+                for key, binding in self.keys.items() if binding == "deadman"]
+
 
 def load_keymap(spec: str | None, search_dir: Path | None = None) -> KeymapConfig:
     """A keymap by file path or by name (``configs/keymap-<name>.yaml``); None → the built-in default.
@@ -101,7 +113,10 @@ def load_keymap(spec: str | None, search_dir: Path | None = None) -> KeymapConfi
         known = sorted(p.stem.removeprefix("keymap-") for p in search_dir.glob("keymap-*.yaml")) if search_dir else []
         names = ", ".join(sorted({"default", *known}))
         raise FileNotFoundError(f"unknown key map {spec!r}: no file {path} (known: {names})")
-    return load(path, KeymapConfig)
+    config = load(path, KeymapConfig)
+    for warning in config.warnings():
+        log.warning("%s: %s", path, warning)
+    return config
 
 
 class KeyboardInput(InputDevice):
@@ -147,6 +162,9 @@ class KeyboardInput(InputDevice):
     @property
     def deadman_toggles(self) -> bool:  # type: ignore[override]
         return self.config.deadman_mode == "toggle"
+
+    def warnings(self) -> list[str]:
+        return self.config.warnings()
 
     def release_deadman(self) -> None:
         with self._lock:
