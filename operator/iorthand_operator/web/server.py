@@ -658,6 +658,7 @@ class Page:
             grades = q.grades(LinkThresholds())
             out["link"] = {"rtt_p50": _finite(q.rtt_p50_ms), "rtt_p95": _finite(q.rtt_p95_ms),
                            "loss_up": _finite(q.uplink_loss), "loss_down": _finite(q.downlink_loss),
+                           "no_state": q.no_state_s,  # s without robot state: the link is dead, not slow
                            "colour": GRADE_COLOURS[max(grades.values(), key=_grade_rank)]}
             events += self._new_events("client", self.client.events)
         if events:

@@ -467,7 +467,10 @@ function onState(s) {
   ui.vitals.textContent = s.vitals ? `patient: ${s.vitals}` : "";
   if (s.link) {
     const fmt = (v) => (v == null ? "—" : v.toFixed(1));
-    ui.link.textContent = `RTT ${fmt(s.link.rtt_p50)}/${fmt(s.link.rtt_p95)} ms · loss ${((s.link.loss_up || 0) * 100).toFixed(1)} %`;
+    // A dead link says so: its last round trips are not how it is now.
+    ui.link.textContent = s.link.no_state
+      ? `no robot state for ${s.link.no_state.toFixed(1)} s`
+      : `RTT ${fmt(s.link.rtt_p50)}/${fmt(s.link.rtt_p95)} ms · loss ${((s.link.loss_up || 0) * 100).toFixed(1)} %`;
     ui.link.className = `pill ${s.link.colour}`;
   }
   const owner = sf?.owner || "";
