@@ -138,8 +138,10 @@ class EdgeAgent:
     def __init__(self, config: EdgeConfig, robot: Robot | None = None) -> None:
         self.config = config
         self.keys = keys.RobotKeys(config.robot_id)
+        # The tool point the kinematics use is the one the controller must have (all zero: not set).
+        tcp = list(config.goto.tcp_offset) if any(config.goto.tcp_offset) else None
         self.robot = robot if robot is not None else make_robot(config.robot, config.safety.stop_deceleration,
-                                                                config.realtime)
+                                                                config.realtime, tcp)
         self.period = self.robot.control_period
         self.supervisor = Supervisor(config.safety, period=self.period, force_required=config.force is not None,
                                      robot=config.robot_id)

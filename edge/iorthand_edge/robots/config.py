@@ -44,6 +44,16 @@ class URRobotConfig(RobotConfig):
     connect_timeout: float = setting(5.0, lo=0.5, hi=60.0)
     reconnect_max_s: float = setting(5.0, lo=0.1, hi=60.0, help="longest back-off between reconnects")
     link_timeout: float = setting(0.1, lo=0.01, hi=2.0, help="controller timestamp frozen this long = link lost")
+    # The workspace box, the kinematics and the force levels hold for one tool point and one payload: the
+    # controller's installation must have them, or the box guards another point and the force readings carry the
+    # weight difference. The tool point is goto.tcp_offset (the kinematics' too), checked at connect.
+    tcp_tolerance_m: float = setting(0.001, lo=0.0, hi=0.05, help="allowed TCP position difference from goto.tcp_offset")
+    tcp_tolerance_rad: float = setting(0.01, lo=0.0, hi=0.5, help="allowed TCP orientation difference")
+    payload_kg: float | None = setting(
+        None, lo=0.0, hi=20.0, help="the payload the controller must have (end-effector mass); another one is "
+        "refused at connect. None: not checked (warned)",
+    )
+    payload_tolerance_kg: float = setting(0.05, lo=0.0, hi=5.0, help="allowed payload difference")
 
 
 RobotConfig.VARIANTS = {c.KIND: c for c in (SimRobotConfig, URRobotConfig)}

@@ -20,12 +20,18 @@ ur_rtde 1.6.5 facts this design follows (FACTS.md, issue 5):
 - ur_rtde's commands block (speedStop until the arm is at rest): the child streams state from a reader
   thread of its own so that a long stop never looks like a hung driver.
 - Faults never resume motion: after a reconnect the supervisor stays latched until an operator re-acquires.
+- The controller's own settings change what a command does: the teach pendant's speed slider slows every motion
+  (RTDE ``target_speed_fraction``): ``send_twist`` returns the twist the arm really makes, the mode says
+  "speed 30%" and the edge logs a warning whenever the slider is below 100 %. The installation's TCP and
+  payload are checked at connect against ``goto.tcp_offset`` (the kinematics' tool point) and ``payload_kg``: the workspace box guards the
+  configured tool point and the force levels assume the configured payload.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import multiprocessing as mp
 import time
 from collections.abc import Sequence
@@ -35,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from iorthand.geometry import rotvec_to_matrix
 from iorthand.process import REALTIME_PRIORITY, raise_priority
 from iorthand_edge.robots.base import Robot, RobotFault, RobotReading, Vector
 from iorthand_edge.robots.config import URRobotConfig
@@ -44,15 +51,23 @@ log = logging.getLogger("iorthand.edge.ur")
 # UR safety modes (RTDE safety_mode) that forbid motion, with what the operator should do.
 SAFETY_MODES = {
     3: "protective stop: clear it on the teach pendant (or the dashboard), then re-acquire control",
-    4: "safety recovery mode",
-    5: "safeguard stop",
-    6: "system emergency stop",
-    7: "robot emergency stop",
-    8: "safety violation",
-    9: "safety fault",
+    4: "safety recovery mode: move the arm back within its safety limits on the teach pendant, then re-acquire "
+       "control",
+    5: "safeguard stop: a safeguard input (door, light curtain, external stop) is open; close and reset it, "
+       "then re-acquire control",
+    6: "system emergency stop: release the emergency stop, reset on the teach pendant, power on, release the "
+       "brakes, then re-acquire control",
+    7: "robot emergency stop: release the emergency stop button, reset on the teach pendant, power on, release "
+       "the brakes, then re-acquire control",
+    8: "safety violation: restart safety on the teach pendant, power on, then re-acquire control",
+    9: "safety fault: restart safety on the teach pendant, power on, then re-acquire control",
 }
 SAFETY_NAMES = {3: "protective stop", 4: "recovery", 5: "safeguard stop", 6: "system e-stop",
                 7: "robot e-stop", 8: "violation", 9: "safety fault"}
+SAFETY_MODE_REDUCED = 2
+FULL_SPEED = 0.999  # a speed slider at or above this is at 100 %
+LOCAL_CONTROL = ("the controller is in local control: switch it to remote control on the teach pendant, then "
+                 "re-acquire control")
 ROBOT_MODE_RUNNING = 7
 MODE_MAX, FAULT_MAX = 40, 200  # the lengths RobotState accepts: a longer text would make its encode() fail
 # The driver's command thread (it kicks the controller's watchdog) at real time, under the edge's control loop and
@@ -71,6 +86,30 @@ UR_RTDE_RT_PRIORITY = -1
 SPAWN_TIMEOUT = 15.0  # s for the driver child to start Python and import ur_rtde (not the controller's fault)
 ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "booting", 3: "power off",
                4: "power on", 5: "idle", 6: "backdrive", 7: "running", 8: "updating firmware"}
+
+
+def installation_mismatch(cfg: dict[str, Any], tcp: Sequence[float], payload: float) -> str:
+    """Why the controller's active TCP offset or payload is not the configured one ("" when it is, or when the
+    configuration does not say). Names both values: the fix is on the pendant or in the configuration."""
+    problems = []
+    expected = cfg.get("tcp_offset")
+    if expected is not None:
+        dp = math.dist(tcp[:3], expected[:3])
+        rel = rotvec_to_matrix(expected[3:6]).T @ rotvec_to_matrix(tcp[3:6])
+        angle = math.acos(max(-1.0, min(1.0, (float(np.trace(rel)) - 1.0) / 2.0)))
+        if dp > cfg["tcp_tolerance_m"] or angle > cfg["tcp_tolerance_rad"]:
+            problems.append(f"TCP offset {_fmt(tcp)} differs from goto.tcp_offset {_fmt(expected)} "
+                            f"by {1000 * dp:.1f} mm, {math.degrees(angle):.1f}°")
+    if cfg.get("payload_kg") is not None and abs(payload - cfg["payload_kg"]) > cfg["payload_tolerance_kg"]:
+        problems.append(f"payload {payload:.3f} kg differs from robot.payload_kg {cfg['payload_kg']:.3f} kg")
+    if not problems:
+        return ""
+    return ("the controller's " + "; its ".join(problems) + ": the workspace box and the force levels would guard "
+            "another tool; set the installation's TCP and payload on the teach pendant or correct the configuration")
+
+
+def _fmt(values: Sequence[float]) -> str:
+    return "[" + ", ".join(f"{float(v):.4f}" for v in values) + "]"
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -94,18 +133,31 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     # The connect timeout runs from here: starting Python and importing takes seconds on a busy Pi and says
     # nothing about the controller.
     conn.send(("connecting", ""))
+    ctrl = None
     try:
         recv = rtde_receive.RTDEReceiveInterface(cfg["host"], cfg["rtde_frequency"], rt_priority=UR_RTDE_RT_PRIORITY)
-        # No script can run in a protective stop (or worse): say so instead of a confusing upload failure.
-        safety_mode = recv.getSafetyMode()
+        # No script can run in a protective stop (or worse), or with the arm off: say so instead of a confusing
+        # upload failure.
+        safety_mode, robot_mode = recv.getSafetyMode(), recv.getRobotMode()
         if safety_mode in SAFETY_MODES:
             raise RuntimeError(f"controller in {SAFETY_MODES[safety_mode]}")
-        ctrl = rtde_control.RTDEControlInterface(cfg["host"], cfg["rtde_frequency"], rt_priority=UR_RTDE_RT_PRIORITY)
+        if robot_mode != ROBOT_MODE_RUNNING:
+            raise RuntimeError(f"robot not running ({ROBOT_MODES.get(robot_mode, str(robot_mode))}): power it on "
+                               "and release the brakes on the teach pendant")
+        try:
+            ctrl = rtde_control.RTDEControlInterface(cfg["host"], cfg["rtde_frequency"],
+                                                     rt_priority=UR_RTDE_RT_PRIORITY)
+        except RuntimeError as exc:  # ur_rtde's own words for local control are a programmer's
+            raise RuntimeError(LOCAL_CONTROL if "remote control" in str(exc) else str(exc)) from None
         # The constructor uploads the control script. The controller's input registers outlive a program, and a
         # re-uploaded script executes whatever command is still in them (the stale speedL of a driver that died
         # mid-motion). So the first command of every connection is a stop; it also clears that register.
         if not ctrl.speedStop(cfg["stop_deceleration"]):
             raise RuntimeError("speedStop after connecting was refused (control script not running)")
+        installation = (list(ctrl.getTCPOffset()), float(recv.getPayload()))
+        mismatch = installation_mismatch(cfg, *installation)
+        if mismatch:
+            raise RuntimeError(mismatch)
         # This thread only (reset on fork): ur_rtde's threads, started before, and the reader, started after, stay
         # normal, or their work at the RTDE rate would take the CPU from the edge's command path. Raised before
         # the watchdog is set: from then on the program lives on this thread's kicks, and at normal priority a
@@ -116,8 +168,13 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
         if not ctrl.setWatchdog(cfg["watchdog_hz"]):
             raise RuntimeError("setWatchdog was refused (control script not running)")
     except Exception as exc:  # ur_rtde raises RuntimeError mostly; report whatever it is
+        if ctrl is not None:
+            # A script is running (a refused installation, a refused watchdog): leave none behind, before the
+            # agent, told, kills this process. The controller answered a moment ago: this does not hang on a dead one.
+            with contextlib.suppress(Exception):
+                ctrl.stopScript()
         with contextlib.suppress(OSError):
-            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+            conn.send(("error", str(exc) if isinstance(exc, RuntimeError) else f"{type(exc).__name__}: {exc}"))
         os._exit(0)  # no destructors: they talk to the controller and can block on a dead one
 
     send_lock = threading.Lock()
@@ -140,6 +197,7 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                     list(recv.getActualTCPPose()), list(recv.getActualTCPSpeed()), list(recv.getActualQ()),
                     recv.getTimestamp(), recv.getRobotMode(), recv.getSafetyMode(), recv.isConnected(),
                     ctrl.isProgramRunning(), list(recv.getActualTCPForce()), ctrl.isConnected(),
+                    recv.getTargetSpeedFraction(),
                 )
             except RuntimeError as exc:  # ur_rtde's own reconnect failed inside a call
                 send(("lost", f"RTDE link to the controller lost ({exc})"))
@@ -161,7 +219,7 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                 step()
         os._exit(0)
 
-    send(("ready", priority))
+    send(("ready", (priority, *installation)))
     threading.Thread(target=reader, name="ur-driver-reader", daemon=True).start()
     parent_timeout = cfg["parent_timeout"]
     last_parent = time.monotonic()
@@ -220,8 +278,10 @@ class URRobot(Robot):
     Every method returns at once; a fault sends the phase back to ``down`` and schedules a reconnect with
     back-off (0.5 s doubling to ``reconnect_max_s``)."""
 
-    def __init__(self, config: URRobotConfig, stop_deceleration: float, realtime: bool = True) -> None:
+    def __init__(self, config: URRobotConfig, stop_deceleration: float, realtime: bool = True,
+                 tcp_offset: Sequence[float] | None = None) -> None:
         self.config = config
+        self.tcp_offset = None if tcp_offset is None else [float(v) for v in tcp_offset]  # goto.tcp_offset
         self.stop_deceleration = stop_deceleration  # the safety config's, for the child's own stops
         self.realtime = realtime  # the edge's setting: real time for the driver's command thread where allowed
         self.driver_priority = ""  # what the driver's command thread got, once connected
@@ -240,6 +300,8 @@ class URRobot(Robot):
         self._refusal_logged = 0.0
         self._child_started = False
         self._stopped_since: float | None = None  # monotonic time the program was first seen stopped
+        self._speed_fraction: float | None = None  # the pendant's speed slider as last reported; None: not yet
+        self.installation: tuple[list[float], float] | None = None  # the controller's TCP offset and payload (kg)
 
     @property
     def control_period(self) -> float:
@@ -249,7 +311,10 @@ class URRobot(Robot):
 
     def _spawn(self) -> None:
         parent, child = self._ctx.Pipe()
-        cfg = {k: v for k, v in asdict(self.config).items() if k in ("host", "rtde_frequency", "watchdog_hz")}
+        cfg = {k: v for k, v in asdict(self.config).items() if k in (
+            "host", "rtde_frequency", "watchdog_hz", "tcp_tolerance_m", "tcp_tolerance_rad", "payload_kg",
+            "payload_tolerance_kg")}
+        cfg["tcp_offset"] = self.tcp_offset
         cfg["stop_deceleration"] = self.stop_deceleration
         cfg["realtime"] = self.realtime
         # The agent heartbeats every control cycle; silence for two watchdog periods means it is frozen.
@@ -303,12 +368,21 @@ class URRobot(Robot):
             return
         now = time.monotonic()
         self._phase, self._fault, self._state = "up", "", None
-        self._stopped_since = None
+        self._stopped_since, self._speed_fraction = None, None
         self._state_at = self._stamp_changed_at = now
         self._backoff = 0.5
-        log.info("connected to UR controller at %s (watchdog %.0f Hz; the driver's command thread at %s priority)",
-                 self.config.host, self.config.watchdog_hz, text)
-        self.driver_priority = text
+        priority, tcp, payload = text
+        log.info("connected to UR controller at %s (watchdog %.0f Hz; the driver's command thread at %s priority; "
+                 "TCP offset %s, payload %.3f kg)", self.config.host, self.config.watchdog_hz, priority, _fmt(tcp),
+                 payload)
+        if self.installation is None:  # once: the configuration does not change between reconnects
+            for setting_name, expected, value in (
+                    ("goto.tcp_offset", self.tcp_offset, f"TCP offset {_fmt(tcp)}"),
+                    ("robot.payload_kg", self.config.payload_kg, f"payload {payload:.3f} kg")):
+                if expected is None:
+                    log.warning("%s is not set: the controller's %s is not checked against what the workspace "
+                                "box, the kinematics and the force levels assume", setting_name, value)
+        self.driver_priority, self.installation = priority, (tcp, payload)
 
     def connect(self) -> None:
         """Connect, waiting up to ``connect_timeout``; raise RobotFault with the reason otherwise."""
@@ -333,6 +407,7 @@ class URRobot(Robot):
                     if self._state is None or payload[3] != self._state[3]:
                         self._stamp_changed_at = time.monotonic()
                     self._state, self._state_at = payload, time.monotonic()
+                    self._note_speed_fraction(float(payload[10]))
                 elif kind == "lost":
                     self._fail(payload)
                     return
@@ -361,6 +436,18 @@ class URRobot(Robot):
             except (BrokenPipeError, OSError):
                 self._fail("UR driver pipe broken")
 
+    def _note_speed_fraction(self, fraction: float) -> None:
+        """Warn when the pendant's speed slider leaves 100 % (and at connect when it is already below), and when it
+        comes back: the operator's commanded speeds are then not what the arm does."""
+        previous, self._speed_fraction = self._speed_fraction, fraction
+        if previous is not None and abs(fraction - previous) < 0.005:
+            return
+        if fraction < FULL_SPEED:
+            log.warning("UR speed slider at %.0f %%: the arm moves at %.0f %% of every commanded speed (set it to "
+                        "100 %% on the teach pendant)", 100 * fraction, 100 * fraction)
+        elif previous is not None:
+            log.info("UR speed slider back at 100 %%")
+
     def _health(self) -> str:
         if self._phase != "up" or self._fault:
             return self._fault or "UR driver connecting"
@@ -374,7 +461,8 @@ class URRobot(Robot):
             # program below sends us through a reconnect.
             return SAFETY_MODES[safety_mode]
         if robot_mode != ROBOT_MODE_RUNNING:
-            return f"robot not running ({ROBOT_MODES.get(robot_mode, str(robot_mode))}): power it on and release the brakes"
+            return (f"robot not running ({ROBOT_MODES.get(robot_mode, str(robot_mode))}): power it on and release the "
+                    "brakes on the teach pendant, then re-acquire control")
         if not program_running:
             # ur_rtde's control and receive streams lag each other by up to a period: a protective stop may
             # show as a stopped program before its safety mode arrives. Report at once, but decide to reconnect
@@ -402,11 +490,15 @@ class URRobot(Robot):
             zeros = np.zeros(6)
             return RobotReading(zeros, zeros, zeros, time.time_ns(), mode="disconnected", connected=False,
                                 fault=(fault or "no state from the controller yet")[:FAULT_MAX])
-        pose, speed, q, stamp, robot_mode, safety_mode, connected, running, force, _ = self._state
+        pose, speed, q, stamp, robot_mode, safety_mode, connected, running, force, _, fraction = self._state
         # A short mode (state/robot allows 40 characters; the fault carries the long explanation).
         mode = SAFETY_NAMES.get(safety_mode) or ROBOT_MODES.get(robot_mode, f"mode {robot_mode}")
+        if safety_mode == SAFETY_MODE_REDUCED:  # the safety system's lower limits apply
+            mode += ", reduced"
         if not running:
             mode += ", no program"
+        if fraction < FULL_SPEED:  # the operator's screen says why the arm is slower than commanded
+            mode += f", speed {100 * fraction:.0f}%"
         return RobotReading(
             tcp_pose=np.array(pose), tcp_speed=np.array(speed), q=np.array(q), timestamp_ns=time.time_ns(),
             robot_time=float(stamp), mode=mode[:MODE_MAX],
@@ -423,7 +515,10 @@ class URRobot(Robot):
         except (BrokenPipeError, OSError):
             self._fail("UR driver pipe broken")
             raise RobotFault(self._fault) from None
-        return np.array(sent)
+        # The pendant's speed slider scales the controller's speedL: what the arm makes is the twist times it, and
+        # that is what the applied echo and state/robot report.
+        fraction = 1.0 if self._speed_fraction is None else min(max(self._speed_fraction, 0.0), 1.0)
+        return np.array(sent) * fraction
 
     def stop(self, deceleration: float) -> None:
         if self._phase != "up" or self._conn is None:

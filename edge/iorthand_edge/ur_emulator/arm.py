@@ -178,6 +178,9 @@ class ArmModel:
         self.joint: _JointMotion | None = None
         self.force: ForceMode | None = None
         self.fault: str | None = None  # why the last step was refused; the controller takes it
+        # The pendant's speed slider (RTDE target_speed_fraction): a controller runs every motion on a clock slowed
+        # by it, so a speedl of 8 mm/s moves at 2.4 mm/s with the slider at 30 %.
+        self.speed_fraction = 1.0
 
     # -- state ------------------------------------------------------------------------------------------
 
@@ -232,13 +235,18 @@ class ArmModel:
 
     # -- commands ---------------------------------------------------------------------------------------
 
+    def _slider_twist(self) -> list[float]:
+        """The arm's twist on the speed slider's clock, where the tool model runs (its own, with the slider at 0)."""
+        fraction = min(max(self.speed_fraction, 0.0), 1.0)
+        return list(self.tool.twist) if fraction <= 0 else [v / fraction for v in self.twist]
+
     def _to_cartesian(self) -> None:
         """Hand a running joint motion over to the tool model, which continues from the arm's current speed."""
         if self.joint is not None:
             self.joint = None
-            self.tool.twist = list(self.twist)
+            self.tool.twist = self._slider_twist()
             self.tool.mode = MotionMode.SPEED if any(self.twist) else MotionMode.IDLE
-            self.tool.target_twist = list(self.twist)
+            self.tool.target_twist = list(self.tool.twist)
 
     def _to_joint(self, motion: _JointMotion) -> None:
         self.tool.halt()  # the tool model's own motion ends; the pose stays
@@ -250,7 +258,7 @@ class ArmModel:
 
     def stopl(self, a: float) -> None:
         self._to_cartesian()
-        self.tool.twist = list(self.twist)  # force mode may have moved the TCP faster than the tool model did
+        self.tool.twist = self._slider_twist()  # force mode may have moved the TCP faster than the tool model did
         self.tool.stopl(a)
 
     def halt(self) -> None:
@@ -265,7 +273,7 @@ class ArmModel:
             raise Unreachable(f"movel: no inverse kinematics solution for p{_fmt(target)} "
                               f"(out of reach of a {self.arm.name})")
         self._to_cartesian()
-        self.tool.twist = list(self.twist)
+        self.tool.twist = self._slider_twist()
         self.tool.movel(list(target), v, a)
 
     def movel_fk(self, q: Sequence[float], v: float, a: float) -> None:
@@ -355,16 +363,19 @@ class ArmModel:
             return
         before = list(self.tool.pose)
         joint = self.joint
+        # Motions advance on the slider's clock; speeds measured below (joint speeds, the TCP twist) on the real one.
+        fraction = min(max(self.speed_fraction, 0.0), 1.0)
+        scaled = dt * fraction
         q_nominal: Vector | None = None  # where a joint motion takes the joints
         if joint is not None:
-            q_nominal = joint.step(self.q, dt, self.vmax)
+            q_nominal = joint.step(self.q, scaled, self.vmax)
             pose = self.fk(q_nominal)
         else:
-            self.tool.step(dt)
+            self.tool.step(scaled)
             pose = list(self.tool.pose)
             if pose == before and self.force is None:  # e.g. a speedl of zero: nothing to solve
                 self.qd = np.zeros(6)
-                self.twist = list(self.tool.twist)
+                self.twist = [v * fraction for v in self.tool.twist]
                 return
         if self.force is not None:
             pose = self._comply(before, pose, dt)
@@ -391,7 +402,7 @@ class ArmModel:
         self.q = q
         self.tool.pose = pose
         if joint is None and self.force is None:
-            self.twist = list(self.tool.twist)  # the tool model's exact twist
+            self.twist = [v * fraction for v in self.tool.twist]  # the tool model's exact twist, on the real clock
         else:
             self.twist = _pose_rate(before, pose, dt)
         if joint is not None and joint.done:

@@ -189,7 +189,8 @@ class Controller:
         self.payload = 0.0
         self.payload_cog = [0.0, 0.0, 0.0]
         self.digital_out = 0
-        self.speed_fraction = 1.0
+        self.speed_fraction = 1.0  # the pendant's speed slider: every motion runs this much slower
+        self.remote_control = True  # False: the pendant took local control; no program from outside may start
         self.robot_mode = RobotMode.RUNNING
         self.safety_mode = SafetyMode.NORMAL
         self.protective_stop_time = 0.0
@@ -269,6 +270,7 @@ class Controller:
                 # step() may itself stop the program (triggerProtectiveStop): only end it if still current.
                 if program is not None and not program.step(self, now) and self.program is program:
                     self.stop_program(f"program {program.name} ended", decelerate=False)
+            self.model.speed_fraction = self.speed_fraction
             self.model.step(dt)
             if self.model.fault is not None:
                 # The arm refused a step (out of reach, joint limit, singularity) and stopped where it was.
@@ -412,6 +414,8 @@ class Controller:
 
     def can_run_programs(self) -> str | None:
         """None if a program may start, else the reason (what PolyScope would show in a popup)."""
+        if not self.remote_control:
+            return "the controller is in local control (remote control is off on the teach pendant)"
         if self.robot_mode != RobotMode.RUNNING:
             return f"robot mode is {self.robot_mode.name}, not RUNNING (power on and release the brakes)"
         if self.safety_mode not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
@@ -482,6 +486,18 @@ class Controller:
             self.event("protective stop unlocked")
             return True, "Protective stop releasing"
 
+    def set_safety_mode(self, mode: SafetyMode, reason: str) -> None:
+        """The safety system enters ``mode`` (a safeguard stop from an open guard, reduced mode from a safety plane,
+        a violation...). One that forbids motion stops the program and the arm, as a protective stop does (a real
+        controller pauses a program on a safeguard stop; a program of ur_rtde's is stopped here, the stricter case
+        for the client). Back to NORMAL clears it."""
+        with self.lock:
+            self.event(f"safety mode {mode.name}: {reason}")
+            self.safety_mode = mode
+            if mode not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
+                self.stop_program(mode.name.lower().replace("_", " "), decelerate=True)
+                self.model.stopl(self.config.stop_deceleration)
+
     def emergency_stop(self, reason: str) -> None:
         with self.lock:
             self.event(f"emergency stop: {reason}")
@@ -534,6 +550,9 @@ class Controller:
                 "program": self.program.name if self.program else None,
                 "robot_mode": self.robot_mode.name,
                 "safety_mode": self.safety_mode.name,
+                "speed_fraction": self.speed_fraction,
+                "remote_control": self.remote_control,
+                "payload": self.payload,
                 "watchdog": list(self.watchdog) if self.watchdog else None,
                 "force": list(self.raw_force),
                 "ft_offset": list(self.ft_offset),

@@ -32,7 +32,7 @@ def answer(ctrl: Controller, line: str) -> tuple[str, bool]:
         if low == "get robot model":
             return ctrl.config.robot_model, False
         if low == "is in remote control":
-            return "true", False
+            return ("true" if ctrl.remote_control else "false"), False
         if low == "robotmode":
             return f"Robotmode: {ctrl.robot_mode.name}", False
         if low == "safetymode":

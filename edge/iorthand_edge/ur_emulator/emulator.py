@@ -10,7 +10,7 @@ from typing import Any
 from iorthand.config import from_dict
 from iorthand_edge.force.contact import PhantomConfig
 
-from .controller import Controller, ControllerConfig
+from .controller import Controller, ControllerConfig, SafetyMode
 from .dashboard import handle_dashboard
 from .faults import handle_control
 from .net import Listener, Registry
@@ -183,6 +183,49 @@ class UREmulator:
     def release_emergency_stop(self) -> None:
         self.controller.release_emergency_stop()
 
+    # -- what a person at the teach pendant does ---------------------------------------------------------
+
+    def set_speed_slider(self, fraction: float) -> None:
+        """The pendant's speed slider (0..1): every motion runs at this fraction of its commanded speed."""
+        if not 0.0 <= float(fraction) <= 1.0:
+            raise ValueError(f"fraction must be within [0, 1], got {fraction!r}")
+        with self.controller.lock:
+            self.controller.speed_fraction = float(fraction)
+            self.controller.event(f"speed slider at {100 * float(fraction):.0f} %")
+
+    def set_remote_control(self, on: bool) -> None:
+        """Remote control on or off (local control). In local control the dashboard says so and no program from
+        outside starts; one already running goes on."""
+        with self.controller.lock:
+            self.controller.remote_control = bool(on)
+            self.controller.event(f"{'remote' if on else 'local'} control")
+
+    def set_safety_mode(self, mode: str, reason: str = "injected") -> None:
+        """The safety system enters ``mode``, a :class:`.controller.SafetyMode` name (SAFEGUARD_STOP, REDUCED,
+        NORMAL, VIOLATION, FAULT, ...); see :meth:`.controller.Controller.set_safety_mode`."""
+        try:
+            safety = SafetyMode[str(mode).upper()]
+        except KeyError:
+            raise ValueError(f"unknown safety mode {mode!r}; expected one of {', '.join(SafetyMode.__members__)}") from None
+        self.controller.set_safety_mode(safety, reason)
+
+    def set_tcp(self, offset: list[float]) -> None:
+        """The installation's active TCP (a UR pose in the flange frame, m and rotation vector)."""
+        if len(offset) != 6:
+            raise ValueError("offset must have 6 values (x, y, z, rx, ry, rz)")
+        with self.controller.lock:
+            self.controller.model.set_tcp([float(v) for v in offset])
+            self.controller.event(f"TCP offset set to {list(offset)}")
+
+    def set_payload(self, mass: float, cog: list[float] | None = None) -> None:
+        """The installation's payload (kg, centre of gravity in m in the flange frame)."""
+        if not 0.0 <= float(mass) <= 50.0:
+            raise ValueError(f"mass must be within [0, 50] kg, got {mass!r}")
+        with self.controller.lock:
+            self.controller.payload = float(mass)
+            self.controller.payload_cog = [float(v) for v in (cog or [0.0, 0.0, 0.0])]
+            self.controller.event(f"payload set to {mass} kg")
+
     def set_force(self, wrench: list[float]) -> None:
         if len(wrench) != 6:
             raise ValueError("wrench must have 6 values (Fx, Fy, Fz, Tx, Ty, Tz)")
@@ -235,3 +278,5 @@ class UREmulator:
         self.release_emergency_stop()
         self.clear_protective_stop()
         self.set_force([0.0] * 6)
+        self.set_speed_slider(1.0)
+        self.set_remote_control(True)

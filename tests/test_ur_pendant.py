@@ -1,0 +1,228 @@
+"""What a person at the UR's teach pendant can do while the edge drives, against the REAL ur_rtde library and the
+UR controller emulator (in a process of its own, as in tests/test_ur_backend.py): the speed slider, the
+installation's TCP and payload, and the modes that stop the arm (safeguard stop, e-stop, power off, local control,
+a stopped program, reduced mode). The pendant itself is the emulator's control socket and its dashboard port.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import socket
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rtde_control", reason="ur-rtde is not installed on this platform (pip install ur-rtde==1.6.5)")
+
+from iorthand_edge.robots.base import RobotFault, RobotReading
+from iorthand_edge.robots.config import URRobotConfig
+from iorthand_edge.robots.ur import URRobot, installation_mismatch
+from iorthand_edge.supervisor import SafetyConfig
+from iorthand_edge.ur_emulator.arm import ArmModel
+from tests.conftest import ur_controller
+from tests.test_ur_backend import Emulator, cycle, healthy, until, wait_emu
+
+pytestmark = pytest.mark.serial  # the controller's watchdog and the link timeout are real-time bounds (see test_ur_backend)
+
+PROBE_TCP = [0.0, 0.0, 0.2, 0.0, 0.0, 0.0]  # a probe tip 200 mm along the flange's z
+
+
+@pytest.fixture
+def emu() -> Iterator[Emulator]:
+    with ur_controller() as process:
+        yield Emulator(process)
+
+
+@pytest.fixture
+def make_robot(emu: Emulator) -> Iterator[Callable[..., URRobot]]:
+    robots: list[URRobot] = []
+
+    def make(tcp_offset: list[float] | None = None, **overrides: object) -> URRobot:
+        config = URRobotConfig(host=emu.host, connect_timeout=3.0, reconnect_max_s=0.5, **overrides)  # type: ignore[arg-type]
+        robot = URRobot(config, SafetyConfig().stop_deceleration, tcp_offset=tcp_offset)
+        robots.append(robot)
+        return robot
+
+    yield make
+    for robot in robots:
+        robot.disconnect()
+
+
+def dashboard(host: str, command: str) -> str:
+    """One command on the controller's dashboard port (29999), as the pendant's buttons do; its answer."""
+    with socket.create_connection((host, 29999), timeout=3.0) as sock:
+        f = sock.makefile("rw")
+        f.readline()  # the welcome line
+        f.write(command + "\n")
+        f.flush()
+        return f.readline().strip()
+
+
+# ------------------------------------------------------------------------------------------------ speed slider
+
+
+def test_emulated_arm_runs_speedl_at_the_speed_sliders_fraction() -> None:
+    """A controller scales every motion by the pendant's slider: speedl 20 mm/s at 30 % moves at 6 mm/s."""
+    arm = ArmModel("ur5e")
+    arm.speed_fraction = 0.3
+    x0 = arm.pose[0]
+    arm.speedl([0.02, 0, 0, 0, 0, 0], 10.0)
+    for _ in range(500):  # 1 s at 500 Hz
+        arm.step(0.002)
+    assert arm.twist[0] == pytest.approx(0.006)
+    assert arm.pose[0] - x0 == pytest.approx(0.006, abs=2e-4)  # minus the 0.6 ms ramp
+    arm.speed_fraction = 1.0  # back at 100 %: the commanded speed, no jump in between
+    arm.step(0.002)
+    assert arm.twist[0] == pytest.approx(0.02)
+
+
+def test_speed_slider_below_100_is_reported_and_applied_twist_is_what_the_arm_does(
+        emu: Emulator, make_robot: Callable[..., URRobot], caplog: pytest.LogCaptureFixture) -> None:
+    emu.set_speed_slider(fraction=0.3)
+    robot = make_robot()
+    with caplog.at_level(logging.WARNING, logger="iorthand.edge.ur"):
+        robot.connect()
+        reading, _ = until(robot, healthy, 2.0, "a healthy state")
+    # At start: a warning that names the slider, and the mode on every state/robot while it stays there.
+    assert any("speed slider at 30 %" in r.getMessage() for r in caplog.records), caplog.text
+    assert "speed 30%" in reading.mode
+    reading = cycle(robot, 0.5, [0.02, 0, 0, 0, 0, 0], acceleration=0.5)
+    applied = robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
+    assert applied[0] == pytest.approx(0.006)  # the applied echo carries what the arm does, not 20 mm/s
+    assert emu.status()["twist"][0] == pytest.approx(0.006)
+    assert reading.tcp_speed[0] == pytest.approx(0.006, abs=1e-4)
+    # Set back to 100 % on the pendant: the mode says nothing more, commands apply in full.
+    emu.set_speed_slider(fraction=1.0)
+    reading, _ = until(robot, lambda r: "speed" not in r.mode, 2.0, "the mode without the slider")
+    cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0], acceleration=0.5)
+    assert robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)[0] == pytest.approx(0.02)
+    # Lowered while driving: warned again.
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="iorthand.edge.ur"):
+        emu.set_speed_slider(fraction=0.5)
+        until(robot, lambda r: "speed 50%" in r.mode, 2.0, "the slider at 50 % in the mode")
+    assert any("speed slider at 50 %" in r.getMessage() for r in caplog.records), caplog.text
+    robot.stop(0.5)
+
+
+# ------------------------------------------------------------------------------------------------ TCP and payload
+
+
+def installation_config(**overrides: object) -> dict[str, object]:
+    return {"tcp_offset": PROBE_TCP, "tcp_tolerance_m": 0.001, "tcp_tolerance_rad": 0.01, "payload_kg": 1.2,
+            "payload_tolerance_kg": 0.05, **overrides}
+
+
+def test_installation_mismatch_names_both_values() -> None:
+    assert installation_mismatch(installation_config(), PROBE_TCP, 1.2) == ""
+    assert installation_mismatch(installation_config(tcp_offset=None, payload_kg=None), [0.0] * 6, 0.0) == ""
+    why = installation_mismatch(installation_config(), [0.0, 0.0, 0.15, 0.0, 0.0, 0.0], 1.2)
+    assert "[0.0000, 0.0000, 0.1500" in why and "[0.0000, 0.0000, 0.2000" in why and "50.0 mm" in why
+    assert "differs from robot.payload_kg" not in why
+    why = installation_mismatch(installation_config(), [0.0, 0.0, 0.2, 0.0, 0.0, 0.1], 0.0)
+    assert "5.7°" in why and "payload 0.000 kg differs from robot.payload_kg 1.200 kg" in why
+
+
+def test_controller_with_another_tcp_or_payload_is_refused_at_connect(emu: Emulator,
+                                                                      make_robot: Callable[..., URRobot]) -> None:
+    emu.set_tcp(offset=[0.0, 0.0, 0.15, 0.0, 0.0, 0.0])  # the installation still has last week's gripper
+    emu.set_payload(mass=1.2)
+    robot = make_robot(tcp_offset=PROBE_TCP, payload_kg=1.2)
+    with pytest.raises(RobotFault, match=r"TCP offset \[0\.0000, 0\.0000, 0\.1500.*goto\.tcp_offset \[0\.0000, 0\.0000, "
+                                         r"0\.2000"):
+        robot.connect()
+    # No control script is left running on the controller after the refusal.
+    wait_emu(lambda: emu.status()["runtime_state"] == "STOPPED", 2.0, "the script stopped")
+    emu.set_tcp(offset=PROBE_TCP)
+    emu.set_payload(mass=0.4)
+    with pytest.raises(RobotFault, match=r"payload 0\.400 kg differs from robot\.payload_kg 1\.200 kg"):
+        make_robot(tcp_offset=PROBE_TCP, payload_kg=1.2).connect()
+    emu.set_payload(mass=1.2)
+    robot = make_robot(tcp_offset=PROBE_TCP, payload_kg=1.2)
+    robot.connect()
+    assert robot.installation == (pytest.approx(PROBE_TCP), pytest.approx(1.2))
+
+
+def test_unchecked_installation_is_warned_with_the_controllers_values(emu: Emulator,
+                                                                      make_robot: Callable[..., URRobot],
+                                                                      caplog: pytest.LogCaptureFixture) -> None:
+    emu.set_tcp(offset=[0.0, 0.0, 0.15, 0.0, 0.0, 0.0])
+    with caplog.at_level(logging.WARNING, logger="iorthand.edge.ur"):
+        make_robot().connect()
+    assert "goto.tcp_offset is not set" in caplog.text and "[0.0000, 0.0000, 0.1500" in caplog.text
+    assert "robot.payload_kg is not set" in caplog.text
+
+
+# ------------------------------------------------------------------------------------------------ pendant modes
+
+
+def stays_still(robot: URRobot, emu: Emulator, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        robot.read_state()
+        assert emu.status()["twist"] == [0.0] * 6
+        time.sleep(0.02)
+
+
+def refuses(robot: URRobot, words: str) -> RobotReading:
+    reading, _ = until(robot, lambda r: words in r.fault, 3.0, f"a fault saying {words!r}")
+    with pytest.raises(RobotFault, match=re.escape(words)):
+        robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
+    return reading
+
+
+@pytest.mark.parametrize(("enter", "fault", "leave"), [
+    ("safeguard", "safeguard stop: a safeguard input", "safeguard"),
+    ("estop", "robot emergency stop: release the emergency stop button", "estop"),
+    ("power_off", "robot not running (power off): power it on", "power_on"),
+    ("program_stop_local", "local control: switch it to remote control", "remote"),
+])
+def test_pendant_mode_stops_says_what_to_do_and_nothing_moves_after_it_is_undone(
+        emu: Emulator, make_robot: Callable[..., URRobot], enter: str, fault: str, leave: str) -> None:
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
+    assert emu.status()["twist"][0] == pytest.approx(0.02)
+    if enter == "safeguard":
+        emu.set_safety_mode(mode="SAFEGUARD_STOP", reason="light curtain")
+    elif enter == "estop":
+        emu.emergency_stop(reason="pendant button")
+    elif enter == "power_off":
+        assert dashboard(emu.host, "power off") == "Powering off"
+    else:  # the person stops the program and takes local control, to jog by hand
+        emu.set_remote_control(on=False)
+        emu.stop_program()
+    refuses(robot, fault)
+    wait_emu(lambda: emu.status()["motion"] == "idle", 2.0, "the arm at rest")
+    stays_still(robot, emu, 0.5)
+    assert fault in robot.read_state().fault  # still refused: nothing was undone yet
+    if leave == "safeguard":
+        emu.set_safety_mode(mode="NORMAL", reason="reset")
+    elif leave == "estop":
+        emu.release_emergency_stop()
+        refuses(robot, "robot not running (idle)")  # released, but the brakes are on
+        assert dashboard(emu.host, "power on") == "Powering on"
+        assert dashboard(emu.host, "brake release") == "Brake releasing"
+    elif leave == "power_on":
+        assert dashboard(emu.host, "power on") == "Powering on"
+        assert dashboard(emu.host, "brake release") == "Brake releasing"
+    else:
+        emu.set_remote_control(on=True)
+    # Undone: the driver reconnects (a new script) and the arm stays still; moving needs a new command, which the
+    # supervisor allows only after a re-acquire and a fresh press (tests/test_ur_stack.py).
+    until(robot, healthy, 10.0, "the reconnect")
+    stays_still(robot, emu, 0.3)
+
+
+def test_reduced_mode_is_shown_and_motion_goes_on(emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
+    robot = make_robot()
+    robot.connect()
+    emu.set_safety_mode(mode="REDUCED", reason="safety plane")
+    reading, _ = until(robot, lambda r: "reduced" in r.mode, 2.0, "reduced in the mode")
+    assert not reading.fault
+    cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
+    assert emu.status()["twist"][0] == pytest.approx(0.02)
+    robot.stop(0.5)
