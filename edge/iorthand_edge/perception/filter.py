@@ -134,6 +134,11 @@ def _rotation_vectors(rotation: np.ndarray, rotations: np.ndarray) -> np.ndarray
 def robust_pose(samples: list[Matrix], config: FilterConfig, times: list[float] | None = None) -> Matrix:
     """The filtered pose of a window of samples (see the module docstring). With ``times`` (s, one per sample,
     oldest first), the pose at the newest time: carried along a significant motion (step 4)."""
+    return _robust_pose(samples, config, times)[0]
+
+
+def _robust_pose(samples: list[Matrix], config: FilterConfig, times: list[float] | None) -> tuple[Matrix, np.ndarray]:
+    """robust_pose, and which samples the mean took."""
     rotations = np.stack([s[:3, :3] for s in samples])
     translations = np.stack([s[:3, 3] for s in samples])
     rotation, translation, inliers = _average(rotations, translations, config)
@@ -144,7 +149,7 @@ def robust_pose(samples: list[Matrix], config: FilterConfig, times: list[float] 
         translation = translation + shift[:3]
         if shift[3:].any():
             rotation = rotation @ rotvec_to_matrix(shift[3:])
-    return make_transform(rotation, translation)
+    return make_transform(rotation, translation), inliers
 
 
 def _jumped(window: list[Matrix], pose: Matrix, config: FilterConfig) -> bool:
@@ -195,8 +200,9 @@ class MarkerFilter:
         self._window.append(sample)
         self._times.append((t_ns - self._origin_ns) / 1e9)
         window, times = list(self._window), list(self._times)
-        pose = robust_pose(window, self.config, times)
-        if _jumped(window, pose, self.config):
+        pose, inliers = _robust_pose(window, self.config, times)
+        # A newest sample that the mean took is no sign of a jump: the whole check only when none of them was.
+        if not inliers[-JUMP_FRAMES:].any() and _jumped(window, pose, self.config):
             for _ in range(len(window) - JUMP_FRAMES):
                 self._window.popleft()
                 self._times.popleft()
