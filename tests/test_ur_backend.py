@@ -8,7 +8,6 @@ time bound asserted is the issue's link-loss detection (100 ms, against ~10 ms m
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import shlex
@@ -16,9 +15,8 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -30,47 +28,13 @@ from iorthand_edge.robots.config import URRobotConfig
 from iorthand_edge.robots.ur import DRIVER_PRIORITY, URRobot
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator import HOME_POSE, HOME_Q
-from iorthand_edge.ur_emulator.process import UR_PORTS, EmulatorProcess, free_loopback_host
-from tests.conftest import ur_controller
+from iorthand_edge.ur_emulator.process import UR_PORTS, free_loopback_host
+from tests.conftest import Emulator
 from tests.ur_rt_kernel_probe import policies
 
 # serial: the test's own loop is the agent's, and the controller's watchdog stops the program if it misses 100 ms;
 # a lost link must be reported within the driver's 100 ms link timeout.
 pytestmark = pytest.mark.serial
-
-
-class Emulator:
-    """The UR emulator in a process of its own at real-time priority: a controller is a computer of its own, and
-    in this test's process (as it was) it shared the interpreter with the agent's side, so that a loaded test run
-    starved both (false "driver hung" and "control script not running" faults, 5 runs in 12 beside stress-ng).
-    Its fault methods (``UREmulator``'s) go over its control socket, with keyword arguments."""
-
-    def __init__(self, process: EmulatorProcess) -> None:
-        self.process = process
-        self.host = process.host
-
-    def __getattr__(self, op: str) -> Callable[..., Any]:
-        return functools.partial(self.process.call, op)
-
-
-@pytest.fixture
-def emu() -> Iterator[Emulator]:
-    with ur_controller() as process:
-        yield Emulator(process)
-
-
-@pytest.fixture
-def make_robot(emu: Emulator) -> Iterator[Callable[..., URRobot]]:
-    robots: list[URRobot] = []
-
-    def make(**overrides: object) -> URRobot:
-        robot = URRobot(URRobotConfig(host=emu.host, **overrides), SafetyConfig().stop_deceleration)  # type: ignore[arg-type]
-        robots.append(robot)
-        return robot
-
-    yield make
-    for robot in robots:
-        robot.disconnect()
 
 
 def cycle(robot: URRobot, seconds: float, twist: list[float] | None = None, acceleration: float = 0.5) -> RobotReading:

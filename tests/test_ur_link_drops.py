@@ -24,19 +24,13 @@ from iorthand_edge.robots.config import URRobotConfig
 from iorthand_edge.robots.ur import URRobot
 from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator.emulator import DEFAULT_CONTROL_PORT
-from tests.conftest import ur_controller
-from tests.test_ur_backend import Emulator, cycle, healthy, until, wait_emu
+from tests.conftest import Emulator
+from tests.test_ur_backend import cycle, healthy, until, wait_emu
 
 pytestmark = [
     pytest.mark.serial,
     pytest.mark.skipif(os.geteuid() != 0 or shutil.which("nft") is None, reason="needs root and nftables (nft)"),
 ]
-
-
-@pytest.fixture
-def emu() -> Iterator[Emulator]:
-    with ur_controller() as process:
-        yield Emulator(process)
 
 
 class Blackhole:

@@ -6,11 +6,12 @@ a stopped program, reduced mode). The pendant itself is the emulator's control s
 
 from __future__ import annotations
 
+import functools
 import logging
 import re
 import socket
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -18,12 +19,10 @@ import pytest
 pytest.importorskip("rtde_control", reason="ur-rtde is not installed on this platform (pip install ur-rtde==1.6.5)")
 
 from iorthand_edge.robots.base import RobotFault, RobotReading
-from iorthand_edge.robots.config import URRobotConfig
 from iorthand_edge.robots.ur import URRobot, installation_mismatch
-from iorthand_edge.supervisor import SafetyConfig
 from iorthand_edge.ur_emulator.arm import ArmModel
-from tests.conftest import ur_controller
-from tests.test_ur_backend import Emulator, cycle, healthy, until, wait_emu
+from tests.conftest import Emulator
+from tests.test_ur_backend import cycle, healthy, until, wait_emu
 
 pytestmark = pytest.mark.serial  # the controller's watchdog and the link timeout are real-time bounds (see test_ur_backend)
 
@@ -31,24 +30,9 @@ PROBE_TCP = [0.0, 0.0, 0.2, 0.0, 0.0, 0.0]  # a probe tip 200 mm along the flang
 
 
 @pytest.fixture
-def emu() -> Iterator[Emulator]:
-    with ur_controller() as process:
-        yield Emulator(process)
-
-
-@pytest.fixture
-def make_robot(emu: Emulator) -> Iterator[Callable[..., URRobot]]:
-    robots: list[URRobot] = []
-
-    def make(tcp_offset: list[float] | None = None, **overrides: object) -> URRobot:
-        config = URRobotConfig(host=emu.host, connect_timeout=3.0, reconnect_max_s=0.5, **overrides)  # type: ignore[arg-type]
-        robot = URRobot(config, SafetyConfig().stop_deceleration, tcp_offset=tcp_offset)
-        robots.append(robot)
-        return robot
-
-    yield make
-    for robot in robots:
-        robot.disconnect()
+def make_robot(make_robot: Callable[..., URRobot]) -> Callable[..., URRobot]:
+    """conftest's, quick to give up and to reconnect (the pendant's modes come and go within a test)."""
+    return functools.partial(make_robot, connect_timeout=3.0, reconnect_max_s=0.5)
 
 
 def dashboard(host: str, command: str) -> str:
