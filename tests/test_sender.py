@@ -15,6 +15,7 @@ import pytest
 
 from iorthand.transport import client_config
 from iorthand_operator.client import SENDER_LOSSES, OperatorClient
+from iorthand_operator.inputs.base import InputDevice, InputSample
 from iorthand_operator.recovery import NextStep, Step
 from iorthand_operator.sender import ProcessSender
 from tests.conftest import wait_until
@@ -127,7 +128,7 @@ def test_thread_sender_unchanged_without_config(edge_factory, operator_factory) 
     wait_until(lambda: len(op.echoes) > 5, timeout=5, message="echoes")
 
 
-class _HangingPad:
+class _HangingPad(InputDevice):
     """An input device whose read hangs on request (a driver read that never returns), the enable held and the
     stick deflected: no real device hangs on purpose, so this one stands in for it."""
 
@@ -136,9 +137,7 @@ class _HangingPad:
     def __init__(self) -> None:
         self.hang, self.free = threading.Event(), threading.Event()
 
-    def poll(self, now: float):
-        from iorthand_operator.inputs.base import InputSample
-
+    def poll(self, now: float) -> InputSample:
         if self.hang.is_set():
             self.free.wait(10.0)
         return InputSample(np.array([0.004, 0.0, 0.0, 0.0, 0.0, 0.0]), True, True, "enable held", [])
