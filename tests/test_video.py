@@ -4,11 +4,13 @@ router on the video session."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import re
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -410,11 +412,10 @@ class DriverStampedCamera(IrregularCamera):
         return frame
 
 
-def test_the_camera_video_carries_each_perception_frames_capture_time() -> None:
-    """A video frame fed by the perception camera is stamped with that frame's capture time (its markers carry
-    the same), not with the time the video thread received it (which was 80 ms late here)."""
+@contextlib.contextmanager
+def perception_video(camera: object) -> Iterator[tuple[VideoStream, Recorder]]:
+    """A JPEG camera stream fed by a perception pipeline reading ``camera``, both running; stopped on exit."""
     perception = from_dict({"camera": {"kind": "synthetic", "width": 64, "height": 48, "fps": 30.0}}, PerceptionConfig)
-    camera = DriverStampedCamera(10)
     pipeline = PerceptionPipeline(perception, lambda _t: None, lambda _t: None, lambda _m: None, camera=camera)
     config = StreamConfig(width=64, height=48, fps=30, codec="jpeg", source="perception")
     stream = VideoStream("camera", keys.VIDEO_CAMERA, config, make_source(config, lambda: 0.0, pipeline.next_image))
@@ -423,11 +424,19 @@ def test_the_camera_video_carries_each_perception_frames_capture_time() -> None:
     stream.start_with(pub, stop)
     pipeline.start()
     try:
-        wait_until(lambda: len(pub.frames) + stream.dropped == 10, timeout=10.0, message="the camera's 10 images")
+        yield stream, pub
     finally:
         pipeline.stop()
         stop.set()
         stream.join()
+
+
+def test_the_camera_video_carries_each_perception_frames_capture_time() -> None:
+    """A video frame fed by the perception camera is stamped with that frame's capture time (its markers carry
+    the same), not with the time the video thread received it (which was 80 ms late here)."""
+    camera = DriverStampedCamera(10)
+    with perception_video(camera) as (stream, pub):
+        wait_until(lambda: len(pub.frames) + stream.dropped == 10, timeout=10.0, message="the camera's 10 images")
     assert pub.frames
     for f in pub.frames:
         number = round(float(decode_frame(f).mean()) / 5)
@@ -438,23 +447,10 @@ def test_the_camera_video_sends_each_perception_image_once_whatever_its_rate() -
     """The stream takes the perception camera's images as they arrive: none twice, none skipped, in order, even
     when the camera's rate is irregular and above the stream's. (Polling at the stream's own rate sent some twice
     or dropped some, and each up to a period late.)"""
-    perception = from_dict({"camera": {"kind": "synthetic", "width": 64, "height": 48, "fps": 30.0}}, PerceptionConfig)
-    camera = IrregularCamera(40)
-    pipeline = PerceptionPipeline(perception, lambda _t: None, lambda _t: None, lambda _m: None, camera=camera)
-    config = StreamConfig(width=64, height=48, fps=30, codec="jpeg", source="perception")
-    stream = VideoStream("camera", keys.VIDEO_CAMERA, config, make_source(config, lambda: 0.0, pipeline.next_image))
-    pub = Recorder()
-    stop = threading.Event()
-    stream.start_with(pub, stop)
-    pipeline.start()
-    try:
+    with perception_video(IrregularCamera(40)) as (stream, pub):
         wait_until(lambda: stream.captured == 40 and len(pub.frames) + stream.dropped == 40, timeout=10.0,
                    message="the camera's 40 images through the stream")
         time.sleep(0.1)  # nothing more comes
-    finally:
-        pipeline.stop()
-        stop.set()
-        stream.join()
     assert stream.captured == 40
     numbers = [round(float(decode_frame(f).mean()) / 5) for f in pub.frames]
     assert numbers == sorted(set(numbers)), numbers  # never one twice, never out of order
