@@ -88,6 +88,12 @@ ROBOT_MODES = {-1: "no controller", 0: "disconnected", 1: "confirm safety", 2: "
                4: "power on", 5: "idle", 6: "backdrive", 7: "running", 8: "updating firmware"}
 
 
+def not_running(robot_mode: int) -> str:
+    """Why an arm that is not running cannot move (at connect and while connected), and what to do."""
+    return (f"robot not running ({ROBOT_MODES.get(robot_mode, str(robot_mode))}): power it on and release the "
+            "brakes on the teach pendant, then re-acquire control")
+
+
 def installation_mismatch(cfg: dict[str, Any], tcp: Sequence[float], payload: float) -> str:
     """Why the controller's active TCP offset or payload is not the configured one ("" when it is, or when the
     configuration does not say). Names both values: the fix is on the pendant or in the configuration."""
@@ -142,8 +148,7 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
         if safety_mode in SAFETY_MODES:
             raise RuntimeError(f"controller in {SAFETY_MODES[safety_mode]}")
         if robot_mode != ROBOT_MODE_RUNNING:
-            raise RuntimeError(f"robot not running ({ROBOT_MODES.get(robot_mode, str(robot_mode))}): power it on "
-                               "and release the brakes on the teach pendant")
+            raise RuntimeError(not_running(robot_mode))
         try:
             ctrl = rtde_control.RTDEControlInterface(cfg["host"], cfg["rtde_frequency"],
                                                      rt_priority=UR_RTDE_RT_PRIORITY)
@@ -461,8 +466,7 @@ class URRobot(Robot):
             # program below sends us through a reconnect.
             return SAFETY_MODES[safety_mode]
         if robot_mode != ROBOT_MODE_RUNNING:
-            return (f"robot not running ({ROBOT_MODES.get(robot_mode, str(robot_mode))}): power it on and release the "
-                    "brakes on the teach pendant, then re-acquire control")
+            return not_running(robot_mode)
         if not program_running:
             # ur_rtde's control and receive streams lag each other by up to a period: a protective stop may
             # show as a stopped program before its safety mode arrives. Report at once, but decide to reconnect
