@@ -280,21 +280,15 @@ class OperatorConsole(App[int]):
         t.add_row("router", Text(v.router or "—") + Text("  connected" if v.connected else "  no data", style="green" if v.connected else "red"))
         online = {"online": "bold green", "offline": "bold red"}.get(v.robot_online, "grey50")
         t.add_row("robot", Text(v.robot_online.upper(), style=online) + Text("" if v.state_fresh else "  (no fresh state)", style="yellow"))
-        old = v.safety_stale
-        if old:  # the edge's last word, however old: greyed and aged, never green
-            t.add_row("armed", _stale("yes" if v.armed else "no", old))
-            t.add_row("owner", _stale(v.owner or "nobody", old))
-            edge = _stale("ON" if v.edge_deadman else "off", old)
-        else:
-            t.add_row("armed", _yes(v.armed))
-            t.add_row("owner", Text(v.owner or "nobody", style="bold green" if v.we_own else "bold yellow"))
-            edge = _yes(v.edge_deadman, "ON", "off")
+        old = v.safety_stale  # the edge's last word, however old: greyed and aged, never green
+        t.add_row("armed", _stale("yes" if v.armed else "no", old) if old else _yes(v.armed))
+        owner = v.owner or "nobody"
+        t.add_row("owner", _stale(owner, old) if old else Text(owner, style="bold green" if v.we_own else "bold yellow"))
+        edge = _stale("ON" if v.edge_deadman else "off", old) if old else _yes(v.edge_deadman, "ON", "off")
         t.add_row("deadman", Text.assemble("sent ", _yes(v.deadman, "ON", "off"), "  edge ", edge))
         status = f"{v.edge_status} {v.edge_reason}".strip() or "—"
-        if old:
-            t.add_row("status", _stale(status, old))
-        else:
-            t.add_row("status", Text(status, style="red" if v.edge_reason and v.edge_status not in ("ok", "idle") else ""))
+        halted = v.edge_reason and v.edge_status not in ("ok", "idle")
+        t.add_row("status", _stale(status, old) if old else Text(status, style="red" if halted else ""))
         if v.hint:
             t.add_row("next", Text(v.hint, style="bold yellow"))
         return t
