@@ -275,6 +275,34 @@ def test_a_pose_that_is_not_a_number_is_a_fault() -> None:
     assert sv.on_reading("", True, POSE) == ""
 
 
+def test_a_takeover_at_the_robot_disarms_with_its_reason_until_armed_on_site() -> None:
+    """Somebody at the robot took it over (a program stopped on its pendant, local control): the edge disarms with
+    that reason, and neither a fresh acquire nor a fresh press moves the arm until it is armed again."""
+    sv, c = armed()
+    takeover = "the program was stopped on the teach pendant"
+    assert sv.on_reading("", True, POSE, takeover) == ""
+    assert not sv.armed and sv.status == Status.DISARMED and sv.reason == takeover
+    # A driver that is down for it reports the takeover as its fault too: the operator reads the takeover.
+    sv.arm()
+    assert sv.on_reading(takeover, True, POSE, takeover) == takeover
+    assert not sv.armed and sv.status == Status.DISARMED and sv.reason == takeover
+    sv.arm()
+    sv.on_reading("", True, POSE)
+    c.acquire(sv, "op1", c.mono)
+    sv.on_reading("", True, POSE, takeover)
+    d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.DISARMED and d.reason.startswith(takeover)
+    assert "confirm arming" in d.reason
+    c.acquire(sv, "op1", c.mono)
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
+    assert not sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+    sv.arm()
+    sv.on_reading("", True, POSE)
+    c.acquire(sv, "op1", c.mono)
+    sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE)
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).accepted
+
+
 def test_stale_force_stops_then_refuses_contact_motion() -> None:
     sv = Supervisor(SafetyConfig(auto_arm=True), force_required=True)
     c = Clock(sv)

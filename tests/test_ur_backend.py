@@ -201,8 +201,10 @@ def test_program_stop_reconnects_without_replaying_speedl(emu: Emulator,
     robot = make_robot()
     robot.connect()
     cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
-    emu.stop_program()
-    until(robot, lambda r: "not running" in r.fault, 2.0, "the program-stop fault")
+    emu.stop_program()  # stopped from outside the edge: it holds back until armed again (tests/test_ur_pendant.py)
+    until(robot, lambda r: "not running" in r.fault or bool(r.takeover), 2.0, "the program-stop fault")
+    until(robot, lambda r: bool(r.takeover), 2.0, "the takeover")
+    robot.allow_restart()  # armed again at the edge
     until(robot, healthy, 10.0, "the reconnect")
     for _ in range(30):  # the last speedL is still in the command register: it must never run again
         cycle(robot, 0.01)

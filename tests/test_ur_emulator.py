@@ -547,3 +547,28 @@ def test_raised_priority_covers_every_thread_of_the_emulator_and_those_it_starts
     assert threads - before, "connecting started no thread in the emulator"
     policies = {tid: (os.sched_getscheduler(int(tid)), os.sched_getparam(int(tid)).sched_priority) for tid in threads}
     assert all(p == (os.SCHED_FIFO, EMULATOR_PRIORITY) for p in policies.values()), policies
+
+
+@needs_ur_rtde
+def test_safeguard_stop_pauses_the_program_and_the_reset_resumes_it_with_its_registers(
+        robot: tuple[EmulatorProcess, RtdeWorker]) -> None:
+    """As on a UR e-Series: a safeguard stop is a category 2 stop that pauses the program (not a protective stop's
+    end of it), and the reset resumes it where it was: a speedL still in the command register runs again (what a
+    client must guard against: tests/test_ur_pendant.py's safeguard test does it for the edge)."""
+    emu, w = robot
+    assert w.call("c", "speedL", [0.02, 0, 0, 0, 0, 0], 1.0, 0.0) is True
+    assert _wait(lambda: emu.status()["twist"][0] == pytest.approx(0.02), 1.0)
+    emu.call("set_safety_mode", mode="SAFEGUARD_STOP", reason="light curtain")
+    assert _wait(lambda: emu.status()["motion"] == "idle", 1.0)
+    status = emu.status()
+    assert status["runtime_state"] == "PAUSED" and status["program"] == "rtde_control"
+    assert _wait(lambda: w.call("r", "getRuntimeState") == 4, 1.0)  # PAUSED on RTDE
+    assert w.call("c", "isProgramRunning") is False
+    w.request(op="new_dashboard", host=emu.host)
+    assert w.call("d", "programState").startswith("PAUSED")
+    time.sleep(0.2)
+    assert emu.status()["twist"] == [0.0] * 6  # the arm stays stopped, powered
+    emu.call("set_safety_mode", mode="NORMAL", reason="safeguard reset")
+    assert _wait(lambda: emu.status()["twist"][0] == pytest.approx(0.02), 1.0)  # the stale speedL, resumed
+    assert emu.status()["runtime_state"] == "PLAYING"
+    assert w.call("c", "speedStop", 10.0) is True

@@ -408,3 +408,24 @@ def test_force_mode_is_stable_on_a_stiff_phantom_with_late_cycles() -> None:
     assert forces[19] == pytest.approx(8.0, abs=0.05) and forces[-1] == pytest.approx(8.0, abs=0.01)
     assert max(forces) < 9.0  # no overshoot
     assert arm.pose[2] == pytest.approx(0.15 - 8.0 / 8000.0, abs=1e-5)
+
+
+@pytest.mark.parametrize("dt", [0.002, 0.04, 0.1])
+def test_joint_motion_stops_at_the_joint_limit_whatever_the_step(dt: float) -> None:
+    """A movej past a joint limit ends at the limit (a protective stop), with a 500 Hz cycle as with a 100 ms one
+    (the emulator's cycle on a loaded machine): a step that would cross the limit is not refused whole, which left
+    the arm 0.05 rad short at 0.1 s and made test_joint_limit_is_refused fail under load."""
+    limits = list(default_joint_limits("ur3e"))
+    upper = HOME_Q[0] + 0.3
+    limits[0] = (HOME_Q[0] - 0.3, upper)
+    arm = ArmModel("ur3e", joint_limits=tuple(limits))
+    arm.movej(np.add(HOME_Q, [0.5, 0.0, 0.0, 0.0, 0.0, 0.0]), 1.0, 2.0)
+    for _ in range(round(3.0 / dt)):
+        arm.step(dt)
+        if arm.fault is not None:
+            break
+    assert arm.fault is not None and "position close to joint limits: base" in arm.fault
+    assert arm.q[0] == pytest.approx(upper, abs=1e-9) and arm.within_limits(arm.q)
+    assert arm.q[1:] == pytest.approx(np.array(HOME_Q[1:]), abs=1e-9)  # only the base joint moved
+    assert pose_error(fk(arm.q), arm.pose)[0] < 1e-9  # the TCP where the joints put it
+    assert arm.mode.value == "idle" and arm.twist == [0.0] * 6

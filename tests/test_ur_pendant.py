@@ -2,13 +2,18 @@
 UR controller emulator (in a process of its own, as in tests/test_ur_backend.py): the speed slider, the
 installation's TCP and payload, and the modes that stop the arm (safeguard stop, e-stop, power off, local control,
 a stopped program, reduced mode). The pendant itself is the emulator's control socket and its dashboard port.
+A program stopped from outside the edge and local control take the robot over: the driver holds back until the
+edge is armed again (``allow_restart``, what ``iorthand arm`` leads to; the agent's side in tests/test_ur_stack.py).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+import os
 import re
+import signal
 import socket
 import time
 from collections.abc import Callable
@@ -19,7 +24,13 @@ import pytest
 pytest.importorskip("rtde_control", reason="ur-rtde is not installed on this platform (pip install ur-rtde==1.6.5)")
 
 from iorthand_edge.robots.base import RobotFault, RobotReading
-from iorthand_edge.robots.ur import URRobot, installation_mismatch
+from iorthand_edge.robots.ur import (
+    LOCAL_TAKEOVER,
+    PROGRAM_STOPPED_OUTSIDE,
+    URRobot,
+    WriteTimeline,
+    installation_mismatch,
+)
 from iorthand_edge.ur_emulator.arm import ArmModel
 from tests.conftest import Emulator
 from tests.test_ur_backend import cycle, healthy, until, wait_emu
@@ -162,7 +173,7 @@ def refuses(robot: URRobot, words: str) -> RobotReading:
     ("safeguard", "safeguard stop: a safeguard input", "safeguard"),
     ("estop", "robot emergency stop: release the emergency stop button", "estop"),
     ("power_off", "robot not running (power off): power it on", "power_on"),
-    ("program_stop_local", "local control: switch it to remote control", "remote"),
+    ("program_stop_local", "the person at the robot has it; arm again at the edge", "remote"),
 ])
 def test_pendant_mode_stops_says_what_to_do_and_nothing_moves_after_it_is_undone(
         emu: Emulator, make_robot: Callable[..., URRobot], enter: str, fault: str, leave: str) -> None:
@@ -195,6 +206,8 @@ def test_pendant_mode_stops_says_what_to_do_and_nothing_moves_after_it_is_undone
         assert dashboard(emu.host, "brake release") == "Brake releasing"
     else:
         emu.set_remote_control(on=True)
+        assert robot.read_state().takeover  # held: no script of the edge's until it is armed again on site
+        robot.allow_restart()
     # Undone: the driver reconnects (a new script) and the arm stays still; moving needs a new command, which the
     # supervisor allows only after a re-acquire and a fresh press (tests/test_ur_stack.py).
     until(robot, healthy, 10.0, "the reconnect")
@@ -210,3 +223,140 @@ def test_reduced_mode_is_shown_and_motion_goes_on(emu: Emulator, make_robot: Cal
     cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
     assert emu.status()["twist"][0] == pytest.approx(0.02)
     robot.stop(0.5)
+
+
+# ------------------------------------------------------------------------------------------------ taken over at the robot
+
+
+def held_without_a_script(robot: URRobot, emu: Emulator, words: str, seconds: float) -> None:
+    """For ``seconds``: the takeover is the reason, and no script of the edge's runs on the controller (the driver
+    re-uploaded one within ~1 s before it held back)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        reading = robot.read_state()
+        assert words in reading.takeover and words in reading.fault
+        assert emu.status()["program"] is None
+        time.sleep(0.02)
+
+
+def test_program_stopped_on_the_pendant_holds_the_driver_until_the_edge_is_armed_again(
+        emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
+    assert dashboard(emu.host, "stop") == "Stopped"  # the Stop button of the pendant (or a dashboard client)
+    reading, _ = until(robot, lambda r: bool(r.takeover), 3.0, "the takeover")
+    assert reading.takeover == PROGRAM_STOPPED_OUTSIDE and reading.fault == PROGRAM_STOPPED_OUTSIDE
+    refuses(robot, "the person at the robot has it")
+    wait_emu(lambda: emu.status()["motion"] == "idle", 2.0, "the arm at rest")
+    held_without_a_script(robot, emu, "stopped on the teach pendant", 2.5)
+    robot.allow_restart()  # armed again at the edge: the person is done
+    until(robot, healthy, 10.0, "the reconnect")
+    assert not robot.read_state().takeover
+    stays_still(robot, emu, 0.3)
+
+
+def test_watchdog_expiry_on_the_edges_own_stall_reconnects_without_a_takeover(
+        emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
+    """The driver (and the agent's side: this test does not read meanwhile) stalls for 0.3 s, as a vCPU taken away
+    does: the controller's watchdog stops the program on the edge's account. Today's recovery, no disarm."""
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3)
+    assert robot._proc is not None
+    os.kill(robot._proc.pid, signal.SIGSTOP)
+    try:
+        wait_emu(lambda: emu.status()["program"] is None, 2.0, "the watchdog stopping the program")
+    finally:
+        os.kill(robot._proc.pid, signal.SIGCONT)
+    assert any("RTDE watchdog" in e for e in emu.status()["events"])
+    takeovers: list[str] = []
+
+    def back(r: RobotReading) -> bool:
+        takeovers.append(r.takeover)
+        return healthy(r)
+
+    until(robot, back, 10.0, "the reconnect")
+    assert not any(takeovers)
+
+
+def test_write_timeline_tells_a_late_silence_around_a_stop() -> None:
+    """The driver's own measure, on a simulated clock: the watchdog's period is 100 ms, a silence of 80 ms or more
+    may have expired it."""
+    writes = WriteTimeline(0.08, now=0.0)
+    for t in range(1, 50):  # kicks every 8 ms, each call taking 1 ms
+        writes.wrote(t * 0.008, t * 0.008 + 0.001)
+    assert not writes.late_between(0.2, 0.4)
+    writes.wrote(0.5, 0.5 + 0.001)  # 0.5 - 0.392: a 109 ms silence, ended at 0.501
+    writes.wrote(0.508, 0.509)
+    assert writes.late_between(0.45, 0.55) and not writes.late_between(0.52, 0.55)
+    assert writes.late_between(0.52, 0.6)  # nothing written since 0.508: a silence of 92 ms going on
+
+
+def test_local_control_while_driving_stops_the_arm_and_holds_the_driver(
+        emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
+    emu.set_remote_control(on=False)  # the pendant's switch; the program goes on running, RTDE has no bit for it
+    # Seen within the dashboard's poll (1 s) while the edge still commands motion; then refused.
+    end = time.monotonic() + 3.0
+    reading = robot.read_state()
+    while not reading.takeover and time.monotonic() < end:
+        with contextlib.suppress(RobotFault):
+            robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
+        time.sleep(robot.control_period)
+        reading = robot.read_state()
+    assert reading.takeover == LOCAL_TAKEOVER and reading.fault == LOCAL_TAKEOVER
+    refuses(robot, "switched to local control")
+    wait_emu(lambda: emu.status()["motion"] == "idle", 2.0, "the arm at rest")
+    wait_emu(lambda: emu.status()["program"] is None, 2.0, "the edge's script stopped by the driver")
+    assert any("stopScript" in e or "stopped" in e for e in emu.status()["events"][-5:])
+    held_without_a_script(robot, emu, "switched to local control", 1.5)
+    emu.set_remote_control(on=True)
+    held_without_a_script(robot, emu, "switched to local control", 1.0)  # back in remote: still the edge's arming
+    robot.allow_restart()
+    until(robot, healthy, 10.0, "the reconnect")
+    stays_still(robot, emu, 0.3)
+
+
+def test_a_silent_dashboard_is_no_fault_and_the_mode_says_so(
+        emu: Emulator, make_robot: Callable[..., URRobot], caplog: pytest.LogCaptureFixture) -> None:
+    robot = make_robot()
+    robot.connect()
+    with caplog.at_level(logging.WARNING, logger="iorthand.edge.ur"):
+        emu.set_dashboard_silent(on=True)
+        reading, _ = until(robot, lambda r: "no dashboard" in r.mode, 5.0, "the mode saying so")
+        assert not reading.fault and reading.connected
+        cycle(robot, 1.5, [0.02, 0, 0, 0, 0, 0])  # motion goes on; asked again meanwhile, logged once
+        assert emu.status()["twist"][0] == pytest.approx(0.02)
+    warnings = [r.getMessage() for r in caplog.records if "does not answer" in r.getMessage()]
+    assert len(warnings) == 1 and "local control on the teach pendant cannot be seen" in warnings[0], caplog.text
+    emu.set_dashboard_silent(on=False)
+    until(robot, lambda r: "no dashboard" not in r.mode, 5.0, "the mode without it")
+    robot.stop(0.5)
+
+
+def test_safeguard_stop_pauses_the_program_and_nothing_moves_when_it_resumes(
+        emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
+    """A UR pauses its program on a safeguard stop and resumes it by itself at the reset, with its registers as
+    they were: the edge must not have left a speedL there, and reconnects with a fresh script."""
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
+    emu.set_safety_mode(mode="SAFEGUARD_STOP", reason="light curtain")
+    reading = refuses(robot, "safeguard stop: a safeguard input")
+    assert reading.mode.startswith("safeguard stop")
+    wait_emu(lambda: emu.status()["motion"] == "idle", 2.0, "the arm at rest")
+    assert emu.status()["runtime_state"] == "PAUSED" and emu.status()["program"] is not None
+    stays_still(robot, emu, 0.3)
+    emu.set_safety_mode(mode="NORMAL", reason="reset")
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:  # the paused script resumed (or was replaced): still nothing moves
+        robot.read_state()
+        assert emu.status()["twist"] == [0.0] * 6
+        time.sleep(0.01)
+    assert any("resumed: safeguard reset" in e for e in emu.status()["events"])
+    until(robot, healthy, 10.0, "the reconnect")
+    assert not robot.read_state().takeover
+    stays_still(robot, emu, 0.3)

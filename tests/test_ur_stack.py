@@ -201,6 +201,76 @@ def test_protective_stop_reported_and_motion_refused_until_cleared_and_reacquire
     wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after re-acquiring and a fresh press")
 
 
+def dashboard(host: str, command: str) -> str:
+    """One command on the controller's dashboard port (29999), as the teach pendant's buttons do; its answer."""
+    with socket.create_connection((host, 29999), timeout=3.0) as sock:
+        f = sock.makefile("rw")
+        f.readline()  # the welcome line
+        f.write(command + "\n")
+        f.flush()
+        return f.readline().strip()
+
+
+def test_program_stopped_on_the_pendant_disarms_the_edge_until_it_is_armed_again(
+        ur_edge: Callable[..., Any], operator_factory: Callable[..., Any], emulator: EmulatorProcess) -> None:
+    from iorthand_edge.robots.ur import PROGRAM_STOPPED_OUTSIDE
+
+    agent = ur_edge()
+    op = operator_factory(ROBOT_ID)
+    op.wait_for_state()
+    op.start()
+    drive(op, emulator)
+    assert dashboard(emulator.host, "stop") == "Stopped"  # somebody at the robot pressed Stop
+    wait_until(lambda: op.safety is not None and op.safety.status == Status.DISARMED
+               and op.safety.reason == PROGRAM_STOPPED_OUTSIDE, 3.0, message="state/safety disarmed, saying why")
+    assert not op.safety.armed and op.robot_state.fault == PROGRAM_STOPPED_OUTSIDE
+    wait_until(lambda: emulator.status()["motion"] == "idle", 2.0, message="the tool at rest")
+    # The remote operator re-acquires and presses afresh: refused, and no script of the edge's runs again.
+    assert op.acquire().ok
+    repress(op, [0.02, 0.0, 0.0])
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        status = emulator.status()
+        assert status["program"] is None and status["twist"] == [0.0] * 6
+        time.sleep(0.05)
+    assert op.last_refusal is not None and op.last_refusal.reason == PROGRAM_STOPPED_OUTSIDE
+    agent.arm()  # on site (iorthand arm): the person at the robot is done
+    wait_until(lambda: not op.robot_state.fault and op.robot_state.connected, 10.0, message="the reconnect")
+    assert op.safety.armed
+    time.sleep(0.3)  # the deadman still held: the fault stays latched
+    assert emulator.status()["twist"] == [0.0] * 6
+    assert op.acquire().ok
+    repress(op, [0.02, 0.0, 0.0])
+    wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after arming, re-acquiring and a fresh press")
+
+
+def test_safeguard_stop_stops_says_so_and_motion_needs_the_reset_and_a_fresh_press(
+        ur_edge: Callable[..., Any], operator_factory: Callable[..., Any], emulator: EmulatorProcess) -> None:
+    ur_edge()
+    op = operator_factory(ROBOT_ID)
+    op.wait_for_state()
+    op.start()
+    drive(op, emulator)
+    emulator.call("set_safety_mode", mode="SAFEGUARD_STOP", reason="light curtain")
+    wait_until(lambda: op.safety is not None and op.safety.reason.startswith("safeguard stop"), 2.0,
+               message="state/safety saying safeguard stop")
+    assert op.safety.status == Status.FAULT and op.safety.armed  # not a takeover: the edge stays armed
+    assert op.robot_state.mode.startswith("safeguard stop")
+    wait_until(lambda: emulator.status()["motion"] == "idle", 2.0, message="the tool at rest")
+    assert emulator.status()["runtime_state"] == "PAUSED"
+    assert op.acquire().ok
+    repress(op, [0.02, 0.0, 0.0])  # a fresh press before the reset moves nothing
+    time.sleep(0.3)
+    assert emulator.status()["twist"] == [0.0] * 6
+    emulator.call("set_safety_mode", mode="NORMAL", reason="safeguard reset")
+    wait_until(lambda: not op.robot_state.fault and op.robot_state.connected, 10.0, message="the reconnect")
+    time.sleep(0.3)  # reset, the deadman still held from before: still nothing
+    assert emulator.status()["twist"] == [0.0] * 6
+    assert op.acquire().ok
+    repress(op, [0.02, 0.0, 0.0])
+    wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after the reset, re-acquiring and a fresh press")
+
+
 def test_hung_controller_does_not_freeze_the_agent(ur_edge: Callable[..., Any],
                                                    operator_factory: Callable[..., Any],
                                                    emulator: EmulatorProcess) -> None:

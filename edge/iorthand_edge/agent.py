@@ -341,6 +341,8 @@ class EdgeAgent:
         """Local arming confirmation (a button or a command on the robot side)."""
         with self.lock:
             self.supervisor.arm()
+            # The confirmation that whoever took the robot over at its side is done: a driver held since may connect.
+            self.robot.allow_restart()
         log.info("armed by local confirmation")
         self._publish_safety(force=True)
 
@@ -429,10 +431,12 @@ class EdgeAgent:
             if self.force is not None and self.force.paced_by_robot:  # this state's force, before the supervisor
                 self.force.on_robot_state(now)
             self._feed_contact_force()
-            before = self.supervisor.fault
-            fault = self.supervisor.on_reading(reading.fault, reading.connected, reading.tcp_pose)
+            before, was_armed = self.supervisor.fault, self.supervisor.armed
+            fault = self.supervisor.on_reading(reading.fault, reading.connected, reading.tcp_pose, reading.takeover)
             if fault and fault != before:
                 log.error("robot fault: %s — stopping", fault)
+            if was_armed and not self.supervisor.armed:
+                log.warning("disarmed: %s", reading.takeover)
             decision = self.supervisor.step(now, reading.tcp_pose)
             if self.goto.active and decision.status.halts:
                 self._cancel_goto(decision.reason or decision.status.message)

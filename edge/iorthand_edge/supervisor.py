@@ -192,6 +192,7 @@ class Decision:
     cancel_goto: str = ""  # why a previewed move under way ends with this command ("" = it goes on, if any)
 
 
+NOT_ARMED = "not armed: confirm arming on the robot side"
 GRANT_NEEDS_PRESS = "control granted: release the deadman and press it to move"
 
 
@@ -262,7 +263,8 @@ class Supervisor:
         self.kinematics: KinematicGuard | None = None
         self.interventions: list[tuple[Status, str]] = []  # (status, reason), drained by the agent to log
         self.status = Status.DISARMED if not self.armed else Status.IDLE
-        self.reason = "" if self.armed else "not armed: confirm arming on the robot side"
+        self.reason = "" if self.armed else NOT_ARMED
+        self.disarmed_because = ""  # why the edge was disarmed (a takeover at the robot, a local command), for refusals
         self.limits_hit: list[str] = []
         self.moving = False
 
@@ -295,11 +297,13 @@ class Supervisor:
     def arm(self) -> None:
         """Local confirmation (a button or local command on the robot side)."""
         self.armed = True
+        self.disarmed_because = ""
         self.arm_requested = False
         self._set(Status.IDLE, "armed")
 
     def disarm(self, reason: str) -> None:
         self.armed = False
+        self.disarmed_because = reason
         self._halt(Status.DISARMED, reason)
 
     def owner_refusal(self, msg: Message, suffix: str) -> str:
@@ -438,13 +442,17 @@ class Supervisor:
         elif not reason:
             self.fault = ""
 
-    def on_reading(self, fault: str, connected: bool, tcp_pose: Vector) -> str:
+    def on_reading(self, fault: str, connected: bool, tcp_pose: Vector, takeover: str = "") -> str:
         """The robot driver's health from one reading: a fault it reports, a lost link, or a pose that is not a
-        number (every limit compares with it, and a comparison with NaN never holds) is a fault here. Returns
-        the fault in effect ("" when healthy)."""
+        number (every limit compares with it, and a comparison with NaN never holds) is a fault here. A
+        ``takeover`` (somebody at the robot has it: a program stopped on its pendant, local control) disarms with
+        that reason: no remote operator moves the arm again until the edge is armed on site. Returns the fault in
+        effect ("" when healthy). The takeover is said last: it is what the operator must read."""
         if not fault and connected and not all(math.isfinite(v) for v in _floats(tcp_pose)):
             fault = "the robot reported a pose that is not a number: no limit can hold"
         self.set_fault(fault or ("" if connected else "robot link lost"))
+        if takeover and self.armed:
+            self.disarm(takeover)
         return self.fault
 
     def update_force(self, level: int, stale: bool, now: float | None = None) -> None:
@@ -651,7 +659,7 @@ class Supervisor:
         if self.fault:
             return Status.FAULT, self.fault
         if not self.armed:
-            return Status.DISARMED, "not armed: confirm arming on the robot side"
+            return Status.DISARMED, f"{self.disarmed_because}; {NOT_ARMED}" if self.disarmed_because else NOT_ARMED
         if not self.owner:
             return Status.NOT_OWNER, "no operator holds control: acquire it first"
         if cmd.operator != self.owner:

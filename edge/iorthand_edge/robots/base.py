@@ -34,6 +34,9 @@ class RobotReading:
     connected: bool = True
     fault: str = ""  # empty while healthy; otherwise the reason motion is impossible
     tcp_force: Vector = field(default_factory=lambda: np.zeros(6))
+    # Non-empty: somebody at the robot took it over (a program stopped on its teach pendant, local control), and why.
+    # The agent disarms with this reason; the backend stays down until the edge is armed again (allow_restart).
+    takeover: str = ""
 
 
 class Robot(ABC):
@@ -59,6 +62,12 @@ class Robot(ABC):
     @abstractmethod
     def disconnect(self) -> None:
         """Stop motion and release the connection."""
+
+    def allow_restart(self) -> None:
+        """The edge was armed again: the on-site confirmation that whoever took the robot over at its side
+        (``RobotReading.takeover``) is done. A backend that held back since then may connect again. Called by the
+        agent holding its lock; returns at once."""
+        return  # a backend that never holds back (the simulator) has nothing to do
 
     @property
     def control_period(self) -> float:

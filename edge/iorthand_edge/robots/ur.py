@@ -15,8 +15,31 @@ ur_rtde 1.6.5 facts this design follows (FACTS.md, issue 5):
   starts with speedStop, and reconnects always kill the old driver and use a fresh constructor, never
   ``reuploadScript()``. A stale speedL never runs again (tested against the emulator).
 - A protective stop kills the script and the controller refuses to unlock for 5 s; the receive interface's
-  safety mode names it (the control and receive streams can disagree for one period: a stopped program only
-  leads to a reconnect once it has been stopped for ``link_timeout`` with no safety stop seen).
+  safety mode names it (the control and receive streams can disagree for one period: a stopped program is only
+  judged once it has been stopped for ``link_timeout`` with no safety stop seen).
+- A safeguard stop (a door, a light curtain) pauses the program on an e-Series, which resumes by itself when the
+  safeguard is reset, with whatever command is left in its registers. The edge shows "safeguard stop" and stops;
+  the driver writes a stop into the registers once it sees the program paused, and when any stop of the
+  controller's own (safety stop, e-stop, power off) is cleared it reconnects with a fresh script (whose first
+  command is a stop) instead of driving the resumed one. The supervisor stays latched meanwhile: motion needs the
+  safeguard reset **and** an operator's re-acquire and fresh press.
+- **A program stopped from outside the edge disarms it** (the lead's decision). Somebody who stops the program on
+  the teach pendant or the dashboard is at the robot and has it: the agent disarms with
+  :data:`PROGRAM_STOPPED_OUTSIDE`, and the driver does not upload its script again until the edge is armed again
+  (``iorthand arm``, the on-site confirmation: :meth:`URRobot.allow_restart`). A stop is told from the
+  controller's RTDE watchdog expiring on the edge's own lateness (a vCPU stall, a frozen agent) by the driver
+  child, which times its writes to the controller: if it left the controller without a write for
+  :data:`LATE_FRACTION` of the watchdog's period or more around the stop, the stop may be its own and it keeps
+  the old behaviour (fault, reconnect, latched until a fresh press), so that a stall does not strand a remote
+  physician. Otherwise the stop is taken as from outside. Neither RTDE nor the dashboard says which it was
+  (``programState`` answers STOPPED after both), so the case between, writes that left on time but reached the
+  controller late (a link delaying them by more than the rest of the period), is taken as from outside: the safe
+  side, at the price of a re-arm. A runtime error of the script (it is only sent speedL and stops) lands there too.
+- **Local control is watched on the dashboard** (RTDE has no bit for it): the child asks ``is in remote control``
+  about once a second from a thread of its own (:data:`DASHBOARD_PERIOD_S`, each exchange bounded by
+  :data:`DASHBOARD_TIMEOUT_S`); "false" stops the arm and the script and disarms the edge
+  (:data:`LOCAL_TAKEOVER`), as a stop from outside does. A dashboard that does not answer is no fault by itself:
+  logged once, asked again, and the mode says ", no dashboard" while local control cannot be seen.
 - ur_rtde's commands block (speedStop until the arm is at rest): the child streams state from a reader
   thread of its own so that a long stop never looks like a hung driver.
 - Faults never resume motion: after a reconnect the supervisor stays latched until an operator re-acquires.
@@ -69,6 +92,16 @@ FULL_SPEED = 0.999  # a speed slider at or above this is at 100 %
 LOCAL_CONTROL = ("the controller is in local control: switch it to remote control on the teach pendant, then "
                  "re-acquire control")
 ROBOT_MODE_RUNNING = 7
+PROGRAM_STOPPED_OUTSIDE = ("the program was stopped on the teach pendant (or the dashboard): the person at the robot "
+                           "has it; arm again at the edge when they are done")
+LOCAL_TAKEOVER = ("the controller was switched to local control on the teach pendant: the person at the robot has "
+                  "it; arm again at the edge when they are done (and it is back in remote control)")
+# A silence of the driver's writes to the controller this long, in watchdog periods, may have let the RTDE watchdog
+# expire on the edge's own account (the rest of the period for the link and the controller's cycle).
+LATE_FRACTION = 0.8
+DASHBOARD_PORT = 29999
+DASHBOARD_PERIOD_S = 1.0  # how often the driver asks the dashboard whether the controller is in remote control
+DASHBOARD_TIMEOUT_S = 0.5  # for one exchange with it (connect, or a question and its answer)
 MODE_MAX, FAULT_MAX = 40, 200  # the lengths RobotState accepts: a longer text would make its encode() fail
 # The driver's command thread (it kicks the controller's watchdog) at real time, under the edge's control loop and
 # under the UR emulator that stands for the controller in tests and benchmarks (EMULATOR_PRIORITY). At normal
@@ -116,6 +149,37 @@ def installation_mismatch(cfg: dict[str, Any], tcp: Sequence[float], payload: fl
 
 def _fmt(values: Sequence[float]) -> str:
     return "[" + ", ".join(f"{float(v):.4f}" for v in values) + "]"
+
+
+class WriteTimeline:
+    """When the driver last wrote to the controller (a command or a watchdog kick), and the end of its last silence
+    long enough (``late_gap``) to have let the controller's RTDE watchdog expire on the driver's account. A silence
+    is measured from the start of one write call to the return of the next, the longest it can have been."""
+
+    def __init__(self, late_gap: float, now: float) -> None:
+        self.late_gap = late_gap
+        self.last_start = now  # monotonic start of the last write call that returned
+        self.late_until = -math.inf  # monotonic end of the last late silence
+
+    def wrote(self, started: float, now: float) -> None:
+        """A write call that started at ``started`` returned at ``now``."""
+        if now - self.last_start >= self.late_gap:
+            self.late_until = now
+        self.last_start = started
+
+    def late_between(self, since: float, now: float) -> bool:
+        """Whether a late silence overlapped [since, now], the one still going on at ``now`` included."""
+        return self.late_until >= since or now - self.last_start >= self.late_gap
+
+
+def ask_dashboard(stream: Any, question: str) -> str:
+    """One question on an open dashboard connection (a text file over its socket, with a timeout); its answer."""
+    stream.write(question + "\n")
+    stream.flush()
+    answer = stream.readline()
+    if not answer:
+        raise OSError("the dashboard closed the connection")
+    return answer.strip()
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -170,8 +234,10 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
         # 0.103 s after the watchdog was set, 1 connection in 20 beside stress-ng --cpu 2).
         priority = raise_priority(cfg["realtime"], DRIVER_PRIORITY)
         # The watchdog lives in the program: every new script needs it set again.
+        started = time.monotonic()
         if not ctrl.setWatchdog(cfg["watchdog_hz"]):
             raise RuntimeError("setWatchdog was refused (control script not running)")
+        writes = WriteTimeline(LATE_FRACTION / cfg["watchdog_hz"], started)
     except Exception as exc:  # ur_rtde raises RuntimeError mostly; report whatever it is
         if ctrl is not None:
             # A script is running (a refused installation, a refused watchdog): leave none behind, before the
@@ -184,6 +250,11 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
 
     send_lock = threading.Lock()
     done = threading.Event()
+    # Set by the reader once it has seen the program running and then not (stopped or paused): no more kicks (no
+    # program to keep alive, and ur_rtde prints a line for every command a paused program refuses) until it runs.
+    program_stopped = threading.Event()
+    takeover: list[str] = []  # why somebody at the robot has it (local control), set once by the dashboard watch
+    dashboard = {"problem": ""}  # why local control cannot be seen ("" while the dashboard answers)
 
     def send(msg: tuple[Any, ...]) -> bool:
         with send_lock:
@@ -196,13 +267,27 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
 
     def reader() -> None:
         next_tick = time.monotonic()
+        watchdog_period = 1.0 / cfg["watchdog_hz"]
+        seen_running = -math.inf  # monotonic time the program was last seen running
+        stop_late: bool | None = None  # for a program seen stopped: whether the driver's writes were late then
         while not done.is_set():
             try:
+                running = ctrl.isProgramRunning()
+                now = time.monotonic()
+                if running:
+                    seen_running, stop_late = now, None
+                    program_stopped.clear()
+                elif stop_late is None and seen_running > -math.inf:
+                    # The program stopped between the last time it was seen running and now (the state is one RTDE
+                    # period late at most; the watchdog counts a whole period of silence before it stops one): were
+                    # this driver's writes late around then? Judged once, before the kicks stop.
+                    stop_late = writes.late_between(seen_running - watchdog_period, now)
+                    program_stopped.set()
                 state = (
                     list(recv.getActualTCPPose()), list(recv.getActualTCPSpeed()), list(recv.getActualQ()),
                     recv.getTimestamp(), recv.getRobotMode(), recv.getSafetyMode(), recv.isConnected(),
-                    ctrl.isProgramRunning(), list(recv.getActualTCPForce()), ctrl.isConnected(),
-                    recv.getTargetSpeedFraction(),
+                    running, list(recv.getActualTCPForce()), ctrl.isConnected(), recv.getTargetSpeedFraction(),
+                    stop_late, dashboard["problem"],
                 )
             except RuntimeError as exc:  # ur_rtde's own reconnect failed inside a call
                 send(("lost", f"RTDE link to the controller lost ({exc})"))
@@ -216,6 +301,33 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
             else:
                 next_tick = time.monotonic()
 
+    def watch_remote_control() -> None:
+        """About once a second, whether the controller is still in remote control (RTDE has no bit for it); on
+        "false", tell the agent and have the main thread stop the arm and the script. A dashboard that does not
+        answer is asked again on a new connection (``dashboard["problem"]`` says so meanwhile)."""
+        import socket
+
+        conn_, stream = None, None
+        while not done.wait(DASHBOARD_PERIOD_S):
+            try:
+                if stream is None:
+                    conn_ = socket.create_connection((cfg["host"], DASHBOARD_PORT), timeout=DASHBOARD_TIMEOUT_S)
+                    stream = conn_.makefile("rw", encoding="utf-8", newline="\n")
+                    stream.readline()  # its welcome line
+                answer = ask_dashboard(stream, "is in remote control")
+            except OSError as exc:  # refused, timed out, closed
+                if conn_ is not None:
+                    conn_.close()
+                conn_, stream = None, None
+                dashboard["problem"] = f"the dashboard ({cfg['host']}:{DASHBOARD_PORT}) does not answer ({exc})"
+                continue
+            if answer.lower() == "false":
+                takeover.append(LOCAL_TAKEOVER)
+                send(("takeover", LOCAL_TAKEOVER))
+                return
+            dashboard["problem"] = "" if answer.lower() == "true" else (
+                f"the dashboard answers {answer[:60]!r} to 'is in remote control'")
+
     def shutdown() -> None:
         done.set()
         for step in (lambda: ctrl.speedStop(cfg["stop_deceleration"]), ctrl.stopScript, ctrl.disconnect,
@@ -226,17 +338,32 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
 
     send(("ready", (priority, *installation)))
     threading.Thread(target=reader, name="ur-driver-reader", daemon=True).start()
+    threading.Thread(target=watch_remote_control, name="ur-driver-dashboard", daemon=True).start()
     parent_timeout = cfg["parent_timeout"]
     last_parent = time.monotonic()
     moving = False
     next_kick = time.monotonic()
     while not done.is_set():
+        if takeover:
+            # Local control: the person at the robot has it. Stop the arm and the script (the reader streams on
+            # meanwhile), then leave; the agent, told already, keeps the driver down until the edge is armed again.
+            for step in (lambda: ctrl.speedStop(cfg["stop_deceleration"]), ctrl.stopScript):
+                with contextlib.suppress(Exception):
+                    step()
+            shutdown()
+        if moving and program_stopped.is_set():
+            # Stopped or paused under a motion: a speedStop, which ur_rtde turns into a cleared command register
+            # when the program does not run, so that a paused program that resumes finds no stale speedL there.
+            with contextlib.suppress(RuntimeError):
+                ctrl.speedStop(cfg["stop_deceleration"])
+            moving = False
         commanded = False
         try:
             if conn.poll(max(0.0, next_kick - time.monotonic())):
                 while conn.poll(0):
                     kind, *args = conn.recv()
                     last_parent = time.monotonic()
+                    started = time.monotonic()
                     if kind == "twist":
                         twist, acceleration = args
                         # speedL answers False when no script runs; on a dead link it answers True (the link
@@ -244,9 +371,11 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
                         if not ctrl.speedL(twist, acceleration, 0.0):
                             send(("refused", "speedL refused by the controller (program not running?)"))
                         moving, commanded = any(twist), True
+                        writes.wrote(started, time.monotonic())
                     elif kind == "stop":
                         ctrl.speedStop(args[0])
                         moving, commanded = False, True
+                        writes.wrote(started, time.monotonic())
                     elif kind == "close":
                         shutdown()
         except (EOFError, OSError):  # the agent is gone: stop the robot and leave
@@ -265,9 +394,10 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
             with contextlib.suppress(Exception):
                 ctrl.speedStop(cfg["stop_deceleration"])
             moving = False
-        elif agent_alive and not commanded:
+        elif agent_alive and not commanded and not program_stopped.is_set():
             try:
                 ctrl.kickWatchdog()  # a command written this cycle already counts as a kick
+                writes.wrote(now, time.monotonic())
             except RuntimeError as exc:
                 send(("lost", f"RTDE link to the controller lost ({exc})"))
                 shutdown()
@@ -305,6 +435,9 @@ class URRobot(Robot):
         self._refusal_logged = 0.0
         self._child_started = False
         self._stopped_since: float | None = None  # monotonic time the program was first seen stopped
+        self._controller_stop = ""  # a stop of the controller's own seen on this connection (its name), until cleared
+        self._held = ""  # somebody at the robot took it over (why): no driver until allow_restart()
+        self._dashboard_problem = ""  # why local control cannot be seen ("" while the dashboard answers)
         self._speed_fraction: float | None = None  # the pendant's speed slider as last reported; None: not yet
         self.installation: tuple[list[float], float] | None = None  # the controller's TCP offset and payload (kg)
 
@@ -339,13 +472,31 @@ class URRobot(Robot):
         self._proc, self._conn, self._phase = None, None, "down"
 
     def _fail(self, reason: str) -> None:
-        """A fault: kill the driver, keep the reason, schedule a reconnect."""
+        """A fault: kill the driver, keep the reason, schedule a reconnect (none while held, see _hold)."""
+        if self._held:
+            reason = self._held  # the driver's end after a takeover is no news: the takeover stays the reason
         if reason != self._fault:
             log.error("UR driver fault: %s", reason)
         self._fault = reason
         self._kill()
         self._retry_at = time.monotonic() + self._backoff
         self._backoff = min(self._backoff * 2, self.config.reconnect_max_s)
+
+    def _hold(self, reason: str) -> None:
+        """Somebody at the robot took it over: the reason is the fault and the takeover the agent disarms on, and
+        no driver starts again until :meth:`allow_restart`. The current one is left to end by itself (after local
+        control it stops the arm and the script first) or by the next fault check."""
+        if not self._held:
+            log.warning("UR: %s — the driver stays down until the edge is armed again", reason)
+        self._held = self._fault = reason
+
+    def allow_restart(self) -> None:
+        """The edge was armed again (the on-site confirmation): a held driver connects again at once."""
+        if self._held:
+            log.info("UR: armed again after \"%s\": reconnecting", self._held)
+            self._held = ""
+            self._retry_at = time.monotonic()
+            self._backoff = 0.5
 
     def _check_ready(self) -> None:
         """In ``connecting``: take the driver's first message if there is one, or time out."""
@@ -373,7 +524,7 @@ class URRobot(Robot):
             return
         now = time.monotonic()
         self._phase, self._fault, self._state = "up", "", None
-        self._stopped_since, self._speed_fraction = None, None
+        self._stopped_since, self._speed_fraction, self._controller_stop = None, None, ""
         self._state_at = self._stamp_changed_at = now
         self._backoff = 0.5
         priority, tcp, payload = text
@@ -413,6 +564,9 @@ class URRobot(Robot):
                         self._stamp_changed_at = time.monotonic()
                     self._state, self._state_at = payload, time.monotonic()
                     self._note_speed_fraction(float(payload[10]))
+                    self._note_dashboard(payload[12])
+                elif kind == "takeover":
+                    self._hold(payload)
                 elif kind == "lost":
                     self._fail(payload)
                     return
@@ -453,48 +607,70 @@ class URRobot(Robot):
         elif previous is not None:
             log.info("UR speed slider back at 100 %%")
 
+    def _note_dashboard(self, problem: str) -> None:
+        """Log once when the dashboard stops answering (local control can then not be seen) and when it is back."""
+        if problem != self._dashboard_problem:
+            if problem:
+                log.warning("UR: %s: a switch to local control on the teach pendant cannot be seen meanwhile "
+                            "(asked again every %g s)", problem, DASHBOARD_PERIOD_S)
+            else:
+                log.info("UR: the dashboard answers again")
+            self._dashboard_problem = problem
+
     def _health(self) -> str:
         if self._phase != "up" or self._fault:
             return self._fault or "UR driver connecting"
         if self._state is None:
             return ""
-        robot_mode, safety_mode, program_running = self._state[4], self._state[5], self._state[7]
-        if safety_mode in SAFETY_MODES or program_running:
+        robot_mode, safety_mode, program_running, stop_late = (self._state[4], self._state[5], self._state[7],
+                                                               self._state[11])
+        if safety_mode in SAFETY_MODES or robot_mode != ROBOT_MODE_RUNNING:
+            # The driver stays up: the controller must be cleared by a person first.
             self._stopped_since = None
-        if safety_mode in SAFETY_MODES:
-            # The driver stays up: the controller must be cleared by a person first. Once it is, the stopped
-            # program below sends us through a reconnect.
-            return SAFETY_MODES[safety_mode]
-        if robot_mode != ROBOT_MODE_RUNNING:
-            return not_running(robot_mode)
-        if not program_running:
-            # ur_rtde's control and receive streams lag each other by up to a period: a protective stop may
-            # show as a stopped program before its safety mode arrives. Report at once, but decide to reconnect
-            # only once the program has been stopped for link_timeout with no safety stop seen meanwhile.
-            now = time.monotonic()
-            if self._stopped_since is None:
-                self._stopped_since = now
-            if now - self._stopped_since < self.config.link_timeout:
-                return "control script not running on the controller"
-            # A stopped program (watchdog, program stop) is recovered by a fresh connection, which uploads the
-            # control script and sets the watchdog again; the supervisor stays latched meanwhile.
-            self._fail("control script not running on the controller (watchdog or program stop)")
+            self._controller_stop = SAFETY_NAMES.get(safety_mode) or ROBOT_MODES.get(robot_mode, "not running")
+            return SAFETY_MODES[safety_mode] if safety_mode in SAFETY_MODES else not_running(robot_mode)
+        if self._controller_stop:
+            # Cleared. A fresh connection (a new script, whose first command is a stop) whether the program was
+            # stopped (protective stop, e-stop, power off) or paused and resumed by itself (a safeguard stop): a
+            # resumed script runs whatever command is left in its registers. The supervisor stays latched.
+            self._fail(f"{self._controller_stop} cleared on the controller: reconnecting with a fresh control script")
             return self._fault
-        return ""
+        if program_running:
+            self._stopped_since = None
+            return ""
+        # ur_rtde's control and receive streams lag each other by up to a period: a protective stop may show as a
+        # stopped program before its safety mode arrives. Report at once, but judge the stop only once the program
+        # has been stopped for link_timeout with no stop of the controller's own seen meanwhile.
+        now = time.monotonic()
+        if self._stopped_since is None:
+            self._stopped_since = now
+        if now - self._stopped_since < self.config.link_timeout:
+            return "control script not running on the controller"
+        if stop_late is False:
+            # The driver wrote on time: stopped from outside the edge (the module's docstring says why this is the
+            # side taken when in doubt). The agent disarms; no new script until the edge is armed again.
+            self._hold(PROGRAM_STOPPED_OUTSIDE)
+            self._fail(PROGRAM_STOPPED_OUTSIDE)
+            return self._fault
+        # The driver's writes were late around the stop (or it never saw this script run): the RTDE watchdog may
+        # have expired on the edge's account. A fresh connection uploads the script and sets the watchdog again;
+        # the supervisor stays latched meanwhile.
+        self._fail("control script not running on the controller (the RTDE watchdog: the edge's writes were late)")
+        return self._fault
 
     def read_state(self) -> RobotReading:
         if self._phase == "up":
             self._pump()
         elif self._phase == "connecting":
             self._check_ready()
-        elif not self._closing and time.monotonic() >= self._retry_at:
+        elif not self._closing and not self._held and time.monotonic() >= self._retry_at:
             self._spawn()
         fault = self._health()
         if self._state is None:
             zeros = np.zeros(6)
             return RobotReading(zeros, zeros, zeros, time.time_ns(), mode="disconnected", connected=False,
-                                fault=(fault or "no state from the controller yet")[:FAULT_MAX])
-        pose, speed, q, stamp, robot_mode, safety_mode, connected, running, force, _, fraction = self._state
+                                fault=(fault or "no state from the controller yet")[:FAULT_MAX], takeover=self._held)
+        pose, speed, q, stamp, robot_mode, safety_mode, connected, running, force, _, fraction, _, _ = self._state
         # A short mode (state/robot allows 40 characters; the fault carries the long explanation).
         mode = SAFETY_NAMES.get(safety_mode) or ROBOT_MODES.get(robot_mode, f"mode {robot_mode}")
         if safety_mode == SAFETY_MODE_REDUCED:  # the safety system's lower limits apply
@@ -503,10 +679,13 @@ class URRobot(Robot):
             mode += ", no program"
         if fraction < FULL_SPEED:  # the operator's screen says why the arm is slower than commanded
             mode += f", speed {100 * fraction:.0f}%"
+        if self._dashboard_problem and self._phase == "up":  # local control cannot be seen meanwhile
+            mode += ", no dashboard"
         return RobotReading(
             tcp_pose=np.array(pose), tcp_speed=np.array(speed), q=np.array(q), timestamp_ns=time.time_ns(),
             robot_time=float(stamp), mode=mode[:MODE_MAX],
             connected=bool(connected) and self._phase == "up", fault=fault[:FAULT_MAX], tcp_force=np.array(force),
+            takeover=self._held,
         )
 
     def send_twist(self, twist: Sequence[float], acceleration: float) -> Vector:

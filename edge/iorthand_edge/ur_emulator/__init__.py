@@ -20,7 +20,9 @@ It serves, on one loopback address, what ur_rtde talks to:
   (:mod:`iorthand_edge.force.contact`) at the TCP; force mode regulates it by a simple admittance.
 * Fault injection (:class:`UREmulator` methods, or the JSON-lines control socket, default port 30101, used by
   :class:`ControlClient` and ``--inject``): link drop, frozen output stream, protective/emergency stop, TCP
-  force, hung controller; placing the arm (pose, joints) and the phantom.
+  force, hung controller, a silent dashboard; placing the arm (pose, joints) and the phantom; and what a person at
+  the teach pendant does (speed slider, local control, safety modes: a safeguard stop pauses the program, which
+  resumes at the reset, as on an e-Series).
 
 ur_rtde 1.6.5 hard-codes its ports, so emulators coexist on different loopback addresses (127.0.0.2, ...),
 which ur_rtde accepts as hostnames. Run it with :func:`main` / ``python -m iorthand_edge.ur_emulator``.

@@ -14,7 +14,10 @@ does when an arm runs into these during a motion):
 
 * the TCP pose has no inverse kinematics solution (out of reach);
 * a joint would pass its limit ("position close to joint limits"): the e-Series' ±360°, with the UR3e's wrist 3
-  turning without limit, or tighter limits from the configuration;
+  turning without limit, or tighter limits from the configuration. A joint motion is not refused whole there: it
+  goes as far as the limit within that step and stops at it, as a controller stops a joint motion at its limit
+  whatever its cycle (a step refused whole left the arm short by up to a step's travel, which grows with the
+  emulator's step on a loaded machine: 0.05 rad at 0.1 s);
 * in a Cartesian motion, a joint would turn faster than its maximum speed: the arm is at a singularity, where
   the inverse kinematics jumps from one branch to another.
 
@@ -227,6 +230,17 @@ class ArmModel:
             return None, self._limit_reason(q)
         return q, ""
 
+    def _up_to_limits(self, target: Vector) -> Vector:
+        """The joints on the way from the current ones to ``target`` where the first joint reaches its limit."""
+        delta = target - self.q
+        fraction = 1.0
+        for i in range(6):
+            if target[i] > self.upper[i] and delta[i] > 0:
+                fraction = min(fraction, (self.upper[i] - self.q[i]) / delta[i])
+            elif target[i] < self.lower[i] and delta[i] < 0:
+                fraction = min(fraction, (self.lower[i] - self.q[i]) / delta[i])
+        return np.clip(self.q + max(fraction, 0.0) * delta, self.lower, self.upper)
+
     def _limit_reason(self, q: Vector) -> str:
         bad = [i for i in range(6) if not self.lower[i] <= q[i] <= self.upper[i]]
         i = bad[0]
@@ -383,7 +397,9 @@ class ArmModel:
         if q_nominal is not None and self.force is None:
             q: Vector | None = q_nominal
             if not self.within_limits(q_nominal):
-                q, why = None, self._limit_reason(q_nominal)
+                why = self._limit_reason(q_nominal)
+                q = self._up_to_limits(q_nominal)
+                pose = self.fk(q)
         else:
             q, why = self.ik(pose, self.q if q_nominal is None else q_nominal)
             if q is not None and joint is None:
@@ -405,6 +421,10 @@ class ArmModel:
             self.twist = [v * fraction for v in self.tool.twist]  # the tool model's exact twist, on the real clock
         else:
             self.twist = _pose_rate(before, pose, dt)
+        if why:  # a joint motion that reached a joint limit: stopped there
+            self.halt()
+            self.fault = why
+            return
         if joint is not None and joint.done:
             self.joint = None
             self.twist = [0.0] * 6

@@ -115,6 +115,7 @@ class _Faults:
     frozen: Snapshot | None = None
     hung: bool = False
     link_down: bool = False
+    dashboard_silent: bool = False  # the dashboard server reads and never answers (the rest works)
 
 
 class Program:
@@ -195,7 +196,7 @@ class Controller:
         self.safety_mode = SafetyMode.NORMAL
         self.protective_stop_time = 0.0
         self.program: Program | None = None
-        self.runtime_state = RuntimeState.STOPPED
+        self.runtime_state = RuntimeState.STOPPED  # PAUSED: the program stays loaded and does not step
         self.loaded_program: str | None = None
         self.watchdog: tuple[str, float] | None = None  # (input name, min frequency)
         self.faults = _Faults()
@@ -259,7 +260,7 @@ class Controller:
         with self.lock:
             dt = min(now - self._last_tick, 0.1)
             self._last_tick = now
-            if self.program is not None:
+            if self.program is not None and self.runtime_state == RuntimeState.PLAYING:
                 if self.watchdog is not None:
                     name, freq = self.watchdog
                     last = self.input_updated.get(name, 0.0)
@@ -290,7 +291,7 @@ class Controller:
         m = self.model
         force = self.measured_wrench(m.pose, m.twist)
         raw_tool = self._wrench_in_tool(m.pose, m.twist)
-        running = self.program is not None
+        running = self.program is not None and self.runtime_state == RuntimeState.PLAYING  # a paused one is not
         powered = self.robot_mode >= RobotMode.POWER_ON
         values: dict[str, object] = {
             "actual_TCP_pose": tuple(m.pose),
@@ -488,15 +489,34 @@ class Controller:
 
     def set_safety_mode(self, mode: SafetyMode, reason: str) -> None:
         """The safety system enters ``mode`` (a safeguard stop from an open guard, reduced mode from a safety plane,
-        a violation...). One that forbids motion stops the program and the arm, as a protective stop does (a real
-        controller pauses a program on a safeguard stop; a program of ur_rtde's is stopped here, the stricter case
-        for the client). Back to NORMAL clears it."""
+        a violation...).
+
+        A safeguard stop is a category 2 stop that **pauses** the program, as on a UR e-Series (the user manual's
+        safety I/O: "Safeguard stop performs a category 2 stop", its reset input "resumes the robot from a
+        Safeguard stopped state"; UR's forum: a safeguard stop "pauses the robot program execution"): the arm
+        decelerates and stays powered, the program stays loaded (``runtime_state`` PAUSED, the program-running
+        bit off, as ur_rtde's ``isProgramRunning`` reads it) and, when the safeguard is reset (back to NORMAL or
+        REDUCED: the automatic reset, or the reset input), it **resumes by itself** where it was, reading its
+        input registers as it left them: whatever command a client left there runs again. Any other mode that
+        forbids motion stops the program and the arm, as a protective stop does."""
         with self.lock:
             self.event(f"safety mode {mode.name}: {reason}")
             self.safety_mode = mode
-            if mode not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
+            if mode == SafetyMode.SAFEGUARD_STOP and self.program is not None:
+                if self.runtime_state == RuntimeState.PLAYING:
+                    self.runtime_state = RuntimeState.PAUSED
+                    self.event(f"program {self.program.name} paused: safeguard stop")
+                self.model.end_force_mode()
+                self.model.stopl(self.config.stop_deceleration)
+            elif mode not in (SafetyMode.NORMAL, SafetyMode.REDUCED):
                 self.stop_program(mode.name.lower().replace("_", " "), decelerate=True)
                 self.model.stopl(self.config.stop_deceleration)
+            elif self.program is not None and self.runtime_state == RuntimeState.PAUSED:
+                self.runtime_state = RuntimeState.PLAYING
+                # The watchdog counts from the resume: the client could not know when the reset would come.
+                if self.watchdog is not None:
+                    self.input_updated[self.watchdog[0]] = time.monotonic()
+                self.event(f"program {self.program.name} resumed: safeguard reset")
 
     def emergency_stop(self, reason: str) -> None:
         with self.lock:
@@ -560,6 +580,7 @@ class Controller:
                     "freeze": self.faults.freeze,
                     "hung": self.faults.hung,
                     "link_down": self.faults.link_down,
+                    "dashboard_silent": self.faults.dashboard_silent,
                 },
                 "out_int": self.out_int[:4],
                 "in_int": self.in_int[:4],

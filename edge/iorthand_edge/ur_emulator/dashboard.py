@@ -41,10 +41,12 @@ def answer(ctrl: Controller, line: str) -> tuple[str, bool]:
             return f"Safetystatus: {ctrl.safety_mode.name}", False
         if low == "programstate":
             name = ctrl.program.name if ctrl.program else (ctrl.loaded_program or "<unnamed>")
-            state = "PLAYING" if ctrl.runtime_state == RuntimeState.PLAYING else "STOPPED"
+            # A program paused by a safeguard stop says so (it resumes when the safeguard is reset).
+            state = {RuntimeState.PLAYING: "PLAYING", RuntimeState.PAUSED: "PAUSED"}.get(ctrl.runtime_state, "STOPPED")
             return f"{state} {name}", False
         if low == "running":
-            return f"Program running: {'true' if ctrl.program is not None else 'false'}", False
+            playing = ctrl.program is not None and ctrl.runtime_state == RuntimeState.PLAYING
+            return f"Program running: {'true' if playing else 'false'}", False
         if low == "isprogramsaved":
             # PolyScope answers lowercase "true <name>"; note ur_rtde's isProgramSaved() looks for "True".
             return f"true {ctrl.loaded_program or '<unnamed>'}", False
@@ -118,7 +120,7 @@ def handle_dashboard(ctrl: Controller) -> Callable[[socket.socket, tuple[str, in
             while b"\n" in buf:
                 raw, buf = buf.split(b"\n", 1)
                 line = raw.decode("utf-8", "replace")
-                if ctrl.faults.hung:
+                if ctrl.faults.hung or ctrl.faults.dashboard_silent:
                     continue  # read, never answer
                 text, close = answer(ctrl, line)
                 log.debug("dashboard %s: %r -> %r", addr, line, text)

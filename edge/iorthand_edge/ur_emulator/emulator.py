@@ -194,8 +194,9 @@ class UREmulator:
             self.controller.event(f"speed slider at {100 * float(fraction):.0f} %")
 
     def set_remote_control(self, on: bool) -> None:
-        """Remote control on or off (local control). In local control the dashboard says so and no program from
-        outside starts; one already running goes on."""
+        """Remote control on or off (local control), as the pendant's switch does. In local control the dashboard
+        answers "false" to ``is in remote control`` and no program from outside starts; one already running goes
+        on, and RTDE still writes its input registers (RTDE has no bit for it: a client must ask the dashboard)."""
         with self.controller.lock:
             self.controller.remote_control = bool(on)
             self.controller.event(f"{'remote' if on else 'local'} control")
@@ -245,6 +246,13 @@ class UREmulator:
             self.controller.event("controller no longer hung")
         self.registry.release_parked()
 
+    def set_dashboard_silent(self, on: bool) -> None:
+        """The dashboard server (29999) reads commands and answers none while ``on``; RTDE and the script ports
+        go on (a dashboard disabled or stuck while the controller runs)."""
+        with self.controller.lock:
+            self.controller.faults.dashboard_silent = bool(on)
+            self.controller.event(f"dashboard {'silent' if on else 'answering again'}")
+
     def stop_program(self) -> None:
         self.controller.stop_program("stopped by fault injection", decelerate=True)
 
@@ -275,6 +283,7 @@ class UREmulator:
         self.restore_link()
         self.unfreeze()
         self.unhang()
+        self.set_dashboard_silent(False)
         self.release_emergency_stop()
         self.clear_protective_stop()
         self.set_force([0.0] * 6)

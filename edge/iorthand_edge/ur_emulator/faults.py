@@ -7,7 +7,7 @@ affected by the faults it injects (a link drop or a hang leaves it working), so 
 Operations (see :data:`OPS`): ``status``, ``drop_link`` (``duration`` s, or until ``restore_link``),
 ``restore_link``, ``freeze`` (``mode`` "stale" | "silent"), ``unfreeze``, ``protective_stop``,
 ``clear_protective_stop``, ``emergency_stop``, ``release_emergency_stop``, ``set_force`` (``wrench`` [6]),
-``hang``, ``unhang``, ``stop_program``, ``set_pose`` (``pose`` [6]), ``set_joints`` (``q`` [6]),
+``hang``, ``unhang``, ``set_dashboard_silent`` (``on``), ``stop_program``, ``set_pose`` (``pose`` [6]), ``set_joints`` (``q`` [6]),
 ``set_phantom`` (``phantom``: the keys of a PhantomConfig, or null to remove it), ``clear_faults``; and what a
 person at the teach pendant does: ``set_speed_slider`` (``fraction`` 0..1), ``set_remote_control`` (``on``),
 ``set_safety_mode`` (``mode``: SAFEGUARD_STOP, REDUCED, NORMAL, ...), ``set_tcp`` (``offset`` [6]),
@@ -31,7 +31,7 @@ OPS = (
     "status", "drop_link", "restore_link", "freeze", "unfreeze", "protective_stop", "clear_protective_stop",
     "emergency_stop", "release_emergency_stop", "set_force", "hang", "unhang", "stop_program", "set_pose",
     "set_joints", "set_phantom", "clear_faults", "set_speed_slider", "set_remote_control", "set_safety_mode",
-    "set_tcp", "set_payload",
+    "set_tcp", "set_payload", "set_dashboard_silent",
 )
 
 
