@@ -4,9 +4,12 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import logging
 import sys
+from collections.abc import Sequence
 from importlib.metadata import entry_points
+from typing import NoReturn
 
 import zenoh
 
@@ -25,8 +28,36 @@ def _setup_logging(level: str) -> None:
     logging.basicConfig(level=getattr(logging, level.upper()), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
+class CommandParser(argparse.ArgumentParser):
+    """A parser that answers an argument it does not know itself, naming the (sub)command and the nearest option.
+
+    argparse hands what a subcommand does not know up to the top parser, which printed the top-level usage and
+    "unrecognized arguments" without saying of which subcommand: ``iorthand demo --veiw`` showed how to call
+    ``iorthand``. Subcommands' parsers are of their parent's class (``add_subparsers`` makes them so), so every
+    level of ``iorthand ... `` answers for its own arguments."""
+
+    def parse_known_args(self, args: Sequence[str] | None = None,
+                         namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
+        parsed, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.unrecognized(extras)
+        return parsed, extras
+
+    def unrecognized(self, extras: list[str]) -> NoReturn:
+        """Exit 2 with this command's usage and, for each unknown argument, what it is and the nearest option."""
+        said = []
+        for arg in extras:
+            if len(arg) > 1 and arg[0] in self.prefix_chars:
+                nearest = difflib.get_close_matches(arg.split("=", 1)[0], list(self._option_string_actions), n=1)
+                said.append(f"option {arg}" + (f" (did you mean {nearest[0]}?)" if nearest else ""))
+            else:
+                said.append(f"argument {arg!r}")
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{self.prog}: unrecognized {', '.join(said)}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="iorthand", description="Safe robot teleoperation over Zenoh.")
+    parser = CommandParser(prog="iorthand", description="Safe robot teleoperation over Zenoh.")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     from iorthand import check, demo, router

@@ -715,21 +715,31 @@ class ForceLevelState(Message):
 
 @dataclass(kw_only=True)
 class ServoState(Message):
+    """Sent on every change and as a heartbeat every ``period`` s (the edge's servos.publish_hz)."""
+
     KEY: ClassVar[str] = keys.STATE_SERVO
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"period"})
     pan: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)  # rad, current
     tilt: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
     pan_target: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
     tilt_target: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
     clamped: bool = False
     reason: str = spec("", max_len=200)
+    # s between two heartbeats: a receiver calls the state old after a few of them missed. 0: not said (an older
+    # edge, an older recording): the receiver falls back to the default rate's.
+    period: float = spec(0.0, lo=0.0, hi=3600.0)
 
 
 @dataclass(kw_only=True)
 class TorchState(Message):
+    """Sent on every change and as a heartbeat every ``period`` s (the edge's torch.publish_hz)."""
+
     KEY: ClassVar[str] = keys.STATE_TORCH
+    ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"period"})
     on: bool = False
     brightness: float = spec(0.0, lo=0.0, hi=1.0)
     reason: str = spec("", max_len=200)
+    period: float = spec(0.0, lo=0.0, hi=3600.0)  # s between two heartbeats; 0: not said (as ServoState.period)
 
 
 @dataclass(kw_only=True)

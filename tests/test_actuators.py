@@ -182,6 +182,27 @@ def test_a_flood_of_refused_commands_is_reported_ten_times_a_second_and_a_comman
         unit.join()
 
 
+@pytest.mark.parametrize("kind", ["servo", "torch"])
+@pytest.mark.parametrize("publish_hz", [0.2, 50.0])
+def test_the_servo_and_torch_states_say_their_heartbeat_period(kind: str, publish_hz: float) -> None:
+    """Found by a review of the operator side: publish_hz was not on the wire, and a watcher aged these states by
+    the default rate's heartbeat. Each state now says its period (1/publish_hz)."""
+    if kind == "servo":
+        unit: ServoUnit | TorchUnit = ServoUnit(ServosConfig(publish_hz=publish_hz), driver=CountingDriver())
+    else:
+        unit = TorchUnit(TorchConfig(publish_hz=publish_hz))
+    out = PublishCounter(ServoState if kind == "servo" else TorchState)
+    unit._pub = out  # type: ignore[assignment]
+    stop = threading.Event()
+    unit.start(None, keys.RobotKeys("sim1"), stop)
+    try:
+        wait_until(lambda: out.states, message="the first state")
+        assert out.states[0][1].period == pytest.approx(1.0 / publish_hz)
+    finally:
+        stop.set()
+        unit.join()
+
+
 def test_angle_history_interpolates_at_frame_times() -> None:
     h = AngleHistory(2.0, (HOME, HOME))
     assert h.at(5) == (HOME, HOME)  # before anything: the initial (home) angles

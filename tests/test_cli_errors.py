@@ -68,3 +68,49 @@ def test_mistakes_are_answered_in_one_line(tmp_path: Path, args: list[str], code
     assert said in r.stderr + r.stdout
     assert not (tmp_path / "a:b.password").exists()  # a refused name writes nothing
     assert not (tmp_path / "ca").exists() and not (tmp_path / "board").exists()
+
+
+def test_a_mistyped_option_names_the_subcommand_and_the_option_it_meant(tmp_path: Path) -> None:
+    """Found by a review: ``iorthand demo --veiw`` printed the top-level usage and "unrecognized arguments", as if
+    the mistake were in ``iorthand``; the subcommand's parser now answers for it, with its usage."""
+    r = _run("demo", "--veiw", cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.splitlines()[-1] == "iorthand demo: unrecognized option --veiw (did you mean --view?)", r.stderr
+    assert r.stderr.startswith("usage: iorthand demo "), r.stderr
+    assert not list(tmp_path.iterdir())  # nothing started, nothing written
+
+
+def _leaf_commands(parser: argparse.ArgumentParser, path: list[str]) -> list[tuple[list[str], argparse.ArgumentParser]]:
+    """Every command line that ends in a parser of its own: leaves, and parents whose action may be left out."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        return [(path, parser)]
+    out = [leaf for name, p in subs[0].choices.items() for leaf in _leaf_commands(p, [*path, name])]
+    return out if subs[0].required else [(path, parser), *out]
+
+
+def test_every_subcommand_answers_for_an_option_it_does_not_know(capsys: pytest.CaptureFixture[str]) -> None:
+    """Each subcommand (nested ones too) names itself and the unknown option, and suggests the nearest of its own;
+    its required arguments are given, so that the unknown option is the only mistake."""
+    from iorthand.cli import build_parser
+
+    fillers = {"listen": "127.0.0.1:1", "connect": "127.0.0.1:1"}  # bench linkemu checks HOST:PORT
+    checked = 0
+    for path, parser in _leaf_commands(build_parser(), []):
+        if path == ["ur-emulator"]:
+            continue  # every argument goes unparsed to the emulator's own parser (python -m iorthand_edge.ur_emulator)
+        given = [a for a in parser._actions if a.required and not isinstance(a, argparse._SubParsersAction)]
+        given += [g._group_actions[0] for g in parser._mutually_exclusive_groups if g.required]
+        required: list[str] = []
+        for a in given:
+            value = [] if a.nargs == 0 else [fillers.get(a.dest, "x")]
+            required += [a.option_strings[0], *value] if a.option_strings else value
+        known = next(o for o in parser._option_string_actions if o != "--help" and o.startswith("--"))
+        typo = known[:2] + known[3] + known[2] + known[4:]  # two letters swapped, as a hurried hand does
+        with pytest.raises(SystemExit) as exit_:
+            build_parser().parse_args([*path, typo, *required])
+        said = capsys.readouterr().err.splitlines()[-1]
+        assert exit_.value.code == 2, (path, said)
+        assert said.startswith(f"iorthand {' '.join(path)}: unrecognized option {typo} (did you mean --"), said
+        checked += 1
+    assert checked >= 30

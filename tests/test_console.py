@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import re
 import threading
 import time
@@ -10,6 +11,7 @@ import time
 import numpy as np
 import pytest
 from textual import events
+from textual.widgets import OptionList, RichLog
 
 from iorthand import keys
 from iorthand.protocol import ForceLevelState, SafetyStatus, StopCommand, TwistCommand
@@ -466,6 +468,56 @@ def test_camera_and_torch_rows_say_how_old_they_are(session_factory, operator_fa
     assert old["camera"][1] == old["torch"][1] == "grey50", old
 
 
+def test_camera_and_torch_rows_age_by_the_heartbeat_period_the_edge_says(session_factory, operator_factory) -> None:
+    """Found by a review of the operator side: the rows aged by three heartbeats at the default 2 Hz (1.5 s) whatever
+    the edge's servos/torch publish_hz: an edge at 0.2 Hz showed "stale" between every heartbeat, one at 50 Hz was
+    shown current 1.5 s after it died. The states now say their period; a row is old after three of them (never
+    sooner than a robot state: STATE_STALE_S), and after 1.5 s for a state that does not say (an older edge)."""
+    import msgpack
+
+    from iorthand.protocol import ServoState, TorchState
+    from iorthand_operator.client import ACTUATOR_STALE_S, actuator_stale_after
+    from iorthand_operator.link import STATE_STALE_S
+
+    robot = "heartbot"  # no edge: only our messages reach this robot's keys
+    client = operator_factory(robot, "op1")
+    ctrl = ConsoleController(client, KeyboardInput(KeymapConfig()), ConsoleSettings())
+    k = keys.RobotKeys(robot)
+    servo_pub = publisher(session_factory(), k.key(keys.STATE_SERVO))
+    torch_pub = publisher(session_factory(), k.key(keys.STATE_TORCH))
+
+    def arrived(servo: bytes, torch: bytes) -> bool:
+        servo_pub.put(servo)
+        torch_pub.put(torch)
+        return client.servo is not None and client.torch is not None
+
+    slow_servo = ServoState(pan=0.1745, period=5.0).stamp(1).encode()  # servos.publish_hz 0.2
+    fast_torch = TorchState(on=True, brightness=0.8, period=0.02).stamp(1).encode()  # torch.publish_hz 50
+    wait_until(lambda: arrived(slow_servo, fast_torch), 5.0, message="servo and torch state at the client")
+    time.sleep(0.2)  # the last puts of the wait arrive: the ages below count from the newest
+    servo_at, torch_at = client.servo_at, client.torch_at
+    assert ctrl.view(servo_at + 10.0).camera_stale == ""  # two heartbeats of 5 s missed: not yet old
+    assert ctrl.view(servo_at + 15.5).camera_stale.startswith("stale 15."), "three heartbeats missed: old"
+    assert ctrl.view(torch_at + 1.0).torch_stale.startswith("stale 1."), "a 50 Hz torch silent for 1 s is old"
+    assert actuator_stale_after(TorchState(period=0.02)) == STATE_STALE_S  # 60 ms would flicker on a link's jitter
+
+    # An older edge: its states have no period, and age as before, by three heartbeats at 2 Hz.
+    def older(msg: ServoState | TorchState) -> bytes:
+        data = msgpack.unpackb(msg.stamp(2).encode())
+        del data["period"]
+        return msgpack.packb(data)
+
+    client.servo = client.torch = None
+    wait_until(lambda: arrived(older(ServoState(pan=0.1745)), older(TorchState(on=True))), 5.0,
+               message="an older edge's servo and torch state at the client")
+    time.sleep(0.2)
+    assert client.servo is not None and client.torch is not None and client.servo.period == client.torch.period == 0
+    view = ctrl.view(client.servo_at + ACTUATOR_STALE_S - 0.3)
+    assert view.camera_stale == "", view.camera_stale
+    assert ctrl.view(client.servo_at + ACTUATOR_STALE_S + 0.3).camera_stale.startswith("stale 1.")
+    assert ctrl.view(client.torch_at + ACTUATOR_STALE_S + 0.3).torch_stale.startswith("stale 1.")
+
+
 def test_the_deadman_row_shows_what_the_command_stream_sends(edge_factory, operator_factory) -> None:
     """Found by a review of the operator side: "deadman sent ON" came from the input device, while without a grant
     the stream sent nothing and under a new grant it sent the deadman released until a fresh press."""
@@ -539,3 +591,115 @@ def test_a_keymap_warning_is_in_the_console_log(operator_factory) -> None:
     finally:
         ctrl.stop()
     assert any("warning" in e and "key 'space' is bound to 'deadman'" in e for e in events), events
+
+
+def test_the_force_light_and_the_edges_status_are_on_a_small_terminal(session_factory, operator_factory) -> None:
+    """Found by a red-team run of the console: on an 80×24 terminal the event log took the focus and scrolled the
+    screen to itself, and the force panel's light and the robot's first rows went off the top; on 40×12 the three
+    columns cut every label to a letter and the light was off screen too. A docked banner says the force level and
+    the edge's status on any terminal; the panels take two columns at 80, one at 40, and leave the log room."""
+    robot = "tinybot"  # no edge: only our messages reach this robot's keys
+    s, k = session_factory(), keys.RobotKeys(robot)
+    safety, force = publisher(s, k.key(keys.STATE_SAFETY)), publisher(s, k.key(keys.STATE_FORCE_LEVEL))
+    reason = "stop from 'nurse': patient moved"
+
+    async def run(app: OperatorConsole, size: tuple[int, int]) -> dict[str, object]:
+        async with app.run_test(size=size) as pilot:
+            for seq in range(1, 60):
+                safety.put(SafetyStatus(status="stopped", reason=reason).stamp(seq).encode())
+                force.put(ForceLevelState(level=2, stale=False, value=9.0).stamp(seq).encode())
+                await pilot.pause(0.05)
+                if app.view_model.edge_reason and app.view_model.force.label == "DANGER":
+                    break
+            await pilot.pause(0.2)
+            screen = app.screen.region
+
+            def shown(wid: str) -> bool:  # the widget's first line is on the screen
+                region = app.query_one(f"#{wid}").region
+                return region.height > 0 and screen.contains(region.x, region.y)
+
+            seen = {"banner": _text(app, "banner"), "banner_row": app.query_one("#banner").region.y,
+                    **{wid: shown(wid) for wid in ("status", "force", "events")},
+                    "force_text": _text(app, "force"), "events_text": _text(app, "events")}
+            await pilot.press("ctrl+c")
+        return seen
+
+    for size in ((80, 24), (40, 12)):
+        _client, ctrl, app = _console(operator_factory, robot=robot)
+        try:
+            seen = asyncio.run(run(app, size))
+        finally:
+            ctrl.stop()
+        assert seen["banner_row"] == 0 and seen["banner"].startswith(" DANGER  stopped stop from"), (size, seen)
+        assert seen["status"], (size, seen)
+        if size == (80, 24):
+            assert seen["force"] and "DANGER" in seen["force_text"], seen
+            assert seen["events"] and reason in seen["events_text"], seen
+
+
+def test_every_event_reaches_the_log_however_alike_and_a_burst_says_what_it_left_out(operator_factory) -> None:
+    """Found by a red-team run of the console: the log found its new lines by the text of the last one shown, so
+    a stop between two alike refusals in the same second ("refused, stop, refused") never reached it. And after a
+    burst of 10 000 events it showed the latest 50 without a word about the rest."""
+    client, ctrl, app = _console(operator_factory, robot="logbot")
+
+    async def run() -> tuple[list[str], list[str]]:
+        async with app.run_test(size=(160, 50)) as pilot:
+            log = app.query_one("#events", RichLog)
+            client.log_event("refused", "no_deadman", "deadman released")
+            await _wait(lambda: len(log.lines) == 1, message="the first refusal in the log")
+            client.log_event("stop", "stopped", "e-stop sent: operator e-stop")
+            client.log_event("refused", "no_deadman", "deadman released")
+            await _wait(lambda: len(app.view_model.events) == 3, message="the view after the second refusal")
+            await pilot.pause(0.3)  # (the lines written: a stop left out would not come later)
+            alike = [line.text for line in log.lines]
+            for i in range(10_000):  # at once: no refresh comes between them
+                client.log_event("refused", "no_deadman", f"deadman released ({i})")
+            await _wait(lambda: log.lines[-1].text.endswith("(9999)"), message="the burst's last event in the log")
+            burst = [line.text for line in log.lines]
+            await pilot.press("ctrl+c")
+        return alike, burst
+
+    try:
+        alike, burst = asyncio.run(run())
+    finally:
+        ctrl.stop()
+    assert [line.split(" ", 1)[1] for line in alike] == [
+        "refused no_deadman: deadman released", "stop    stopped: e-stop sent: operator e-stop",
+        "refused no_deadman: deadman released"], alike
+    assert len(burst) <= len(alike) + 51  # bounded: the latest 50 and one line about the rest
+    assert burst[len(alike)] == "… 9950 more events came at once: the latest 50 follow", burst[len(alike):][:3]
+    assert burst[-1].endswith("deadman released (9999)")
+
+
+def test_pose_names_with_brackets_are_shown_as_written(edge_factory, operator_factory) -> None:
+    """Found by a red-team run of the console: the pose list read each pose's name (a key of the edge's goto.poses)
+    as textual markup: a name with a closing tag ("lift [/] back") raised MarkupError and closed the console (the
+    robot then stops: its command stream ends). Names and replies are shown as text, brackets and all."""
+    name = "lift [/] back"
+    edge_factory(goto={"poses": {name: [0.30, 0.0, 0.25, math.pi, 0.0, 0.0]}})
+    client, ctrl, app = _console(operator_factory)
+    client.wait_for_state()
+
+    async def run() -> tuple[list[str], bool]:
+        async with app.run_test(size=(160, 50)) as pilot:
+            app.ui_action("poses")
+
+            def listed() -> bool:
+                found = app.screen.query("#pose-list") if len(app.screen_stack) > 1 else None
+                return bool(found) and found.first(OptionList).option_count > 0
+
+            await _wait(listed, 10.0, "the pose list")
+            await pilot.pause(0.2)
+            options = app.screen.query_one("#pose-list", OptionList)
+            shown = [str(options.get_option_at_index(i).prompt) for i in range(options.option_count)]
+            running = app.is_running
+            await pilot.press("escape")
+            await pilot.press("ctrl+c")
+        return shown, running
+
+    try:
+        shown, running = asyncio.run(run())
+    finally:
+        ctrl.stop()
+    assert running and name in shown, shown

@@ -137,7 +137,7 @@ def test_a_cloud_only_install_is_told_what_the_demo_needs(tmp_path: Path) -> Non
     (["--timeout", "-5"], "--timeout: '-5' is not within 10..3600"),
     (["--robot", "a/b"], "robot id 'a/b' is invalid"),
     (["--robot", "sim1-replay"], "reserved for replayed recordings"),
-    (["--veiw"], "unrecognized arguments: --veiw"),
+    (["--veiw"], "iorthand demo: unrecognized option --veiw (did you mean --view?)"),
 ])
 def test_mistakes_on_the_demo_command_line_start_nothing(tmp_path: Path, args: list[str], said: str) -> None:
     r = _run(["demo", "--workdir", str(tmp_path / "w"), *args], tmp_path, timeout=30)

@@ -14,7 +14,7 @@ from PIL import Image
 
 from iorthand import keys
 from iorthand.protocol import VideoFrame
-from iorthand_cloud.foxglove_channels import FoxgloveChannel, FoxgloveConverter
+from iorthand_cloud.foxglove_channels import NOTICE_INTERVAL_NS, FoxgloveChannel, FoxgloveConverter
 from iorthand_cloud.twin.config import FoxgloveLiveConfig
 from iorthand_cloud.twin.foxglove import FoxgloveLive
 
@@ -78,3 +78,26 @@ def test_on_an_h264_stream_the_notice_is_a_keyframe_of_the_streams_size() -> Non
     frames = [f for p in packets for f in decoder.decode(p)]
     frames += list(decoder.decode(None))
     assert len(frames) == 1 and frames[0].key_frame and (frames[0].width, frames[0].height) == (320, 240)
+
+
+def test_live_failure_pictures_are_timed_by_the_twins_clock_not_the_edges() -> None:
+    """Found by a review: the pictures were limited to one per NOTICE_INTERVAL_NS of the notices' source time, the
+    edge's to set: a clock stepping back drew one for every notice, one standing still drew no more. Live, the
+    converter times them by its own monotonic clock."""
+    live, conv, logged = live_view()
+
+    def pictures() -> int:
+        return len([1 for t, _, _ in logged if t == "/r1/camera"])
+
+    notice = VideoFrame(source="camera", width=64, height=48, failure="cannot open video device '0'")
+    t0 = time.time_ns()
+    started = time.monotonic()
+    for i in range(20):  # an edge clock stepping back a second at every notice
+        live._forward(conv, KEY, notice.stamp(1 + i, t=t0 - i * 1_000_000_000).encode(), time.time_ns())
+    elapsed = time.monotonic() - started
+    assert 1 <= pictures() <= 1 + elapsed / (NOTICE_INTERVAL_NS / 1e9), (pictures(), elapsed)
+    # Standing still: a notice of the same source time, NOTICE_INTERVAL_NS later on the twin's clock, is drawn.
+    before = pictures()
+    time.sleep(NOTICE_INTERVAL_NS / 1e9)
+    live._forward(conv, KEY, notice.stamp(21, t=t0 - 19 * 1_000_000_000).encode(), time.time_ns())
+    assert pictures() == before + 1, "a notice with a standing clock drew no picture"

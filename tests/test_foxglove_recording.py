@@ -218,13 +218,15 @@ def test_a_video_failure_notice_replaces_the_last_picture_in_a_recording() -> No
     conv = fx.FoxgloveConverter()
     key = keys.RobotKeys("sim1").key(keys.VIDEO_CAMERA)
     t0 = 1_000_000_000_000
+    r0 = 5_000_000_000_000  # the recording's log time (the recorder's receive time): not the edge's clock
 
-    def camera(msg: VideoFrame) -> list[str]:
-        return [m.channel.topic for m in conv.convert(key, msg)]
+    def camera(msg: VideoFrame, received: int) -> list[str]:
+        return [m.channel.topic for m in conv.convert(key, msg, received)]
 
-    assert camera(VideoFrame(width=64, height=48, data=b"\xff\xd8\xff\xd9").stamp(1, t=t0)) == ["/sim1/camera"]
+    frame = VideoFrame(width=64, height=48, data=b"\xff\xd8\xff\xd9")
+    assert camera(frame.stamp(1, t=t0), r0) == ["/sim1/camera"]
     notice = VideoFrame(width=640, height=480, failure="cannot open video device '0'")
-    out = conv.convert(key, notice.stamp(2, t=t0 + 1))
+    out = conv.convert(key, notice.stamp(2, t=t0 + 1), r0 + 1)
     assert [m.channel.topic for m in out] == ["/sim1/camera", "/sim1/events"], "no picture replaced the last frame"
     picture = CompressedImage.FromString(out[0].data)
     assert out[0].channel.schema_name == "foxglove.CompressedImage" and out[0].t == t0 + 1
@@ -232,24 +234,49 @@ def test_a_video_failure_notice_replaces_the_last_picture_in_a_recording() -> No
     assert (picture.timestamp.seconds, picture.timestamp.nanos) == divmod(t0 + 1, 1_000_000_000)
     image = _shown(out[0].data)
     assert image.shape == (480, 640, 3) and image.mean() < 60  # the stream's size, dark: not the last frame
-    # The source retrying: one picture per NOTICE_INTERVAL_NS of source time, at once for another failure, and
-    # afresh when the edge's clock went back.
-    assert camera(notice.stamp(3, t=t0 + fx.NOTICE_INTERVAL_NS)) == []
-    assert camera(notice.stamp(4, t=t0 + 1 + fx.NOTICE_INTERVAL_NS)) == ["/sim1/camera"]
+    # The source retrying: one picture per NOTICE_INTERVAL_NS of receive time (an edge's clock that went back
+    # draws none sooner), at once for another failure, and afresh when the receive times go back.
+    assert camera(notice.stamp(3, t=t0 - 10 * fx.NOTICE_INTERVAL_NS), r0 + 2) == []
+    assert camera(notice.stamp(4, t=t0 + 1 + fx.NOTICE_INTERVAL_NS), r0 + fx.NOTICE_INTERVAL_NS) == []
+    assert camera(notice.stamp(5, t=t0), r0 + 1 + fx.NOTICE_INTERVAL_NS) == ["/sim1/camera"]
     other = VideoFrame(width=640, height=480, failure="media process down")
-    assert camera(other.stamp(5, t=t0 + 2 + fx.NOTICE_INTERVAL_NS)) == ["/sim1/camera", "/sim1/events"]
-    assert camera(other.stamp(6, t=t0)) == ["/sim1/camera"]
+    assert camera(other.stamp(6, t=t0 + 2), r0 + 2 + fx.NOTICE_INTERVAL_NS) == ["/sim1/camera", "/sim1/events"]
+    assert camera(other.stamp(7, t=t0 + 3), r0) == ["/sim1/camera"]
     # Back to pictures, then failing again: a picture at once.
-    assert camera(VideoFrame(width=64, height=48, data=b"\xff\xd8\xff\xd9").stamp(7, t=t0 + 10)) == [
-        "/sim1/camera", "/sim1/events"]
-    assert camera(notice.stamp(8, t=t0 + 11)) == ["/sim1/camera", "/sim1/events"]
+    assert camera(frame.stamp(8, t=t0 + 10), r0 + 10) == ["/sim1/camera", "/sim1/events"]
+    assert camera(notice.stamp(9, t=t0 + 11), r0 + 11) == ["/sim1/camera", "/sim1/events"]
     # An H.264 stream gets a keyframe of its size; a caller that draws its own notices turns them off.
     h264 = conv.convert(keys.RobotKeys("sim1").key(keys.VIDEO_ULTRASOUND),
-                        VideoFrame(width=320, height=240, encoding="h264", failure="frame not sent").stamp(9, t=t0))
+                        VideoFrame(width=320, height=240, encoding="h264", failure="frame not sent").stamp(10, t=t0))
     assert h264[0].channel.schema_name == "foxglove.CompressedVideo"
     assert CompressedVideo.FromString(h264[0].data).data.startswith((b"\x00\x00\x00\x01", b"\x00\x00\x01"))
     quiet = fx.FoxgloveConverter(failure_pictures=False)
-    assert [m.channel.topic for m in quiet.convert(key, notice.stamp(10, t=t0))] == ["/sim1/events"]
+    assert [m.channel.topic for m in quiet.convert(key, notice.stamp(11, t=t0))] == ["/sim1/events"]
+
+
+def test_failure_pictures_follow_the_log_time_whatever_the_edges_clock_does() -> None:
+    """Found by a review: the pictures were timed by the notices' source time, the edge's to set: a clock that
+    stepped back drew one for every notice, one that stood still (or had jumped ahead) drew no more. A recording is
+    converted with its log times (the recorder's receive times): one picture per NOTICE_INTERVAL_NS of them, and
+    the same pictures every time the same recording is converted."""
+    key = keys.RobotKeys("sim1").key(keys.VIDEO_CAMERA)
+    r0, step = 5_000_000_000_000, fx.NOTICE_INTERVAL_NS // 5  # a notice every 100 ms of log time, for 2 s
+    edge_clocks = {
+        "stepping back": lambda i: 10**15 - i * 10**9,
+        "standing still": lambda i: 10**15,
+        "jumped ahead, then back": lambda i: 2**61 if i == 3 else 10**15 + i * step,
+    }
+    for name, edge_t in edge_clocks.items():
+        recorded = [(VideoFrame(width=64, height=48, failure="cannot open video device '0'").stamp(1 + i, t=edge_t(i)),
+                     r0 + i * step) for i in range(21)]
+        runs = []
+        for _ in range(2):  # the same recording, converted twice
+            conv = fx.FoxgloveConverter()
+            runs.append([[(m.channel.topic, m.t, m.data) for m in conv.convert(key, msg, received)]
+                         for msg, received in recorded])
+        assert runs[0] == runs[1], name
+        drawn = [i for i, out in enumerate(runs[0]) if any(topic == "/sim1/camera" for topic, _, _ in out)]
+        assert drawn == [0, 5, 10, 15, 20], (name, drawn)
 
 
 # ---------------------------------------------------------------------------------------------------------

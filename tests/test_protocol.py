@@ -116,6 +116,20 @@ def test_a_field_added_later_defaults_in_older_payloads_and_no_other_does() -> N
     assert VideoFrame.decode(msgpack.packb(frame)).failure == ""
 
 
+def test_servo_and_torch_states_say_their_heartbeat_period_and_older_ones_still_decode() -> None:
+    """ServoState.period and TorchState.period came later (the operator ages its rows by the edge's heartbeat):
+    a state from an older edge, or in an older recording, decodes with period 0 (not said)."""
+    for cls in (protocol.ServoState, protocol.TorchState):
+        assert cls.decode(cls(period=5.0).stamp(1).encode()).period == 5.0
+        older = msgpack.unpackb(cls(period=5.0).stamp(1).encode())
+        del older["period"]
+        assert cls.decode(msgpack.packb(older)).period == 0.0  # the fast decoder
+        older["v"] = 1.0  # a version the fast schema refuses: the checked decoder, too
+        assert cls.decode(msgpack.packb(older)).period == 0.0
+        with pytest.raises(DecodeError, match=rf"{cls.__name__}\.period"):
+            cls.decode(msgpack.packb({**older, "period": -1.0}))
+
+
 @pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb([1, 2]), msgpack.packb("text"), b"\xdd\xff\xff\xff\xff"])
 def test_garbage_payloads_are_rejected(payload: bytes) -> None:
     with pytest.raises(DecodeError) as err:

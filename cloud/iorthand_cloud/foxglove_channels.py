@@ -56,7 +56,9 @@ since when (:func:`failure_picture`), as a JPEG, or for an H.264 stream as one H
 size (a viewer decodes it without the frames before it).
 
 Message timestamps are the source times (``t``) of the iorthand messages; the MCAP ``log_time`` the recorder
-writes is its receive time, as for the raw channels.
+writes is its receive time, as for the raw channels. A failure picture, drawn at most every NOTICE_INTERVAL_NS,
+is timed by the receiver's clock (:meth:`FoxgloveConverter.convert`'s ``recv_ns``), never by the sender's ``t``: an
+edge's clock that steps back would draw one for every notice, one that stands still (or jumped ahead) no more.
 """
 
 from __future__ import annotations
@@ -67,6 +69,7 @@ import io
 import json
 import math
 import textwrap
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -144,7 +147,7 @@ MARKER_COLOUR = (0.1, 0.4, 0.9, 0.8)
 
 # Failure notice pictures.
 NOTICE_MAX_SIDE = 4096  # px: a notice claiming a bigger frame is drawn at most this big (it is only text)
-# At most one notice picture per stream this often, of source time: the edge's source retries every second or
+# At most one notice picture per stream this often, of receive time: the edge's source retries every second or
 # so, and a flood of notices must not keep the converter drawing (viewers that join still see one soon).
 NOTICE_INTERVAL_NS = 500_000_000
 
@@ -534,8 +537,9 @@ class FoxgloveConverter:
         self._level: dict[str, int | None] = {}
         self._probe: dict[str, tuple[int, int | None]] = {}  # robot → (source time, level) of its last probe
         self._failure: dict[str, str] = {}
-        # video key → (its failure, source time of its first notice, of the last notice drawn)
+        # video key → (its failure, source time of its first notice, receive time of the last notice drawn)
         self._notices: dict[str, tuple[str, int, int]] = {}
+        self._received = 0  # receive time (ns) of the message being converted: see convert()
         self._handlers: dict[str, Handler] = {
             keys.STATE_ROBOT: self._robot, keys.STATE_FORCE: self._force, keys.STATE_FORCE_LEVEL: self._force_level,
             keys.STATE_SAFETY: self._safety_status, keys.STATE_APPLIED: self._applied, keys.MARKERS: self._markers,
@@ -546,11 +550,16 @@ class FoxgloveConverter:
         """Whether messages on ``key`` can make Foxglove messages (cheap: the caller may skip decoding)."""
         return self._route(key) is not None
 
-    def convert(self, key: str, msg: Message) -> list[FoxgloveMessage]:
-        """The Foxglove messages made from ``msg`` received on ``key`` (often one, sometimes none)."""
+    def convert(self, key: str, msg: Message, recv_ns: int | None = None) -> list[FoxgloveMessage]:
+        """The Foxglove messages made from ``msg`` received on ``key`` (often one, sometimes none).
+
+        ``recv_ns`` times the failure pictures: when ``msg`` was received, on a clock of the receiver's (a
+        recording's log time: converting the same recording again then makes the same pictures). None: now, on this
+        process's monotonic clock (a live view). The sender's ``t`` does not time them: it is the edge's to set."""
         route = self._route(key)
         if route is None:
             return []
+        self._received = time.monotonic_ns() if recv_ns is None else recv_ns
         robot, handler = route
         return handler(robot, key, msg)
 
@@ -637,20 +646,21 @@ class FoxgloveConverter:
         return out
 
     def _notice_due(self, key: str, msg: VideoFrame) -> int | None:
-        """For a failure notice whose picture is due, when the failure began (its first notice's source time);
-        None for a frame, or for a notice within NOTICE_INTERVAL_NS of the last picture drawn for the same
-        failure. A clock that went back (an edge restarted) draws afresh."""
+        """For a failure notice whose picture is due, when the failure began (its first notice's source time, as
+        the picture says); None for a frame, or for a notice received within NOTICE_INTERVAL_NS of the last picture
+        drawn for the same failure. A receive clock that went back (log times out of order) draws afresh."""
         if not msg.failure:
             self._notices.pop(key, None)
             return None
-        reason, since, drawn = self._notices.get(key, ("", msg.t, 0))
-        if msg.failure != reason or msg.t < drawn:
+        received = self._received
+        reason, since, drawn = self._notices.get(key, ("", msg.t, received))
+        if msg.failure != reason:
             since = msg.t
-        elif msg.t - drawn < NOTICE_INTERVAL_NS:
+        elif 0 <= received - drawn < NOTICE_INTERVAL_NS:
             return None
         if len(self._notices) >= 1000:  # keys come from the network: never an unbounded table
             self._notices.clear()
-        self._notices[key] = (msg.failure, since, msg.t)
+        self._notices[key] = (msg.failure, since, received)
         return since
 
     def _source_news(self, robot: str, key: str, what: str, t: int, failure: str) -> list[FoxgloveMessage]:

@@ -98,6 +98,9 @@ class Event:
     kind: str  # "refused", "stop", "control", "input", "action", "warning", "info"
     status: str
     reason: str
+    # Its number in the client's log (1, 2, ...): how a reader knows what it has shown, however alike two events
+    # read (the same refusal twice in a second, around a stop).
+    n: int = 0
 
 
 # Safety statuses that mean the robot was stopped (worth a line in the log when the edge enters them).
@@ -110,10 +113,23 @@ RENEW_RETRY_S = 0.2  # s between attempts while a lease renewal fails (see Opera
 # A safety status older than this is none (next_step) or shown as old (the console): the edge sends one at
 # safety_rate_hz (20 Hz by default, 1 Hz at the least) and on every change.
 SAFETY_STALE_S = 2.0
-# A servo or torch state older than this is shown as old (the console): the edge publishes each on change and as a
-# heartbeat at servos/torch publish_hz (2 Hz by default), and calls the servo angles unknown after three missed
-# heartbeats (iorthand_edge.perception.history.SERVO_STALE_HEARTBEATS); so does this side, at the default rate.
-ACTUATOR_STALE_S = 3 / 2.0
+# A servo or torch state is shown as old (the console) once this many of its heartbeats went missing: the edge
+# publishes each on change and every ``period`` s (servos/torch publish_hz, 0.1..50 Hz), and calls the servo angles
+# unknown after as many (iorthand_edge.perception.history.SERVO_STALE_HEARTBEATS).
+ACTUATOR_STALE_HEARTBEATS = 3
+# The bound for a state that does not say its period (an older edge): three heartbeats at the default 2 Hz.
+ACTUATOR_STALE_S = ACTUATOR_STALE_HEARTBEATS / 2.0
+
+
+def actuator_stale_after(msg: ServoState | TorchState) -> float:
+    """s after which ``msg`` is shown as old: three of its sender's heartbeat periods (ACTUATOR_STALE_S when it
+    does not say its period), never less than a robot state's bound: at 50 Hz three periods are 60 ms, less than
+    an Internet link's jitter, and the row would flicker."""
+    if msg.period <= 0:
+        return ACTUATOR_STALE_S
+    return max(ACTUATOR_STALE_HEARTBEATS * msg.period, STATE_STALE_S)
+
+
 # The deadman flag of the last command sent is what the stream sends only if that command went out within this
 # long (a few periods, and the process sender's records arrive up to ~50 ms late): a quiet stream sends none.
 SENT_LATELY_S = 0.25
@@ -210,6 +226,7 @@ class OperatorClient:
         self.sender_priority = "normal"  # what the sender thread got: "SCHED_FIFO", "normal (…)"
         self.events: deque[Event] = deque(maxlen=200)
         self.event_count = 0  # every event ever logged: marks for events_since
+        self._events_lock = threading.Lock()
         self.force_level: ForceLevelState | None = None
         self.force_level_at = 0.0  # monotonic receive time of force_level
         self.peak_force_level = 0  # highest fresh level seen (scripts and the demo report it)
@@ -440,8 +457,9 @@ class OperatorClient:
     # ------------------------------------------------------------------ what the console shows
 
     def log_event(self, kind: str, status: str, reason: str) -> None:
-        self.events.append(Event(time.time(), kind, status, reason))
-        self.event_count += 1
+        with self._events_lock:  # (Zenoh callbacks, the lease thread and the UI log events: numbers stay in order)
+            self.event_count += 1
+            self.events.append(Event(time.time(), kind, status, reason, self.event_count))
 
     def echoes_since(self, mark: int) -> list[Echo]:
         """The echoes that arrived after ``mark`` (an earlier ``echo_count``), as many as are still kept."""

@@ -167,7 +167,7 @@ class ServoUnit:
             reason = f"{reason}; driver: {self.driver.error}" if reason else f"driver: {self.driver.error}"
         state = ServoState(
             pan=pan, tilt=tilt, pan_target=outcome.pan_target, tilt_target=outcome.tilt_target,
-            clamped=outcome.clamped, reason=ServoState.fit("reason", reason),
+            clamped=outcome.clamped, reason=ServoState.fit("reason", reason), period=1.0 / self.config.publish_hz,
         ).stamp(self._seq.next())
         self.last_state = state
         if self._pub is not None:
@@ -248,7 +248,8 @@ class TorchUnit:
             reason = f"{reason}; driver: {self.driver.error}" if reason else f"driver: {self.driver.error}"
         # Report what the lamp really does: off while the driver is down.
         lit = outcome.on and self.driver.ready
-        state = TorchState(on=lit, brightness=outcome.brightness if lit else 0.0, reason=TorchState.fit("reason", reason))
+        state = TorchState(on=lit, brightness=outcome.brightness if lit else 0.0, reason=TorchState.fit("reason", reason),
+                           period=1.0 / self.config.publish_hz)
         self.last_state = state.stamp(self._seq.next())
         if self._pub is not None:
             self._pub.put(self.last_state.encode())

@@ -83,9 +83,10 @@ class PoseScreen(ModalScreen[None]):
         self.poses = poses
         ol = self.query_one("#pose-list", OptionList)
         ol.clear_options()
-        ol.add_options([printable(str(p.get("name", "?")) + (f" — {p['description']}" if p.get("description") else ""))
+        # Text, not a string: a string is read as markup, and a name with a closing tag ("[/]") would close the console.
+        ol.add_options([Text(printable(str(p.get("name", "?")) + (f" — {p['description']}" if p.get("description") else "")))
                         for p in poses])
-        self.query_one("#pose-verdict", Static).update(text)
+        self.query_one("#pose-verdict", Static).update(Text(text))
         ol.focus()
 
     def on_option_list_option_selected(self, event: OptionList.OptionSelected) -> None:
@@ -154,12 +155,15 @@ class UiAction(Message):
 
 class OperatorConsole(App[int]):
     TITLE = "iorthand operator"
+    # The banner (the force light and the edge's status) is docked: on any terminal, 40×12 too, it is the first
+    # line. The panels take at most what leaves the event log a few lines, and scroll within that.
     CSS = """
     Screen { layout: vertical; }
-    #grid { grid-size: 3 2; grid-columns: 1fr 1fr 1fr; grid-rows: auto auto; height: auto; }
+    #banner { dock: top; height: 1; }
+    #grid { grid-size: 3; grid-columns: 1fr 1fr 1fr; grid-rows: auto; height: auto; max-height: 70%; overflow-y: auto; }
     .panel { border: round $primary; padding: 0 1; height: auto; min-height: 7; }
     #force { border: round $primary; padding: 0 1; }
-    #events { border: round $primary; height: 1fr; min-height: 6; }
+    #events { border: round $primary; height: 1fr; min-height: 3; }
     """
     # The footer names the keys of the default keymap; ctrl+c also quits but is not the key to show.
     BINDINGS: ClassVar = [
@@ -174,12 +178,12 @@ class OperatorConsole(App[int]):
         super().__init__()
         self.controller = controller
         self.view_model = ConsoleView()
-        self._events_shown = 0
-        self._last_event_key = ""
+        self._events_shown = 0  # the number (Event.n) of the newest event written into the log
         controller.on_ui_action = self._ui_action_from_thread
         self.keyboard = controller.device if isinstance(controller.device, KeyboardInput) else None
 
     def compose(self) -> ComposeResult:
+        yield Static(id="banner")
         with Grid(id="grid"):
             yield Static(id="status", classes="panel")
             yield Static(id="force", classes="panel")
@@ -194,11 +198,23 @@ class OperatorConsole(App[int]):
         for wid, title in (("status", "robot"), ("force", "force"), ("link", "link quality"), ("pose", "tool"),
                            ("profile", "speed profile"), ("input", "input / camera")):
             self.query_one(f"#{wid}").border_title = title
-        self.query_one("#events").border_title = "refusals, stops and actions"
+        log = self.query_one("#events")
+        log.border_title = "refusals, stops and actions"
+        # Focused, the log would scroll the screen to itself on a short terminal, and the panels' first lines (the
+        # force light among them) off it; keys are the robot's here, the mouse wheel still scrolls the log.
+        log.can_focus = False
         self.set_interval(1.0 / self.controller.settings.refresh_hz, self.refresh_view)
         self.refresh_view()
 
     # ------------------------------------------------------------------ keys
+
+    def on_resize(self, event: events.Resize) -> None:
+        """Three columns of panels on a wide terminal, two on an 80-column one, one on a narrow one: a panel
+        narrower than ~35 columns cuts its labels to a letter or two."""
+        columns = max(1, min(3, event.size.width // 40))
+        grid = self.query_one("#grid", Grid)
+        grid.styles.grid_size_columns = columns
+        grid.styles.grid_columns = " ".join(["1fr"] * columns)
 
     def on_key(self, event: events.Key) -> None:
         if len(self.screen_stack) > 1:
@@ -250,6 +266,7 @@ class OperatorConsole(App[int]):
             self._draw(v)
 
     def _draw(self, v: ConsoleView) -> None:
+        self.query_one("#banner", Static).update(self._banner(v))
         self.query_one("#status", Static).update(self._status(v))
         self.query_one("#force", Static).update(self._force(v))
         # textual's CSS colours differ from rich's: grey50 is "grey" there.
@@ -259,14 +276,17 @@ class OperatorConsole(App[int]):
         self.query_one("#profile", Static).update(self._profile(v))
         self.query_one("#input", Static).update(self._input(v))
         log = self.query_one("#events", RichLog)
-        # New events only (the controller keeps the last 50; a key on the last line detects what is new).
-        last_key = v.events[-1] if v.events else ""
-        if last_key != self._last_event_key:
-            new = v.events[v.events.index(self._last_event_key) + 1:] if self._last_event_key in v.events else v.events
-            for line in new:
+        # New events only, by their numbers: two alike lines (the same refusal twice in a second, a stop between
+        # them) are two events. The view has the latest 50: a burst of more between two refreshes says so.
+        new = v.events_logged - self._events_shown
+        if new > 0:
+            if new > len(v.events):
+                log.write(Text(f"… {new - len(v.events)} more events came at once: the latest {len(v.events)} follow",
+                               style="yellow"))
+            for line in v.events[max(0, len(v.events) - new):]:
                 style = "red" if (" refused " in line or " stop " in line or " input " in line) else ""
                 log.write(Text(line, style=style))
-            self._last_event_key = last_key
+            self._events_shown = v.events_logged
 
     @staticmethod
     def _table() -> Table:
@@ -274,6 +294,17 @@ class OperatorConsole(App[int]):
         t.add_column(style="bold")
         t.add_column()
         return t
+
+    @staticmethod
+    def _banner(v: ConsoleView) -> Text:
+        """One line that every terminal shows: the force light, then the edge's status and reason (as the robot
+        panel shows them: greyed and aged when old)."""
+        f = v.force
+        fg = "black" if f.colour in ("green", "yellow") else "white"
+        status = f"{v.edge_status} {v.edge_reason}".strip() or "no safety status"
+        halted = v.edge_reason and v.edge_status not in ("ok", "idle")
+        shown = _stale(status, v.safety_stale) if v.safety_stale else Text(status, style="bold red" if halted else "")
+        return Text.assemble((f" {f.label} ", f"bold {fg} on {f.colour}"), " ", shown, no_wrap=True, overflow="ellipsis")
 
     def _status(self, v: ConsoleView) -> Table:
         t = self._table()
@@ -345,7 +376,7 @@ class OperatorConsole(App[int]):
 
     def _input(self, v: ConsoleView) -> Table:
         t = self._table()
-        t.add_row("device", v.input_name)
+        t.add_row("device", Text(v.input_name))  # a gamepad's name is the device's own: never read as markup
         t.add_row("state", Text(v.input_status or "—", style="" if v.input_connected else "bold red"))
         # The edge's last word, however old: greyed and aged once its heartbeat has stopped, never as if current.
         t.add_row("camera", _stale(v.camera, v.camera_stale) if v.camera_stale else v.camera or "—")

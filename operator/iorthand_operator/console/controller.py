@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from iorthand_operator import recovery
-from iorthand_operator.client import ACTUATOR_STALE_S, ControlRefused, OperatorClient
+from iorthand_operator.client import ControlRefused, OperatorClient, actuator_stale_after
 from iorthand_operator.console.model import (
     ForceView,
     LinkRow,
@@ -83,10 +83,11 @@ class ConsoleView:
     markers_note: str = ""  # why there are no markers, when it is not that none are in view
     markers_failed: bool = False  # the edge reports a camera failure (the note says which)
     camera: str = ""
-    camera_stale: str = ""  # "stale 3.2 s" when the servo state is older than ACTUATOR_STALE_S ("" while current)
+    camera_stale: str = ""  # "stale 3.2 s" when the servo state is older than actuator_stale_after ("" while current)
     torch: str = ""
     torch_stale: str = ""  # likewise for the torch state
-    events: list[str] = field(default_factory=list)
+    events: list[str] = field(default_factory=list)  # the latest 50, oldest first
+    events_logged: int = 0  # the number of the newest of them (Event.n): what is new since the last view
     sent: int = 0
     edge_judged: int = 0  # commands the edge's supervisor judged
     edge_superseded: int = 0  # commands the edge dropped unread, newer ones having arrived while it was busy
@@ -289,12 +290,12 @@ class ConsoleController:
             v.markers = sorted(m.id for m in c.markers.markers)
         if c.servo is not None:
             v.camera = f"pan {math.degrees(c.servo.pan):+.0f}° tilt {math.degrees(c.servo.tilt):+.0f}°"
-            v.camera_stale = stale_note(now - c.servo_at, ACTUATOR_STALE_S)
+            v.camera_stale = stale_note(now - c.servo_at, actuator_stale_after(c.servo))
         if c.torch is not None:
             v.torch = f"{'on' if c.torch.on else 'off'} {100 * c.torch.brightness:.0f} %"
-            v.torch_stale = stale_note(now - c.torch_at, ACTUATOR_STALE_S)
-        v.events = [
-            f"{time.strftime('%H:%M:%S', time.localtime(e.t))} {e.kind:<7} {e.status}: {e.reason}" for e in list(c.events)[-50:]
-        ]
+            v.torch_stale = stale_note(now - c.torch_at, actuator_stale_after(c.torch))
+        recent = list(c.events)[-50:]
+        v.events = [f"{time.strftime('%H:%M:%S', time.localtime(e.t))} {e.kind:<7} {e.status}: {e.reason}" for e in recent]
+        v.events_logged = recent[-1].n if recent else 0
         return inert(v)  # text from the wire cannot steer the terminal
 
