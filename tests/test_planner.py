@@ -3,11 +3,13 @@ that overruns refused with why, and the child replaced after it."""
 
 from __future__ import annotations
 
+import logging
 import math
 import multiprocessing
 import os
 import signal
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ import pytest
 from iorthand import motion
 from iorthand_edge.goto import GotoConfig, GotoController
 from iorthand_edge.planner import PlannerProcess, PlanningTimeout
+from tests.conftest import wait_until
 
 LIMITS = motion.Limits(0.03, 0.2, 0.25, (0.1, -0.3, 0.02), (0.45, 0.3, 0.45))
 HERE = np.array([0.30, 0.0, 0.20, math.pi, 0.0, 0.0])
@@ -82,3 +85,29 @@ def test_a_planner_that_died_between_previews_is_started_again_for_the_next_one(
     pv = ctl.preview("sweep", "alice", HERE, 0.0, LIMITS, params={"lanes": 2})
     assert pv.ok and pv.token, pv.plan.reason
     assert planner._child is not None and planner._child.pid != child.pid
+
+
+def test_a_planner_killed_between_plans_is_reaped_and_said_at_once(planner, caplog) -> None:
+    """Found by a red-team run: the planner's child killed while idle (the out-of-memory killer) stayed a zombie,
+    and nothing said so, until the next preview, which may never come. Now it is reaped, and logged with why, at
+    once; the next plan starts a new child."""
+    assert planner.plan_route("sweep", HERE, LIMITS, {}, None, 0.05, 0.1, None, {"lanes": 2}).ok
+    child = planner._child
+    assert child is not None and child.pid is not None
+    with caplog.at_level(logging.ERROR, logger="iorthand.edge.planner"):
+        os.kill(child.pid, signal.SIGKILL)
+        wait_until(lambda: not Path(f"/proc/{child.pid}").exists(), 5.0, message="the killed planner reaped")
+        wait_until(lambda: "the planner process was killed by SIGKILL" in caplog.text, 5.0, message="the log line")
+    assert planner.plan_route("sweep", HERE, LIMITS, {}, None, 0.05, 0.1, None, {"lanes": 2}).ok
+    assert planner._child is not None and planner._child.pid != child.pid
+
+
+def test_a_planner_closed_on_purpose_is_not_reported_as_ended(planner, caplog) -> None:
+    assert planner.plan_route("sweep", HERE, LIMITS, {}, None, 0.05, 0.1, None, {"lanes": 2}).ok
+    child = planner._child
+    assert child is not None
+    with caplog.at_level(logging.ERROR, logger="iorthand.edge.planner"):
+        planner.close()
+        child.join(5.0)
+        assert not child.is_alive()
+    assert "the planner process" not in caplog.text

@@ -108,6 +108,11 @@ ACTUATOR_KEYS = 16
 _WAKE = ("wake", b"", 0)
 
 
+class AgentAlreadyOnline(RuntimeError):
+    """Another edge agent for this robot id answers on the router (a copied configuration, a manual run on another
+    computer): two would both answer the operators and both drive the robot."""
+
+
 class RateLimitedLog:
     """Logs a repeated message once, then at most every ``interval`` seconds with a count (floods of garbage
     must not flood the log, but nothing is hidden). Remembers the ``max_kinds`` most recent kinds of message: a
@@ -228,10 +233,18 @@ class EdgeAgent:
         return self._tracked_q
 
     def start(self) -> None:
-        self.robot.connect()
-        self.first_reading()
+        # The session first: another agent online for this robot id is refused before this one connects to the
+        # robot (a second UR driver would replace the first one's control script; both would answer operators).
         self.session = open_session(self.config.zenoh, stop=self.stop_event)
         s, k = self.session, self.keys
+        if any(reply.ok is not None for reply in s.liveliness().get(k.key(keys.ALIVE_EDGE), timeout=1.0)):
+            self.session.close()
+            self.session = None
+            raise AgentAlreadyOnline(
+                f"an edge agent for robot {self.config.robot_id!r} is already online through "
+                f"{', '.join(self.config.zenoh.connect) or self.config.zenoh.mode}: stop it first (one robot, one edge)")
+        self.robot.connect()
+        self.first_reading()
         self._pub_robot = publisher(s, k.key(keys.STATE_ROBOT))
         self._pub_safety = publisher(s, k.key(keys.STATE_SAFETY))
         self._pub_applied = publisher(s, k.key(keys.STATE_APPLIED))
@@ -309,7 +322,18 @@ class EdgeAgent:
         self.stop_event.wait()
         self.shutdown()
 
-    def shutdown(self) -> None:
+    def shutdown(self, reason: str = "edge agent shutting down") -> None:
+        # The robot first, while the control loop still runs: ending the workers, the planner and the media process
+        # takes seconds, and the arm kept its last speed meanwhile (a UR until its driver's own silent-agent stop).
+        with self.lock:
+            self._cancel_goto(reason)
+            self.supervisor.disarm(reason)
+            self._commanded = np.zeros(6)
+            with contextlib.suppress(RobotFault):
+                self.robot.stop(self.config.safety.stop_deceleration)
+        if self.session is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._publish_safety(force=True)
         self.stop_event.set()
         self._aux_stop.set()  # the local socket's worker is among the workers joined next
         self._twists.close()
@@ -321,7 +345,6 @@ class EdgeAgent:
         self._planner.close()
         self._stop_components()
         with self.lock:
-            self.supervisor.disarm("edge agent shutting down")
             try:
                 self.robot.stop(self.config.safety.stop_deceleration)
             finally:
@@ -386,7 +409,9 @@ class EdgeAgent:
                     line = conn.recv(256).decode(errors="replace").strip()
                 except OSError:
                     continue
-                conn.sendall((self.local_command(line) + "\n").encode())
+                answer = self.local_command(line)
+                with contextlib.suppress(OSError):  # the client hung up: its command was carried out all the same
+                    conn.sendall((answer + "\n").encode())
 
     def local_command(self, line: str) -> str:
         """One local command: ``arm``, ``disarm`` or ``status``; the answer is one line."""
@@ -964,4 +989,4 @@ def run(config: EdgeConfig) -> None:
     EdgeAgent(config).run_forever()
 
 
-__all__ = ["EdgeAgent", "run"]
+__all__ = ["AgentAlreadyOnline", "EdgeAgent", "run"]

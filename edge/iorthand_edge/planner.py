@@ -6,7 +6,8 @@ sweep stretched the gaps between robot states from 8 ms to 36 ms (four missed cy
 the loop). Here the edge's planner thread waits for a child, which holds no lock of the control process's, at a
 lower CPU priority than it (the media process's), and dies with the edge.
 
-The child starts at the first plan (~0.25 s) and is replaced after one that overran ``timeout``.
+The child starts at the first plan (~0.25 s) and is replaced after one that overran ``timeout``. One that ends
+by itself (the out-of-memory killer) is reaped and logged with why at once, and replaced at the next plan.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import threading
 from collections.abc import Mapping, Sequence
 from multiprocessing.connection import Connection
 from typing import Any
@@ -22,7 +24,7 @@ from typing import Any
 from numpy.typing import ArrayLike
 
 from iorthand import motion
-from iorthand.process import enter_child, name_thread
+from iorthand.process import enter_child, exit_reason, name_thread
 
 log = logging.getLogger("iorthand.edge.planner")
 
@@ -53,9 +55,7 @@ class PlannerProcess:
                    *args: Any, **kwargs: Any) -> motion.Route:
         """:func:`iorthand.motion.plan_route`'s answer; PlanningTimeout if it takes longer than ``timeout``."""
         if self._child is not None and not self._child.is_alive():
-            # It ended since the last plan (the OOM killer, a crash): a new child plans this one.
-            log.error("the planner process ended (exit code %s): planner restarted", self._child.exitcode)
-            self.close()
+            self.close()  # it ended since the last plan (logged by _reap): a new child plans this one
         conn = self._conn or self._start()
         try:
             conn.send(((name, current, limits, poses, *args), kwargs))
@@ -81,13 +81,22 @@ class PlannerProcess:
         self._child = context.Process(target=_serve, args=(theirs, os.getpid()), name="iorthand-planner", daemon=True)
         self._child.start()
         theirs.close()
+        threading.Thread(target=self._reap, args=(self._child,), name="edge-planner-reap", daemon=True).start()
         return self._conn
 
+    def _reap(self, child: multiprocessing.process.BaseProcess) -> None:
+        """Wait for ``child`` to end. Killed between plans (the OOM killer), it stayed a zombie and unmentioned
+        until the next preview, which may never come: now it is reaped, and logged with why, at once."""
+        name_thread("edge-planner-reap")
+        child.join()
+        if self._child is child:  # not ended by close()
+            log.error("the planner process %s: a new one starts at the next plan", exit_reason(child.exitcode))
+
     def close(self) -> None:
-        if self._child is not None:
-            self._child.kill()
-            self._child.join(2.0)
-            self._child = None
+        child, self._child = self._child, None  # first: its reaper then knows that it was ended on purpose
+        if child is not None:
+            child.kill()
+            child.join(2.0)
         if self._conn is not None:
             self._conn.close()
             self._conn = None

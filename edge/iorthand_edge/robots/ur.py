@@ -194,8 +194,14 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     the agent would take a long stop for a hung driver. ur_rtde's methods release the GIL (its constructors do
     not), so the threads really run side by side."""
     import os
+    import signal
     import threading
 
+    # Ctrl-C reaches the whole process group, and `systemctl stop` signals every process of the service: they are
+    # the agent's to handle. It stops the arm, then closes this driver; gone, its pipe's end makes this driver stop
+    # the arm itself (shutdown below). Killed by either signal, it stopped nothing: only the controller's watchdog.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     import rtde_control
     import rtde_receive
 
