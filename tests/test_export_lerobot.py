@@ -115,6 +115,14 @@ def test_state_is_held_and_the_action_is_the_twist_that_follows() -> None:
     assert not no_force[:, 12:].any() and (no_force[:, :12] == obs[:, :12]).all()
 
 
+def test_a_session_without_commands_has_zero_actions() -> None:
+    """Found by a review of the readers: a recording of a robot that no operator drove (no applied commands) made
+    ``export --format lerobot`` end in an IndexError traceback."""
+    state = Series.of([10, 20], [[1.0] * 12, [2.0] * 12], 12)
+    obs, act = observations(state, None, Series.of([], [], 6), np.array([10, 20], dtype=np.int64), fps=10)
+    assert obs[:, 0].tolist() == [1.0, 2.0] and act.shape == (2, 6) and not act.any()
+
+
 def _h264_frames(n: int, size: tuple[int, int]) -> tuple[list[VideoFrame], dict[int, np.ndarray]]:
     """``n`` frames of the edge's pattern through the edge's encoder (keyframes every 10 frames), 10 ms apart;
     the first 3 dropped (a recording that starts inside a group of pictures), frames 12-13 failure notices."""

@@ -186,13 +186,17 @@ def test_converter_keeps_state_per_robot_and_leaves_video_out_on_request() -> No
     assert [m.channel.topic for m in force] == ["/sim1/force", "/sim1/probe"]
     arrow = SceneUpdate.FromString(force[1].data).entities[0].arrows[0]
     assert arrow.color.r == pytest.approx(fx.LEVEL_COLOURS[2][0])  # the latest level of this robot
-    # The probe at most every PROBE_PERIOD_NS, at once on a level change, afresh when the clock goes back.
-    topics = [[m.channel.topic for m in conv.convert(key(keys.STATE_FORCE), ForceSample().stamp(3 + i, t=t))]
-              for i, t in enumerate((t0 + 10_000_000, t0 + fx.PROBE_PERIOD_NS, t0 + fx.PROBE_PERIOD_NS + 1))]
+    # The probe at most every PROBE_PERIOD_NS of receive time, at once on a level change; the source's clock
+    # (here: stepping back a second a sample) does not time it.
+    conv = fx.FoxgloveConverter()
+    conv.convert(key(keys.STATE_FORCE_LEVEL), level)
+    assert len(conv.convert(key(keys.STATE_FORCE), ForceSample().stamp(2, t=t0), recv_ns=t0)) == 2
+    topics = [[m.channel.topic for m in conv.convert(key(keys.STATE_FORCE), ForceSample().stamp(3 + i, t=t0 - i * 10**9),
+                                                     recv_ns=r)]
+              for i, r in enumerate((t0 + 10_000_000, t0 + fx.PROBE_PERIOD_NS, t0 + fx.PROBE_PERIOD_NS + 1))]
     assert topics == [["/sim1/force"], ["/sim1/force", "/sim1/probe"], ["/sim1/force"]]
     conv.convert(key(keys.STATE_FORCE_LEVEL), ForceLevelState(level=1, stale=False).stamp(9))
-    assert len(conv.convert(key(keys.STATE_FORCE), ForceSample().stamp(10, t=t0 + fx.PROBE_PERIOD_NS + 2))) == 2
-    assert len(conv.convert(key(keys.STATE_FORCE), ForceSample().stamp(11, t=t0))) == 2
+    assert len(conv.convert(key(keys.STATE_FORCE), ForceSample().stamp(10), recv_ns=t0 + fx.PROBE_PERIOD_NS + 2)) == 2
     other = conv.convert(keys.RobotKeys("sim2").key(keys.STATE_FORCE), ForceSample(force=[0, 0, -9.0]).stamp(2))
     assert SceneUpdate.FromString(other[1].data).entities[0].arrows[0].color.r == fx.STALE_COLOUR[0]
     safety = SafetyStatus(status="ok").stamp(3)
@@ -426,17 +430,16 @@ def test_a_recorded_session_opens_in_foxglove_one_message_per_source(recorder, s
         assert fr.schema == "foxglove.CompressedImage" and fr.msg.format == "jpeg" and fr.msg.data == vf.data
     for fr, (_, fs) in zip(topics["/sim1/force"], decoded[k1(keys.STATE_FORCE)], strict=True):
         assert fr.msg["fz"] == fs.force[2]
-    # The probe: the force samples 40 ms of source time apart, and those at a new level (in receive order).
+    # The probe: the force samples 40 ms of receive (log) time apart, and those at a new level (in receive order).
     want_probes, last, level = [], None, None
     for r in raw:
         if r.key == k1(keys.STATE_FORCE_LEVEL):
             lv = ForceLevelState.decode(r.data)
             level = None if lv.stale else lv.level
-        elif r.key == k1(keys.STATE_FORCE):
-            t = ForceSample.decode(r.data).t
-            if last is None or last[1] != level or not 0 <= t - last[0] < fx.PROBE_PERIOD_NS:
-                last = (t, level)
-                want_probes.append((r.log_time, r.sequence))
+        elif r.key == k1(keys.STATE_FORCE) and (
+                last is None or last[1] != level or not 0 <= r.log_time - last[0] < fx.PROBE_PERIOD_NS):
+            last = (r.log_time, level)
+            want_probes.append((r.log_time, r.sequence))
     probes = topics["/sim1/probe"]
     assert [(p.log_time, p.sequence) for p in probes] == want_probes and len(probes) > 50
     assert [len(fr.msg.transforms) for fr in topics["/sim1/markers/tf"]] == [3] * len(topics["/sim1/markers/tf"])

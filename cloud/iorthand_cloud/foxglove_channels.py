@@ -535,7 +535,7 @@ class FoxgloveConverter:
         self._routes: dict[str, tuple[str, Handler] | None] = {}
         self._safety: dict[str, str] = {}
         self._level: dict[str, int | None] = {}
-        self._probe: dict[str, tuple[int, int | None]] = {}  # robot → (source time, level) of its last probe
+        self._probe: dict[str, tuple[int, int | None]] = {}  # robot → (receive time, level) of its last probe
         self._failure: dict[str, str] = {}
         # video key → (its failure, source time of its first notice, receive time of the last notice drawn)
         self._notices: dict[str, tuple[str, int, int]] = {}
@@ -607,10 +607,10 @@ class FoxgloveConverter:
     def _force(self, robot: str, key: str, msg: ForceSample) -> list[FoxgloveMessage]:
         out = [self._json(robot, FORCE, "Force", key, force_sample(msg), msg.t)]
         level, last = self._level.get(robot), self._probe.get(robot)
-        # At most every PROBE_PERIOD_NS of source time, at once when the colour changes; a clock that went back
-        # (an edge restarted) starts afresh.
-        if last is None or last[1] != level or not 0 <= msg.t - last[0] < PROBE_PERIOD_NS:
-            self._probe[robot] = (msg.t, level)
+        # At most every PROBE_PERIOD_NS of receive time (as the failure pictures: an edge's clock that steps back
+        # would draw one per sample), at once when the colour changes.
+        if last is None or last[1] != level or not 0 <= self._received - last[0] < PROBE_PERIOD_NS:
+            self._probe[robot] = (self._received, level)
             out.append(self._proto(robot, PROBE, "SceneUpdate", key, probe_scene(robot, msg, level), msg.t))
         return out
 

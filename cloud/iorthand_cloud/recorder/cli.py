@@ -20,6 +20,7 @@ from iorthand.security.certs import CertError, common_name, load_certificate
 from iorthand.security.identity import operator_from_common_name
 from iorthand.transport import ZenohConfig, client_config, open_session
 from iorthand_cloud.recorder.config import RecorderConfig, ReportConfig
+from iorthand_cloud.recorder.manifest import ManifestError
 from iorthand_cloud.recorder.reader import SegmentError
 
 log = logging.getLogger("iorthand.recorder")
@@ -104,14 +105,14 @@ def _cmd_annotate(args: argparse.Namespace) -> int:
 
 
 def _reading(command: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
-    """A command that reads a session's segments: a segment it cannot read safely, or a session it cannot repair
-    first (a disk still full), is said in one line (exit 1)."""
+    """A command that reads a session's segments: a segment or manifest it cannot read safely, or a session it
+    cannot repair first (a disk still full), is said in one line (exit 1)."""
 
     @functools.wraps(command)
     def run(args: argparse.Namespace) -> int:
         try:
             return command(args)
-        except (SegmentError, OSError) as exc:
+        except (SegmentError, ManifestError, OSError) as exc:
             print(f"iorthand {args.command}: {exc}", file=sys.stderr)
             return 1
 

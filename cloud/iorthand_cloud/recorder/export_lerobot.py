@@ -188,6 +188,8 @@ class Series:
         where the newest sample is older than that (ns)."""
         idx = np.searchsorted(self.times, at, side="right") - 1
         out = np.zeros((len(at), self.values.shape[1]))
+        if not len(self.times):  # (a stream never recorded: a session without commands has no applied ones)
+            return out
         ok = idx >= 0
         if max_age is not None:
             ok &= (at - self.times[np.maximum(idx, 0)]) <= max_age

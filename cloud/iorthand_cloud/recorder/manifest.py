@@ -13,10 +13,12 @@ first and a live one is never touched.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import json
 import os
 import platform
+import stat
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -80,7 +82,7 @@ class KeyStats:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> KeyStats:
-        return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
+        return cls(**_fields(cls, data, "a key's statistics"))
 
 
 def totals(stats: dict[str, KeyStats]) -> dict[str, int]:
@@ -136,11 +138,12 @@ class Manifest:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Manifest:
-        data = dict(data)
-        data.pop("totals", None)
-        keys = {k: KeyStats.from_dict(v) for k, v in data.pop("keys", {}).items()}
-        segs = [SegmentInfo(**s) for s in data.pop("segments", [])]
-        known = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
+        """A manifest from its JSON; raises :class:`ManifestError` naming the first value that is not of its
+        field's type (a manifest copied from elsewhere may hold anything)."""
+        known = _fields(cls, data, "the manifest")  # ("totals" is computed: not a field)
+        keys = {k: KeyStats.from_dict(_of(dict, v, f"keys[{k!r}]")) for k, v in known.pop("keys", {}).items()}
+        segs = [SegmentInfo(**_fields(SegmentInfo, _of(dict, s, "segments[]"), "a segment"))
+                for s in known.pop("segments", [])]
         return cls(keys=keys, segments=segs, **known)
 
     def write(self, folder: Path, fsync: bool = True, opener: Callable[[Path], BinaryIO] | None = None) -> None:
@@ -172,11 +175,68 @@ class Manifest:
 
     @classmethod
     def read(cls, folder: Path) -> Manifest:
+        """Raises FileNotFoundError (not a session), :class:`ManifestError` (a manifest that is no JSON, one far
+        larger than the recorder writes, or a value of the wrong type: the message names the file)."""
+        path = folder / MANIFEST
         try:
-            with (folder / MANIFEST).open(encoding="utf-8") as f:
-                return cls.from_dict(json.load(f))
+            with path.open("rb") as f:
+                if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                    raise ManifestError(f"{path}: not a regular file")
+                data = f.read(MAX_MANIFEST_BYTES + 1)
         except FileNotFoundError:
             raise FileNotFoundError(f"{folder} is not a recorded session: it has no {MANIFEST}") from None
+        if len(data) > MAX_MANIFEST_BYTES:
+            raise ManifestError(f"{path}: larger than the {MAX_MANIFEST_BYTES // 2**20} MiB of any manifest the "
+                                "recorder writes: not read")
+        try:
+            return cls.from_dict(json.loads(data))
+        except ManifestError as exc:
+            raise ManifestError(f"{path}: {exc}") from None
+        except (ValueError, RecursionError) as exc:  # (not JSON, not UTF-8, nested beyond the parser's depth)
+            raise ManifestError(f"{path}: not a manifest ({type(exc).__name__}: {str(exc)[:120]})") from None
+
+
+class ManifestError(ValueError):
+    """A manifest that cannot be read as one; the message names the file and what was wrong."""
+
+
+# The recorder's manifest: a line of statistics (~300 bytes) for each of at most 4 000 keys, one per segment.
+MAX_MANIFEST_BYTES = 32 * 2**20
+# JSON types each field type accepts (bool is no number here, though Python makes it an int).
+_JSON = {"int": (int,), "str": (str,), "bool": (bool,), "float": (int, float)}
+
+
+def _of(kind: type, value: Any, what: str) -> Any:
+    if not isinstance(value, kind):
+        raise ManifestError(f"{what} is {type(value).__name__}, not {kind.__name__}")
+    return value
+
+
+def _fields(cls: type, data: Any, what: str) -> dict[str, Any]:
+    """The known fields of ``data`` (a JSON object), each checked against ``cls``'s type for it."""
+    _of(dict, data, what)
+    out = {}
+    for name, value in data.items():
+        f = cls.__dataclass_fields__.get(name)  # type: ignore[attr-defined]
+        if f is None:
+            continue
+        hint = str(f.type)
+        base = hint.removesuffix(" | None")
+        ok = (value is None and hint.endswith("| None")) or (
+            base in _JSON and isinstance(value, _JSON[base]) and (base == "bool" or not isinstance(value, bool)))
+        if base.startswith("list["):
+            ok = isinstance(value, list) and (base != "list[str]" or all(isinstance(v, str) for v in value))
+        elif base.startswith("dict["):
+            ok = isinstance(value, dict) and (base != "dict[str, str]" or all(isinstance(v, str)
+                                                                              for v in value.values()))
+        if not ok:
+            raise ManifestError(f"in {what}, {name} is a JSON {type(value).__name__}, not {hint}")
+        out[name] = value
+    missing = [f.name for f in dataclasses.fields(cls) if f.name not in out and f.default is dataclasses.MISSING
+               and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise ManifestError(f"{what} has no {', '.join(missing)}")
+    return out
 
 
 # The writer locks this process holds: session folder → the lock file's descriptor (kept open: closing it would

@@ -7,7 +7,9 @@ import contextlib
 import dataclasses
 import heapq
 import io
+import itertools
 import os
+import stat
 import struct
 import zlib
 from array import array
@@ -21,7 +23,6 @@ import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
-from mcap.reader import make_reader
 from mcap.records import (
     Attachment,
     AttachmentIndex,
@@ -39,8 +40,6 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.stream_reader import CRCValidationError, breakup_chunk
-from mcap.summary import Summary
 
 from iorthand_cloud.recorder.manifest import Manifest
 from iorthand_cloud.recorder.segments import MALFORMED_META
@@ -53,6 +52,22 @@ MAX_OVERLAPPING_CHUNK_BYTES = 256 * 2**20
 # The longest record the recorder writes: a chunk (its data, uncompressed at worst, and its fields); a record
 # (an attachment: the calibration files) is far shorter.
 MAX_RECORD_BYTES = MAX_CHUNK_BYTES + 2**20
+# A calibration file the recorder attaches (refused beyond it: service.RecorderService), and all of a session's
+# attachments read together (:func:`attachments`): a camera's or a hand-eye calibration is a few kB.
+MAX_ATTACHMENT_BYTES = 16 * 2**20
+MAX_ATTACHMENTS_BYTES = 64 * 2**20
+# The longest record that is not a chunk, message or attachment (a schema, channel, metadata or index record):
+# the recorder's are below 100 kB (a Foxglove schema; a chunk index or statistics record naming every channel).
+# mcap's reader turns a map's entries into a dict at ~10 times their size on disk.
+MAX_SMALL_RECORD_BYTES = 4 * 2**20
+# A segment's summary restates its schemas and channels and indexes each chunk (~90 bytes, plus 10 per channel in
+# the chunk) and attachment. The recorder's: 220 kB for 12 minutes of one robot's telemetry (1 500 chunks of 7
+# channels); its settings' extremes stay below 48 MB (4 kB chunks filling a 256 MiB segment, a flush every 20 ms:
+# 95 000 chunks of ~115 bytes; 4 000 keys, the most one recording keeps, each in every 0.5 s chunk: ~1 000
+# chunks of 40 kB). A larger one was not written by the recorder: parsed whole by mcap's reader, 87 MB of chunk
+# index records took 640 MiB (a chunk in it would be decompressed unchecked). Read here, a summary is held in
+# ~40 bytes per chunk it indexes.
+MAX_SUMMARY_BYTES = 64 * 2**20
 
 
 class SegmentError(ValueError):
@@ -70,12 +85,22 @@ def check_chunks(path: Path, chunks: Collection[ChunkIndex]) -> None:
     over :data:`MAX_OVERLAPPING_CHUNK_BYTES` together."""
     for c in chunks:
         _check_chunk_size(path, f"the chunk at byte {c.chunk_start_offset}", c.uncompressed_size)
-    held, most = 0, 0
-    # Every chunk's start before any end at the same time: touching chunks count as overlapping (the stricter).
-    for _t, delta in sorted([(c.message_start_time, c.uncompressed_size) for c in chunks]
-                            + [(c.message_end_time, -c.uncompressed_size) for c in chunks],
-                            key=lambda e: (e[0], e[1] < 0)):
-        held += delta
+    _check_overlap(path, array("Q", (c.message_start_time for c in chunks)),
+                   array("Q", (c.message_end_time for c in chunks)), array("Q", (c.uncompressed_size for c in chunks)))
+
+
+def _check_overlap(path: Path, starts: array[int], ends: array[int], sizes: array[int]) -> None:
+    """:func:`check_chunks`' bound on chunks whose times overlap, from the chunks' times and sizes alone."""
+    by_start = sorted(range(len(starts)), key=starts.__getitem__)
+    by_end = sorted(range(len(ends)), key=ends.__getitem__)
+    held, most, ended = 0, 0, 0
+    for i in by_start:
+        # A chunk leaves only before the chunks that start after its end: touching chunks count as overlapping
+        # (the stricter).
+        while ended < len(by_end) and ends[by_end[ended]] < starts[i]:
+            held -= sizes[by_end[ended]]
+            ended += 1
+        held += sizes[i]
         most = max(most, held)
     if most > MAX_OVERLAPPING_CHUNK_BYTES:
         raise SegmentError(f"{path}: chunks whose times overlap hold {most / 2**20:.0f} MiB uncompressed, more "
@@ -108,7 +133,22 @@ def session_dir(path: str | Path) -> Path:
 
 
 def segment_files(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.glob("*.mcap") if p.is_file())
+    """A session folder's segments, in order. A ``*.mcap`` there that is not a regular file (a FIFO, a device, a
+    link to one or to nothing) is refused by name: opening a FIFO blocks and a device may never end; before, they
+    were left out without a word."""
+    out = []
+    for path in sorted(folder.glob("*.mcap")):
+        try:
+            mode = path.stat().st_mode
+        except OSError as exc:
+            raise SegmentError(f"{path}: cannot be read ({exc.strerror}: a link to nothing?)") from None
+        if not stat.S_ISREG(mode):
+            kind = ("a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else
+                    "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a file")
+            raise SegmentError(f"{path}: {kind}{' (a link to one)' if path.is_symlink() else ''}, not a segment "
+                               "file: not read")
+        out.append(path)
+    return out
 
 
 def segment_topics(folder: str | Path) -> set[str]:
@@ -117,9 +157,9 @@ def segment_topics(folder: str | Path) -> set[str]:
     topics: set[str] = set()
     for path in segment_files(session_dir(folder)):
         with path.open("rb") as f:
-            summary = _summary(f)
-            if summary is not None and summary.channels:
-                topics.update(c.topic for c in summary.channels.values())
+            index = _index(f, path, chunks=False)
+            if index is not None and index.channels:
+                topics.update(c.topic for c in index.channels.values())
                 continue
             f.seek(0)
             with contextlib.suppress(TornTail):  # (the channels before it are kept)
@@ -129,12 +169,165 @@ def segment_topics(folder: str | Path) -> set[str]:
     return topics
 
 
-def _summary(f: BinaryIO) -> Summary | None:
-    """A segment's summary; None without one, or with no footer yet (a segment being written) or a torn one."""
-    try:
-        return make_reader(f).get_summary()
-    except Exception:
+class NoFooter(Exception):
+    """The file does not end with a footer: a segment being written, or one its writer left (killed)."""
+
+
+@dataclass
+class SegmentIndex:
+    """What reading takes from a segment's summary, held compactly: its channels (each with its topic, encoding
+    and the malformed mark only: a crafted channel's metadata may be any size), the chunks wanted (start and end
+    times, offset and uncompressed size, in summary order), how many chunks it indexes in all, and where its
+    attachment index records are."""
+
+    channels: dict[int, Channel]
+    chunks_indexed: int = 0
+    starts: array[int] = dataclasses.field(default_factory=lambda: array("Q"))
+    ends: array[int] = dataclasses.field(default_factory=lambda: array("Q"))
+    offsets: array[int] = dataclasses.field(default_factory=lambda: array("Q"))
+    sizes: array[int] = dataclasses.field(default_factory=lambda: array("Q"))
+    attachment_indexes: array[int] = dataclasses.field(default_factory=lambda: array("Q"))
+
+
+# A footer record (opcode, length, summary start, summary offset start, summary CRC), then the closing magic.
+_FOOTER = struct.Struct("<BQQQI")
+# What a summary holds (the MCAP specification): a chunk or message in one is not read.
+_SUMMARY_RECORDS = frozenset({Opcode.SCHEMA, Opcode.CHANNEL, Opcode.CHUNK_INDEX, Opcode.ATTACHMENT_INDEX,
+                              Opcode.METADATA_INDEX, Opcode.STATISTICS, Opcode.SUMMARY_OFFSET})
+
+
+def read_index(f: Any, path: Path, start: int | None = None, end: int | None = None,
+               topics: Collection[str] | None = None, chunks: bool = True) -> SegmentIndex | None:
+    """A finished segment's summary, read in bounded memory: its size checked (:data:`MAX_SUMMARY_BYTES`), its
+    CRC, each record's kind, size and fields; the chunks kept are those whose times (``start``/``end``) and
+    channels (``topics``) are wanted (none unless ``chunks``). None when the footer says there is no summary.
+    Raises :class:`NoFooter`, :class:`CorruptSegment` (a damaged summary: the data section may be whole), or
+    :class:`SegmentError` (a summary the recorder does not write)."""
+    fd = f.fileno()
+    size = os.fstat(fd).st_size
+    footer_at = size - _FOOTER.size - len(_MAGIC)
+    tail = os.pread(fd, _FOOTER.size + len(_MAGIC), footer_at) if footer_at >= len(_MAGIC) else b""
+    if len(tail) != _FOOTER.size + len(_MAGIC) or tail[_FOOTER.size:] != _MAGIC:
+        raise NoFooter(f"{path}: no footer")
+    opcode, length, summary_start, _offsets_start, crc = _FOOTER.unpack_from(tail)
+    if opcode != Opcode.FOOTER or length != _FOOTER.size - _HEAD.size:
+        raise NoFooter(f"{path}: no footer")
+    if summary_start == 0:
         return None
+    if not len(_MAGIC) <= summary_start <= footer_at:
+        raise CorruptSegment(f"{path}: its footer says its summary begins at byte {summary_start}, outside the "
+                             f"file's {footer_at} bytes before it: the footer is damaged")
+    if footer_at - summary_start > MAX_SUMMARY_BYTES:
+        raise SegmentError(f"{path}: its summary is {(footer_at - summary_start) / 2**20:.0f} MiB, more than the "
+                           f"{MAX_SUMMARY_BYTES // 2**20} MiB of any the recorder writes: not read (it was not "
+                           "written by the recorder)")
+    if crc:
+        got = _crc_of(fd, summary_start, footer_at + _FOOTER.size - 4)
+        if got != crc:
+            raise CorruptSegment(f"{path}: its summary is damaged (its CRC does not match: {got:#010x}, "
+                                 f"{crc:#010x} written)")
+    index = SegmentIndex(channels={})
+    chunk_index_at = array("Q")
+    for at, record in _summary_records(fd, path, summary_start, footer_at):
+        if isinstance(record, Channel):
+            index.channels[record.id] = _slim(record)
+        elif isinstance(record, ChunkIndex):
+            chunk_index_at.append(at)
+        elif isinstance(record, AttachmentIndex):
+            index.attachment_indexes.append(at)
+    index.chunks_indexed = len(chunk_index_at)
+    # A second pass, once every channel is known (the recorder writes them first, a crafted file need not).
+    for at in chunk_index_at if chunks else ():
+        c = _summary_record(fd, path, at)
+        if _chunk_wanted(c, index.channels, start, end, topics):
+            index.starts.append(c.message_start_time)
+            index.ends.append(c.message_end_time)
+            index.offsets.append(c.chunk_start_offset)
+            index.sizes.append(c.uncompressed_size)
+    return index
+
+
+def _crc_of(fd: int, begin: int, end: int) -> int:
+    crc, at = 0, begin
+    while at < end:
+        block = os.pread(fd, min(2**20, end - at), at)
+        if not block:
+            break
+        crc, at = zlib.crc32(block, crc), at + len(block)
+    return crc
+
+
+def _summary_records(fd: int, path: Path, begin: int, end: int) -> Iterator[tuple[int, Any]]:
+    """(offset, record) of each record of a summary section, each checked: a kind a summary holds, a length
+    within the section and below :data:`MAX_SMALL_RECORD_BYTES`, and fields that take that length."""
+    at = begin
+    while at < end:
+        head = os.pread(fd, _HEAD.size, at)
+        if len(head) < _HEAD.size or at + _HEAD.size > end:
+            raise CorruptSegment(f"{path}: its summary is damaged: it ends inside the record at byte {at}")
+        opcode, length = _HEAD.unpack(head)
+        if opcode not in _SUMMARY_RECORDS:
+            kind = Opcode(opcode).name.lower().replace("_", " ") if opcode in _READERS or opcode == Opcode.MESSAGE \
+                else f"opcode {opcode:#04x}"
+            raise SegmentError(f"{path}: its summary holds a record of a kind a summary does not hold ({kind}) at "
+                               f"byte {at}: not read (it was not written by the recorder)")
+        if at + _HEAD.size + length > end:
+            raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at} says it is {length} "
+                                 "bytes long, past the summary's end")
+        yield at, _summary_record(fd, path, at)
+        at += _HEAD.size + length
+
+
+def _summary_record(fd: int, path: Path, at: int) -> Any:
+    opcode, length = _HEAD.unpack(os.pread(fd, _HEAD.size, at))
+    if length > MAX_SMALL_RECORD_BYTES:
+        raise SegmentError(f"{path}: its summary's record at byte {at} is {length} bytes long, more than the "
+                           f"{MAX_SMALL_RECORD_BYTES // 2**20} MiB of any the recorder writes: not read (it was "
+                           "not written by the recorder)")
+    try:
+        record, used = _parse(opcode, os.pread(fd, length, at + _HEAD.size), length)
+    except (EndOfFile, *_PARSE_ERRORS) as exc:
+        raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at}: {exc!r}") from None
+    if used != length:
+        raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at} says it is {length} bytes "
+                             f"long, its own fields {used}")
+    return record
+
+
+def _slim(channel: Channel) -> Channel:
+    """A channel as reading keeps it: its metadata reduced to the malformed mark (all a record needs)."""
+    meta = {MALFORMED_META: "true"} if channel.metadata.get(MALFORMED_META) == "true" else {}
+    return dataclasses.replace(channel, metadata=meta) if meta != channel.metadata else channel
+
+
+def _index(f: Any, path: Path, start: int | None = None, end: int | None = None,
+           topics: Collection[str] | None = None, chunks: bool = True) -> SegmentIndex | None:
+    """:func:`read_index`, None where there is none to read by: no footer yet (a segment being written) or a
+    damaged summary (the data section, read front to back, is checked record by record)."""
+    try:
+        return read_index(f, path, start, end, topics, chunks)
+    except (NoFooter, CorruptSegment):
+        return None
+
+
+def has_footer(path: Path) -> bool:
+    """Whether a segment was finished: it ends with a footer and its summary, if it has one, is whole (a summary
+    the recorder does not write counts as finished: reading it refuses it by name). Raises
+    :class:`SegmentError` for a path that is no regular file (opened without blocking: a FIFO would block)."""
+    try:
+        f = os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb")
+    except OSError:
+        return False
+    with f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise SegmentError(f"{path}: not a regular file, not a segment file: not read")
+        try:
+            read_index(f, path, chunks=False)
+        except (NoFooter, CorruptSegment, OSError):
+            return False
+        except SegmentError:
+            return True
+    return True
 
 
 def stream_of(path: Path) -> str:
@@ -146,72 +339,88 @@ def _iter_file(path: Path, start: int | None, end: int | None,
                topics: Collection[str] | None = None) -> Iterator[Record]:
     stream = stream_of(path)
     with path.open("rb") as f:
-        summary = _summary(f)
-        if summary is None or not summary.chunk_indexes:
+        index = _index(f, path, start, end, topics)
+        if index is None or not index.chunks_indexed:
             # No index to seek with (mcap's own reader would then decompress every chunk unchecked): front to
             # back, each chunk's own size checked.
             f.seek(0)
             yield from _iter_linear(f, path, stream, start, end, topics)
             return
-        yield from _iter_indexed(f, path, stream, summary, start, end, topics)
+        yield from _iter_indexed(f, path, stream, index, start, end, topics)
 
 
-def _iter_indexed(f: BinaryIO, path: Path, stream: str, summary: Summary, start: int | None, end: int | None,
+def _iter_indexed(f: BinaryIO, path: Path, stream: str, index: SegmentIndex, start: int | None, end: int | None,
                   topics: Collection[str] | None) -> Iterator[Record]:
     """The messages of a finished segment in receive-time order, through its chunk index: only the chunks whose
     times and channels are wanted are read, each checked (size, CRC) before it is used. Chunks whose times
     overlap are decompressed together, as mcap's reader does; those that follow one another, one at a time."""
-    chunks = [c for c in summary.chunk_indexes if _chunk_wanted(c, summary, start, end, topics)]
+    order = sorted(range(len(index.offsets)), key=index.offsets.__getitem__)
+    for a, b in itertools.pairwise(order):
+        if index.offsets[a] == index.offsets[b]:  # (it would be read, and its messages given, twice)
+            raise CorruptSegment(f"{path}: its chunk index lists the chunk at byte {index.offsets[a]} twice: the "
+                                 "summary is damaged")
     # The index's sizes are the chunks' own claims repeated: a crafted index may understate them.
-    check_chunks(path, [dataclasses.replace(c, uncompressed_size=max(c.uncompressed_size, _declared_size(f, path, c)))
-                        for c in chunks])
-    # Ordered by (time, chunk offset, position in the chunk); a chunk enters at its first message's time.
-    queue: list[tuple[int, int, int, Any]] = [(c.message_start_time, c.chunk_start_offset, -1, c) for c in chunks]
-    heapq.heapify(queue)
-    while queue:
-        _t, offset, index, item = heapq.heappop(queue)
-        if index >= 0:
-            yield item
-            continue
+    sizes = array("Q", (max(size, _declared_size(f, path, offset))
+                        for size, offset in zip(index.sizes, index.offsets, strict=True)))
+    _check_overlap(path, index.starts, index.ends, sizes)
+    # Chunks by (first message's time, offset), each read when the messages held are no earlier than its start:
+    # messages come out by (time, chunk offset, position in the chunk).
+    order.sort(key=index.starts.__getitem__)
+    held: list[tuple[int, int, int, Record]] = []
+    held_cost = 0
+    for k in order:
+        offset = index.offsets[k]
+        while held and (held[0][0], held[0][1]) < (index.starts[k], offset):
+            held_cost -= len(held[0][3].data) + _HELD_OVERHEAD
+            yield heapq.heappop(held)[3]
         f.seek(offset)
         chunk = _read_chunk(f, path, offset)
-        for i, record in enumerate(_chunk_records(path, f"the chunk at byte {offset}", chunk)):
+        where, cost = f"the chunk at byte {offset}", 0
+        for i, record in enumerate(_chunk_records(path, where, chunk)):
             if not isinstance(record, Message):
                 continue
-            channel = summary.channels.get(record.channel_id)
+            channel = index.channels.get(record.channel_id)
             if channel is None:
                 raise CorruptSegment(f"{path}: the chunk at byte {offset} holds a message on channel "
                                      f"{record.channel_id}, which the file does not define")
             if ((start is not None and record.log_time < start) or (end is not None and record.log_time >= end)
                     or (topics is not None and channel.topic not in topics)):
                 continue
-            heapq.heappush(queue, (record.log_time, offset, i, _record(channel, record, stream)))
+            heapq.heappush(held, (record.log_time, offset, i, _record(channel, record, stream)))
+            cost += len(record.data) + _HELD_OVERHEAD
+            if cost > MAX_OVERLAPPING_CHUNK_BYTES:
+                raise _held_too_much(path, where, cost)
+        held_cost += cost
+        if held_cost > MAX_OVERLAPPING_CHUNK_BYTES:
+            raise _held_too_much(path, f"the chunks whose times overlap up to byte {offset}", held_cost)
+    while held:
+        yield heapq.heappop(held)[3]
 
 
-def _chunk_wanted(c: ChunkIndex, summary: Summary, start: int | None, end: int | None,
+def _chunk_wanted(c: ChunkIndex, channels: dict[int, Channel], start: int | None, end: int | None,
                   topics: Collection[str] | None) -> bool:
     if (start is not None and c.message_end_time < start) or (end is not None and c.message_start_time >= end):
         return False
     if topics is None or not c.message_index_offsets:  # (without message indexes, only reading tells)
         return True
-    return any(ch in summary.channels and summary.channels[ch].topic in topics for ch in c.message_index_offsets)
+    return any(ch in channels and channels[ch].topic in topics for ch in c.message_index_offsets)
 
 
 # A chunk record: opcode, record length, message start and end times, uncompressed size, CRC, compression.
 _CHUNK_HEAD = struct.Struct("<BQQQQII")
 
 
-def _declared_size(f: BinaryIO, path: Path, c: ChunkIndex) -> int:
+def _declared_size(f: BinaryIO, path: Path, offset: int) -> int:
     """The largest size the chunk an index entry points to declares, read from its head alone: its own
     uncompressed size, and its zstd frame's content size."""
-    f.seek(c.chunk_start_offset)
+    f.seek(offset)
     head = f.read(_CHUNK_HEAD.size)
     if len(head) < _CHUNK_HEAD.size or head[0] != Opcode.CHUNK:
-        raise CorruptSegment(f"{path}: the chunk index points to byte {c.chunk_start_offset}, where no chunk is")
+        raise CorruptSegment(f"{path}: the chunk index points to byte {offset}, where no chunk is")
     *_, size, _crc, name_len = _CHUNK_HEAD.unpack(head)
     name = f.read(min(name_len, 16))
     f.read(8)  # the compressed data's length
-    where = f"the chunk at byte {c.chunk_start_offset}"
+    where = f"the chunk at byte {offset}"
     _check_chunk_size(path, where, size)
     frame = _zstd_content_size(path, where, f.read(18)) if name == b"zstd" else 0
     _check_chunk_size(path, f"{where} (its zstd frame)", frame)
@@ -238,7 +447,7 @@ def _read_chunk(f: BinaryIO, path: Path, offset: int) -> Chunk:
         raise CorruptSegment(f"{path}: the chunk at byte {offset} is damaged: {exc!r}") from None
 
 
-def _chunk_records(path: Path, where: str, chunk: Chunk) -> list[Any]:
+def _chunk_records(path: Path, where: str, chunk: Chunk) -> Iterator[Any]:
     """The records of a chunk, its size checked before it is decompressed and its CRC after."""
     _check_chunk_size(path, where, chunk.uncompressed_size)
     if chunk.compression not in ("", "zstd"):
@@ -251,11 +460,55 @@ def _chunk_records(path: Path, where: str, chunk: Chunk) -> list[Any]:
             raise SegmentError(f"{path}: {where} declares {chunk.uncompressed_size} bytes uncompressed, its zstd "
                                f"frame {frame}: not read (it was not written by the recorder)")
     try:
-        return breakup_chunk(chunk, validate_crc=True)
-    except CRCValidationError as exc:
-        raise CorruptSegment(f"{path}: {where} is damaged (its CRC does not match: {exc})") from None
-    except Exception as exc:  # zstd errors, records cut short: the bytes are not what was written
+        data = zstandard.decompress(chunk.data, chunk.uncompressed_size) if chunk.compression else chunk.data
+    except zstandard.ZstdError as exc:
         raise CorruptSegment(f"{path}: {where} is damaged: {exc!r}") from None
+    if len(data) != chunk.uncompressed_size:
+        raise CorruptSegment(f"{path}: {where} is damaged: it holds {len(data)} bytes, {chunk.uncompressed_size} "
+                             "declared")
+    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise CorruptSegment(f"{path}: {where} is damaged (its CRC does not match: {zlib.crc32(data):#010x}, "
+                             f"{chunk.uncompressed_crc:#010x} written)")
+    return _inner_records(path, where, data)
+
+
+# A message record's fields before its data: channel id, sequence, log time, publish time.
+_MESSAGE_HEAD = struct.Struct("<HIQQ")
+
+
+def _inner_records(path: Path, where: str, data: bytes) -> Iterator[Any]:
+    """The records of a chunk's data, one at a time: the schemas, channels and messages a chunk holds, each of
+    the length its fields take (mcap's reader skipped records of other kinds without a word, and turned a
+    channel's metadata of any size into a dict)."""
+    at = 0
+    while at < len(data):
+        if at + _HEAD.size > len(data):
+            raise CorruptSegment(f"{path}: {where} is damaged: its data ends inside the head of a record")
+        opcode, length = _HEAD.unpack_from(data, at)
+        body = at + _HEAD.size
+        if body + length > len(data):
+            raise CorruptSegment(f"{path}: {where} is damaged: a record at byte {at} of its data says it is "
+                                 f"{length} bytes long, past the end of the chunk")
+        if opcode == Opcode.MESSAGE and length >= _MESSAGE_HEAD.size:
+            channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, body)
+            yield Message(channel_id=channel_id, sequence=sequence, log_time=log_time, publish_time=publish_time,
+                          data=data[body + _MESSAGE_HEAD.size:body + length])
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL) and length <= MAX_SMALL_RECORD_BYTES:
+            try:
+                record, used = _parse(opcode, data[body:body + length], length)
+            except (EndOfFile, *_PARSE_ERRORS) as exc:
+                raise CorruptSegment(f"{path}: {where} is damaged: the record at byte {at} of its data: "
+                                     f"{exc!r}") from None
+            if used != length:
+                raise CorruptSegment(f"{path}: {where} is damaged: the record at byte {at} of its data says it is "
+                                     f"{length} bytes long, its own fields {used}")
+            yield record
+        else:
+            what = "none a chunk holds" if opcode not in (Opcode.MESSAGE, Opcode.SCHEMA, Opcode.CHANNEL) else \
+                f"{length} bytes long, which none of its kind is"
+            raise CorruptSegment(f"{path}: {where} is damaged: the record at byte {at} of its data (opcode "
+                                 f"{opcode:#04x}) is {what}")
+        at = body + length
 
 
 def _record(channel: Channel, message: Message, stream: str) -> Record:
@@ -280,6 +533,9 @@ _READERS: dict[int, Callable[[ReadDataStream], Any]] = {
     Opcode.SUMMARY_OFFSET: SummaryOffset.read, Opcode.DATA_END: DataEnd.read,
 }
 _PARSE_ERRORS = (McapError, struct.error, UnicodeDecodeError, ValueError)
+# The longest top-level record of each kind the recorder writes; any other kind, MAX_SMALL_RECORD_BYTES.
+_LONGEST = {Opcode.CHUNK: MAX_RECORD_BYTES, Opcode.MESSAGE: MAX_RECORD_BYTES,
+            Opcode.ATTACHMENT: MAX_ATTACHMENT_BYTES + 2**20}  # (with its name and media type)
 
 
 class _Exact(ReadDataStream):
@@ -332,8 +588,8 @@ def _past_the_end(f: Any, path: Path, at: int, opcode: int, length: int, size: i
     the records after it may be whole: :class:`CorruptSegment`, so that a repair keeps the file as it was."""
     held = size - at - _HEAD.size
     why = ""
-    if held > MAX_RECORD_BYTES:
-        why = f"the file holds {held} bytes after its head, more than any record the recorder writes"
+    if held > _LONGEST.get(opcode, MAX_SMALL_RECORD_BYTES):  # (and parsing it could take ~10 times that)
+        why = f"the file holds {held} bytes after its head, more than any record of its kind the recorder writes"
     elif opcode != Opcode.MESSAGE and opcode not in _READERS:
         why = f"its kind (opcode {opcode:#04x}) is none that MCAP knows"
     else:
@@ -379,9 +635,10 @@ def _top_records(f: Any, path: Path, size: int) -> Iterator[tuple[int, Any]]:
         if opcode != Opcode.MESSAGE and opcode not in _READERS:
             raise CorruptSegment(f"{path}: {where} is damaged: its kind (opcode {opcode:#04x}) is none that MCAP "
                                  "knows")
-        if length > MAX_RECORD_BYTES:
-            raise CorruptSegment(f"{path}: {where} says it is {length} bytes long, more than any record the "
-                                 "recorder writes: its length is damaged (or the recorder did not write it)")
+        if length > _LONGEST.get(opcode, MAX_SMALL_RECORD_BYTES):
+            raise CorruptSegment(f"{path}: {where} says it is {length} bytes long, more than any record of its "
+                                 f"kind ({Opcode(opcode).name.lower()}) the recorder writes: its length is damaged "
+                                 "(or the recorder did not write it)")
         f.seek(at + _HEAD.size)
         try:
             record, used = _parse(opcode, f.read(length), length)
@@ -422,8 +679,17 @@ def stream_records(f: Any, path: Path) -> Iterator[Any]:
             yield record
 
 
-# Memory a message held for reordering takes beyond its data (the record, its place in the heap).
-_HELD_OVERHEAD = 200
+# Memory a message held for reordering takes beyond its data (the record, its place in the heap): measured.
+_HELD_OVERHEAD = 450
+
+
+def _held_too_much(path: Path, where: str, cost: int) -> SegmentError:
+    """The refusal of a chunk whose messages, held to be put in time order, would take more memory than any
+    the recorder writes (it writes at most ~100 000 messages a second, and ends a chunk at least every second)."""
+    return SegmentError(f"{path}: the messages of {where} would take {cost / 2**20:.0f} MiB to hold (with "
+                        f"~{_HELD_OVERHEAD} bytes each beyond their data), more than the "
+                        f"{MAX_OVERLAPPING_CHUNK_BYTES // 2**20} MiB a recording's segment needs: not read (it was "
+                        "not written by the recorder)")
 
 
 def _start_times(f: Any, path: Path, size: int) -> array[int]:
@@ -457,8 +723,17 @@ def _iter_linear(f: Any, path: Path, stream: str, start: int | None, end: int | 
     held_bytes, order, timed = 0, 0, 0
     try:
         for at, top in _top_records(f, path, size):
-            inner = _chunk_records(path, f"the chunk at byte {at}", top) if isinstance(top, Chunk) else [top]
-            kept = [r for r in (_keep(x, channels, stream, start, end, topics) for x in inner) if r is not None]
+            where = f"the chunk at byte {at}" if isinstance(top, Chunk) else f"the message at byte {at}"
+            inner = _chunk_records(path, where, top) if isinstance(top, Chunk) else [top]
+            kept: list[Record] = []
+            cost = 0
+            for x in inner:
+                record = _keep(x, channels, stream, start, end, topics, path, where)
+                if record is not None:
+                    kept.append(record)
+                    cost += len(record.data) + _HELD_OVERHEAD
+                    if cost > MAX_OVERLAPPING_CHUNK_BYTES:
+                        raise _held_too_much(path, where, cost)
             if not isinstance(top, (Chunk, Message)):
                 continue
             timed += 1
@@ -487,10 +762,13 @@ def _iter_linear(f: Any, path: Path, stream: str, start: int | None, end: int | 
 
 
 def _keep(record: Any, channels: dict[int, Channel], stream: str, start: int | None, end: int | None,
-          topics: Collection[str] | None) -> Record | None:
+          topics: Collection[str] | None, path: Path, where: str) -> Record | None:
     if isinstance(record, Channel):
-        channels[record.id] = record
-    elif isinstance(record, Message) and record.channel_id in channels:
+        channels[record.id] = _slim(record)
+    elif isinstance(record, Message):
+        if record.channel_id not in channels:  # (a writer defines a channel before its first message)
+            raise CorruptSegment(f"{path}: {where} holds a message on channel {record.channel_id}, which the file "
+                                 "does not define before it")
         if (start is not None and record.log_time < start) or (end is not None and record.log_time >= end):
             return None
         ch = channels[record.channel_id]
@@ -524,9 +802,56 @@ def decode_map(data: bytes) -> dict[str, Any] | None:
 
 
 def attachments(folder: str | Path) -> dict[str, bytes]:
+    """The files attached to a session's segments (the calibration files), by name: each read once, checked (its
+    size, its CRC), at most :data:`MAX_ATTACHMENT_BYTES` each and :data:`MAX_ATTACHMENTS_BYTES` together."""
     out: dict[str, bytes] = {}
     for path in segment_files(session_dir(folder)):
         with path.open("rb") as f:
-            for att in make_reader(f).iter_attachments():
-                out.setdefault(att.name, att.data)
+            index = _index(f, path, chunks=False)
+            if index is None:  # no summary to seek with: front to back
+                f.seek(0)
+                with contextlib.suppress(TornTail):  # (the attachments before it are kept)
+                    for record in stream_records(f, path):
+                        if isinstance(record, Attachment) and record.name not in out:
+                            _check_attachment(path, record.name, len(record.data), out)
+                            out[record.name] = record.data
+                continue
+            for at in index.attachment_indexes:
+                entry = _summary_record(f.fileno(), path, at)
+                if entry.name in out:
+                    continue
+                _check_attachment(path, entry.name, entry.data_size, out)
+                out[entry.name] = _read_attachment(f, path, entry)
     return out
+
+
+def _check_attachment(path: Path, name: str, size: int, taken: dict[str, bytes]) -> None:
+    if size > MAX_ATTACHMENT_BYTES:
+        raise SegmentError(f"{path}: its attachment {name[:80]!r} is {size / 2**20:.0f} MiB, more than the "
+                           f"{MAX_ATTACHMENT_BYTES // 2**20} MiB of any the recorder attaches: not read (it was "
+                           "not written by the recorder)")
+    if size + sum(len(d) for d in taken.values()) > MAX_ATTACHMENTS_BYTES:
+        raise SegmentError(f"{path}: its attachment {name[:80]!r} would bring the session's attachments over "
+                           f"{MAX_ATTACHMENTS_BYTES // 2**20} MiB, more than the recorder attaches: not read (it "
+                           "was not written by the recorder)")
+
+
+def _read_attachment(f: Any, path: Path, entry: AttachmentIndex) -> bytes:
+    """The data of the attachment an index entry points to, as long as the entry says and its CRC checked."""
+    where = f"the attachment {entry.name[:80]!r} at byte {entry.offset}"
+    head = os.pread(f.fileno(), _HEAD.size, entry.offset)
+    if len(head) < _HEAD.size or head[0] != Opcode.ATTACHMENT or _HEAD.unpack(head)[1] + _HEAD.size != entry.length:
+        raise CorruptSegment(f"{path}: the attachment index points to byte {entry.offset}, where no attachment of "
+                             f"{entry.length} bytes is")
+    length = entry.length - _HEAD.size
+    body = os.pread(f.fileno(), length, entry.offset + _HEAD.size)
+    try:
+        record, used = _parse(Opcode.ATTACHMENT, body, length)
+    except (EndOfFile, *_PARSE_ERRORS) as exc:
+        raise CorruptSegment(f"{path}: {where} is damaged: {exc!r}") from None
+    (crc,) = struct.unpack_from("<I", body, used - 4)
+    if used != length or record.name != entry.name or len(record.data) != entry.data_size:
+        raise CorruptSegment(f"{path}: {where} is not the one its index describes: the file is damaged")
+    if crc and zlib.crc32(memoryview(body)[: used - 4]) != crc:
+        raise CorruptSegment(f"{path}: {where} is damaged (its CRC does not match)")
+    return record.data

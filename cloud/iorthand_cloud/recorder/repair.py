@@ -19,15 +19,16 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.reader import (
+    MAX_SUMMARY_BYTES,
     CorruptSegment,
     SegmentError,
     TornTail,
+    has_footer,
     iter_records,
     segment_files,
     stream_of,
@@ -52,15 +53,6 @@ class RepairResult:
         return f"{self.damage} (the file as it was is kept as {self.original.name})" if self.original else ""
 
 
-def has_footer(path: Path) -> bool:
-    try:
-        with path.open("rb") as f:
-            make_reader(f).get_summary()
-        return True
-    except Exception:  # the mcap reader raises many kinds on a truncated file; all mean "no valid footer"
-        return False
-
-
 def repair_segment(path: Path) -> RepairResult:
     """Rewrite ``path`` from its readable records; returns what was recovered. Reading stops at a torn tail
     (what a killed writer leaves: dropped) or at a damaged record (a CRC that does not match...): then what
@@ -77,15 +69,21 @@ def repair_segment(path: Path) -> RepairResult:
             writer.start(profile=PROFILE, library=LIBRARY)
             schemas: dict[int, int] = {}
             channels: dict[int, int] = {}
+            defined = 0  # bytes of the schemas and channels the repaired file's summary will repeat
             try:
                 for record in stream_records(src, path):
-                    if isinstance(record, Schema):
+                    if isinstance(record, Schema) and record.id not in schemas:  # (once each: ids are 16 bits)
+                        defined += len(record.name) + len(record.encoding) + len(record.data)
                         schemas[record.id] = writer.register_schema(record.name, record.encoding, record.data)
-                    elif isinstance(record, Channel):
+                    elif isinstance(record, Channel) and record.id not in channels:
+                        defined += len(record.topic) + sum(len(k) + len(v) for k, v in record.metadata.items())
                         channels[record.id] = writer.register_channel(
                             record.topic, record.message_encoding, schemas.get(record.schema_id, 0), record.metadata
                         )
-                    elif isinstance(record, Message) and record.channel_id in channels:
+                    elif isinstance(record, Message):
+                        if record.channel_id not in channels:  # (a writer defines a channel before its first message)
+                            raise CorruptSegment(f"{path}: a message on channel {record.channel_id} before byte "
+                                                 f"{src.tell()}, which the file does not define before it")
                         writer.add_message(channels[record.channel_id], record.log_time, record.data,
                                            record.publish_time, record.sequence)
                         messages += 1
@@ -94,6 +92,10 @@ def repair_segment(path: Path) -> RepairResult:
                                               record.data)
                     elif isinstance(record, Metadata):
                         writer.add_metadata(record.name, record.metadata)
+                    if defined > MAX_SUMMARY_BYTES:  # (held in memory until the end, and unreadable after it)
+                        raise SegmentError(f"{path}: its schemas and channels take more than the "
+                                           f"{MAX_SUMMARY_BYTES // 2**20} MiB of a summary the recorder writes: not "
+                                           "repaired (it was not written by the recorder)")
                     good_offset = src.tell()
             except TornTail as exc:  # everything before it was taken
                 log.info("%s", exc)
@@ -190,7 +192,7 @@ def repair_session(folder: Path) -> list[RepairResult]:
         if res.damage_note:
             damaged.append(res.damage_note)
     # The Foxglove copy of the session (iorthand_cloud.foxglove_channels), in its own subfolder: made whole too.
-    for path in sorted((folder / "foxglove").glob("*.mcap")):
+    for path in segment_files(folder / "foxglove"):
         if not has_footer(path):
             try:
                 res = repair_segment(path)
@@ -260,14 +262,22 @@ def repair_all(root: Path) -> dict[str, list[RepairResult]]:
                 status = mf.Manifest.read(folder).status
             except (OSError, ValueError):
                 status = None
-        elif not segment_files(folder):
-            continue
         if status in (mf.COMPLETE, mf.RECOVERED):
             continue
-        if status == mf.FAILED and all(has_footer(p) for p in segment_files(folder)):
+        try:
+            files = segment_files(folder)
+            if not manifest_path.exists() and not files:
+                continue
+            if status == mf.FAILED and all(has_footer(p) for p in files):
+                continue
+        except SegmentError as exc:
+            log.error("%s: not repaired: %s", folder, exc)
             continue
         if status == mf.RECORDING and mf.writer_alive(folder, quiet_for=0.0):
             log.warning("%s is being recorded by another live process: not repaired", folder)
             continue
-        out[folder.name] = repair_session(folder)
+        try:
+            out[folder.name] = repair_session(folder)
+        except SegmentError as exc:  # one session that cannot be read must not stop the others (nor the service)
+            log.error("%s: not repaired: %s", folder, exc)
     return out

@@ -56,7 +56,7 @@ from iorthand.transport import Inbox, Worker, open_session
 from iorthand_cloud.foxglove_channels import FoxgloveChannel, FoxgloveConverter
 from iorthand_cloud.recorder import manifest as mf
 from iorthand_cloud.recorder.config import RecorderConfig
-from iorthand_cloud.recorder.reader import SegmentError
+from iorthand_cloud.recorder.reader import MAX_ATTACHMENT_BYTES, MAX_ATTACHMENTS_BYTES, SegmentError
 from iorthand_cloud.recorder.repair import has_footer, repair_all, repair_segment, set_aside
 from iorthand_cloud.recorder.schemas import MESSAGE_ENCODING, RAW_ENCODING, SCHEMA_ENCODING, schema_bytes
 from iorthand_cloud.recorder.segments import COMPRESSION, TELEMETRY, VIDEO, Attachment, ChannelSpec, Segment, Stream
@@ -477,15 +477,30 @@ class RecorderService:
         )
 
     def _calibration_attachments(self) -> tuple[list[Attachment], list[str]]:
-        out, warnings = [], []
+        """The calibration files to attach to each segment, and a warning for each that is not. Readers refuse
+        larger attachments (reader.MAX_ATTACHMENT_BYTES each, MAX_ATTACHMENTS_BYTES together): one is not
+        attached rather than making the session unreadable (a path to a device, such as /dev/zero, never ends)."""
+        out: list[Attachment] = []
+        warnings: list[str] = []
+        taken = 0
         for path in self.config.calibration_files:
             try:
-                data = path.read_bytes()
-                out.append(Attachment(path.name, "application/yaml" if path.suffix in (".yaml", ".yml")
-                                      else "application/octet-stream", data, int(path.stat().st_mtime_ns)))
+                with path.open("rb") as f:
+                    data = f.read(MAX_ATTACHMENT_BYTES + 1)
+                    mtime = os.fstat(f.fileno()).st_mtime_ns
             except OSError as exc:
                 warnings.append(f"calibration file {path} not attached: {_describe(exc)}")
                 log.warning("%s", warnings[-1])
+                continue
+            if len(data) > MAX_ATTACHMENT_BYTES or taken + len(data) > MAX_ATTACHMENTS_BYTES:
+                warnings.append(f"calibration file {path} not attached: larger than "
+                                f"{MAX_ATTACHMENT_BYTES // 2**20} MiB, or with the files before it than "
+                                f"{MAX_ATTACHMENTS_BYTES // 2**20} MiB (not a calibration)")
+                log.warning("%s", warnings[-1])
+                continue
+            taken += len(data)
+            out.append(Attachment(path.name, "application/yaml" if path.suffix in (".yaml", ".yml")
+                                  else "application/octet-stream", data, int(mtime)))
         return out, warnings
 
     def _stop_recording(self, query: zenoh.Query | None, reason: str) -> None:
@@ -680,7 +695,7 @@ class RecorderService:
         """The Foxglove messages made from ``msg``, with the raw message's receive time and sequence (so each
         lines up with its source in time and order). Write errors (OSError) are the caller's: same disk."""
         try:
-            out = conv.convert(key, msg)
+            out = conv.convert(key, msg, recv_ns)  # log time: a recording converts the same way again
         except Exception as exc:  # a conversion bug must never cost the raw recording, which is already written
             self.foxglove_errors += 1
             if self.foxglove_errors == 1 or self.foxglove_errors % 1000 == 0:
