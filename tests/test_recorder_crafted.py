@@ -351,3 +351,33 @@ def test_a_hostile_manifest_is_refused_by_name(tmp_path: Path, manifest: str, sa
     with pytest.raises(ManifestError) as refused:
         Manifest.read(tmp_path)
     assert str(refused.value).startswith(f"{tmp_path / 'manifest.json'}: ") and said in str(refused.value)
+
+
+def test_the_recorder_starts_a_new_segment_before_its_summary_passes_what_a_reader_takes(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Small chunks (a flush every 20 ms, chunk_kb 4) and many keys fill a summary with chunk indexes long before a
+    segment reaches its size bound: the writer's own files would be refused by its reader. It rolls over on its
+    estimate of the summary instead (here scaled down 400 times: 40 kB), and every segment reads."""
+    from iorthand_cloud.recorder import segments
+    from iorthand_cloud.recorder.segments import COMPRESSION, TELEMETRY, ChannelSpec, Stream
+
+    monkeypatch.setattr(segments, "SUMMARY_ROLL_BYTES", 40_000)
+    stream = Stream("telemetry", tmp_path, COMPRESSION[TELEMETRY], max_bytes=256 * 2**20, max_seconds=3600,
+                    chunk_size=4096)
+    specs = [ChannelSpec(f"iorthand/sim1/sensor/k{i}", "json") for i in range(50)]
+    estimates = []
+    for flush in range(200):
+        for i, spec in enumerate(specs):
+            stream.write(spec, flush * 20_000_000 + i, flush, flush, b"{}")
+        assert stream.current is not None
+        estimates.append(stream.current.summary_estimate)
+        stream.flush(fsync=False)
+    stream.close(fsync=False)
+    assert len(stream.closed) >= 4 and max(estimates) < 40_000 + 2 * (100 + 50 * 10)
+    for path in stream.closed:
+        with path.open("rb") as f:
+            index = reader.read_index(f, path)
+        assert index is not None and index.chunks_indexed >= 1
+        data = path.read_bytes()
+        summary_start = struct.unpack_from("<Q", data, len(data) - 8 - 29 + 9)[0]  # the footer, then the magic
+        assert len(data) - 8 - 29 - summary_start < 40_000 + 50 * 200  # its chunk indexes, channels, statistics

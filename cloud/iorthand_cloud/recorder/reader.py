@@ -42,7 +42,7 @@ from mcap.records import (
 )
 
 from iorthand_cloud.recorder.manifest import Manifest
-from iorthand_cloud.recorder.segments import MALFORMED_META
+from iorthand_cloud.recorder.segments import MALFORMED_META, MAX_SUMMARY_BYTES
 
 # What the recorder writes is bounded (a chunk holds at most chunk_kb, at most 32 MiB, plus one message of at most
 # 8 MiB), and reading holds at once only the chunks whose times overlap. A file beyond these bounds was not written
@@ -60,14 +60,6 @@ MAX_ATTACHMENTS_BYTES = 64 * 2**20
 # the recorder's are below 100 kB (a Foxglove schema; a chunk index or statistics record naming every channel).
 # mcap's reader turns a map's entries into a dict at ~10 times their size on disk.
 MAX_SMALL_RECORD_BYTES = 4 * 2**20
-# A segment's summary restates its schemas and channels and indexes each chunk (~90 bytes, plus 10 per channel in
-# the chunk) and attachment. The recorder's: 220 kB for 12 minutes of one robot's telemetry (1 500 chunks of 7
-# channels); its settings' extremes stay below 48 MB (4 kB chunks filling a 256 MiB segment, a flush every 20 ms:
-# 95 000 chunks of ~115 bytes; 4 000 keys, the most one recording keeps, each in every 0.5 s chunk: ~1 000
-# chunks of 40 kB). A larger one was not written by the recorder: parsed whole by mcap's reader, 87 MB of chunk
-# index records took 640 MiB (a chunk in it would be decompressed unchecked). Read here, a summary is held in
-# ~40 bytes per chunk it indexes.
-MAX_SUMMARY_BYTES = 64 * 2**20
 
 
 class SegmentError(ValueError):

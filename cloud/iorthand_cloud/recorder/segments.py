@@ -23,6 +23,16 @@ from mcap.writer import CompressionType, Writer
 PROFILE = "iorthand"
 LIBRARY = "iorthand-recorder"
 MALFORMED_META = "iorthand.malformed"
+# A segment's summary restates its schemas and channels and indexes each chunk (~90 bytes, plus 10 per channel in
+# the chunk) and attachment: 220 kB for 12 minutes of one robot's telemetry (1 500 chunks of 7 channels). A reader
+# takes at most MAX_SUMMARY_BYTES of one (reader.read_index: parsed whole by mcap's reader, 87 MB of crafted chunk
+# index records took 640 MiB); a larger one was not written by the recorder, because it starts a new segment once
+# its estimate of the summary reaches SUMMARY_ROLL_BYTES (small chunks, many keys: settings that no size bound on
+# the segment alone keeps readable).
+MAX_SUMMARY_BYTES = 64 * 2**20
+SUMMARY_ROLL_BYTES = MAX_SUMMARY_BYTES // 4
+CHUNK_INDEX_BYTES, CHUNK_INDEX_CHANNEL_BYTES = 100, 10  # an upper estimate of a chunk index record's size
+MESSAGE_RECORD_BYTES = 31  # a message record's fields besides its data (its share of a chunk's size)
 # The streams of a session, each its own series of segments: video (uncompressed) apart from the rest (zstd), so
 # a reader that wants one does not read the other.
 TELEMETRY, VIDEO = "telemetry", "video"
@@ -74,6 +84,9 @@ class Segment:
         self._schemas: dict[str, int] = {}
         self._channels: dict[ChannelSpec, int] = {}
         self.messages = 0
+        self._chunk_size = chunk_size
+        self._flushes = 0  # each ends a chunk
+        self._bytes = 0  # written into chunks, uncompressed: a chunk ends at chunk_size too
         self.opened_t = clock()
         self.opened_mono = time.monotonic()
         for att in attachments:
@@ -96,9 +109,18 @@ class Segment:
     def write(self, spec: ChannelSpec, log_time: int, publish_time: int, seq: int, data: bytes) -> None:
         self.writer.add_message(self.channel(spec), log_time, data, publish_time, seq & 0xFFFFFFFF)
         self.messages += 1
+        self._bytes += MESSAGE_RECORD_BYTES + len(data)
+
+    @property
+    def summary_estimate(self) -> int:
+        """Bytes, at least, that closing this segment now would write as its summary's chunk indexes: a chunk for
+        every flush and every chunk_size written, each indexed with every channel (an upper bound per chunk)."""
+        chunks = self._flushes + self._bytes // self._chunk_size + 1
+        return chunks * (CHUNK_INDEX_BYTES + CHUNK_INDEX_CHANNEL_BYTES * len(self._channels))
 
     def flush(self, fsync: bool) -> None:
         self.writer.flush()
+        self._flushes += 1
         if fsync:
             os.fsync(self.file.fileno())
 
@@ -156,13 +178,15 @@ class Stream:
         self.dirty = True
 
     def flush(self, fsync: bool) -> None:
-        """Flush, then start a new segment if this one is full (checked here, where the size is exact)."""
+        """Flush, then start a new segment if this one is full (checked here, where the size is exact), or its
+        summary would grow past what a reader takes."""
         seg = self.current
         if seg is None or not self.dirty:
             return
         seg.flush(fsync)
         self.dirty = False
-        if seg.size >= self.max_bytes or time.monotonic() - seg.opened_mono >= self.max_seconds:
+        if (seg.size >= self.max_bytes or seg.summary_estimate >= SUMMARY_ROLL_BYTES
+                or time.monotonic() - seg.opened_mono >= self.max_seconds):
             self.close()
 
     def close(self, fsync: bool = True) -> None:
