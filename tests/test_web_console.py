@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import os
 import shutil
 import signal
@@ -38,8 +39,18 @@ import yaml
 import zenoh
 
 from iorthand import keys
-from iorthand.protocol import AppliedCommand, RobotState, SafetyStatus, Status
+from iorthand.protocol import (
+    AppliedCommand,
+    ForceLevelState,
+    RobotState,
+    SafetyStatus,
+    Sequencer,
+    ServoState,
+    Status,
+    TorchState,
+)
 from iorthand.transport import client_config, free_port, open_session
+from iorthand_operator.client import SAFETY_STALE_S, actuator_stale_after
 from iorthand_operator.web import users
 from iorthand_operator.web.config import WebConfig
 from tests.conftest import ROOT, iorthand_cmd, stop_process, wait_until
@@ -194,9 +205,10 @@ class Relay:
 
 
 class Stack:
-    """Router, edge and web console, each a process of its own; a Zenoh session watching the robot."""
+    """Router, edge and web console, each a process of its own; a Zenoh session watching the robot. Without
+    ``with_edge`` the robot's messages are the test's own (:class:`StandIn`)."""
 
-    def __init__(self, tmp: Path) -> None:
+    def __init__(self, tmp: Path, with_edge: bool = True) -> None:
         self.tmp = tmp
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.procs: list[subprocess.Popen[bytes]] = []
@@ -219,7 +231,8 @@ class Stack:
             "zenoh": {"mode": "client", "connect": [self.endpoint]},
             # The reverse proxy of test_behind_a_reverse_proxy_...: on this host, listed (none is by default).
             "trusted_proxies": ["127.0.0.1"]}))
-        self.start("edge", iorthand_cmd("edge", "--config", str(tmp / "edge.yaml")), "media process")
+        if with_edge:
+            self.start("edge", iorthand_cmd("edge", "--config", str(tmp / "edge.yaml")), "media process")
         self.start("web", iorthand_cmd("web", "--config", str(tmp / "web.yaml")), "web console ready")
         self.session = open_session(client_config(self.endpoint))
         self.watch = Watch()
@@ -227,7 +240,8 @@ class Stack:
         self.subs = [self.session.declare_subscriber(k.key(keys.STATE_ROBOT), self.watch.on_state),
                      self.session.declare_subscriber(k.key(keys.STATE_APPLIED), self.watch.on_applied),
                      self.session.declare_subscriber(k.key(keys.STATE_SAFETY), self.watch.on_safety)]
-        self.watch.wait(lambda: self.watch.states, 20.0, "the robot's state")
+        if with_edge:
+            self.watch.wait(lambda: self.watch.states, 20.0, "the robot's state")
         self.url = f"http://127.0.0.1:{self.port}"
 
     def start(self, name: str, argv: list[str], ready: str) -> None:
@@ -1157,3 +1171,168 @@ def test_a_page_flooding_stops_and_junk_is_paced_and_bounded(stack) -> None:
     assert any(m["kind"] == "stop_repeated" for _, m in refused), refused[:3]
     assert 1 <= len(junk) <= 500  # each different one said (at most once a second), none twice
     assert stack.stats(cookie)["refused"]["malformed"] >= 500  # every one counted, not every one answered
+
+
+# ------------------------------------------------------------------ how old each value on the page is
+
+
+# s between two messages of each source of the stand-in robot: the servo's and the torch's are their heartbeats.
+STANDIN_PERIODS = {"state": 0.05, "safety": 0.05, "force": 0.1, "servo": 0.25, "torch": 0.25}
+
+
+class StandIn:
+    """The edge's state messages for a robot with no edge: the real messages, published through the real router by
+    this process, each source at its own period until the test quiets it (a servo board whose heartbeats stop,
+    a dead link). Stands in for hardware (servos, torch, a force sensor) that cannot stop on cue here."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        k = keys.RobotKeys(ROBOT)
+        self.pubs = {"state": session.declare_publisher(k.key(keys.STATE_ROBOT)),
+                     "safety": session.declare_publisher(k.key(keys.STATE_SAFETY)),
+                     "force": session.declare_publisher(k.key(keys.STATE_FORCE_LEVEL)),
+                     "servo": session.declare_publisher(k.key(keys.STATE_SERVO)),
+                     "torch": session.declare_publisher(k.key(keys.STATE_TORCH))}
+        self.alive = session.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
+        self.status, self.reason = Status.OK, "all well"
+        self.quiet: set[str] = set()
+        self.last_put: dict[str, float] = {}  # wall time of each source's newest message
+        self.lock = threading.Lock()
+        self._seqs = {name: Sequencer() for name in self.pubs}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def servo(self) -> ServoState:
+        return ServoState(pan=math.radians(10), tilt=math.radians(-5), period=STANDIN_PERIODS["servo"])
+
+    def _message(self, name: str) -> Any:
+        if name == "state":
+            return RobotState(tcp_pose=[0.3, 0.1, 0.2, 0.0, math.pi, 0.0])
+        if name == "safety":
+            return SafetyStatus(armed=True, owner="physician", profile="remote", status=self.status, reason=self.reason,
+                                linear_limit=0.008, angular_limit=0.1)
+        if name == "force":
+            return ForceLevelState(level=0, stale=False, value=1.0)
+        if name == "servo":
+            return self.servo()
+        return TorchState(on=True, brightness=0.8, period=STANDIN_PERIODS["torch"])
+
+    def _run(self) -> None:
+        due = dict.fromkeys(self.pubs, 0.0)
+        while not self._stop.is_set():
+            now = time.monotonic()
+            for name, pub in self.pubs.items():
+                with self.lock:
+                    if name in self.quiet or now < due[name]:
+                        continue
+                    pub.put(self._message(name).stamp(self._seqs[name].next()).encode())
+                    self.last_put[name] = time.time()
+                due[name] = now + STANDIN_PERIODS[name]
+            time.sleep(0.01)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.alive.undeclare()
+        for pub in self.pubs.values():
+            pub.undeclare()
+
+
+@pytest.fixture(scope="module")
+def standin(tmp_path_factory) -> Any:
+    s = Stack(tmp_path_factory.mktemp("web-standin"), with_edge=False)
+    robot = StandIn(s.session)
+    yield s, robot
+    robot.close()
+    s.close()
+
+
+def _note_when_stale(page) -> None:
+    """The page's own clock notes when each row first shows as old (Date.now(), the host's wall clock)."""
+    page.evaluate("""() => { window.staleSeen = {}; setInterval(() => {
+        for (const id of ["camera-state", "torch-state"]) {
+            if (!window.staleSeen[id] && document.getElementById(id).classList.contains("stale")) {
+                window.staleSeen[id] = Date.now();
+            }
+        }
+    }, 10); }""")
+
+
+def _classes(page, selector: str) -> list[str]:
+    return (page.get_attribute(selector, "class") or "").split()
+
+
+def test_every_row_whose_source_went_quiet_is_shown_old_with_its_age(standin, browser) -> None:
+    """Found: the page showed the camera's angles and the torch with no age at all (a servo board that stopped
+    read as current) and the robot state aged only in the link pill of a page holding control. Each row is now
+    greyed with its age by the terminal console's rules (the client's functions, on the server): the camera row
+    after three of its servo's heartbeats, the safety status after SAFETY_STALE_S."""
+    stack, robot = standin
+    page = open_console(browser, stack.url, "student", control=False)  # a viewer: it sees every row, and no hint
+    try:
+        page.wait_for_function("document.getElementById('camera-state').textContent === 'camera pan +10° tilt -5°'",
+                               timeout=10_000)
+        assert page.text_content("#torch-state") == "torch on 80 %"
+        assert page.text_content("#status") == "ok" and "green" in _classes(page, "#status")
+        _note_when_stale(page)
+
+        # The servo's heartbeats stop; everything else goes on.
+        with robot.lock:
+            robot.quiet.add("servo")
+        page.wait_for_function("window.staleSeen['camera-state']", timeout=10_000)
+        delay = page.evaluate("window.staleSeen['camera-state']") / 1000 - robot.last_put["servo"]
+        bound = actuator_stale_after(robot.servo())  # three heartbeats of 0.25 s
+        # Never before its bound (the server ages it from the message's arrival), and within it plus one push of
+        # the page's state (20 Hz) and a loaded machine's slack.
+        assert bound <= delay <= bound + 1.0, f"camera row shown old {delay:.2f} s after its last heartbeat"
+        camera = page.text_content("#camera-state")
+        assert camera.startswith("camera pan +10° tilt -5° (stale ") and camera.endswith(" s)")  # the old value, aged
+        assert "stale" not in _classes(page, "#torch-state")  # its heartbeats go on
+        assert page.text_content("#status") == "ok"
+
+        # The link dies: no state, no safety status, no torch.
+        with robot.lock:
+            robot.quiet.update(("state", "safety", "torch", "force"))
+        page.wait_for_function("!document.getElementById('state-age').hidden", timeout=10_000)
+        assert page.text_content("#state-age").startswith("robot state stale ")
+        page.wait_for_function("document.getElementById('status').textContent.startsWith('ok (stale ')",
+                               timeout=(SAFETY_STALE_S + 8) * 1000)
+        assert "grey" in _classes(page, "#status") and "green" not in _classes(page, "#status")
+        assert page.text_content("#control").startswith("controlled by physician (stale ")
+        assert "stale" in _classes(page, "#torch-state")
+        assert page.text_content("#force-label") == "STALE"
+
+        # Back: every row current again.
+        with robot.lock:
+            robot.quiet.clear()
+        page.wait_for_function("document.getElementById('status').textContent === 'ok'", timeout=10_000)
+        page.wait_for_function("!document.getElementById('camera-state').classList.contains('stale')", timeout=10_000)
+        assert page.text_content("#camera-state") == "camera pan +10° tilt -5°"
+        assert page.is_hidden("#state-age")
+    finally:
+        with robot.lock:
+            robot.quiet.clear()
+        page.context.close()
+
+
+def test_a_status_reason_with_html_or_script_in_it_is_shown_as_text(standin, browser) -> None:
+    """The edge's reason carries what others wrote (a stop's reason, a fault's text): the page shows it as text,
+    in the status and in the event log, and runs none of it."""
+    stack, robot = standin
+    evil = '<img src=x onerror="window.pwned=1"><script>window.pwned=2</script><b>bold</b>'
+    page = open_console(browser, stack.url, "student", control=False)
+    try:
+        page.wait_for_function("document.getElementById('status').textContent === 'ok'", timeout=10_000)
+        with robot.lock:
+            robot.status, robot.reason = Status.STOPPED, evil
+        page.wait_for_function("document.getElementById('status').textContent === 'stopped'", timeout=10_000)
+        assert page.text_content("#reason") == evil
+        page.wait_for_function("[...document.querySelectorAll('#events li')].some((li) => "
+                               f"li.textContent.endsWith({json.dumps(evil)}))", timeout=10_000)
+        time.sleep(0.3)  # an image's onerror would have run by now
+        assert page.evaluate("document.querySelectorAll('#reason *, #events img, #events script, #events b').length") == 0
+        assert page.evaluate("window.pwned") is None
+    finally:
+        with robot.lock:
+            robot.status, robot.reason = Status.OK, "all well"
+        page.context.close()

@@ -50,9 +50,10 @@ from iorthand.security.certs import load_certificate, subject_alt_names
 from iorthand.security.hosts import host_allowed
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
 from iorthand_operator import recovery
-from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient
-from iorthand_operator.console.model import force_view, vitals_line
-from iorthand_operator.link import GRADE_COLOURS, LinkThresholds
+from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient, actuator_stale_after
+from iorthand_operator.console.model import force_view, stale_note, vitals_line
+from iorthand_operator.console.settings import ConsoleSettings
+from iorthand_operator.link import GRADE_COLOURS, STATE_STALE_S, LinkThresholds
 from iorthand_operator.web import messages, users
 from iorthand_operator.web.config import WebConfig
 
@@ -62,6 +63,11 @@ STATIC = Path(__file__).resolve().parent / "static"
 COOKIE = "iorthand_session"
 WATCHER_ID = "web"  # the id of the server's watching clients (they never acquire, announce or command)
 VIDEO_STREAMS = {"camera": keys.VIDEO_CAMERA, "ultrasound": keys.VIDEO_ULTRASOUND}
+# How old each value on the page may be before it is shown as old: the terminal console's bounds, from where they
+# are set (the page gets each row's age from here, and the page-side bound in its hello: no second copy in the page).
+FORCE_STALE_S = ConsoleSettings.force_stale_after
+# Markers older than this are not drawn (the 3D view would put them where the patient was); the page says how old.
+MARKERS_SHOWN_S = 1.0
 # A page whose socket holds more than this unsent is behind: it gets no video until it has drained (newest wins).
 VIDEO_BACKLOG_BYTES = 256 * 1024
 WS_MAX_BYTES = 64 * 1024  # aiohttp closes a socket whose message is larger; up to it, messages.parse refuses
@@ -627,24 +633,33 @@ class Page:
             out["commanded"] = [round(v, 5) for v in st.commanded]
             out["fault"] = st.fault
             out["arm"] = self.feed.arm_points()
+            # "stale 2.2 s" once the newest state is older than the link's bound: the arm drawn and the speed said
+            # are where the robot was then ("" while current).
+            out["state_stale"] = stale_note(now - w.robot_state_at, STATE_STALE_S)
         if sf is not None:
             out["safety"] = {"armed": sf.armed, "owner": sf.owner, "status": sf.status, "reason": sf.reason,
                              "profile": sf.profile, "deadman": sf.deadman, "linear_limit": sf.linear_limit,
                              "angular_limit": sf.angular_limit, "limits_hit": sf.limits_hit,
-                             "contact": sf.contact_target, "task": sf.task}
-        fv = force_view(w.force_level, w.force_level_at, now, 0.5)
+                             "contact": sf.contact_target, "task": sf.task,
+                             # the edge's last word on all of these, aged once it is no longer its state
+                             "stale": f"stale {w.safety_age(now):.1f} s" if w.safety_stale(now) else ""}
+        fv = force_view(w.force_level, w.force_level_at, now, FORCE_STALE_S)
         force: dict[str, Any] = {"colour": fv.colour.replace("grey50", "grey"), "label": fv.label, "detail": fv.detail}
-        if w.force is not None and st is not None and now - w.force_at < 0.5:
+        if w.force is not None and st is not None and now - w.force_at <= FORCE_STALE_S:
             force["vector"] = [round(v, 3) for v in geometry.rotate(st.tcp_pose[3:], w.force.force)]
         out["force"] = force
         if w.vitals:  # the patient's vital signs (sensor/vital), one line as on the terminal console
             out["vitals"] = vitals_line(dict(w.vitals), now)
-        if w.markers is not None and now - w.markers_at < 1.0:
+        if w.markers is not None and now - w.markers_at < MARKERS_SHOWN_S:
             out["markers"] = [{"id": m.id, "pose": [round(v, 4) for v in m.pose]} for m in w.markers.markers]
-        if w.servo is not None:
-            out["servo"] = {"pan": w.servo.pan, "tilt": w.servo.tilt}
+        elif w.markers is not None:  # not drawn: the page says why, lest a marker gone read as one out of view
+            out["markers_note"] = f"no marker data for {now - w.markers_at:.1f} s"
+        if w.servo is not None:  # aged after three of the edge's heartbeats, as on the terminal console
+            out["servo"] = {"pan": w.servo.pan, "tilt": w.servo.tilt,
+                            "stale": stale_note(now - w.servo_at, actuator_stale_after(w.servo))}
         if w.torch is not None:
-            out["torch"] = w.torch.on
+            out["torch"] = {"on": w.torch.on, "brightness": w.torch.brightness,
+                            "stale": stale_note(now - w.torch_at, actuator_stale_after(w.torch))}
         holder = self.bridge.controllers.get(self.robot)
         out["control"] = {"mine": self.client is not None and self.client.owner, "here": holder.grant.user if holder else ""}
         if self.grant.may_command(self.robot):
@@ -659,6 +674,7 @@ class Page:
             out["link"] = {"rtt_p50": _finite(q.rtt_p50_ms), "rtt_p95": _finite(q.rtt_p95_ms),
                            "loss_up": _finite(q.uplink_loss), "loss_down": _finite(q.downlink_loss),
                            "no_state": q.no_state_s,  # s without robot state: the link is dead, not slow
+                           "rtt_old": q.rtt_old_s,  # s since the newest echo, when the round trips are that old
                            "colour": GRADE_COLOURS[max(grades.values(), key=_grade_rank)]}
             events += self._new_events("client", self.client.events)
         if events:
@@ -873,7 +889,9 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
     feed.pages.add(page)
     await page.send({"type": "hello", "user": grant.user, "role": str(grant.role), "robot": robot,
                      "robots": list(grant.robots), "may_command": grant.may_command(robot),
-                     "twist_hz": bridge.config.twist_hz})
+                     "twist_hz": bridge.config.twist_hz,
+                     # no state message from this server for this long: everything on the page is that old
+                     "state_stale_s": STATE_STALE_S})
     pusher = asyncio.create_task(page.push())
     try:
         async for msg in ws:

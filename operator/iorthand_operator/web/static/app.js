@@ -12,7 +12,6 @@
 // to the speed profile's limits that the edge reports (it clips them anyway).
 import { createViewer } from "/static/viewer.js";
 
-const STATE_STALE_MS = 500; // no state for this long: the force light and the status go grey
 const DEADZONE = 0.08;
 const $ = (id) => document.getElementById(id);
 
@@ -21,6 +20,8 @@ const ui = {
   forceDetail: $("force-detail"), status: $("status"), reason: $("reason"), control: $("control"), vitals: $("vitals"),
   profile: $("profile"), estop: $("estop"), deadman: $("deadman"), events: $("events"), camera: $("camera"),
   ultrasound: $("ultrasound"), poseList: $("pose-list"), verdict: $("pose-verdict"), goto: $("goto"), pace: $("pace"),
+  cameraState: $("camera-state"), torchState: $("torch-state"), stateAge: $("state-age"), markersNote: $("markers-note"),
+  actuators: $("actuators"),
 };
 
 // What tests and benchmarks read (window.iorthand): the page's own view of its round trips and video delays.
@@ -446,20 +447,51 @@ function setStatus(code, reason, colour) {
   ui.reason.textContent = reason || "";
 }
 
+// A value whose source went quiet, as the terminal console shows it: "pan +5° tilt -3° (stale 2.2 s)", greyed. The
+// server says which are old and how old (the client's rules); "" while current.
+function aged(text, stale) {
+  return stale ? `${text} (${stale})` : text;
+}
+
+function degrees(rad) {
+  const d = Math.round((rad * 180) / Math.PI);
+  return `${d >= 0 ? "+" : ""}${d}°`;
+}
+
+function showActuators(s) {
+  const servo = s.servo;
+  ui.cameraState.textContent = servo ? aged(`camera pan ${degrees(servo.pan)} tilt ${degrees(servo.tilt)}`, servo.stale)
+    : "camera —";
+  ui.cameraState.classList.toggle("stale", !!servo?.stale);
+  const torch = s.torch;
+  ui.torchState.textContent = torch
+    ? aged(`torch ${torch.on ? "on" : "off"} ${Math.round(torch.brightness * 100)} %`, torch.stale) : "torch —";
+  ui.torchState.classList.toggle("stale", !!torch?.stale);
+}
+
 function onState(s) {
   lastState = s;
   lastStateAt = performance.now();
+  document.body.classList.remove("no-feed");
   if (!!s.control?.mine !== mine) pace.restart();
   mine = !!s.control?.mine;
   const sf = s.safety;
+  const old = sf?.stale || ""; // the safety status behind status, reason, armed, owner, profile and contact
   if (!s.online) setStatus("edge offline", "the robot's edge agent is not connected", "grey");
   else if (sf) {
     const c = s.commanded || [0, 0, 0];
     const speed = Math.hypot(c[0], c[1], c[2]) * 1000;
-    const moving = speed > 0.05 ? `moving at ${speed.toFixed(1)} mm/s (limit ${(sf.linear_limit * 1000).toFixed(0)} mm/s, ${sf.profile})` : "";
-    setStatus(sf.status, s.hint || sf.reason || moving || (sf.armed ? "" : "not armed"),
-      HALTS.has(sf.status) ? "red" : sf.status === "ok" ? "green" : "");
+    // Said only from a current state: an old one's speed is not how the robot moves now.
+    const moving = speed > 0.05 && !s.state_stale
+      ? `moving at ${speed.toFixed(1)} mm/s (limit ${(sf.linear_limit * 1000).toFixed(0)} mm/s, ${sf.profile})` : "";
+    const reason = s.hint || sf.reason || moving || (sf.armed ? "" : "not armed");
+    // Old: never green nor red as if current, and its age said.
+    setStatus(aged(sf.status, old), reason, old ? "grey" : HALTS.has(sf.status) ? "red" : sf.status === "ok" ? "green" : "");
   }
+  ui.stateAge.hidden = !s.state_stale;
+  ui.stateAge.textContent = s.state_stale ? `robot state ${s.state_stale}: the arm is shown where it was then` : "";
+  ui.markersNote.textContent = s.markers_note ? `· markers: ${s.markers_note}` : "";
+  showActuators(s);
   const f = s.force || {};
   ui.force.className = `force ${f.colour || "grey"}`;
   ui.forceLabel.textContent = f.label || "NO DATA";
@@ -468,34 +500,42 @@ function onState(s) {
   if (s.link) {
     const fmt = (v) => (v == null ? "—" : v.toFixed(1));
     // A dead link says so: its last round trips are not how it is now.
+    const rtt = `RTT ${fmt(s.link.rtt_p50)}/${fmt(s.link.rtt_p95)} ms`;
     ui.link.textContent = s.link.no_state
-      ? `no robot state for ${s.link.no_state.toFixed(1)} s`
-      : `RTT ${fmt(s.link.rtt_p50)}/${fmt(s.link.rtt_p95)} ms · loss ${((s.link.loss_up || 0) * 100).toFixed(1)} %`;
+      ? `no robot state for ${s.link.no_state.toFixed(1)} s${s.link.rtt_old ? ` (${rtt} ${s.link.rtt_old.toFixed(1)} s ago)` : ""}`
+      : `${rtt} · loss ${((s.link.loss_up || 0) * 100).toFixed(1)} %`;
     ui.link.className = `pill ${s.link.colour}`;
   }
   const owner = sf?.owner || "";
-  ui.control.textContent = mine ? "Release control" : owner ? `controlled by ${owner}` : "Take control";
+  ui.control.textContent = mine ? "Release control" : owner ? aged(`controlled by ${owner}`, old) : "Take control";
   ui.control.classList.toggle("mine", mine);
+  ui.control.classList.toggle("stale", !!old && !mine);
   if (sf?.profile && document.activeElement !== ui.profile) ui.profile.value = sf.profile;
+  ui.profile.classList.toggle("stale", !!old);
   ui.deadman.disabled = !mine;
   const contact = sf?.contact ?? -1;
-  $("contact").textContent = contact >= 0 ? `contact ${contact} N` : "contact";
-  $("contact").classList.toggle("on", contact >= 0);
-  if (sf?.task) ui.reason.textContent = sf.task;
+  $("contact").textContent = contact >= 0 ? aged(`contact ${contact} N`, old) : "contact";
+  $("contact").classList.toggle("on", contact >= 0 && !old);
+  if (sf?.task) ui.reason.textContent = aged(sf.task, old);
   for (const e of s.events || []) logEvent(e);
   if (viewer && want3d.checked) viewer.update(s);
 }
 
 const HALTS = new Set(["disarmed", "command_timeout", "force_danger", "force_stale", "stopped", "fault", "owner_lost", "link_gap", "stale_view"]);
 
-// Never green without fresh data: with no state for STATE_STALE_MS the light and the status go grey.
+// Never green without fresh data: with nothing from the console's server for its bound (the hello's state_stale_s,
+// the terminal console's), every value on the page is that old: the light, the status and the rows go grey, aged.
 setInterval(() => {
   showPace();
-  if (lastStateAt && performance.now() - lastStateAt > STATE_STALE_MS) {
+  const quiet = (performance.now() - lastStateAt) / 1000;
+  if (lastState && hello && quiet > hello.state_stale_s) {
+    const note = `no data from the console's server for ${quiet.toFixed(1)} s`;
+    document.body.classList.add("no-feed");
     ui.force.className = "force grey";
     ui.forceLabel.textContent = "STALE";
-    ui.forceDetail.textContent = `no data for ${((performance.now() - lastStateAt) / 1000).toFixed(1)} s`;
-    if (ui.status.classList.contains("green")) setStatus("no data", "no state from the robot", "grey");
+    ui.forceDetail.textContent = note;
+    setStatus(aged(lastState.safety?.status || "no data", `stale ${quiet.toFixed(1)} s`),
+      `${note}: every value shown is at least that old`, "grey");
   }
 }, 100);
 
@@ -542,7 +582,7 @@ for (const b of document.querySelectorAll("[data-pan],[data-tilt]")) {
   b.addEventListener("click", () => send({ type: "camera", pan: (Number(b.dataset.pan || 0) * Math.PI) / 180,
     tilt: (Number(b.dataset.tilt || 0) * Math.PI) / 180 }));
 }
-$("torch").addEventListener("click", () => send({ type: "camera", torch: !(lastState?.torch) }));
+$("torch").addEventListener("click", () => send({ type: "camera", torch: !(lastState?.torch?.on) }));
 $("poses").addEventListener("click", () => send({ type: "poses" }));
 $("preview").addEventListener("click", () => { if (ui.poseList.value) send({ type: "preview", name: ui.poseList.value }); });
 ui.goto.addEventListener("click", () => {
