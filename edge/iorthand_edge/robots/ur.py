@@ -65,7 +65,7 @@ from typing import Any
 import numpy as np
 
 from iorthand.geometry import rotvec_to_matrix
-from iorthand.process import REALTIME_PRIORITY, raise_priority
+from iorthand.process import REALTIME_PRIORITY, exit_reason, raise_priority
 from iorthand_edge.robots.base import Robot, RobotFault, RobotReading, Vector
 from iorthand_edge.robots.config import URRobotConfig
 
@@ -583,11 +583,12 @@ class URRobot(Robot):
                         log.warning("UR driver: %s", payload)
                         self._refusal_logged = now
         except (EOFError, OSError):
-            self._fail(f"UR driver process died (exit code {self._proc.exitcode})")
+            code = self._proc.exitcode
+            self._fail("UR driver process " + ("closed its pipe to the agent" if code is None else exit_reason(code)))
             return
         now = time.monotonic()
         if not self._proc.is_alive():
-            self._fail(f"UR driver process died (exit code {self._proc.exitcode})")
+            self._fail(f"UR driver process {exit_reason(self._proc.exitcode)}")
         elif now - self._state_at > self.config.link_timeout:
             self._fail(f"no state from the UR driver for {1000 * (now - self._state_at):.0f} ms (driver hung)")
         elif self._state is not None and not (self._state[6] and self._state[9]):
