@@ -15,12 +15,43 @@ checked decoder, which names the offending field (or accepts what the schema was
 version sent as ``1.0``): the fast decoder never accepts what the checked one refuses (a differential test).
 Messages are encoded with ``msgspec`` too, ``v`` first and the fields in declaration order, so a signed
 message's ``mac`` is its last entry (:mod:`iorthand.security.auth` signs the bytes before it).
+
+Releases of different ages meet: a hospital updates its edges, its consoles and its cloud at different times.
+What each end does about it (decided here, once):
+
+- **Revisions.** :data:`REVISION` numbers the protocol: each release that adds a field bumps it and lists the
+  field in :data:`ADDED_IN` (and in its class's ``ADDED_FIELDS``, so that a newer receiver reads an older
+  payload with the field's default). Revision 1 is the release that said none (339ec9f).
+- **Said before control, at both ends.** A console's acquire says the revision it speaks (``params``
+  ``{"revision": N}``; revision 1 ignored ``params`` there); the edge's answer says its own (``detail``, which
+  revision 1 ignored there too), granted or not. The edge refuses control to a console that cannot read a message
+  the edge sends (:func:`unreadable_by`), naming both revisions and what to update: such a console would drive
+  with part of the picture silently missing (revision 1 dropped every servo and torch state of revision 2: the
+  camera's angles and the light were blank, counted as malformed, and said nowhere). The console refuses to go on
+  with an edge that cannot read a command it sends, and refuses to ask for control while it cannot read what
+  safety needs (a robot, safety, force-level or echo message refused as from a newer sender).
+- **Which messages may be read in part.** From revision 2 on, a receiver reads a *display-only* message
+  (``DISPLAY_ONLY``: servo and torch states, the wrench, markers, video, vital signs, the twin's and recorder's
+  status) that carries fields it does not know, without them: they are extras for the eye, and dropping the whole
+  message hid what the receiver does understand. So the next field added to one of them does not cost the console
+  of the release before its picture. A field added there must not change what the fields already there mean (a
+  new meaning is a new field or a new key). Every other message is refused whole when it carries a field the
+  receiver does not know: commands (an edge never acts on part of an order), control requests and replies, and
+  the state safety rests on (robot state, safety status, force level, command echo) — a field added there may be
+  the one that says why the robot stopped, and reading the rest as if complete would be reading a different
+  message. A field added to them makes the edge refuse control to the consoles of the releases before, clearly;
+  the stop is the exception that needs none of this (any payload on ``cmd/stop`` stops the edge).
+- **Said once per key.** A refusal or an ignored field that a newer sender explains names the message, the
+  field and says "the sender is newer: update this program"; :class:`RejectCounter` logs it once per key (not at
+  the message rate), and the operator's console shows it once in its log.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import inspect
+import json
+import logging
 import math
 import sys
 import threading
@@ -46,6 +77,21 @@ _FAR_FUTURE_NS = 2**62  # about year 2116: any later source time is garbage
 MAC_MAX = 32  # bytes of a command's signature field (iorthand.security.auth uses 16)
 KEY_MAX = 64  # bytes of a grant's key in the acquire reply (iorthand.security.auth uses 32)
 
+log = logging.getLogger("iorthand.protocol")
+
+# The protocol's revision (see the module's docstring): bump it in a release that adds a field, listed in ADDED_IN.
+REVISION = 2
+# The fields each revision added, by class (each also in its class's ADDED_FIELDS: checked at import). Revision 1
+# is the first that shipped: what it has, all its receivers know.
+ADDED_IN: dict[int, dict[str, frozenset[str]]] = {
+    2: {"ServoState": frozenset({"period"}), "TorchState": frozenset({"period"})},
+}
+# The first revision whose receivers read a display-only message without the fields they do not know (before it,
+# every receiver refused every message that carried one).
+TOLERANT_SINCE = 2
+# What a refusal or an ignored field says when the likely cause is a sender of a later release.
+NEWER_SENDER = "the sender is newer: update this program"
+
 
 class DecodeError(ValueError):
     """A payload that is not a valid message. ``field`` names what was wrong (``payload`` for the whole)."""
@@ -55,6 +101,16 @@ class DecodeError(ValueError):
         self.message_type = message_type
         self.field = field_name
         self.problem = problem
+
+    @property
+    def newer(self) -> bool:
+        """Whether a sender of a later release explains it (a field or a schema version this build does not know)."""
+        return NEWER_SENDER in self.problem
+
+
+def _unknown_field(mtype: str, name: Any) -> DecodeError:
+    return DecodeError(mtype, str(name)[:40], f"unknown field: {NEWER_SENDER} (this program speaks "
+                                              f"protocol revision {REVISION})")
 
 
 def spec(
@@ -246,6 +302,10 @@ class Struct:
     # Fields added after a schema version was released: a payload without one (an older edge, a recording made
     # before) decodes with the field's default. Every other field must be present.
     ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset()
+    # A message only shown (see the module's docstring): decoded without the fields this build does not know,
+    # which it names in ``ignored``. Every other message carrying one is refused whole.
+    DISPLAY_ONLY: ClassVar[bool] = False
+    ignored: ClassVar[tuple[str, ...]] = ()  # set on an instance decoded without some fields (DISPLAY_ONLY)
 
     @classmethod
     def max_len(cls, field_name: str) -> int | None:
@@ -329,16 +389,22 @@ class Struct:
         if not isinstance(data, dict):
             raise DecodeError(mtype, "payload", f"expected a map, got {type(data).__name__}")
         known, checkers = cls._checkers()
+        ignored: tuple[str, ...] = ()
         if not known.issuperset(data):
-            unknown = next(k for k in data if k not in known)
-            raise DecodeError(mtype, str(unknown)[:40], "unknown field")
+            unknown = [k for k in data if k not in known]
+            if not cls.DISPLAY_ONLY:
+                raise _unknown_field(mtype, unknown[0])
+            ignored = tuple(str(k)[:40] for k in unknown[:8])  # named to say so (bounded: the sender chose them)
         values: dict[str, Any] = {}
         for name, check in checkers:
             if name in data:
                 values[name] = check(mtype, name, data[name])
             elif name not in cls.ADDED_FIELDS:
                 raise DecodeError(mtype, name, "missing field")
-        return cls(**values)
+        msg = cls(**values)
+        if ignored:
+            msg.ignored = ignored  # type: ignore[misc]
+        return msg
 
     def validate(self) -> Self:
         """Check this instance against its declared bounds (as decode would); raise DecodeError if bad."""
@@ -422,7 +488,8 @@ class Message(Struct):
         if "v" not in data:
             raise DecodeError(name, "v", "missing field")
         if data["v"] != cls.VERSION or isinstance(data["v"], bool):
-            raise DecodeError(name, "v", f"unknown schema version {data['v']!r} (this build reads {cls.VERSION})")
+            newer = f": {NEWER_SENDER}" if type(data["v"]) is int and data["v"] > cls.VERSION else ""
+            raise DecodeError(name, "v", f"unknown schema version {data['v']!r} (this build reads {cls.VERSION}){newer}")
         return cls._from_map(data)
 
 
@@ -445,7 +512,10 @@ class RejectCounter:
     The key is the sender's choice: an attacker who publishes on ``cmd/twist/<random>`` makes a new one with
     every message, and a table with a row per key grows for as long as the flood lasts (and never shrinks).
     So only the ``max_keys`` keys rejected most recently keep a row; ``total`` counts every reject, also those
-    of keys whose row was dropped."""
+    of keys whose row was dropped.
+
+    A reject that a newer sender explains (:attr:`DecodeError.newer`) is also logged, once per key: a receiver of
+    an older release sees every message of that key refused, at the message's rate."""
 
     def __init__(self, max_keys: int = 256, max_reason: int = 200) -> None:
         self._lock = threading.Lock()
@@ -454,6 +524,8 @@ class RejectCounter:
         self.counts: OrderedDict[str, int] = OrderedDict()  # least recently rejected first
         self.last_reason: dict[str, str] = {}
         self._total = 0
+        # Keys whose sender is newer, with what was said: the first max_keys (a flood of made-up keys logs no more).
+        self.newer: dict[str, str] = {}
 
     def add(self, key: str, reason: str) -> int:
         """Count one reject on ``key``; returns how many that key has had while it kept its row."""
@@ -465,7 +537,19 @@ class RejectCounter:
             while len(self.counts) > self.max_keys:
                 oldest, _ = self.counts.popitem(last=False)
                 del self.last_reason[oldest]
-            return n
+        if NEWER_SENDER in reason:
+            self.note_newer(key, f"refused: {reason}")
+        return n
+
+    def note_newer(self, key: str, what: str) -> bool:
+        """Log that ``key``'s sender is newer than this program (``what`` it caused), the first time for that key;
+        True then."""
+        with self._lock:
+            if key in self.newer or len(self.newer) >= self.max_keys:
+                return False
+            self.newer[key] = what[: self.max_reason]
+        log.warning("%s: %s", printable(key)[:200], printable(what)[: self.max_reason])
+        return True
 
     @property
     def total(self) -> int:
@@ -694,6 +778,7 @@ class ForceSample(Message):
     own): the wrench at the tool, N and N·m, in the sensor frame."""
 
     KEY: ClassVar[str] = keys.STATE_FORCE
+    DISPLAY_ONLY: ClassVar[bool] = True
     force: list[float] = vec(3, lo=-1e5, hi=1e5)
     torque: list[float] = vec(3, lo=-1e5, hi=1e5)
 
@@ -718,6 +803,7 @@ class ServoState(Message):
     """Sent on every change and as a heartbeat every ``period`` s (the edge's servos.publish_hz)."""
 
     KEY: ClassVar[str] = keys.STATE_SERVO
+    DISPLAY_ONLY: ClassVar[bool] = True
     ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"period"})
     pan: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)  # rad, current
     tilt: float = spec(0.0, lo=-2 * math.pi, hi=2 * math.pi)
@@ -735,6 +821,7 @@ class TorchState(Message):
     """Sent on every change and as a heartbeat every ``period`` s (the edge's torch.publish_hz)."""
 
     KEY: ClassVar[str] = keys.STATE_TORCH
+    DISPLAY_ONLY: ClassVar[bool] = True
     ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset({"period"})
     on: bool = False
     brightness: float = spec(0.0, lo=0.0, hi=1.0)
@@ -744,6 +831,7 @@ class TorchState(Message):
 
 @dataclass(kw_only=True)
 class MarkerPose(Struct):
+    DISPLAY_ONLY: ClassVar[bool] = True
     id: int = spec(0, lo=0, hi=10_000)
     pose: list[float] = vec(16, lo=-1e3, hi=1e3)  # filtered T_base_marker, 4×4 row-major
     raw: list[float] = vec(16, lo=-1e3, hi=1e3)  # this frame's unfiltered estimate
@@ -756,6 +844,7 @@ class Markers(Message):
     """Every marker seen in one camera frame, in the robot base frame. ``t`` is the frame's capture time."""
 
     KEY: ClassVar[str] = keys.MARKERS
+    DISPLAY_ONLY: ClassVar[bool] = True
     markers: list[MarkerPose] = spec(default_factory=list, max_len=256)
     frames: int = spec(0, lo=0)
     fps: float = spec(0.0, lo=0.0)
@@ -772,6 +861,7 @@ class VideoFrame(Message):
     """A JPEG image. ``t`` is the capture time; ``seq`` counts captured frames (gaps = dropped)."""
 
     KEY: ClassVar[str] = keys.VIDEO_CAMERA
+    DISPLAY_ONLY: ClassVar[bool] = True
     MAX_BYTES: ClassVar[int] = MAX_VIDEO_PAYLOAD
     source: str = spec("camera", max_len=32)
     width: int = spec(0, lo=1, hi=8192)
@@ -867,6 +957,7 @@ class RecorderStatus(Message):
     """The recorder's state: the reply to every recorder query and the ``iorthand/_recorder/status`` stream.
     ``error`` is set when a recording stopped on its own (full disk, unwritable folder)."""
 
+    DISPLAY_ONLY: ClassVar[bool] = True
     ok: bool = True
     reason: str = spec("", max_len=1000)
     recording: bool = False
@@ -887,6 +978,7 @@ class RecorderStatus(Message):
 class StreamInfo(Struct):
     """How fresh one stream of a robot is, as seen by the twin."""
 
+    DISPLAY_ONLY: ClassVar[bool] = True
     key: str = spec("", max_len=64)  # suffix under iorthand/<robot>/
     age: float = spec(-1.0, lo=-1.0)  # s since the twin received the latest sample; -1 = never
     latency: float = spec(-1.0)  # s between the sample's source time and its arrival; -1 = unknown
@@ -896,6 +988,7 @@ class StreamInfo(Struct):
 
 @dataclass(kw_only=True)
 class ImageInfo(Struct):
+    DISPLAY_ONLY: ClassVar[bool] = True
     source: str = spec("", max_len=32)
     seq: int = spec(0, lo=0)
     t: int = spec(0, lo=0)
@@ -918,6 +1011,7 @@ class TwinSnapshot(Message):
     snapshot was made."""
 
     MAX_BYTES: ClassVar[int] = MAX_VIDEO_PAYLOAD
+    DISPLAY_ONLY: ClassVar[bool] = True
     robot: str = spec("", max_len=64)
     known: bool = False  # the twin has heard of this robot at all
     online: bool = False
@@ -959,6 +1053,7 @@ class SensorReading(Message):
     The bounds are sanity limits only: a plausible range per sensor is the bridge mapping's (``bounds``)."""
 
     KEY: ClassVar[str] = keys.SENSOR_VITAL
+    DISPLAY_ONLY: ClassVar[bool] = True
     name: str = spec("", max_len=64)  # what is measured, e.g. "heart_rate"
     value: float = spec(0.0, lo=-1e9, hi=1e9)
     unit: str = spec("", max_len=16)  # e.g. "bpm", "%", "degC"
@@ -979,6 +1074,77 @@ def messages_by_key(table: Iterable[channels.Channel] = channels.TABLE) -> dict[
 
 
 MESSAGES_BY_KEY: dict[str, type[Message]] = messages_by_key()
+
+# ---------------------------------------------------------------------------------------------------------
+# Releases of different ages (see the module's docstring)
+
+# What a console may read of the edge only if it knows every field (a receiver refuses the others whole, and a
+# console that cannot read them must not ask for control), and what it sends the edge.
+SAFETY_STATE: tuple[type[Message], ...] = (RobotState, SafetyStatus, AppliedCommand, ForceLevelState)
+CONSOLE_SENDS: tuple[type[Message], ...] = (TwistCommand, StopCommand, ServoCommand, TorchCommand, VideoFeedback,
+                                            ControlRequest)
+
+
+def _check_revisions() -> None:
+    """Refuse an ADDED_IN that decoders would get wrong: a field added later must decode when absent."""
+    for revision, added in ADDED_IN.items():
+        if not 1 < revision <= REVISION:
+            raise ValueError(f"ADDED_IN: revision {revision} is not one after the first and up to {REVISION}")
+        for name, fields in added.items():
+            cls = globals()[name]
+            if not fields <= cls.ADDED_FIELDS:
+                raise ValueError(f"{name}: {sorted(fields - cls.ADDED_FIELDS)} added in revision {revision} must "
+                                 "be in its ADDED_FIELDS")
+
+
+_check_revisions()
+
+
+def unreadable_by(revision: int, classes: Iterable[type[Struct]]) -> list[str]:
+    """The fields (``Class.field``) of ``classes``, as this build sends them, for which a receiver speaking
+    protocol ``revision`` refuses the whole message: those added after its revision, in the classes it reads whole
+    (before TOLERANT_SINCE all of them; since, those that are not display-only). Nested maps count with their
+    message."""
+    by_name: dict[str, type[Struct]] = {}
+    for cls in classes:
+        by_name[cls.__name__] = cls
+        by_name.update((item.__name__, item) for _, item in cls._nested())
+    out = []
+    for added_in, added in sorted(ADDED_IN.items()):
+        for name, fields in added.items():
+            cls_ = by_name.get(name)
+            if added_in > revision and cls_ is not None and (revision < TOLERANT_SINCE or not cls_.DISPLAY_ONLY):
+                out.extend(f"{name}.{f}" for f in sorted(fields))
+    return out
+
+
+def revision_json() -> str:
+    """What an acquire (ControlRequest.params) and its answer (ControlReply.detail) carry: this build's revision."""
+    return json.dumps({"revision": REVISION})
+
+
+def said_revision(text: str) -> int:
+    """The protocol revision an acquire's ``params`` or its answer's ``detail`` says; 1 when it says none (the
+    first release said none)."""
+    try:
+        said = json.loads(text) if text else {}
+    except ValueError:
+        return 1
+    revision = said.get("revision") if isinstance(said, dict) else None
+    return revision if type(revision) is int and revision >= 1 else 1
+
+
+def update_the_console(console: int, fields: list[str]) -> str:
+    """The edge's refusal of control to a console that cannot read ``fields`` it sends (the instruction first:
+    a reply's reason is cut at 200 characters)."""
+    return (f"update this console: it speaks protocol revision {console}, this edge {REVISION}, and it cannot read "
+            f"{', '.join(fields)}")
+
+
+def update_the_edge(edge: int, fields: list[str]) -> str:
+    """A console's refusal to drive an edge that cannot read ``fields`` the console sends."""
+    return (f"update the edge: it speaks protocol revision {edge}, this console {REVISION}, and it cannot read "
+            f"{', '.join(fields)}")
 
 
 def message_type_for(key: str) -> type[Message] | None:

@@ -259,3 +259,87 @@ def test_a_sequencer_counts_from_one_without_duplicates_across_threads() -> None
     every = sorted(n for out in drawn for n in out)
     assert every == list(range(1, 80_001))
     assert all(out == sorted(out) for out in drawn)  # each publisher's own numbers only rise
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Releases of different ages (tests/test_version_skew.py runs them against each other)
+
+
+def _with(msg: Message, **added: object) -> bytes:
+    return msgpack.packb({**msgpack.unpackb(msg.encode()), **added})
+
+
+@pytest.mark.parametrize("msg", [protocol.ServoState(), protocol.TorchState(), protocol.ForceSample(), Markers(),
+                                 VideoFrame(width=2, height=2), protocol.SensorReading(), protocol.TwinSnapshot()],
+                         ids=lambda m: type(m).__name__)
+def test_a_display_only_message_with_a_newer_field_is_read_without_it(msg: Message) -> None:
+    cls = type(msg)
+    read = cls.decode(_with(msg.stamp(4, 5), zoom=2.0, later={"a": 1}))
+    assert read == msg and read.ignored == ("zoom", "later")
+    assert cls.decode(msg.encode()).ignored == ()
+
+
+@pytest.mark.parametrize("cls", [TwistCommand, protocol.StopCommand, protocol.ServoCommand, protocol.TorchCommand,
+                                 protocol.RobotState, protocol.SafetyStatus, protocol.AppliedCommand,
+                                 protocol.ForceLevelState, protocol.ControlRequest, protocol.ControlReply])
+def test_a_command_or_safety_state_with_a_newer_field_is_refused_whole_and_says_the_sender_is_newer(
+        cls: type[Message]) -> None:
+    with pytest.raises(DecodeError) as err:
+        cls.decode(_with(cls().stamp(1, 1), surprise=1))
+    assert err.value.field == "surprise" and err.value.newer
+    assert "unknown field: the sender is newer: update this program" in str(err.value)
+
+
+def test_a_newer_senders_refusals_are_logged_once_per_key(caplog: pytest.LogCaptureFixture) -> None:
+    rejects = protocol.RejectCounter()
+    payload = _with(protocol.SafetyStatus().stamp(1, 1), surprise=1)
+    for _ in range(50):
+        for key in ("iorthand/r1/state/safety", "iorthand/r2/state/safety"):
+            try:
+                protocol.SafetyStatus.decode(payload)
+            except DecodeError as exc:
+                rejects.add(key, str(exc))
+    rejects.add("iorthand/r1/state/safety", "SafetyStatus.armed: expected bool, got int")  # not a newer sender's
+    lines = [r.getMessage() for r in caplog.records if r.name == "iorthand.protocol"]
+    assert len(lines) == 2 and rejects.counts["iorthand/r1/state/safety"] == 51
+    assert lines[0].startswith("iorthand/r1/state/safety: refused: SafetyStatus.surprise: unknown field: the sender "
+                               "is newer: update this program")
+
+
+def test_what_a_receiver_of_an_older_revision_cannot_read() -> None:
+    sent = [protocol.RobotState, protocol.SafetyStatus, protocol.ServoState, protocol.TorchState, Markers]
+    assert protocol.unreadable_by(1, sent) == ["ServoState.period", "TorchState.period"]
+    assert protocol.unreadable_by(protocol.REVISION, sent) == []
+    assert protocol.unreadable_by(1, [protocol.RobotState]) == []
+    # From TOLERANT_SINCE on, a field added to a display-only message costs an older receiver nothing, and one added
+    # to safety state or a command costs it the whole message (nested maps count with theirs).
+    later = protocol.REVISION + 1
+    added = {"ServoState": frozenset({"zoom"}), "MarkerPose": frozenset({"size"}),
+             "SafetyStatus": frozenset({"why"})}
+    original = dict(protocol.ADDED_IN)
+    protocol.ADDED_IN[later] = added
+    try:
+        assert protocol.unreadable_by(protocol.REVISION, sent) == ["SafetyStatus.why"]
+        assert protocol.unreadable_by(1, sent) == ["ServoState.period", "TorchState.period", "ServoState.zoom",
+                                                   "MarkerPose.size", "SafetyStatus.why"]
+    finally:
+        protocol.ADDED_IN.clear()
+        protocol.ADDED_IN.update(original)
+
+
+def test_every_field_added_in_a_revision_decodes_when_absent() -> None:
+    for added in protocol.ADDED_IN.values():
+        for name, fields in added.items():
+            cls = getattr(protocol, name)
+            payload = msgpack.unpackb(cls().stamp(1, 1).encode())
+            for f in fields:
+                del payload[f]
+            cls.decode(msgpack.packb(payload))
+
+
+@pytest.mark.parametrize(("text", "revision"), [("", 1), ('{"revision": 2}', 2), ('{"revision": 7}', 7),
+                                                ('{"force": 4.0}', 1), ("[2]", 1), ("not json", 1),
+                                                ('{"revision": true}', 1), ('{"revision": 0}', 1)])
+def test_the_revision_an_acquire_or_its_answer_says(text: str, revision: int) -> None:
+    assert protocol.said_revision(text) == revision
+    assert protocol.said_revision(protocol.revision_json()) == protocol.REVISION

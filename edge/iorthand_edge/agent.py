@@ -48,21 +48,30 @@ from iorthand import channels, geometry, keys, motion
 from iorthand.cpu_latency import CpuLatencyWhileNeeded
 from iorthand.protocol import (
     MAX_PAYLOAD,
+    MESSAGES_BY_KEY,
+    REVISION,
     STOP_FROM,
     AppliedCommand,
     ControlReply,
     ControlRequest,
     DecodeError,
     Markers,
+    Message,
     RejectCounter,
     RobotState,
     SafetyStatus,
     Sequencer,
     ServoCommand,
+    ServoState,
     Status,
     StopCommand,
     TorchCommand,
+    TorchState,
     TwistCommand,
+    revision_json,
+    said_revision,
+    unreadable_by,
+    update_the_console,
 )
 from iorthand.security import sdnotify
 from iorthand.security.identity import CommandGate, operator_in_key
@@ -821,6 +830,11 @@ class EdgeAgent:
             return
         ok, reason = self.gate.check_acquire(str(query.key_expr), keys.CONTROL_ACQUIRE, req.operator)
         key = b""
+        # A console that cannot read all this edge sends would drive with part of its picture silently missing
+        # (protocol's docstring): refused, saying both revisions and what to update; the answer says ours anyway.
+        console = said_revision(req.params)
+        if ok and (unreadable := unreadable_by(console, self._sent_to_consoles())):
+            ok, reason = False, update_the_console(console, unreadable)
         if not ok:
             self.rejects.add(str(query.key_expr), reason)
         else:
@@ -828,9 +842,19 @@ class EdgeAgent:
                 grant = self.supervisor.acquire(req, time.monotonic())
             ok, reason, key = grant.ok, grant.reason, grant.key
         if key or not ok:  # a new grant or a refusal; renewals (every lease/3) are not worth a line
-            (log.info if ok else log.warning)("acquire by %r: %s", req.operator, reason)
-        self._reply(query, ok, reason, (keys.CONTROL_ACQUIRE, req), lease=self.config.safety.lease, key=key)
+            skew = f" (its console speaks protocol revision {console}, this edge {REVISION})" \
+                if ok and console != REVISION else ""
+            (log.info if ok else log.warning)("acquire by %r: %s%s", req.operator, reason, skew)
+        self._reply(query, ok, reason, (keys.CONTROL_ACQUIRE, req), lease=self.config.safety.lease, key=key,
+                    detail=revision_json())
         self._publish_safety(force=True)
+
+    def _sent_to_consoles(self) -> list[type[Message]]:
+        """The messages this edge sends a console: its robot's streams (but the actuators it has not) and answers."""
+        absent = {ServoState: self.servos is None, TorchState: self.torch is None}
+        streams = [MESSAGES_BY_KEY[c.suffix] for c in channels.TABLE
+                   if c.kind is channels.Kind.PUT and channels.Role.EDGE in c.writers]
+        return [cls for cls in dict.fromkeys(streams) if not absent.get(cls, False)] + [ControlReply]
 
     def _on_release(self, query: zenoh.Query) -> None:
         req = self._request(query, keys.CONTROL_RELEASE)

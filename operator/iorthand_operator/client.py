@@ -34,6 +34,10 @@ import zenoh
 from iorthand import keys
 from iorthand.process import raise_priority
 from iorthand.protocol import (
+    CONSOLE_SENDS,
+    NEWER_SENDER,
+    REVISION,
+    SAFETY_STATE,
     STOP_FROM,
     TWIST_FRAMES,
     AppliedCommand,
@@ -56,8 +60,12 @@ from iorthand.protocol import (
     TorchCommand,
     TorchState,
     TwistCommand,
+    revision_json,
+    said_revision,
     source_news,
     superseded_news,
+    unreadable_by,
+    update_the_edge,
 )
 from iorthand.security import auth, identity
 from iorthand.transport import QOS_BY_KEY, ZenohConfig, publisher, query
@@ -244,6 +252,12 @@ class OperatorClient:
         self.markers_at = 0.0
         self.robot_state_at = 0.0
         self.edge_alive: bool | None = None  # None: not known yet
+        # The protocol revision the edge's latest acquire answer said (None: not asked yet; 1: it said none).
+        self.edge_revision: int | None = None
+        # Safety state this console cannot read (refused as from a newer sender since the last one it could), by
+        # message class: it asks for no control meanwhile. And the keys whose newer sender the log has shown.
+        self.unreadable: dict[str, str] = {}
+        self._newer_said: set[str] = set()
         self._servo_target = [0.0, 0.0]
         self._last_refusal_key: tuple[str, str] | None = None
         self._last_safety_status = ""
@@ -350,13 +364,21 @@ class OperatorClient:
         ours; from then on every command is signed with it and the sequence starts again."""
         with self._acquire_lock:  # the lease thread and the user: one request at a time, in sequence order
             asked = time.monotonic()
-            reply = self._control(keys.CONTROL_ACQUIRE, profile)
+            # Our protocol revision: the edge refuses a console that cannot read all it sends (protocol's docstring).
+            reply = self._control(keys.CONTROL_ACQUIRE, profile, params=revision_json())
             for _ in range(TOKEN_RETRIES):
                 if reply.ok or identity.NO_TOKEN not in reply.reason or self._token is None:
                     break
                 time.sleep(TOKEN_RETRY_S)  # our token may still be on its way to the edge
                 asked = time.monotonic()
-                reply = self._control(keys.CONTROL_ACQUIRE, profile)
+                reply = self._control(keys.CONTROL_ACQUIRE, profile, params=revision_json())
+        self._edge_speaks(said_revision(reply.detail))
+        if reply.ok and (why := self._cannot_drive()):
+            if reply.key:
+                self._set_key(reply.key)  # what the release is signed with
+            self.owner = True  # the grant is ours until released: give it back, as a console that must not drive
+            self.release()
+            reply.ok, reply.reason = False, why
         if not reply.ok:
             self.log_event("control", Status.NOT_OWNER, f"control refused: {reply.reason}")
             raise ControlRefused(reply.reason)
@@ -370,6 +392,36 @@ class OperatorClient:
         self.owner, self.lease = True, reply.lease
         self._renewed_at = asked  # the edge's lease runs from no earlier than this
         return reply
+
+    def _edge_speaks(self, revision: int) -> None:
+        """Note the edge's protocol revision; a change from what we knew is said once in the log."""
+        if revision == self.edge_revision:
+            return
+        self.edge_revision = revision
+        if revision < REVISION:
+            self.log_event("warning", "version", f"the edge speaks protocol revision {revision}, this console "
+                                                 f"{REVISION}: update the edge")
+        elif revision > REVISION:
+            self.log_event("warning", "version", f"the edge speaks protocol revision {revision}, this console "
+                                                 f"{REVISION}: what the edge added is not shown here: update this "
+                                                 "console")
+
+    def _cannot_drive(self) -> str:
+        """Why this console must not drive the edge it was just granted: the edge cannot read a command it sends, or
+        it cannot read the edge's safety state (an edge that granted anyway). Empty when it may."""
+        edge = self.edge_revision or 1
+        if fields := unreadable_by(edge, CONSOLE_SENDS):
+            return update_the_edge(edge, fields)
+        return self._cannot_read_safety()
+
+    def _cannot_read_safety(self) -> str:
+        """Why this console cannot read the edge's safety state (empty when it can): the instruction, both
+        revisions (the edge's as its latest answer said, else unknown) and the refusals."""
+        if not self.unreadable:
+            return ""
+        edge = f"the edge {self.edge_revision}" if self.edge_revision is not None else "the edge a newer one"
+        return (f"update this console: it speaks protocol revision {REVISION}, {edge}, and it cannot read "
+                f"{'; '.join(self.unreadable.values())}")
 
     def _set_key(self, key: bytes) -> None:
         with self._lock:
@@ -777,11 +829,27 @@ class OperatorClient:
     # ------------------------------------------------------------------ state (callbacks only store)
 
     def _decode(self, cls, sample: zenoh.Sample):
+        key = str(sample.key_expr)
         try:
-            return cls.decode(sample.payload.to_bytes())
+            msg = cls.decode(sample.payload.to_bytes())
         except DecodeError as exc:
-            self.rejects.add(str(sample.key_expr), str(exc))
+            self.rejects.add(key, str(exc))
+            if exc.newer:
+                if cls in SAFETY_STATE:
+                    self.unreadable[cls.__name__] = str(exc)
+                self._say_newer(key, f"refused {cls.__name__}: {exc}")
             return None
+        if msg.ignored and self.rejects.note_newer(key, f"{cls.__name__} shown without {', '.join(msg.ignored)}"):
+            self._say_newer(key, f"{cls.__name__} shown without {', '.join(msg.ignored)}: {NEWER_SENDER}")
+        if self.unreadable and cls in SAFETY_STATE:
+            self.unreadable.pop(cls.__name__, None)
+        return msg
+
+    def _say_newer(self, key: str, what: str) -> None:
+        """Tell the operator, once per key, that the edge is newer than this console and what that costs."""
+        if key not in self._newer_said:
+            self._newer_said.add(key)
+            self.log_event("warning", "version", f"{key}: {what}")
 
     def _from_the_edge(self, msg: Message, suffix: str, key: str) -> bool:
         """While we hold control, the edge signs its robot state, command echoes, safety state and force levels
@@ -942,7 +1010,8 @@ class OperatorClient:
                                                          "s: the link or the edge is down")
         fresh = self._deadman and self._pressed_at > max(self._halted_at, self._press_from)
         old = self._deadman and self._pressed_at < self._press_from
-        return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down, old)
+        unreadable = self._cannot_read_safety()
+        return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down, old, unreadable)
 
     def recover(self) -> recovery.NextStep:
         """For a client whose intent is its command (a headless move, a script): take the step itself. It

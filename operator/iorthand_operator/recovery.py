@@ -33,14 +33,17 @@ class NextStep:
 
 
 def next_step(me: str, owner_held: bool, safety: SafetyStatus | None, fresh_press: bool,
-              sender_down: str = "", old_press: bool = False) -> NextStep:
+              sender_down: str = "", old_press: bool = False, unreadable: str = "") -> NextStep:
     """The step ``me`` must take. ``owner_held``: this client believes it holds a grant; ``fresh_press``: its
     deadman is pressed, and was pressed after the edge's latest halt, the latest grant and the latest start of its
     command sender; ``old_press``: it is held by a press from before the latest grant or start of its sender, which
     its commands send as released. ``sender_down``: why this client's commands cannot go out (its sender process
-    died); nothing the operator does moves the robot until they do."""
+    died); nothing the operator does moves the robot until they do. ``unreadable``: why this console cannot read
+    the edge's safety state (a newer edge's: update this console), which no step of the operator's changes."""
     if sender_down:
         return NextStep(Step.WAIT, sender_down)
+    if unreadable:
+        return NextStep(Step.WAIT, unreadable)
     if safety is None:
         return NextStep(Step.WAIT, "no safety status from the edge yet")
     if not safety.armed:
