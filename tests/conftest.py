@@ -8,6 +8,7 @@ import functools
 import gc
 import os
 import shutil
+import socket
 import subprocess
 import sys
 import threading
@@ -209,6 +210,15 @@ def ur_controller() -> Iterator[EmulatorProcess]:
         yield emulator
         with contextlib.suppress(OSError, RuntimeError):
             print("emulator events:", *emulator.status()["events"], sep="\n  ")
+
+def ur_dashboard(host: str, command: str) -> str:
+    """One command on the controller's dashboard port, as the teach pendant's buttons do; its answer."""
+    from iorthand_edge.robots.ur import DASHBOARD_PORT, ask_dashboard
+
+    with socket.create_connection((host, DASHBOARD_PORT), timeout=3.0) as sock, sock.makefile("rw") as stream:
+        stream.readline()  # the welcome line
+        return ask_dashboard(stream, command)
+
 
 class Emulator:
     """The UR emulator in a process of its own at real-time priority: a controller is a computer of its own, and

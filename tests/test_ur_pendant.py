@@ -14,7 +14,6 @@ import logging
 import os
 import re
 import signal
-import socket
 import time
 from collections.abc import Callable
 
@@ -32,7 +31,7 @@ from iorthand_edge.robots.ur import (
     installation_mismatch,
 )
 from iorthand_edge.ur_emulator.arm import ArmModel
-from tests.conftest import Emulator
+from tests.conftest import Emulator, ur_dashboard
 from tests.test_ur_backend import cycle, healthy, until, wait_emu
 
 pytestmark = pytest.mark.serial  # the controller's watchdog and the link timeout are real-time bounds (see test_ur_backend)
@@ -46,14 +45,6 @@ def make_robot(make_robot: Callable[..., URRobot]) -> Callable[..., URRobot]:
     return functools.partial(make_robot, connect_timeout=3.0, reconnect_max_s=0.5)
 
 
-def dashboard(host: str, command: str) -> str:
-    """One command on the controller's dashboard port (29999), as the pendant's buttons do; its answer."""
-    with socket.create_connection((host, 29999), timeout=3.0) as sock:
-        f = sock.makefile("rw")
-        f.readline()  # the welcome line
-        f.write(command + "\n")
-        f.flush()
-        return f.readline().strip()
 
 
 # ------------------------------------------------------------------------------------------------ speed slider
@@ -186,7 +177,7 @@ def test_pendant_mode_stops_says_what_to_do_and_nothing_moves_after_it_is_undone
     elif enter == "estop":
         emu.emergency_stop(reason="pendant button")
     elif enter == "power_off":
-        assert dashboard(emu.host, "power off") == "Powering off"
+        assert ur_dashboard(emu.host, "power off") == "Powering off"
     else:  # the person stops the program and takes local control, to jog by hand
         emu.set_remote_control(on=False)
         emu.stop_program()
@@ -199,11 +190,11 @@ def test_pendant_mode_stops_says_what_to_do_and_nothing_moves_after_it_is_undone
     elif leave == "estop":
         emu.release_emergency_stop()
         refuses(robot, "robot not running (idle)")  # released, but the brakes are on
-        assert dashboard(emu.host, "power on") == "Powering on"
-        assert dashboard(emu.host, "brake release") == "Brake releasing"
+        assert ur_dashboard(emu.host, "power on") == "Powering on"
+        assert ur_dashboard(emu.host, "brake release") == "Brake releasing"
     elif leave == "power_on":
-        assert dashboard(emu.host, "power on") == "Powering on"
-        assert dashboard(emu.host, "brake release") == "Brake releasing"
+        assert ur_dashboard(emu.host, "power on") == "Powering on"
+        assert ur_dashboard(emu.host, "brake release") == "Brake releasing"
     else:
         emu.set_remote_control(on=True)
         assert robot.read_state().takeover  # held: no script of the edge's until it is armed again on site
@@ -244,7 +235,7 @@ def test_program_stopped_on_the_pendant_holds_the_driver_until_the_edge_is_armed
     robot = make_robot()
     robot.connect()
     cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
-    assert dashboard(emu.host, "stop") == "Stopped"  # the Stop button of the pendant (or a dashboard client)
+    assert ur_dashboard(emu.host, "stop") == "Stopped"  # the Stop button of the pendant (or a dashboard client)
     reading, _ = until(robot, lambda r: bool(r.takeover), 3.0, "the takeover")
     assert reading.takeover == PROGRAM_STOPPED_OUTSIDE and reading.fault == PROGRAM_STOPPED_OUTSIDE
     refuses(robot, "the person at the robot has it")

@@ -30,7 +30,7 @@ from iorthand.protocol import Status
 from iorthand_edge.ur_emulator import HOME_POSE
 from iorthand_edge.ur_emulator.process import EmulatorProcess
 
-from .conftest import stop_process, ur_controller, wait_until
+from .conftest import stop_process, ur_controller, ur_dashboard, wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 ROBOT_ID = "ur1"
@@ -201,14 +201,6 @@ def test_protective_stop_reported_and_motion_refused_until_cleared_and_reacquire
     wait_until(lambda: moving_x(emulator, 0.02), 3.0, message="motion after re-acquiring and a fresh press")
 
 
-def dashboard(host: str, command: str) -> str:
-    """One command on the controller's dashboard port (29999), as the teach pendant's buttons do; its answer."""
-    with socket.create_connection((host, 29999), timeout=3.0) as sock:
-        f = sock.makefile("rw")
-        f.readline()  # the welcome line
-        f.write(command + "\n")
-        f.flush()
-        return f.readline().strip()
 
 
 def test_program_stopped_on_the_pendant_disarms_the_edge_until_it_is_armed_again(
@@ -220,7 +212,7 @@ def test_program_stopped_on_the_pendant_disarms_the_edge_until_it_is_armed_again
     op.wait_for_state()
     op.start()
     drive(op, emulator)
-    assert dashboard(emulator.host, "stop") == "Stopped"  # somebody at the robot pressed Stop
+    assert ur_dashboard(emulator.host, "stop") == "Stopped"  # somebody at the robot pressed Stop
     wait_until(lambda: op.safety is not None and op.safety.status == Status.DISARMED
                and op.safety.reason == PROGRAM_STOPPED_OUTSIDE, 3.0, message="state/safety disarmed, saying why")
     assert not op.safety.armed and op.robot_state.fault == PROGRAM_STOPPED_OUTSIDE
