@@ -455,9 +455,10 @@ class Inbox:
 
 
 def subscribe(session: zenoh.Session, key: str, inbox: Inbox, max_payload: int = MAX_PAYLOAD,
-              rejects: RejectCounter | None = None) -> zenoh.Subscriber:
+              rejects: RejectCounter | None = None, monotonic: bool = False) -> zenoh.Subscriber:
     """Subscribe ``key``; the callback only queues ``(key, payload bytes, receive time ns)``, with the payload's
-    size for the inbox's ``max_bytes``.
+    size for the inbox's ``max_bytes``; ``monotonic``: also the receive time on the monotonic clock (s), for a
+    consumer that times from it (a wall clock step between receipt and handling would move the receipt).
 
     A payload larger than ``max_payload`` (a command's limit by default) is refused in the callback, before it
     is copied out of Zenoh's buffers, with a reason that names its size: counted by the inbox
@@ -472,7 +473,9 @@ def subscribe(session: zenoh.Session, key: str, inbox: Inbox, max_payload: int =
             if rejects is not None:
                 rejects.add(key, reason)
             return
-        if not inbox.put((key, sample.payload.to_bytes(), time.time_ns()), size) and rejects is not None:
+        item = (key, sample.payload.to_bytes(), time.time_ns(), time.monotonic()) if monotonic else \
+            (key, sample.payload.to_bytes(), time.time_ns())
+        if not inbox.put(item, size) and rejects is not None:
             rejects.add(key, f"dropped: the inbox is full ({len(inbox)} waiting)")
 
     return session.declare_subscriber(key, on_sample)

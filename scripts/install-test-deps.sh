@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # System packages some tests use: Chromium (the twin's browser test), nftables (WAN blackouts), mosquitto
 # (the MQTT baseline), shellcheck (the deployment scripts), stress-ng (the CPU hogs of benchmarks/bench_cpu_hogs.py),
-# FFmpeg's shared libraries (torchcodec decodes a LeRobot dataset's videos with them).
+# FFmpeg's shared libraries (torchcodec decodes a LeRobot dataset's videos with them), a C compiler (test_clock_steps.py
+# builds a small LD_PRELOAD library that steps a process's wall clock: Debian's libfaketime breaks Python's sleep).
 # Installed with apt when we are root; otherwise those tests skip and say why.
 set -u
 need=()
@@ -10,6 +11,7 @@ command -v nft >/dev/null 2>&1 || need+=(nftables)
 command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || need+=(mosquitto)
 command -v shellcheck >/dev/null 2>&1 || need+=(shellcheck)
 command -v stress-ng >/dev/null 2>&1 || need+=(stress-ng)
+command -v cc >/dev/null 2>&1 || need+=(gcc)
 ldconfig -p | grep -q 'libavcodec.so.59' || need+=(libavcodec59 libavformat59 libavutil57 libswscale6 libswresample4 libavdevice59 libavfilter8)
 [ ${#need[@]} -eq 0 ] && exit 0
 if [ "$(id -u)" != 0 ] || ! command -v apt-get >/dev/null 2>&1; then

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
 from iorthand.protocol import ForceLevel, Status, TwistCommand
-from iorthand_edge.supervisor import SafetyConfig, Supervisor, WorkspaceBox
+from iorthand_edge.supervisor import Action, SafetyConfig, Supervisor, WorkspaceBox
 from tests.grants import Grants
 
 POSE = np.array([0.30, 0.0, 0.20, 3.14159, 0.0, 0.0])  # tool pointing down, inside the default box
@@ -340,3 +342,90 @@ def test_a_twist_in_the_probe_frame_moves_about_the_probe_tip() -> None:
     odd.frame = "world"
     d = sv.on_command(c.sign(sv, "op1", odd), c.wall, c.mono, POSE)
     assert not d.accepted and d.status == Status.BAD_COMMAND and "unknown twist frame 'world'" in d.reason
+
+
+def test_a_stale_view_spell_longer_than_the_resume_gap_needs_a_fresh_press() -> None:
+    """Commands keep coming (no gap) but each shows an old picture of the robot (a downlink that stalled, a clock
+    that makes fresh states look old): each is refused and the robot stops. Once the picture is fresh again after
+    more than ``resume_gap``, the operator has not driven for that long: motion resumes on a fresh press only, as
+    after a gap in the commands (it resumed by itself before)."""
+    sv, c = armed(max_view_age=0.5, resume_gap=0.5)
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).action == Action.MOVE
+    for _ in range(60):  # one second of commands at 60 Hz, the deadman held, the picture 0.8 s old
+        c.mono += 1 / 60
+        d = sv.on_command(c.cmd(view_age=0.8), c.wall, c.mono, POSE)
+        assert not d.accepted and d.status == Status.STALE_VIEW and not np.any(d.twist)
+    c.mono += 1 / 60
+    d = sv.on_command(c.cmd(), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.LINK_GAP and not np.any(d.twist), d
+    assert "motion was refused for" in d.reason and "press it again" in d.reason
+    c.mono += 1 / 60
+    assert sv.on_command(c.cmd(deadman=False), c.wall, c.mono, POSE).accepted
+    c.mono += 1 / 60
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).action == Action.MOVE
+    # A short spell (shorter than the bound) still resumes by itself: the picture was old for a moment only.
+    c.mono += 1 / 60
+    assert not sv.on_command(c.cmd(view_age=0.8), c.wall, c.mono, POSE).accepted
+    c.mono += 1 / 60
+    assert sv.on_command(c.cmd(), c.wall, c.mono, POSE).action == Action.MOVE
+
+
+def _naming_view(c: Clock, sv: Supervisor, view_t: float, age: float = 0.0, deadman: bool = True) -> TwistCommand:
+    """A command of op1 stamped by the operator's clock (``c.wall - age``) naming the robot state stamped
+    ``view_t`` (s, the edge's clock)."""
+    c.seq += 1
+    cmd = TwistCommand(operator="op1", linear=[0.005, 0.0, 0.0], deadman=deadman, state_age=0.02,
+                       view_t=int(view_t * 1e9))
+    cmd.stamp(c.seq, int((c.wall - age) * 1e9))
+    return c.sign(sv, "op1", cmd)
+
+
+def test_an_edge_clock_step_stops_the_robot_with_one_reason_that_names_the_step() -> None:
+    """This edge's wall clock steps 5 s forward (NTP) while the operator drives: every command is now 5 s old on
+    it. The refusals give one reason (rounded: a reason that changed with each command's jitter was a new line
+    in the operator's log 60 times a second), it says this robot's clock stepped, and once the robot has stopped
+    the safety status says the same (it said "no command for 150 ms" while commands kept arriving)."""
+    sv, c = armed()
+    assert sv.on_command(_naming_view(c, sv, c.wall - 0.01), c.wall, c.mono, POSE).action == Action.MOVE
+    reasons = set()
+    for i in range(30):
+        c.mono += 1 / 60
+        edge_wall = c.wall + 5.0
+        jitter = 0.003 * (i % 5)  # the link's delay varies by a few ms
+        d = sv.on_command(_naming_view(c, sv, edge_wall - 0.01, age=jitter), edge_wall, c.mono, POSE)
+        assert not d.accepted and d.status == Status.STALE_COMMAND
+        reasons.add(d.reason)
+        sv.step(c.mono + 0.001, POSE)
+    assert len(reasons) == 1, reasons
+    (reason,) = reasons
+    assert "the operator's clock is 5000 ms behind this robot's" in reason
+    assert "this robot's clock stepped 5000 ms forward" in reason and len(reason) <= 200
+    assert not sv.deadman and not sv.moving and sv.status == Status.STALE_COMMAND and sv.reason == reason
+    assert Status.STALE_COMMAND in [s for s, _ in sv.interventions]
+    # The clock is put right: the spell was longer than the resume gap, so a fresh press is needed.
+    c.mono += 1 / 60
+    d = sv.on_command(_naming_view(c, sv, c.wall - 0.01), c.wall, c.mono, POSE)
+    assert not d.accepted and d.status == Status.LINK_GAP
+    c.mono += 1 / 60
+    assert sv.on_command(_naming_view(c, sv, c.wall - 0.01, deadman=False), c.wall, c.mono, POSE).accepted
+    c.mono += 1 / 60
+    assert sv.on_command(_naming_view(c, sv, c.wall - 0.01), c.wall, c.mono, POSE).action == Action.MOVE
+
+
+def test_a_new_grant_is_refused_with_both_clocks_readings_when_they_disagree() -> None:
+    """An edge that booted without a real-time clock reads 1970: every command of any operator would be refused.
+    Control is refused at once, with both readings, so that the operator sees which clock to set; a renewal of
+    a grant is not (a step during a session refuses commands, not control)."""
+    wall = [3600.0]
+    sv = Supervisor(SafetyConfig(auto_arm=True), wall_clock=lambda: wall[0])
+    c = Clock(sv)
+    grant = c.grant(sv, "op1", c.mono)
+    assert not grant.ok and not grant.key and not sv.owner
+    assert grant.reason.startswith("clocks disagree: this robot's reads 1970-01-01 01:00 UTC, the operator's ")
+    assert "years apart" in grant.reason and "NTP" in grant.reason and len(grant.reason) <= 200
+    wall[0] = time.time()
+    ok, _ = c.acquire(sv, "op1", c.mono)
+    assert ok and sv.owner == "op1"
+    wall[0] = 3600.0  # the edge's clock steps back to 1970 during the session: the lease is renewed all the same
+    ok, reason = c.acquire(sv, "op1", c.mono + 1.0)
+    assert ok and "renewed" in reason

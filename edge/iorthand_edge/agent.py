@@ -261,7 +261,7 @@ class EdgeAgent:
         # router's ACL grants only to that operator's certificate (iorthand.security.identity).
         bound = "/*" if self.config.bind_operator_keys else ""
         self._declared = [
-            subscribe(s, k.key(keys.CMD_TWIST) + bound, self._twists, rejects=self.rejects),
+            subscribe(s, k.key(keys.CMD_TWIST) + bound, self._twists, rejects=self.rejects, monotonic=True),
             # A stop is everyone's: on the shared key, or on the sender's own (which names who sent it).
             s.declare_subscriber(k.key(keys.CMD_STOP), self._on_stop_sample),
             s.declare_subscriber(k.key(keys.CMD_STOP) + "/*", self._on_stop_sample),
@@ -597,9 +597,10 @@ class EdgeAgent:
         """Twist commands dropped unread: newer ones queued behind them while the control loop was busy."""
         return self._twists.dropped
 
-    def handle_twist(self, key: str, payload: bytes, recv_ns: int) -> AppliedCommand | None:
-        """Judge one twist command that arrived on ``key`` at ``recv_ns`` (wall clock, ns) and drive the robot
-        with what the supervisor allows (the control loop's thread). Returns the echo for state/applied,
+    def handle_twist(self, key: str, payload: bytes, recv_ns: int, recv_mono: float | None = None) -> AppliedCommand | None:
+        """Judge one twist command that arrived on ``key`` at ``recv_ns`` (wall clock, ns) and ``recv_mono``
+        (monotonic, s; None: now) and drive the robot with what the supervisor allows (the control loop's thread).
+        Returns the echo for state/applied,
         refusals included; None for a malformed command, which is counted and logged (it names no operator to
         answer), and for a forgery (a command in the owner's name that its session did not sign), counted in
         ``SafetyStatus.forged`` and logged, never answered."""
@@ -622,8 +623,9 @@ class EdgeAgent:
             pose = self.reading.tcp_pose if self.reading is not None else np.zeros(6)
             self._feed_contact_force()
             now = time.monotonic()
-            # The deadman timeout runs from when the command *arrived*, not from when this thread got to it.
-            received = now - max(0.0, (time.time_ns() - recv_ns) / 1e9)
+            # The deadman timeout runs from when the command *arrived*, not from when this thread got to it (on the
+            # monotonic clock: a wall clock step in between would move the receipt, and the lease with it).
+            received = now if recv_mono is None else min(now, recv_mono)
             goto = None
             if self.goto.active:
                 markers = self._fresh_markers() if self.goto.aims_at_marker else None

@@ -32,7 +32,14 @@ Rules (DESIGN.md, "Safety model"):
   its first motion needs a release and a press under it (the operator's client sends the release itself when the
   press came after the grant). A command names the robot state on the operator's screen (its stamp, on this
   edge's clock: the state's age is measured here, both trips over the link included); motion from a picture
-  older than ``max_view_age`` is refused and the robot stops.
+  older than ``max_view_age`` is refused and the robot stops; a spell of such refusals longer than ``resume_gap``
+  needs a fresh press, as a gap does.
+- Clocks. A command's age is this edge's wall clock at receipt minus the operator's at sending: wall clocks
+  that disagree (NTP stepped one, an edge booted without a real-time clock) make every command too old or from
+  the future. The refusal says by how much the clocks differ, and whether this edge's own clock stepped (its
+  wall clock against its monotonic one); the safety status says it once the robot has stopped. A new grant of
+  control is refused with both clocks' readings when they differ by more than ``max_command_age``: the operator
+  reads what to fix at connect, not in a flood of refusals afterwards.
 
 Every event (a command, a control cycle, a stop, arming, ownership, a fault, a force level) goes through one
 method with its time; each answer is a :class:`Decision` whose ``action`` says what the driver must do (move,
@@ -42,6 +49,7 @@ decelerate to a stop, or nothing). The agent around it only carries events in an
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -193,6 +201,10 @@ class Decision:
 
 
 NOT_ARMED = "not armed: confirm arming on the robot side"
+# s: a change of this edge's wall clock against its monotonic clock beyond this (plus what NTP may slew in the
+# time between, 500 ppm) is a step of the wall clock, not the jitter of reading two clocks.
+WALL_STEP_TOLERANCE = 0.05
+MAX_SLEW = 500e-6
 GRANT_NEEDS_PRESS = "control granted: release the deadman and press it to move"
 
 
@@ -221,11 +233,13 @@ def _not_signed(operator: str) -> str:
 
 class Supervisor:
     def __init__(self, config: SafetyConfig, period: float = 1.0 / 125.0, force_required: bool = False,
-                 robot: str = "robot", keygen: Callable[[], bytes] = auth.new_key) -> None:
+                 robot: str = "robot", keygen: Callable[[], bytes] = auth.new_key,
+                 wall_clock: Callable[[], float] = time.time) -> None:
         self.config = config
         self.period = period
         self.robot = keys.check_robot_id(robot)
         self._keygen = keygen
+        self._wall_clock = wall_clock  # this edge's wall clock (s since the epoch), read when control is asked for
         self.armed = config.auto_arm
         self.arm_requested = False
         self.owner = ""
@@ -239,6 +253,17 @@ class Supervisor:
         self._lease_until = 0.0
         self._last_seq: dict[str, int] = {}  # per key suffix, within the current grant
         self._last_accepted = -math.inf  # monotonic time of the last accepted command
+        # Monotonic time of the last command that could move the robot as far as its time and view go (accepted,
+        # its picture fresh) or released the deadman: a longer spell without one, the deadman held, needs a press.
+        self._last_live = -math.inf
+        # This edge's wall clock minus its monotonic clock at the last command (None before the first), and the
+        # steps of the wall clock seen since the clocks last agreed (s): which clock moved, for the refusals.
+        self._wall_offset: float | None = None
+        self._wall_offset_at = 0.0
+        self._wall_step = 0.0
+        self._time_refusal = ""  # why the owner's commands have been refused for their time since the last accepted
+        self._time_refused_at = -math.inf  # monotonic time of the latest such refusal
+        self._shown_age: float | None = None  # the command age those refusals give (s), kept through jitter
         self._last_deadman = False  # the deadman flag of the last accepted command
         self._deadman = False
         self._target = [0.0] * 6  # the last accepted command, already limited
@@ -358,6 +383,10 @@ class Supervisor:
             why = " (from a session that does not hold its key)" if operator == self.owner else ""
             return Grant(False, f"robot is controlled by {self.owner!r}{why}")
         if not renewal:
+            # A renewal goes through whatever the clocks say: a step during a session refuses commands, not control.
+            clocks = self._clock_refusal(req)
+            if clocks:
+                return Grant(False, clocks)
             self.owner = operator
             self._key = self._keygen()
             self._last_seq = {}
@@ -379,6 +408,17 @@ class Supervisor:
             return Grant(True, f"lease of {operator!r} renewed for {self.config.lease:g} s, profile {self.profile}")
         return Grant(True, f"control granted to {operator!r} for {self.config.lease:g} s, profile {self.profile}",
                      key=self._key)
+
+    def _clock_refusal(self, req: ControlRequest) -> str:
+        """"" if the request's time (the operator's clock) agrees with this edge's wall clock within the age a
+        command may have, else what to fix: both readings, so that the operator sees which one is wrong."""
+        here = self._wall_clock()
+        there = req.t / 1e9
+        if abs(here - there) <= self.config.max_command_age:
+            return ""
+        return (f"clocks disagree: this robot's reads {_utc(here)}, the operator's {_utc(there)} "
+                f"({_duration(here - there)} apart; a command may be {_duration(self.config.max_command_age)} old): "
+                "set the wrong one right (NTP)")
 
     def release(self, req: ControlRequest) -> tuple[bool, str]:
         """The owner gives control back (a signed request)."""
@@ -548,6 +588,7 @@ class Supervisor:
                     goto_twist: list[float] | None) -> Decision:
         self.counters.received += 1
         self._now = now
+        self._track_wall_clock(recv_wall, now)
         refusal = self._refuse(cmd, recv_wall)
         if refusal is not None:
             self.counters.rejected += 1
@@ -555,13 +596,20 @@ class Supervisor:
             forged = cmd.operator == self.owner and bool(self.owner) and status == Status.NOT_OWNER
             if forged:
                 self.counters.forged += 1
+            if status == Status.STALE_COMMAND:  # the owner's (the age is checked last): its clock, or a late link
+                self._time_refusal, self._time_refused_at = reason, now
+                if not self._deadman and not self._latched:
+                    self._set(status, reason)  # the robot stands still for this reason: the safety status says it
             return self._decide(self._current(), False, status, reason, answer=not forged)
-        gap = now - self._last_accepted
+        self._time_refusal = ""
+        gap = now - self._last_live
         resumed_after_gap = cmd.deadman and self._last_deadman and gap > self.config.resume_gap
+        silence = now - self._last_accepted
         self._last_accepted = now
         self._last_deadman = cmd.deadman
         self._lease_until = now + self.config.lease
         if not cmd.deadman:
+            self._last_live = now
             self._deadman = False
             if self._latched in RESUME_ON_PRESS:
                 self._latched = None  # deadman released after a stop, a gap or a silent sensor: the next press may
@@ -571,8 +619,12 @@ class Supervisor:
             self._set(Status.NO_DEADMAN, "deadman released")
             return self._decide([0.0] * 6, True, Status.NO_DEADMAN, "deadman released")
         if resumed_after_gap and not self._latched:
-            self._halt(Status.LINK_GAP, f"commands resumed after a gap of {1000 * gap:.0f} ms (more than "
-                       f"{1000 * self.config.resume_gap:.0f}): release the deadman and press it again", latch=True)
+            # A gap in the commands, or commands that kept coming but could move nothing (an old picture on the
+            # operator's screen): either way the operator has not driven for a while, and a press resumes.
+            spell = (f"commands resumed after a gap of {1000 * gap:.0f} ms" if silence > self.config.resume_gap else
+                     f"motion was refused for {1000 * gap:.0f} ms")
+            self._halt(Status.LINK_GAP, f"{spell} (more than {1000 * self.config.resume_gap:.0f}): release the "
+                       "deadman and press it again", latch=True)
         view_age = _view_age(cmd, recv_wall)
         if view_age < 0 or view_age > self.config.max_view_age:
             # Acting on an old picture: the robot stops, and moves again once the operator sees it live.
@@ -581,6 +633,7 @@ class Supervisor:
             self._halt(Status.STALE_VIEW, f"motion refused: the operator's screen shows {seen} "
                        f"(max {1000 * self.config.max_view_age:.0f} ms)")
             return self._decide([0.0] * 6, False, self.status, self.reason)
+        self._last_live = now
         self._deadman = True
         if self._latched:
             self.counters.rejected += 1
@@ -613,10 +666,14 @@ class Supervisor:
             self._deadman = False
             self._target = [0.0] * 6
             if not self._latched and self.armed:
-                reason = (f"no command for {1000 * (now - self._last_accepted):.0f} ms "
-                          f"(timeout {1000 * self.config.command_timeout:.0f} ms)")
-                self._halt(Status.COMMAND_TIMEOUT, reason)
-                self._note(Status.COMMAND_TIMEOUT, reason)
+                # Commands that keep coming refused for their time are no silence: their reason is the stop's (a
+                # refusal from before a silence is not).
+                refusing = self._time_refusal and now - self._time_refused_at <= self.config.command_timeout
+                status, reason = (Status.STALE_COMMAND, self._time_refusal) if refusing else (
+                    Status.COMMAND_TIMEOUT, f"no command for {1000 * (now - self._last_accepted):.0f} ms "
+                                            f"(timeout {1000 * self.config.command_timeout:.0f} ms)")
+                self._halt(status, reason)
+                self._note(status, reason)
         if self._latched or not self.armed:
             return self._decide([0.0] * 6, False, self.status, self.reason)
         if not self._deadman:
@@ -665,18 +722,38 @@ class Supervisor:
         if cmd.operator != self.owner:
             return Status.NOT_OWNER, f"robot is controlled by {self.owner!r}, not {cmd.operator!r}"
         age = recv_wall - cmd.t / 1e9
-        if abs(age) > self.config.max_command_age:
-            loop = _named_state_age(cmd, recv_wall)
-            if loop is not None and loop <= self.config.max_view_age:
-                # It names a robot state this edge stamped a moment ago: the command is not old, the clocks differ.
-                side = "behind" if age > 0 else "ahead of"
-                return Status.STALE_COMMAND, (f"the operator's clock is {1000 * abs(age):.0f} ms {side} this robot's "
-                                              f"(its view is {1000 * loop:.0f} ms old): synchronise the clocks (NTP)")
-            if age > 0:
-                return Status.STALE_COMMAND, (f"command is {1000 * age:.0f} ms old "
-                                              f"(max {1000 * self.config.max_command_age:.0f})")
-            return Status.STALE_COMMAND, f"command time is {-1000 * age:.0f} ms in the future: check clock sync"
-        return None
+        if abs(age) <= self.config.max_command_age:
+            self._wall_step, self._shown_age = 0.0, None  # the clocks agree: a step seen before is settled
+            return None
+        # The operator's client logs each distinct refusal once, and a reason that changed with every command's
+        # jitter was a new line 60 times a second: the age given stays until it is off by more than the jitter of
+        # a loaded link, and it is rounded (_duration).
+        shown = self._shown_age
+        if shown is None or abs(age - shown) > max(0.2, 0.05 * abs(shown)):
+            self._shown_age = shown = age
+        age = shown
+        stepped = (f" (this robot's clock stepped {_duration(self._wall_step)} "
+                   f"{'forward' if self._wall_step > 0 else 'back'})" if self._wall_step else "")
+        loop = _named_state_age(cmd, recv_wall)
+        if loop is not None and loop <= self.config.max_view_age:
+            # It names a robot state this edge stamped a moment ago: the command is not old, the clocks differ.
+            side = "behind" if age > 0 else "ahead of"
+            return Status.STALE_COMMAND, (f"the operator's clock is {_duration(age)} {side} this robot's{stepped}: "
+                                          "synchronise the clocks (NTP)")
+        if age > 0:
+            return Status.STALE_COMMAND, (f"command is {_duration(age)} old "
+                                          f"(max {_duration(self.config.max_command_age)}){stepped}")
+        return Status.STALE_COMMAND, f"command time is {_duration(age)} in the future{stepped}: check clock sync"
+
+    def _track_wall_clock(self, recv_wall: float, now: float) -> None:
+        """Follow this edge's wall clock against its monotonic one (``recv_wall`` and ``now`` name one instant): a
+        jump between two commands is a step of the wall clock (NTP, ``date -s``), added to ``_wall_step``."""
+        offset = recv_wall - now
+        if self._wall_offset is not None:
+            jump = offset - self._wall_offset
+            if abs(jump) > WALL_STEP_TOLERANCE + MAX_SLEW * abs(now - self._wall_offset_at):
+                self._wall_step += jump
+        self._wall_offset, self._wall_offset_at = offset, now
 
     def _current(self) -> list[float]:
         return list(self._target) if self._deadman and not self._latched else [0.0] * 6
@@ -877,6 +954,27 @@ def _view_age(cmd: TwistCommand, recv_wall: float) -> float:
         return -1.0
     age = _named_state_age(cmd, recv_wall)
     return cmd.state_age if age is None else age
+
+
+def _duration(seconds: float) -> str:
+    """The size of a clock difference or an age (its sign dropped), to 100 ms below 10 s, then coarser: stable
+    from one command to the next, readable from milliseconds to an edge that booted in 1970."""
+    s = abs(seconds)
+    if s < 10.0:
+        return f"{100 * round(10 * s)} ms"
+    for unit, size, limit in (("s", 1.0, 120.0), ("min", 60.0, 7200.0), ("h", 3600.0, 2 * 86400.0),
+                              ("days", 86400.0, 2 * 365.25 * 86400.0)):
+        if s < limit:
+            return f"{s / size:.0f} {unit}"
+    return f"{s / (365.25 * 86400.0):.0f} years"
+
+
+def _utc(wall: float) -> str:
+    """A wall clock reading (s since the epoch) to the minute, UTC (the seconds themselves if out of a date's range)."""
+    try:
+        return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(wall))
+    except (OverflowError, OSError, ValueError):
+        return f"{wall:.0f} s after 1970"
 
 
 def _floats(v: Vector | list[float]) -> list[float]:

@@ -31,6 +31,7 @@ keeps the schedule for both.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import multiprocessing as mp
@@ -59,6 +60,10 @@ _FIELDS = {"deadman": _DEADMAN, "muted": _MUTED, "released_at": _RELEASED, "hear
            "frame": _FRAME}
 # seq, t (ns), monotonic send instant (s), the grant (key_gen) seq counts in, the command's deadman flag
 _RECORD = struct.Struct("<qqdd?")
+# The most a command's state_age may say (the protocol's bound, s): an edge whose clock reads 1970 stamps its
+# states 56 years before ours, and a command saying so was malformed at the edge, dropped unanswered: the operator
+# never heard why nothing moved. At the bound it arrives, and the edge's refusal names the clocks.
+_STATE_AGE_MAX = next(f.metadata["hi"] for f in dataclasses.fields(TwistCommand) if f.name == "state_age")
 
 
 @contextlib.contextmanager
@@ -134,7 +139,7 @@ class CommandStream:
         t = time.time_ns()
         # The age of the newest robot state this operator has, on the edge's clock as the state was stamped
         # (-1: none yet, and the edge refuses motion).
-        state_age = max(0.0, (t - state_t) / 1e9) if state_t > 0 else -1.0
+        state_age = min(max(0.0, (t - state_t) / 1e9), _STATE_AGE_MAX) if state_t > 0 else -1.0
         lin, ang = ([float(v) for v in twist[:3]], [float(v) for v in twist[3:6]]) if deadman else ([0.0] * 3, [0.0] * 3)
         cmd = TwistCommand(operator=self.operator_id, linear=lin, angular=ang, deadman=deadman, state_age=state_age,
                            view_t=max(0, int(state_t)), frame=frame)
