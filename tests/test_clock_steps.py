@@ -285,3 +285,31 @@ def test_a_wall_clock_step_between_a_commands_receipt_and_its_handling_costs_no_
     assert echo is not None and echo.accepted, echo
     time.sleep(0.2)  # control cycles
     assert agent.supervisor.owner == "op1", agent.supervisor.reason
+
+
+def test_the_robots_force_sensor_ages_its_samples_on_the_monotonic_clock(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Found by a review: the arm's own force sensor (RobotForceSensor) judged a state's age by the wall clock, so
+    a step forward dropped every fresh sample (the force levels went stale while the arm pressed) and a step back
+    kept old ones. The simulated robot's state stands in for a UR's (the sensor reads only the state's fields)."""
+    from iorthand_edge.force.config import RobotForceSensorConfig
+    from iorthand_edge.force.sensors import RobotForceSensor
+    from iorthand_edge.robots.config import SimRobotConfig
+    from iorthand_edge.robots.sim import SimRobot
+
+    robot = SimRobot(SimRobotConfig())
+    robot.connect()
+    config = RobotForceSensorConfig()
+    reading = robot.read_state()
+    sensor = RobotForceSensor(config, lambda: reading)
+    real_time_ns, real_monotonic_ns = time.time_ns, time.monotonic_ns
+
+    # A fresh state, read after NTP stepped the wall clock an hour forward: its force is a sample.
+    monkeypatch.setattr(time, "time_ns", lambda: real_time_ns() + 3600 * 10**9)
+    assert sensor.read(0.0) is not None, "a fresh state gave no sample after a wall clock step forward"
+
+    # A state older than max_age, read after the wall clock stepped an hour back: no sample (stale).
+    monkeypatch.undo()
+    reading = robot.read_state()
+    monkeypatch.setattr(time, "time_ns", lambda: real_time_ns() - 3600 * 10**9)
+    monkeypatch.setattr(time, "monotonic_ns", lambda: real_monotonic_ns() + int(2 * config.max_age * 1e9))
+    assert sensor.read(0.0) is None, "a state older than max_age gave a sample after a wall clock step back"

@@ -518,6 +518,33 @@ def test_camera_and_torch_rows_age_by_the_heartbeat_period_the_edge_says(session
     assert ctrl.view(client.torch_at + ACTUATOR_STALE_S + 0.3).torch_stale.startswith("stale 1.")
 
 
+def test_both_consoles_take_markers_out_of_view_at_the_same_age(session_factory, operator_factory) -> None:
+    """Found by a review of the operator side: the web console stopped drawing markers 1 s after they arrived, the
+    terminal console said "no marker data" only after 2 s (a literal of its own). Both follow MARKERS_SHOWN_S."""
+    from iorthand.protocol import MarkerPose, Markers
+    from iorthand_operator.client import MARKERS_SHOWN_S
+    from iorthand_operator.web.server import markers_on_page
+
+    robot = "markerbot"  # no edge: only our messages reach this robot's keys
+    client = operator_factory(robot, "op1")
+    ctrl = ConsoleController(client, KeyboardInput(KeymapConfig()), ConsoleSettings())
+    pub = publisher(session_factory(), keys.RobotKeys(robot).key(keys.MARKERS))
+    seen = Markers(markers=[MarkerPose(id=7, pose=np.eye(4).ravel().tolist())])
+
+    def arrived() -> bool:
+        pub.put(seen.stamp(1).encode())
+        return client.markers is not None
+
+    wait_until(arrived, 5.0, message="markers at the client")
+    time.sleep(0.2)  # the last puts of the wait arrive: the ages below count from the newest
+    shown, gone = MARKERS_SHOWN_S - 0.1, MARKERS_SHOWN_S + 0.1
+    assert ctrl.view(client.markers_at + shown).markers == [7]
+    late = ctrl.view(client.markers_at + gone)
+    assert late.markers == [] and late.markers_note == f"no marker data for {gone:.1f} s", late.markers_note
+    assert [m["id"] for m in markers_on_page(client.markers, shown)["markers"]] == [7]
+    assert markers_on_page(client.markers, gone) == {"markers_note": f"no marker data for {gone:.1f} s"}
+
+
 def test_the_deadman_row_shows_what_the_command_stream_sends(edge_factory, operator_factory) -> None:
     """Found by a review of the operator side: "deadman sent ON" came from the input device, while without a grant
     the stream sent nothing and under a new grant it sent the deadman released until a fresh press."""

@@ -111,3 +111,54 @@ def test_a_planner_closed_on_purpose_is_not_reported_as_ended(planner, caplog) -
         child.join(5.0)
         assert not child.is_alive()
     assert "the planner process" not in caplog.text
+
+
+def test_a_preview_the_stopped_planner_cannot_answer_reaches_the_operator_with_why(
+        edge_factory, operator_factory, router_endpoint, tmp_path: Path) -> None:
+    """Found by a review: with the edge's planner stopped, a preview reached the operator as "query … failed:
+    Timeout" after the client's 2 s query timeout, before the edge could refuse it (PLAN_TIMEOUT_S, 10 s). A real
+    edge, its planner's child SIGSTOPped, a real twin in between (its preview_timeout above the edge's bound): the
+    owner reads the edge's refusal; a client that gives up sooner reads that the planner did not answer."""
+    from iorthand.config import from_dict
+    from iorthand_cloud.twin.config import TwinConfig
+    from iorthand_cloud.twin.service import TwinService
+    from iorthand_edge.planner import PLAN_TIMEOUT_S
+    from iorthand_operator.client import ControlRefused
+
+    edge = edge_factory()
+    twin = TwinService(from_dict({"zenoh": {"mode": "client", "connect": [router_endpoint]}, "preview_timeout": 15.0,
+                                  "viewer": {"serve": False, "save": str(tmp_path / "twin.rrd")}},
+                                 TwinConfig, source="<test>"))
+    twin.start()
+    child = None
+    try:
+        alice = operator_factory(operator_id="alice")
+        alice.wait_for_state()
+        alice.acquire()
+        assert alice.preview_pose("home").ok  # the planner's child is up
+        child = edge._planner._child
+        assert child is not None and child.pid is not None
+        os.kill(child.pid, signal.SIGSTOP)
+        answers: list[object] = []
+
+        def preview() -> None:
+            try:
+                answers.append(alice.preview_pose("home"))
+            except RuntimeError as exc:  # (the old client's bare "Timeout")
+                answers.append(exc)
+
+        owner = threading.Thread(target=preview)
+        owner.start()
+        # Another console that waits only 1 s: the planner (and the twin, waiting for it) cannot answer by then.
+        bob = operator_factory(operator_id="bob", plan_timeout=1.0)
+        with pytest.raises(ControlRefused, match=r"^the edge's planner did not answer the preview of 'home' within 1 s"):
+            bob.preview_pose("home")
+        owner.join(PLAN_TIMEOUT_S + 10.0)
+        assert not owner.is_alive()
+        (reply,) = answers
+        assert not isinstance(reply, Exception), f"the owner read {reply!r}"
+        assert not reply.ok and reply.reason == f"planning 'home' took longer than {PLAN_TIMEOUT_S:g} s: refused"
+    finally:
+        if child is not None and child.is_alive():
+            os.kill(child.pid, signal.SIGCONT)
+        twin.shutdown()

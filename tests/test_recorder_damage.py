@@ -184,3 +184,32 @@ def test_damage_in_the_foxglove_copy_is_said_in_the_manifest(tmp_path: Path) -> 
     error = mf.Manifest.read(tmp_path).error
     assert f"foxglove-0001.mcap: the chunk at byte {chunks[4].chunk_start_offset} is damaged" in error, error
     assert "kept as foxglove-0001.mcap.orig" in error and (tmp_path / "foxglove" / "foxglove-0001.mcap.orig").exists()
+
+
+def test_a_manifest_that_cannot_be_read_is_kept_beside_the_one_rebuilt(tmp_path: Path) -> None:
+    """Found by a review: a manifest that could not be read (here: cut short, as by a disk that failed) was replaced
+    by one rebuilt from the segments, and the original was lost without a word. It is now kept (as a damaged
+    segment is: ``.orig``, or the next free name), and the log, the command's output and the new manifest say so."""
+    from iorthand_cloud.recorder import manifest as mf
+    from iorthand_cloud.recorder.repair import repair_if_crashed
+
+    data, _ = _segment()
+    (tmp_path / "telemetry-0001.mcap").write_bytes(data)  # torn after its last chunk: the recorder was killed
+    mf.Manifest(session_id="m", operator="dr-house").write(tmp_path)
+    original = (tmp_path / mf.MANIFEST).read_bytes()
+    (tmp_path / mf.MANIFEST).write_bytes(original[: len(original) // 2])
+    (tmp_path / "manifest.json.orig").write_bytes(b"an earlier original")  # from an earlier rebuild: left alone
+    mf.release_writer_lock(tmp_path)  # as the kernel does for a killed process
+    said = repair_if_crashed(tmp_path)
+    assert "its manifest could not be read (" in said and "kept as manifest.json.orig.1, a new one rebuilt" in said, said
+    assert "repaired 1 segment" in said, said
+    assert (tmp_path / "manifest.json.orig.1").read_bytes() == original[: len(original) // 2]
+    assert (tmp_path / "manifest.json.orig").read_bytes() == b"an earlier original"
+    rebuilt = mf.Manifest.read(tmp_path)
+    assert "kept as manifest.json.orig.1" in rebuilt.error, rebuilt.error
+
+    # Whole segments and a manifest that is not JSON at all: the manifest is all there was to repair.
+    (tmp_path / mf.MANIFEST).write_bytes(b"\x00garbage")
+    said = repair_if_crashed(tmp_path)
+    assert said.startswith("its manifest could not be read (") and "kept as manifest.json.orig.2" in said, said
+    assert (tmp_path / "manifest.json.orig.2").read_bytes() == b"\x00garbage"

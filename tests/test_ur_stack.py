@@ -353,3 +353,38 @@ def test_example_config_loads() -> None:
     assert isinstance(config.robot, URRobotConfig) and not config.safety.auto_arm
     assert json.loads(json.dumps(config.robot.watchdog_hz)) > 0
     assert np.isfinite(config.robot.link_timeout)
+
+
+def test_an_edge_that_cannot_reach_its_robot_at_start_comes_up_says_why_and_connects_when_it_can(
+        router_endpoint: str, operator_factory: Callable[..., Any], caplog: pytest.LogCaptureFixture) -> None:
+    """Found with the emulator: an edge restarted 1 s after a kill, while the old driver still held the controller,
+    exited with ur_rtde's "Could not connect … 30004" in a traceback, and an edge that is down says nothing to the
+    consoles. Now it starts without the robot, says why in one log line, publishes the robot as not connected with
+    that reason, and connects by itself once the controller answers (here: the emulator started afterwards)."""
+    import logging
+
+    from iorthand_edge.agent import EdgeAgent
+    from iorthand_edge.config import EdgeConfig
+    from iorthand_edge.ur_emulator.process import free_loopback_host
+
+    host = free_loopback_host()  # nothing answers there yet
+    config = from_dict(ur_config_dict(router_endpoint, host), EdgeConfig, source="<test>")
+    agent = EdgeAgent(config)
+    try:
+        with caplog.at_level(logging.ERROR, logger="iorthand.edge"):
+            agent.start()
+        said = [r.getMessage() for r in caplog.records if "not connected at start" in r.getMessage()]
+        assert len(said) == 1 and f"robot {ROBOT_ID!r} not connected at start: " in said[0] and host in said[0], said
+        op = operator_factory(ROBOT_ID)
+        state = op.wait_for_state()
+        assert not state.connected and host in state.fault, state.fault
+        wait_until(lambda: op.safety is not None and host in op.safety.reason, 5.0,
+                   message="the safety status saying why the robot is held")
+        with EmulatorProcess(host=host) as emulator:  # (as conftest.ur_controller, on the address the edge knows)
+            emulator.raise_priority()
+            wait_until(lambda: op.robot_state.connected and not op.robot_state.fault, 15.0,
+                       message="the edge connected to the controller that came up")
+            assert list(op.robot_state.tcp_pose) == pytest.approx(list(HOME_POSE), abs=1e-6)
+            assert emulator.status()["motion"] == "idle"
+    finally:
+        agent.shutdown()

@@ -252,7 +252,16 @@ class EdgeAgent:
             raise AgentAlreadyOnline(
                 f"an edge agent for robot {self.config.robot_id!r} is already online through "
                 f"{', '.join(self.config.zenoh.connect) or self.config.zenoh.mode}: stop it first (one robot, one edge)")
-        self.robot.connect()
+        try:
+            self.robot.connect()
+        except RobotFault as exc:
+            # Not fatal: an edge that exits says nothing to the consoles (and systemd's restarts fill the journal
+            # with tracebacks). It comes up, publishes the robot as not connected with this reason (read_state) and
+            # the backend keeps reconnecting, as after a fault in use (the UR driver backs off up to
+            # reconnect_max_s); the supervisor holds the robot until it is connected and the operator acknowledges.
+            log.error("robot %r not connected at start: %s — the edge runs without it and keeps reconnecting "
+                      "(check that the controller is on, reachable from this computer, and in remote control)",
+                      self.config.robot_id, exc)
         self.first_reading()
         self._pub_robot = publisher(s, k.key(keys.STATE_ROBOT))
         self._pub_safety = publisher(s, k.key(keys.STATE_SAFETY))

@@ -121,6 +121,16 @@ RENEW_RETRY_S = 0.2  # s between attempts while a lease renewal fails (see Opera
 # A safety status older than this is none (next_step) or shown as old (the console): the edge sends one at
 # safety_rate_hz (20 Hz by default, 1 Hz at the least) and on every change.
 SAFETY_STALE_S = 2.0
+# A planning query (a preview, the list of poses) waits for the edge's planner, which refuses a plan that takes
+# longer than 10 s (iorthand_edge.planner.PLAN_TIMEOUT_S: a planner stuck, not slow); that refusal comes a round
+# trip (and the twin's hop) later. The generic query_timeout (2 s) ran out first: the operator read a bare "Timeout".
+PLAN_QUERY_TIMEOUT_S = 12.0
+# How a query that nobody answered in time ends (Zenoh's error reply, which iorthand.transport.query raises).
+QUERY_TIMED_OUT = ": Timeout"
+# Marker poses older than this are out of view on both consoles: the web console stops drawing them (its 3D view
+# would put them where the patient was) and the terminal console stops listing them; both then say how old they are.
+# The edge publishes them with every camera frame it processes, several a second.
+MARKERS_SHOWN_S = 1.0
 # A servo or torch state is shown as old (the console) once this many of its heartbeats went missing: the edge
 # publishes each on change and every ``period`` s (servos/torch publish_hz, 0.1..50 Hz), and calls the servo angles
 # unknown after as many (iorthand_edge.perception.history.SERVO_STALE_HEARTBEATS).
@@ -155,6 +165,7 @@ class OperatorClient:
         rate_hz: float = 60.0,
         release_tail: float = 0.3,
         query_timeout: float = 2.0,
+        plan_timeout: float = PLAN_QUERY_TIMEOUT_S,
         link_window: float = 5.0,
         realtime: bool = True,
         spin: bool = True,
@@ -175,6 +186,7 @@ class OperatorClient:
         self.rate_hz = rate_hz
         self.release_tail = release_tail
         self.query_timeout = query_timeout
+        self.plan_timeout = plan_timeout
         self.rejects = RejectCounter()
         self._lock = threading.Lock()
         self._twist = np.zeros(6)
@@ -309,7 +321,8 @@ class OperatorClient:
 
     # ------------------------------------------------------------------ control
 
-    def _control(self, suffix: str, profile: str = "", *, key: str | None = None, **fields: str) -> ControlReply:
+    def _control(self, suffix: str, profile: str = "", *, key: str | None = None, timeout: float | None = None,
+                 **fields: str) -> ControlReply:
         """A control query; signed with our grant's key while we hold control (renewing, releasing, moving to
         a pose and zeroing the sensor are the owner's alone: the edge checks the signature, not the name).
 
@@ -335,7 +348,8 @@ class OperatorClient:
             return reply if secret and reply.seq == req.seq and auth.verify(secret, context, reply) else None
 
         until = (lambda p: signed_with(p, grant) is not None) if to_edge and grant else None
-        replies = query(self.session, key, payload, timeout=self.query_timeout, every_answer=to_edge, until=until)
+        replies = query(self.session, key, payload, timeout=timeout or self.query_timeout, every_answer=to_edge,
+                        until=until)
         if not replies:
             raise ControlRefused(f"no answer from robot {self.keys.robot!r} on {suffix} (is its edge agent online?)")
         if until is not None and (ours := signed_with(replies[-1], grant)) is not None:
@@ -452,9 +466,22 @@ class OperatorClient:
 
     # ------------------------------------------------------------------ safety poses (edge + twin)
 
+    def _plan(self, what: str, suffix: str, *, key: str | None = None, **fields: str) -> ControlReply:
+        """A query that the edge's planner answers (its thread plans one at a time): waited for up to
+        ``plan_timeout``, long enough for the edge's own refusal of a plan that overran; none by then is said so."""
+        try:
+            return self._control(suffix, key=key, timeout=self.plan_timeout, **fields)
+        except ControlRefused:
+            raise
+        except RuntimeError as exc:
+            if not str(exc).endswith(QUERY_TIMED_OUT):
+                raise
+            raise ControlRefused(f"the edge's planner did not answer {what} within {self.plan_timeout:g} s (stopped, "
+                                 "or busy with earlier plans): try again, or check the edge's log") from None
+
     def list_poses(self) -> list[dict[str, Any]]:
         """The edge's named safety poses (``control/poses``; detail: a JSON list of {name, ...})."""
-        reply = self._control(keys.CONTROL_POSES)
+        reply = self._plan("the list of poses", keys.CONTROL_POSES)
         if not reply.ok:
             raise ControlRefused(reply.reason)
         return _json_list(reply.detail, "poses")
@@ -466,7 +493,8 @@ class OperatorClient:
         key = keys.service_key(keys.TWIN, self.keys.robot, keys.TWIN_PREVIEW)
         # Signed for the edge's plan/preview, which the twin asks with our request as it is: the edge plans the
         # owner's previews first (EdgeAgent._signed_by_owner).
-        return self._control(keys.PLAN_PREVIEW, key=key, name=name, params=json.dumps(dict(params)) if params else "")
+        return self._plan(f"the preview of {name!r}", keys.PLAN_PREVIEW, key=key, name=name,
+                          params=json.dumps(dict(params)) if params else "")
 
     def goto_pose(self, name: str, token: str) -> ControlReply:
         """Execute a previewed move (``control/goto`` with the preview's token); the edge decides."""

@@ -149,16 +149,42 @@ def set_aside(path: Path, why: SegmentError) -> Path:
     return aside
 
 
+def keep_unreadable_manifest(folder: Path) -> Path:
+    """Rename a manifest that cannot be read to the first free name of ``manifest.json.orig``,
+    ``manifest.json.orig.1``, …: a new one is rebuilt from the segments, and the original (its operator, its
+    annotations' times, the recorder's own counters) stays for whoever wants to look at it."""
+    path = folder / mf.MANIFEST
+    kept = path.with_name(path.name + ".orig")
+    n = 0
+    while kept.exists():  # an earlier rebuild's original stays too
+        n += 1
+        kept = path.with_name(f"{path.name}.orig.{n}")
+    os.replace(path, kept)
+    return kept
+
+
 def repair_session(folder: Path) -> list[RepairResult]:
     """Repair every footer-less segment of one session and bring its manifest up to date."""
+    return _repair_session(folder)[0]
+
+
+def _repair_session(folder: Path) -> tuple[list[RepairResult], str]:
+    """:func:`repair_session`, and what was done with a manifest that could not be read ("" when it was read)."""
     results: list[RepairResult] = []
+    damaged: list[str] = []
+    rebuilt = ""
     try:
         manifest = mf.Manifest.read(folder)
-    except (OSError, ValueError) as exc:
-        log.warning("%s: no readable manifest (%s); rebuilding one from the segments", folder, exc)
+    except FileNotFoundError as exc:
+        log.warning("%s: no manifest (%s); rebuilding one from the segments", folder, exc)
         manifest = mf.Manifest(session_id=folder.name)
+    except (OSError, ValueError) as exc:
+        kept = keep_unreadable_manifest(folder)
+        rebuilt = f"its manifest could not be read ({exc}): kept as {kept.name}, a new one rebuilt from the segments"
+        log.warning("%s: %s", folder, rebuilt)
+        manifest = mf.Manifest(session_id=folder.name)
+        damaged.append(rebuilt)  # said in the new manifest too (the report shows its error)
     by_file = {s.file: s for s in manifest.segments}
-    damaged: list[str] = []
     for path in segment_files(folder):
         if has_footer(path):
             seg = by_file.get(path.name)
@@ -217,7 +243,7 @@ def repair_session(folder: Path) -> list[RepairResult]:
         manifest.error = "; ".join([manifest.error, *damaged] if manifest.error else damaged)
     manifest.repaired = manifest.repaired or bool(results)
     manifest.write(folder)
-    return results
+    return results, rebuilt
 
 
 def repair_if_crashed(folder: Path) -> str:
@@ -242,11 +268,14 @@ def repair_if_crashed(folder: Path) -> str:
         return "still being recorded: read as far as it is written"
     if not torn and status is not None and status != mf.RECORDING:
         return ""
-    results = repair_session(folder)
+    results, rebuilt = _repair_session(folder)
+    if rebuilt and not torn:  # the segments were whole: the manifest was all there was to repair
+        return rebuilt
     kept = sum(r.messages for r in results)
     damaged = "".join(f"; {r.damage_note}" for r in results if r.damage_note)
-    return (f"the recorder stopped without closing this session: repaired {len(results)} segment(s), "
-            f"{kept} messages kept, {sum(r.lost_bytes for r in results)} bytes of torn tail dropped{damaged}")
+    return (f"{rebuilt + '; ' if rebuilt else ''}the recorder stopped without closing this session: repaired "
+            f"{len(results)} segment(s), {kept} messages kept, {sum(r.lost_bytes for r in results)} bytes of torn "
+            f"tail dropped{damaged}")
 
 
 def repair_all(root: Path) -> dict[str, list[RepairResult]]:

@@ -173,7 +173,9 @@ class TwinConfig:
     default_robot: RobotView = field(default_factory=RobotView)
     robot_spacing: float = setting(1.0, lo=0.0, hi=100.0, help="m along y between robots without a base pose")
     state_timeout: float = setting(1.0, lo=0.05, hi=60.0, help="s without state/robot: shown as stale")
-    preview_timeout: float = setting(3.0, lo=0.1, hi=60.0, help="s to wait for the edge's preview answer")
+    # Above the edge's own bound on a plan (planner.PLAN_TIMEOUT_S, 10 s), which it answers with its reason, and
+    # below the operator client's wait (client.PLAN_QUERY_TIMEOUT_S, 12 s), which then reads this answer.
+    preview_timeout: float = setting(11.0, lo=0.1, hi=60.0, help="s to wait for the edge's preview answer")
     snapshot_images: bool = setting(False, help="include the latest JPEGs in snapshots (also: ?images=1)")
     max_robots: int = setting(64, lo=1, hi=10_000, help="robots followed besides those under robots: (each costs "
                               "memory here and in the viewer); samples of more are refused, counted and logged")

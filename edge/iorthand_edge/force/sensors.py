@@ -374,11 +374,12 @@ class RobotForceSensor(ForceSensor):
 
     def read(self, timeout: float) -> WrenchSample | None:
         r = self._reading()
-        if r is None or not r.connected or r.timestamp_ns == self._last_ns:
+        if r is None or not r.connected or r.monotonic_ns == self._last_ns:
             return None
-        if time.time_ns() - r.timestamp_ns > self.config.max_age * 1e9:
+        # Aged on the monotonic clock: on the wall clock a step forward would drop every sample, one back keep old ones.
+        if time.monotonic_ns() - r.monotonic_ns > self.config.max_age * 1e9:
             return None
-        self._last_ns = r.timestamp_ns
+        self._last_ns = r.monotonic_ns
         with self._lock:
             return WrenchSample(self._tool_frame(r) - self._offset, r.timestamp_ns)
 

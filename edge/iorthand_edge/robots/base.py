@@ -7,6 +7,7 @@ can publish the command that really reached the robot.
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,7 +29,7 @@ class RobotReading:
     tcp_pose: Vector
     tcp_speed: Vector
     q: Vector
-    timestamp_ns: int  # when this sample was taken, on the agent's clock
+    timestamp_ns: int  # when this sample was taken, on the agent's wall clock (what messages carry)
     robot_time: float = 0.0  # the controller's own clock, s
     mode: str = "running"
     connected: bool = True
@@ -37,6 +38,8 @@ class RobotReading:
     # Non-empty: somebody at the robot took it over (a program stopped on its teach pendant, local control), and why.
     # The agent disarms with this reason; the backend stays down until the edge is armed again (allow_restart).
     takeover: str = ""
+    # When this sample was taken, on the monotonic clock: its age is judged on this one, as the wall clock can step.
+    monotonic_ns: int = field(default_factory=time.monotonic_ns)
 
 
 class Robot(ABC):

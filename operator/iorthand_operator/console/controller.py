@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from iorthand_operator import recovery
-from iorthand_operator.client import ControlRefused, OperatorClient, actuator_stale_after
+from iorthand_operator.client import MARKERS_SHOWN_S, ControlRefused, OperatorClient, actuator_stale_after
 from iorthand_operator.console.model import (
     ForceView,
     LinkRow,
@@ -284,8 +284,8 @@ class ConsoleController:
             v.markers_note = "no marker data"
         elif c.markers.failure:
             v.markers_note, v.markers_failed = f"camera failed: {c.markers.failure}", True
-        elif now - c.markers_at >= 2.0:
-            v.markers_note = f"no marker data for {now - c.markers_at:.0f} s"
+        elif now - c.markers_at >= MARKERS_SHOWN_S:  # as the web console (which stops drawing them then)
+            v.markers_note = f"no marker data for {now - c.markers_at:.1f} s"
         else:
             v.markers = sorted(m.id for m in c.markers.markers)
         if c.servo is not None:

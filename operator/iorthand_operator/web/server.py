@@ -44,13 +44,20 @@ from aiohttp import WSMsgType, web
 from iorthand import geometry, keys, kinematics
 from iorthand.config import from_dict as config_from_dict
 from iorthand.config import read_yaml
-from iorthand.protocol import DecodeError, Sequencer, StopCommand, VideoFeedback, VideoFrame
+from iorthand.protocol import DecodeError, Markers, Sequencer, StopCommand, VideoFeedback, VideoFrame
 from iorthand.security.acl import Deployment
 from iorthand.security.certs import load_certificate, subject_alt_names
 from iorthand.security.hosts import host_allowed
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
 from iorthand_operator import recovery
-from iorthand_operator.client import ControlRefused, Echo, Event, OperatorClient, actuator_stale_after
+from iorthand_operator.client import (
+    MARKERS_SHOWN_S,
+    ControlRefused,
+    Echo,
+    Event,
+    OperatorClient,
+    actuator_stale_after,
+)
 from iorthand_operator.console.model import force_view, stale_note, vitals_line
 from iorthand_operator.console.settings import ConsoleSettings
 from iorthand_operator.link import GRADE_COLOURS, STATE_STALE_S, LinkThresholds
@@ -66,8 +73,6 @@ VIDEO_STREAMS = {"camera": keys.VIDEO_CAMERA, "ultrasound": keys.VIDEO_ULTRASOUN
 # How old each value on the page may be before it is shown as old: the terminal console's bounds, from where they
 # are set (the page gets each row's age from here, and the page-side bound in its hello: no second copy in the page).
 FORCE_STALE_S = ConsoleSettings.force_stale_after
-# Markers older than this are not drawn (the 3D view would put them where the patient was); the page says how old.
-MARKERS_SHOWN_S = 1.0
 # A page whose socket holds more than this unsent is behind: it gets no video until it has drained (newest wins).
 VIDEO_BACKLOG_BYTES = 256 * 1024
 WS_MAX_BYTES = 64 * 1024  # aiohttp closes a socket whose message is larger; up to it, messages.parse refuses
@@ -650,10 +655,8 @@ class Page:
         out["force"] = force
         if w.vitals:  # the patient's vital signs (sensor/vital), one line as on the terminal console
             out["vitals"] = vitals_line(dict(w.vitals), now)
-        if w.markers is not None and now - w.markers_at < MARKERS_SHOWN_S:
-            out["markers"] = [{"id": m.id, "pose": [round(v, 4) for v in m.pose]} for m in w.markers.markers]
-        elif w.markers is not None:  # not drawn: the page says why, lest a marker gone read as one out of view
-            out["markers_note"] = f"no marker data for {now - w.markers_at:.1f} s"
+        if w.markers is not None:
+            out.update(markers_on_page(w.markers, now - w.markers_at))
         if w.servo is not None:  # aged after three of the edge's heartbeats, as on the terminal console
             out["servo"] = {"pan": w.servo.pan, "tilt": w.servo.tilt,
                             "stale": stale_note(now - w.servo_at, actuator_stale_after(w.servo))}
@@ -704,6 +707,15 @@ class Page:
         self.closed = True
         self.feed.pages.discard(self)
         self._release()
+
+
+def markers_on_page(markers: Markers, age: float) -> dict[str, Any]:
+    """The markers the page draws, ``age`` s after they arrived: none once older than MARKERS_SHOWN_S (the 3D view
+    would put them where the patient was), and then a note saying how old, lest a marker gone read as one out of
+    view."""
+    if age < MARKERS_SHOWN_S:
+        return {"markers": [{"id": m.id, "pose": [round(v, 4) for v in m.pose]} for m in markers.markers]}
+    return {"markers_note": f"no marker data for {age:.1f} s"}
 
 
 def _grade_rank(grade: str) -> int:
