@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 import yaml
 import zenoh
@@ -42,12 +44,15 @@ from iorthand import keys
 from iorthand.protocol import (
     AppliedCommand,
     ForceLevelState,
+    MarkerPose,
+    Markers,
     RobotState,
     SafetyStatus,
     Sequencer,
     ServoState,
     Status,
     TorchState,
+    VideoFrame,
 )
 from iorthand.transport import client_config, free_port, open_session
 from iorthand_operator.client import SAFETY_STALE_S, actuator_stale_after
@@ -1177,13 +1182,17 @@ def test_a_page_flooding_stops_and_junk_is_paced_and_bounded(stack) -> None:
 
 
 # s between two messages of each source of the stand-in robot: the servo's and the torch's are their heartbeats.
-STANDIN_PERIODS = {"state": 0.05, "safety": 0.05, "force": 0.1, "servo": 0.25, "torch": 0.25}
+STANDIN_PERIODS = {"state": 0.05, "safety": 0.05, "force": 0.1, "servo": 0.25, "torch": 0.25, "markers": 0.1,
+                   "camera": 0.1}
+STANDIN_MARKER = 7
 
 
 class StandIn:
     """The edge's state messages for a robot with no edge: the real messages, published through the real router by
     this process, each source at its own period until the test quiets it (a servo board whose heartbeats stop,
-    a dead link). Stands in for hardware (servos, torch, a force sensor) that cannot stop on cue here."""
+    a dead link). Stands in for hardware (servos, torch, a force sensor, a camera) that cannot stop or fail on cue
+    here: perception's markers and the camera's pictures (real JPEGs, by OpenCV) carry the edge's ``failure`` while
+    the test sets one (``failures``), as the edge sends them at each attempt to reopen a camera that failed."""
 
     def __init__(self, session: zenoh.Session) -> None:
         k = keys.RobotKeys(ROBOT)
@@ -1191,9 +1200,15 @@ class StandIn:
                      "safety": session.declare_publisher(k.key(keys.STATE_SAFETY)),
                      "force": session.declare_publisher(k.key(keys.STATE_FORCE_LEVEL)),
                      "servo": session.declare_publisher(k.key(keys.STATE_SERVO)),
-                     "torch": session.declare_publisher(k.key(keys.STATE_TORCH))}
+                     "torch": session.declare_publisher(k.key(keys.STATE_TORCH)),
+                     "markers": session.declare_publisher(k.key(keys.MARKERS)),
+                     "camera": session.declare_publisher(k.key(keys.VIDEO_CAMERA))}
         self.alive = session.liveliness().declare_token(k.key(keys.ALIVE_EDGE))
         self.status, self.reason = Status.OK, "all well"
+        self.failures = {"markers": "", "camera": ""}  # why perception / the camera's video has no frames ("": none)
+        ok, jpeg = cv2.imencode(".jpg", np.full((48, 64, 3), 90, np.uint8))
+        assert ok
+        self.jpeg = jpeg.tobytes()
         self.quiet: set[str] = set()
         self.last_put: dict[str, float] = {}  # wall time of each source's newest message
         self.lock = threading.Lock()
@@ -1215,6 +1230,14 @@ class StandIn:
             return ForceLevelState(level=0, stale=False, value=1.0)
         if name == "servo":
             return self.servo()
+        if name == "markers":
+            failure = self.failures["markers"]
+            pose = [1.0, 0.0, 0.0, 0.3, 0.0, 1.0, 0.0, 0.1, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+            return Markers(markers=[] if failure else [MarkerPose(id=STANDIN_MARKER, pose=pose, raw=pose)],
+                           failure=failure)
+        if name == "camera":
+            failure = self.failures["camera"]
+            return VideoFrame(source="camera", width=64, height=48, data=b"" if failure else self.jpeg, failure=failure)
         return TorchState(on=True, brightness=0.8, period=STANDIN_PERIODS["torch"])
 
     def _run(self) -> None:
@@ -1335,4 +1358,77 @@ def test_a_status_reason_with_html_or_script_in_it_is_shown_as_text(standin, bro
     finally:
         with robot.lock:
             robot.status, robot.reason = Status.OK, "all well"
+        page.context.close()
+
+
+def test_a_camera_that_failed_is_said_over_the_3d_view_not_shown_as_no_marker_in_view(standin, browser) -> None:
+    """Found: perception's failure (the edge cannot read its camera, and says why in every Markers message) reached
+    the page as an empty 3D view, which reads as "no marker in view". The page now says it under the view, in red,
+    as the terminal console's markers row does, with the edge's reason shown as text."""
+    stack, robot = standin
+    reason = 'camera /dev/video0 cannot be opened <img src=x onerror="window.pwned=1">'
+    page = open_console(browser, stack.url, "student", control=False)
+    try:
+        page.wait_for_function("document.getElementById('status').textContent === 'ok'", timeout=10_000)
+        assert page.text_content("#markers-note") == ""  # markers arrive: nothing to say
+
+        with robot.lock:
+            robot.failures["markers"] = reason
+        page.wait_for_function("document.getElementById('markers-note').textContent === "
+                               f"{json.dumps('· markers: camera failed: ' + reason)}", timeout=10_000)
+        assert "failed" in _classes(page, "#markers-note")
+        time.sleep(0.3)  # an image's onerror would have run by now
+        assert page.evaluate("document.querySelectorAll('#markers-note *').length") == 0
+        assert page.evaluate("window.pwned") is None
+
+        with robot.lock:  # the camera is back
+            robot.failures["markers"] = ""
+        page.wait_for_function("document.getElementById('markers-note').textContent === ''", timeout=10_000)
+        assert "failed" not in _classes(page, "#markers-note")
+    finally:
+        with robot.lock:
+            robot.failures["markers"] = ""
+        page.context.close()
+
+
+def test_a_video_source_that_failed_says_why_in_place_of_its_picture(standin, browser) -> None:
+    """Found: the edge's failure notice for a video stream (no picture, and why: sent at each attempt to reopen the
+    source) reached the page as an empty frame; the page dropped the picture but said only "no picture" in an
+    image's alt text, its caption went on showing the last picture's delay as if live, and the reason was nowhere
+    (the page's comment sent it to the event log, where nothing put it). Now the caption says why, the picture is
+    marked failed, and the event log says when the stream stopped and came back (the twin's words, source_news)."""
+    stack, robot = standin
+    reason = 'USB camera unplugged <img src=x onerror="window.pwned=1">'
+    page = open_console(browser, stack.url, "student", control=False)
+    figure = "figure:has(#camera)"
+    try:
+        page.wait_for_function("window.iorthand.video.camera.length > 2", timeout=10_000)  # pictures arrive
+        assert (page.get_attribute("#camera", "src") or "").startswith("blob:")
+        assert "failed" not in _classes(page, figure)
+
+        with robot.lock:
+            robot.failures["camera"] = reason
+        page.wait_for_function("document.getElementById('camera-age').textContent === "
+                               f"{json.dumps('no picture: ' + reason)}", timeout=10_000)
+        assert page.get_attribute("#camera", "src") is None  # the last picture is not kept as if live
+        assert "failed" in _classes(page, figure)
+        page.wait_for_function("[...document.querySelectorAll('#events li')].some((li) => li.textContent.endsWith("
+                               f"{json.dumps('camera video has no frames: ' + reason + ' (the edge retries)')}))",
+                               timeout=10_000)
+        time.sleep(0.3)  # an image's onerror would have run by now
+        assert page.evaluate("document.querySelectorAll('#camera-age *, figure img:not(#camera):not(#ultrasound)')"
+                             ".length") == 0
+        assert page.evaluate("window.pwned") is None
+
+        with robot.lock:  # the source is back
+            robot.failures["camera"] = ""
+        page.wait_for_function("(document.getElementById('camera').getAttribute('src') || '').startsWith('blob:')",
+                               timeout=10_000)
+        page.wait_for_function("document.getElementById('camera-age').textContent.endsWith(' ms')", timeout=10_000)
+        assert "failed" not in _classes(page, figure)
+        page.wait_for_function("[...document.querySelectorAll('#events li')].some((li) => "
+                               "li.textContent.endsWith('camera video back: frames flow again'))", timeout=10_000)
+    finally:
+        with robot.lock:
+            robot.failures["camera"] = ""
         page.context.close()

@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import json
 import re
+import struct
 
 import pytest
 
+from iorthand.protocol import MarkerPose, Markers
 from iorthand.security.acl import Deployment
 from iorthand.security.hosts import host_allowed
+from iorthand_operator.client import MARKERS_SHOWN_S
 from iorthand_operator.web import messages, users
 from iorthand_operator.web.config import WebConfig
+from iorthand_operator.web.server import Frame, markers_on_page
 
 
 def test_grants_follow_the_deployment_as_the_routers_acl_does() -> None:
@@ -270,3 +274,27 @@ def test_an_account_under_attack_stays_open_to_its_user_from_a_clean_address() -
     clean = [guard.attempt(f"198.51.100.{i}", "alice", 101.0) == 0 for i in range(30)]
     assert clean == [True] * 20 + [False] * 10
     assert guard.attempt("192.0.2.1", "alice", 161.0) == 0  # the window passed
+
+
+def test_a_camera_failure_is_a_note_on_the_page_never_an_empty_view_of_markers() -> None:
+    """The edge's Markers with ``failure`` set (no markers, and why) is said as the terminal console says it, fresh
+    or old; markers that arrive are drawn until MARKERS_SHOWN_S, then said to be that old."""
+    failed = Markers(failure="camera /dev/video0: no frame for 2.0 s")
+    for age in (0.0, MARKERS_SHOWN_S + 5.0):
+        assert markers_on_page(failed, age) == {"markers_note": "camera failed: camera /dev/video0: no frame for 2.0 s",
+                                                "markers_failed": True}
+    seen = Markers(markers=[MarkerPose(id=3)])
+    assert [m["id"] for m in markers_on_page(seen, 0.0)["markers"]] == [3]
+    assert markers_on_page(seen, MARKERS_SHOWN_S + 0.5) == {"markers_note": f"no marker data for {MARKERS_SHOWN_S + 0.5:.1f} s"}
+
+
+def test_a_video_failure_notice_goes_to_the_page_with_its_reason() -> None:
+    """A frame's wire form: the 14-byte header, then its data; a failure notice's flag (bit 2) and its reason in
+    place of data, which the page shows where the picture was."""
+    notice = Frame(seq=7, t=123, data=b"", failure="USB camera unplugged")
+    wire = notice.wire(0)
+    stream, t, seq, flags = struct.unpack(">BQIB", wire[:14])
+    assert (stream, t, seq, flags) == (0, 123, 7, 4)
+    assert wire[14:].decode() == "USB camera unplugged"
+    picture = Frame(seq=8, t=124, data=b"\xff\xd8jpeg", h264=True, keyframe=True).wire(1)
+    assert struct.unpack(">BQIB", picture[:14]) == (1, 124, 8, 3) and picture[14:] == b"\xff\xd8jpeg"

@@ -24,13 +24,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from iorthand_operator import recovery
-from iorthand_operator.client import MARKERS_SHOWN_S, ControlRefused, OperatorClient, actuator_stale_after
+from iorthand_operator.client import ControlRefused, OperatorClient, actuator_stale_after
 from iorthand_operator.console.model import (
     ForceView,
     LinkRow,
     force_view,
     inert,
     link_rows,
+    markers_note,
     next_profile,
     sparkline,
     stale_note,
@@ -282,12 +283,10 @@ class ConsoleController:
         v.command = [*(1000 * tw[:3]), *(math.degrees(a) for a in tw[3:])]
         if c.markers is None:
             v.markers_note = "no marker data"
-        elif c.markers.failure:
-            v.markers_note, v.markers_failed = f"camera failed: {c.markers.failure}", True
-        elif now - c.markers_at >= MARKERS_SHOWN_S:  # as the web console (which stops drawing them then)
-            v.markers_note = f"no marker data for {now - c.markers_at:.1f} s"
         else:
-            v.markers = sorted(m.id for m in c.markers.markers)
+            v.markers_note, v.markers_failed = markers_note(c.markers.failure, now - c.markers_at)
+            if not v.markers_note:
+                v.markers = sorted(m.id for m in c.markers.markers)
         if c.servo is not None:
             v.camera = f"pan {math.degrees(c.servo.pan):+.0f}° tilt {math.degrees(c.servo.tilt):+.0f}°"
             v.camera_stale = stale_note(now - c.servo_at, actuator_stale_after(c.servo))

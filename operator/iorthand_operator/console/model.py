@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from iorthand.protocol import FORCE_LEVEL_COLOURS, ForceLevel, ForceLevelState, SensorReading, printable
+from iorthand_operator.client import MARKERS_SHOWN_S
 from iorthand_operator.link import GRADE_COLOURS, LinkQuality, LinkThresholds
 
 GREY = "grey50"
@@ -56,6 +57,17 @@ def vitals_line(vitals: Mapping[str, tuple[SensorReading, float]], now: float, o
 def stale_note(age: float, stale_after: float) -> str:
     """"stale 3.2 s" for a state ``age`` s old when that is more than ``stale_after``; "" while it is current."""
     return f"stale {age:.1f} s" if age > stale_after else ""
+
+
+def markers_note(failure: str, age: float) -> tuple[str, bool]:
+    """Why a console shows no markers, ``age`` s after the newest arrived ("" while it shows them), and whether that
+    is a camera failure: the edge's ``failure`` first, whatever the age (an empty view then is no camera, not no
+    marker in view), then markers older than MARKERS_SHOWN_S, said to be that old. Both consoles' rule and words."""
+    if failure:
+        return f"camera failed: {failure}", True
+    if age >= MARKERS_SHOWN_S:
+        return f"no marker data for {age:.1f} s", False
+    return "", False
 
 
 def sparkline(values: Sequence[float], width: int = 30, top: float | None = None) -> str:

@@ -44,21 +44,20 @@ from aiohttp import WSMsgType, web
 from iorthand import geometry, keys, kinematics
 from iorthand.config import from_dict as config_from_dict
 from iorthand.config import read_yaml
-from iorthand.protocol import DecodeError, Markers, Sequencer, StopCommand, VideoFeedback, VideoFrame
+from iorthand.protocol import DecodeError, Markers, Sequencer, StopCommand, VideoFeedback, VideoFrame, source_news
 from iorthand.security.acl import Deployment
 from iorthand.security.certs import load_certificate, subject_alt_names
 from iorthand.security.hosts import host_allowed
 from iorthand.transport import QOS_BY_KEY, open_session, publisher
 from iorthand_operator import recovery
 from iorthand_operator.client import (
-    MARKERS_SHOWN_S,
     ControlRefused,
     Echo,
     Event,
     OperatorClient,
     actuator_stale_after,
 )
-from iorthand_operator.console.model import force_view, stale_note, vitals_line
+from iorthand_operator.console.model import force_view, markers_note, stale_note, vitals_line
 from iorthand_operator.console.settings import ConsoleSettings
 from iorthand_operator.link import GRADE_COLOURS, STATE_STALE_S, LinkThresholds
 from iorthand_operator.web import messages, users
@@ -108,10 +107,12 @@ class Frame:
     keyframe: bool = False
 
     def wire(self, stream_index: int) -> bytes:
-        """The binary websocket message: stream, capture time, sequence, flags (bit 0 H.264, bit 1 keyframe)."""
-        flags = (1 if self.h264 else 0) | (2 if self.keyframe else 0)
+        """The binary websocket message: stream, capture time, sequence, flags (bit 0 H.264, bit 1 keyframe, bit 2
+        failure notice), then the frame's data, or a failure notice's reason (UTF-8): the page says why there is
+        no picture in its place."""
+        flags = (1 if self.h264 else 0) | (2 if self.keyframe else 0) | (4 if self.failure else 0)
         header = struct.pack(">BQIB", stream_index, self.t, self.seq & 0xFFFFFFFF, flags)
-        return header + (self.data if not self.failure else b"")
+        return header + (self.failure.encode() if self.failure else self.data)
 
 
 # Frames of an H.264 stream kept for pages that are a few frames behind: a page further behind skips to the next
@@ -129,6 +130,7 @@ class Feed:
         self.arm = kinematics.ArmTracker(arm_model)
         self.frames: dict[str, deque[Frame]] = {name: deque(maxlen=H264_BACKLOG) for name in VIDEO_STREAMS}
         self.pages: set[Page] = set()
+        self._video_failure = dict.fromkeys(VIDEO_STREAMS, "")  # each stream's newest failure ("": frames flow)
         self._arm_seq = -1
         self._arm_points: list[list[float]] | None = None
         self._lock = threading.Lock()
@@ -143,6 +145,11 @@ class Feed:
                 self.watch.rejects.add(str(sample.key_expr), str(exc))
                 return
             frame = Frame(msg.seq, msg.t, msg.data, msg.failure, msg.encoding == "h264", msg.keyframe)
+            # In the pages' event logs too, as the twin says it: when a stream stopped, why, and when it came back.
+            news = source_news(f"{name} video", self._video_failure[name], msg.failure)
+            if news:
+                self.watch.log_event("warning" if msg.failure else "info", f"{name}_video", news)
+            self._video_failure[name] = msg.failure
             frames = self.frames[name]
             if not frame.h264:
                 frames.clear()  # newest wins
@@ -710,12 +717,14 @@ class Page:
 
 
 def markers_on_page(markers: Markers, age: float) -> dict[str, Any]:
-    """The markers the page draws, ``age`` s after they arrived: none once older than MARKERS_SHOWN_S (the 3D view
-    would put them where the patient was), and then a note saying how old, lest a marker gone read as one out of
-    view."""
-    if age < MARKERS_SHOWN_S:
-        return {"markers": [{"id": m.id, "pose": [round(v, 4) for v in m.pose]} for m in markers.markers]}
-    return {"markers_note": f"no marker data for {age:.1f} s"}
+    """The markers the page draws, ``age`` s after they arrived, or why none (console.model.markers_note: the
+    terminal console's rule; ``markers_failed``: the page shows it as a failure)."""
+    note, failed = markers_note(markers.failure, age)
+    if failed:
+        return {"markers_note": note, "markers_failed": True}
+    if note:
+        return {"markers_note": note}
+    return {"markers": [{"id": m.id, "pose": [round(v, 4) for v in m.pose]} for m in markers.markers]}
 
 
 def _grade_rank(grade: str) -> int:

@@ -357,7 +357,7 @@ function onMessage(m) {
 }
 
 const VIDEO_NAMES = ["camera", "ultrasound"];
-const HEADER_BYTES = 14; // stream u8, capture time u64 (ns), sequence u32, flags u8 (1: H.264, 2: keyframe)
+const HEADER_BYTES = 14; // stream u8, capture time u64 (ns), sequence u32, flags u8 (1: H.264, 2: keyframe, 4: failure)
 const objectUrls = {};
 const decoders = {}; // per stream: the WebCodecs H.264 decoder and the capture times of the frames in it
 
@@ -368,6 +368,18 @@ function recordDelay(name, captureMs, bytes) {
   stats.videoBytes += bytes;
   if (list.length > 5000) list.splice(0, 2500);
   $(`${name}-age`).textContent = `${Math.max(0, delayMs).toFixed(0)} ms`;
+  $(`${name}-age`).closest("figure").classList.remove("failed");
+}
+
+// No picture, and why (the edge's reason, as text): in place of the last one, which would read as live.
+function showNoPicture(name, reason) {
+  const img = ui[name];
+  img.removeAttribute("src");
+  img.hidden = false;
+  $(`${name}-video`).hidden = true;
+  img.alt = `${name}: no picture: ${reason}`;
+  $(`${name}-age`).textContent = `no picture: ${reason}`;
+  img.closest("figure").classList.add("failed");
 }
 
 function h264Decoder(name) {
@@ -381,6 +393,9 @@ function h264Decoder(name) {
       if (canvas.width !== frame.displayWidth) { canvas.width = frame.displayWidth; canvas.height = frame.displayHeight; }
       canvas.getContext("2d").drawImage(frame, 0, 0);
       frame.close();
+      // Shown once a frame is drawn: after a failure notice the canvas still holds the picture from before it.
+      ui[name].hidden = true;
+      canvas.hidden = false;
       if (capture) recordDelay(name, capture.ms, capture.bytes);
     },
     error: (e) => { entry.failed = e.message; entry.ready = false; delete decoders[name]; },
@@ -399,11 +414,12 @@ function onVideo(buffer) {
   const data = buffer.slice(HEADER_BYTES);
   const img = ui[name];
   const canvas = $(`${name}-video`);
-  if (!data.byteLength) { // the edge says why there is no picture (the event log has the reason)
-    img.removeAttribute("src");
-    img.hidden = false;
-    canvas.hidden = true;
-    img.alt = `${name}: no picture`;
+  if (flags & 4) { // the edge's failure notice: the source gives no frames, and the data says why
+    showNoPicture(name, new TextDecoder().decode(data));
+    return;
+  }
+  if (!data.byteLength) {
+    showNoPicture(name, "an empty frame");
     return;
   }
   const captureMs = Number(tNs / 1000000n);
@@ -418,8 +434,6 @@ function onVideo(buffer) {
     const key = (flags & 2) !== 0;
     if (!entry.ready && !key) return; // a decoder starts at a keyframe
     entry.ready = true;
-    img.hidden = true;
-    canvas.hidden = false;
     const timestamp = Number(tNs / 1000n); // µs
     entry.captured.set(timestamp, { ms: captureMs, bytes: buffer.byteLength });
     if (entry.captured.size > 120) entry.captured.delete(entry.captured.keys().next().value);
@@ -428,6 +442,7 @@ function onVideo(buffer) {
   }
   recordDelay(name, captureMs, buffer.byteLength); // JPEG: a picture of its own
   img.hidden = false;
+  img.alt = name;
   canvas.hidden = true;
   const url = URL.createObjectURL(new Blob([data], { type: "image/jpeg" }));
   const old = objectUrls[name];
@@ -491,6 +506,7 @@ function onState(s) {
   ui.stateAge.hidden = !s.state_stale;
   ui.stateAge.textContent = s.state_stale ? `robot state ${s.state_stale}: the arm is shown where it was then` : "";
   ui.markersNote.textContent = s.markers_note ? `· markers: ${s.markers_note}` : "";
+  ui.markersNote.classList.toggle("failed", !!s.markers_failed); // the camera failed: not "no marker in view"
   showActuators(s);
   const f = s.force || {};
   ui.force.className = `force ${f.colour || "grey"}`;
