@@ -34,7 +34,7 @@ from iorthand_cloud.bridge.mapping import (
     LatestThrottle,
     MappingError,
     OutRoute,
-    RateLimiter,
+    RateLimits,
     Refused,
     TopicTemplate,
     check_bridge_key,
@@ -226,7 +226,8 @@ def test_retained_and_foreign_robots_are_refused() -> None:
     route = _heart()
     with pytest.raises(Refused, match="retained"):
         route.reading(b'{"value": 72, "source": "s"}', NOW, retained=True)
-    assert _heart(accept_retained=True).reading(b'{"value": 72, "source": "s"}', NOW, retained=True).value == 72
+    timed = json.dumps({"value": 72, "source": "s", "t": NOW - 10**9}).encode()  # a retained copy needs its time
+    assert _heart(accept_retained=True).reading(timed, NOW, retained=True).value == 72
     with pytest.raises(Refused, match="not one of the bridge's robots"):
         route.key_for("site/sim2/hr")
     with pytest.raises(Refused, match="robot id 'Not A Robot' is invalid"):
@@ -272,8 +273,8 @@ def test_the_throttle_sends_at_most_max_hz_and_always_the_newest() -> None:
     assert all(b - a >= 0.1 - 1e-9 for a, b in itertools.pairwise(times)), times
     assert 10 <= len(sent) <= 11 and sent[-1][1] == 124  # the last state is not lost
     assert th.superseded == 125 - len(sent)
-    limiter = RateLimiter(2.0)
-    assert [limiter.allow(t) for t in (0.0, 0.2, 0.49, 0.5, 0.9, 1.0)] == [True, False, False, True, False, True]
+    limiter = RateLimits(2.0, max_keys=4)
+    assert [limiter.take("a", t) for t in (0.0, 0.2, 0.49, 0.5, 0.9, 1.0)] == [True, False, False, True, False, True]
 
 
 # ------------------------------------------------------------------------------------------------ configuration

@@ -25,6 +25,7 @@ import math
 import re
 import types
 import typing
+from collections import Counter, OrderedDict
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
@@ -304,6 +305,16 @@ def _refuse_constant(name: str) -> float:
     raise Refused(f"{name} is not a number JSON allows (finite numbers only)")
 
 
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object whose every name is one field: with ``{"value": 400, "value": 72}`` Python keeps the last, other
+    readers of the same broker the first, and the bridge would publish what a dashboard shows differently."""
+    data = dict(pairs)
+    if len(data) != len(pairs):
+        twice = next(k for k, n in Counter(k for k, _ in pairs).items() if n > 1)
+        raise Refused(f"field {twice[:40]!r} appears twice in one object (which one counts differs between readers)")
+    return data
+
+
 def _finite_float(text: str) -> float:
     value = float(text)
     if not math.isfinite(value):  # 1e400 parses to inf
@@ -349,7 +360,12 @@ class InRoute:
             raise Refused(f"topic {topic!r} is not one of {self.topic.text!r}")
         if self.key.robot is None:
             _robot_allowed(robot, self.robots)
-        return self.key.key(robot)
+        key = self.key.key(robot)
+        try:  # '_twin' matches the id pattern but names a service's space: left to the check before every put,
+            keys.split_key(key)  # it was counted as a bug and logged at every message, at the sender's rate
+        except keys.KeyExprError as exc:
+            raise Refused(str(exc)) from None
+        return key
 
     def reading(self, payload: bytes, now_ns: int, retained: bool = False) -> Message:
         """The message a payload makes, checked (sequence 0: the adapter numbers it); Refused with why."""
@@ -359,7 +375,8 @@ class InRoute:
         if len(payload) > self.max_payload:
             raise Refused(f"payload of {len(payload)} bytes exceeds the mapping's limit of {self.max_payload}")
         try:
-            data = json.loads(bytes(payload).decode("utf-8"), parse_constant=_refuse_constant, parse_float=_finite_float)
+            data = json.loads(bytes(payload).decode("utf-8"), parse_constant=_refuse_constant,
+                              parse_float=_finite_float, object_pairs_hook=_no_duplicates)
         except UnicodeDecodeError:
             raise Refused("not UTF-8 text: a JSON object is expected") from None
         except RecursionError:
@@ -375,6 +392,9 @@ class InRoute:
         for name, value in self.fixed.items():
             if name in data and data[name] != value:
                 raise Refused(f"{name} {str(data[name])[:40]!r} differs from the mapping's {value!r}")
+        if retained and "t" not in data:  # else it would be stamped now: a reading of any age passed for a live one
+            raise Refused("a retained message without t: its age is unknown (the sensor's time t is required to "
+                          "take a retained copy)")
         t = data.pop("t", now_ns)
         if isinstance(t, bool) or not isinstance(t, int):
             raise Refused(f"t must be an integer (ns since the epoch), got {type(t).__name__}")
@@ -538,22 +558,46 @@ class LatestThrottle:
         return None if self.pending is None else self.next_ok
 
 
-class RateLimiter:
-    """At most one item per ``1/max_hz``; those in between are refused (MQTT input: a flooding sensor)."""
+class RateLimits:
+    """At most one item per ``1/max_hz`` per key (MQTT input: a flooding sensor), for at most ``max_keys`` keys at
+    a time. A key's limit is forgotten only once its window has passed: forgetting it sooner (least recently used)
+    let a flood over more robots than the table holds reset every robot's limit, and every message passed. While
+    ``max_keys`` keys are within their window a new key is refused like an excess item, so a mapping puts at most
+    ``max_keys * max_hz`` a second whatever the number of topics.
 
-    def __init__(self, max_hz: float) -> None:
+    :meth:`ready` only asks (the adapter asks before it parses, so an excess message costs no parsing), and
+    :meth:`take` spends the key's turn (only a valid item does: garbage does not use up a sensor's turn)."""
+
+    def __init__(self, max_hz: float, max_keys: int) -> None:
         self.period = 1.0 / max_hz
-        self.next_ok = -math.inf
+        self.max_keys = max_keys
+        self._next_ok: OrderedDict[str, float] = OrderedDict()  # in the order turns were taken: soonest free first
 
-    def allow(self, now: float) -> bool:
-        if now < self.next_ok:
+    def __len__(self) -> int:
+        return len(self._next_ok)
+
+    def ready(self, key: str, now: float) -> bool:
+        """Whether an item of ``key`` may go now (nothing is spent)."""
+        if key in self._next_ok:
+            return now >= self._next_ok[key]
+        self._forget_past(now)
+        return len(self._next_ok) < self.max_keys
+
+    def take(self, key: str, now: float) -> bool:
+        """Spend ``key``'s turn if it may go now; False (nothing spent) otherwise."""
+        if not self.ready(key, now):
             return False
-        self.next_ok = now + self.period
+        self._next_ok[key] = now + self.period
+        self._next_ok.move_to_end(key)
         return True
+
+    def _forget_past(self, now: float) -> None:
+        while self._next_ok and next(iter(self._next_ok.values())) <= now:
+            self._next_ok.popitem(last=False)
 
 
 __all__ = [
-    "Direction", "InRoute", "KeyTemplate", "LatestThrottle", "MappingError", "OutRoute", "RateLimiter", "Refused",
+    "Direction", "InRoute", "KeyTemplate", "LatestThrottle", "MappingError", "OutRoute", "RateLimits", "Refused",
     "Route", "TopicTemplate", "binary_fields", "bridge_channel", "channel_of", "check_bridge_key", "check_routes",
     "compile_route", "to_json",
 ]

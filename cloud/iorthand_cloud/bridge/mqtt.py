@@ -3,10 +3,12 @@
 
 - out: a Zenoh callback only queues the raw sample (:class:`iorthand.transport.Inbox`); a worker thread keeps the
   newest per robot (:class:`LatestThrottle`), decodes what goes out and publishes its JSON. A 125 Hz robot state
-  is decoded at ``max_hz``, not at 125 Hz.
-- in: paho's network thread checks each message (:meth:`InRoute.reading`), drops what exceeds ``max_hz``, and
-  publishes on Zenoh through :meth:`MqttBridge._put`, which checks the key once more
-  (:func:`check_bridge_key`): even a bug in the mapping code cannot put on a key the bridge's role does not write.
+  is decoded at ``max_hz``, not at 125 Hz. While the broker is away the newest JSON of each topic is held (the
+  ones it replaces are counted dropped) and sent at the next connection: the broker never gets a stale backlog.
+- in: paho's network thread drops what exceeds ``max_hz`` per robot (:class:`RateLimits`, before parsing: a flood
+  costs a lookup per message), checks the rest (:meth:`InRoute.reading`), and publishes on Zenoh through
+  :meth:`MqttBridge._put`, which checks the key once more (:func:`check_bridge_key`): even a bug in the mapping
+  code cannot put on a key the bridge's role does not write.
   Refusals are counted per mapping and logged with their reason (at most one line per mapping every few
   seconds under a flood), and nothing refused reaches Zenoh.
 
@@ -40,7 +42,7 @@ from iorthand_cloud.bridge.mapping import (
     LatestThrottle,
     MappingError,
     OutRoute,
-    RateLimiter,
+    RateLimits,
     Refused,
     check_bridge_key,
     to_json,
@@ -48,7 +50,7 @@ from iorthand_cloud.bridge.mapping import (
 
 log = logging.getLogger("iorthand.bridge")
 LOG_EVERY_S = 5.0  # at most one refusal line per mapping this often: a flooding sensor must not fill the disk
-MAX_KEYS = 256  # per-key state (publishers, throttles) kept; MQTT topics choose robots, so bound what they create
+MAX_KEYS = 256  # per-key state (publishers, throttles, rate limits) kept; MQTT topics choose robots: bound it
 OUT_INBOX = 1024  # Zenoh samples queued for the worker (the newest are kept)
 
 
@@ -93,7 +95,7 @@ class MappingStats:
     forwarded: int = 0  # crossed the bridge
     refused: int = 0  # invalid (in: bad JSON, shape, bounds, age; out: undecodable), or a robot not bridged
     rate_limited: int = 0  # in: over max_hz, dropped; out: replaced by a newer sample while waiting its turn
-    dropped: int = 0  # could not be sent (the broker away at QoS 0, the Zenoh session closing)
+    dropped: int = 0  # not sent: replaced while the broker was away, refused by paho, the Zenoh session closing
     last_refusal: str = ""
 
 
@@ -137,9 +139,10 @@ class MqttBridge:
         self._lock = threading.Lock()  # stats and per-key state: paho's thread and the worker share them
         self._inbox = Inbox(maxlen=OUT_INBOX, keep="newest")
         self._throttles: _Bounded = _Bounded()
-        self._limiters: _Bounded = _Bounded()
+        self._limits = {r.name: RateLimits(r.max_hz, MAX_KEYS) for r in self.routes if isinstance(r, InRoute)}
         self._publishers: _Bounded = _Bounded(lambda p: p.undeclare())
         self._sequencers: _Bounded = _Bounded()
+        self._held: _Bounded = _Bounded()  # out, while the broker is away: topic → (route, JSON), the newest only
         self._last_log: dict[str, tuple[float, int]] = {}
         self._declared: list[Any] = []
         self._worker: threading.Thread | None = None
@@ -225,8 +228,13 @@ class MqttBridge:
         if subscriptions:  # at every connection: a broker without a persistent session forgot them
             client.subscribe(subscriptions)
         self.last_error = ""
-        self.connected.set()
+        self.connected.set()  # before taking what is held: a _send from now on publishes instead of holding
         log.info("connected to the MQTT broker %s:%d", self.cfg.mqtt.host, self.cfg.mqtt.port)
+        with self._lock:
+            held = list(self._held.items())
+            self._held.clear()
+        for topic, (route, data) in held:
+            self._publish(route, topic, data)
 
     def _on_disconnect(self, client: mqtt.Client, userdata: Any, flags: Any, reason: Any, properties: Any) -> None:
         was = self.connected.is_set()
@@ -257,13 +265,21 @@ class MqttBridge:
     def _take(self, route: InRoute, message: mqtt.MQTTMessage) -> None:
         try:
             key = route.key_for(message.topic)
+        except Refused as exc:
+            self._refuse(route, f"{message.topic}: {exc}")
+            return
+        limits = self._limits[route.name]
+        with self._lock:  # asked before parsing: a flood on one topic costs a lookup per message, not a JSON parse
+            if not limits.ready(key, self._clock()):
+                self.stats[route.name].rate_limited += 1
+                return
+        try:
             reading = route.reading(message.payload, time.time_ns(), bool(message.retain))
         except Refused as exc:
             self._refuse(route, f"{message.topic}: {exc}")
             return
         with self._lock:
-            limiter = self._limiters.get_or_make((route.name, key), lambda: RateLimiter(route.max_hz))
-            if not limiter.allow(self._clock()):
+            if not limits.take(key, self._clock()):
                 self.stats[route.name].rate_limited += 1
                 return
         self._put(route, key, reading)
@@ -333,6 +349,17 @@ class MqttBridge:
         except (Refused, DecodeError, TypeError, ValueError) as exc:
             self._refuse(route, f"{key}: {exc}")
             return
+        with self._lock:
+            if not self.connected.is_set():
+                # Held, the newest per topic, for the next connection: handed to paho, a QoS 1 message would wait
+                # in its queue with every one before it, and the broker would get the whole backlog, stale.
+                if self._held.pop(topic, None) is not None:
+                    self.stats[route.name].dropped += 1
+                self._held.get_or_make(topic, lambda: (route, data))
+                return
+        self._publish(route, topic, data)
+
+    def _publish(self, route: OutRoute, topic: str, data: bytes) -> None:
         assert self.client is not None
         info = self.client.publish(topic, data, qos=route.qos, retain=route.retain)
         with self._lock:
