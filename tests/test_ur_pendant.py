@@ -28,6 +28,7 @@ from iorthand_edge.robots.ur import (
     PROGRAM_STOPPED_OUTSIDE,
     URRobot,
     WriteTimeline,
+    foreign_program,
     installation_mismatch,
 )
 from iorthand_edge.ur_emulator.arm import ArmModel
@@ -308,6 +309,83 @@ def test_local_control_while_driving_stops_the_arm_and_holds_the_driver(
     held_without_a_script(robot, emu, "switched to local control", 1.0)  # back in remote: still the edge's arming
     robot.allow_restart()
     until(robot, healthy, 10.0, "the reconnect")
+    stays_still(robot, emu, 0.3)
+
+
+def test_a_program_played_on_the_pendant_takes_over_and_the_edge_leaves_it_running(
+        emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
+    """Somebody at the robot loads and plays a program of their own while the edge's script runs: the controller runs
+    theirs instead, and RTDE still says "program running". The edge sees another program named on the dashboard,
+    disarms with that name, and neither stops their program nor uploads its script over it until armed again."""
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
+    scripts = emu.status()["counters"]["scripts_received_30003"]
+    assert ur_dashboard(emu.host, "load /programs/palletizing.urp") == "Loading program: /programs/palletizing.urp"
+    assert ur_dashboard(emu.host, "play") == "Starting program"
+    assert emu.status()["program"] == "/programs/palletizing.urp"
+    # Seen within the dashboard's poll (1 s) while the edge still commands (speedL into registers nobody reads) and
+    # stops (a speedStop that their program never answers).
+    end = time.monotonic() + 3.0
+    reading = robot.read_state()
+    while not reading.takeover and time.monotonic() < end:
+        with contextlib.suppress(RobotFault):
+            robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
+        time.sleep(robot.control_period)
+        reading = robot.read_state()
+    robot.stop(0.5)
+    reading, _ = until(robot, lambda r: bool(r.takeover), 2.0, "the takeover")
+    assert reading.takeover == foreign_program("/programs/palletizing.urp") == reading.fault
+    refuses(robot, "another program (/programs/palletizing.urp) was started on the teach pendant")
+    end = time.monotonic() + 2.5
+    while time.monotonic() < end:  # theirs runs on: the edge stopped nothing and uploaded nothing over it
+        reading = robot.read_state()
+        assert reading.takeover == foreign_program("/programs/palletizing.urp")
+        status = emu.status()
+        assert status["program"] == "/programs/palletizing.urp" and status["runtime_state"] == "PLAYING"
+        assert status["counters"]["scripts_received_30003"] == scripts
+        time.sleep(0.02)
+    assert ur_dashboard(emu.host, "stop") == "Stopped"  # the person is done
+    held_without_a_script(robot, emu, "another program", 1.0)
+    robot.allow_restart()  # armed again at the edge
+    until(robot, healthy, 10.0, "the reconnect")
+    assert not robot.read_state().takeover
+    stays_still(robot, emu, 0.3)
+
+
+def test_a_reconnect_after_a_fault_does_not_upload_over_a_program_played_meanwhile(
+        emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
+    """The driver stalls (a vCPU taken away: the controller's watchdog stops the script, the agent kills the driver)
+    and, before the reconnect, somebody plays a program of their own: the new driver must not stop it by uploading
+    the edge's script. It holds with the program's name instead."""
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3)
+    until(robot, lambda r: robot._script_name is not None, 3.0, "the dashboard's name for the script")
+    assert robot._proc is not None
+    os.kill(robot._proc.pid, signal.SIGSTOP)
+    try:
+        wait_emu(lambda: emu.status()["program"] is None, 2.0, "the watchdog stopping the program")
+    finally:
+        os.kill(robot._proc.pid, signal.SIGCONT)
+    until(robot, lambda r: robot._phase == "down", 3.0, "the agent ending the stalled driver")
+    scripts = emu.status()["counters"]["scripts_received_30003"]
+    assert ur_dashboard(emu.host, "load /programs/palletizing.urp") == "Loading program: /programs/palletizing.urp"
+    assert ur_dashboard(emu.host, "play") == "Starting program"
+    reading, _ = until(robot, lambda r: bool(r.takeover), 5.0, "the takeover")
+    assert reading.takeover == foreign_program("/programs/palletizing.urp")
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        assert robot.read_state().takeover
+        status = emu.status()
+        assert status["program"] == "/programs/palletizing.urp" and status["runtime_state"] == "PLAYING"
+        assert status["counters"]["scripts_received_30003"] == scripts
+        time.sleep(0.02)
+    assert ur_dashboard(emu.host, "stop") == "Stopped"  # the person is done
+    held_without_a_script(robot, emu, "another program", 0.5)
+    robot.allow_restart()  # and arms again at the edge
+    until(robot, healthy, 10.0, "the reconnect")
+    assert emu.status()["program"] == "rtde_control"
     stays_still(robot, emu, 0.3)
 
 

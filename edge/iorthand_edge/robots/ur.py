@@ -40,6 +40,17 @@ ur_rtde 1.6.5 facts this design follows (FACTS.md, issue 5):
   :data:`DASHBOARD_TIMEOUT_S`); "false" stops the arm and the script and disarms the edge
   (:data:`LOCAL_TAKEOVER`), as a stop from outside does. A dashboard that does not answer is no fault by itself:
   logged once, asked again, and the mode says ", no dashboard" while local control cannot be seen.
+- **A program played over the edge's script takes over too.** Somebody who plays a program of their own (the
+  pendant's Play, the dashboard's ``load`` + ``play``) replaces the script, and RTDE still reports a program
+  running: ``speedL`` answers True into registers nobody reads, and ``speedStop`` waits for a "done" their program
+  never writes. The same dashboard poll asks ``programState``, which names the running program: another name than
+  the one it gave right after the connect (when this script was known to run) disarms the edge
+  (:func:`foreign_program`, with the name) and the driver ends at once without writing to the controller again:
+  their program runs on, no stop, no stopScript, no new upload until the edge is armed again. Seen within about a
+  second (the edge's speedL meanwhile reaches no motion). A reconnect after a fault asks first, and holds instead
+  of uploading over a program of another name (the agent keeps the script's name between connections; arming
+  forgets it). Not seen: their program under the very name the dashboard gave the script (a controller that names
+  the loaded .urp for both), and a replacement before the first answer when the dashboard is down at connect.
 - ur_rtde's commands block (speedStop until the arm is at rest): the child streams state from a reader
   thread of its own so that a long stop never looks like a hung driver.
 - Faults never resume motion: after a reconnect the supervisor stays latched until an operator re-acquires.
@@ -96,11 +107,19 @@ PROGRAM_STOPPED_OUTSIDE = ("the program was stopped on the teach pendant (or the
                            "has it; arm again at the edge when they are done")
 LOCAL_TAKEOVER = ("the controller was switched to local control on the teach pendant: the person at the robot has "
                   "it; arm again at the edge when they are done (and it is back in remote control)")
+
+
+def foreign_program(name: str) -> str:
+    """The takeover when somebody at the robot plays a program of their own over the edge's script."""
+    return (f"another program ({name[:60]}) was started on the teach pendant: the person at the robot has it; arm "
+            "again at the edge when they are done")
+
+
 # A silence of the driver's writes to the controller this long, in watchdog periods, may have let the RTDE watchdog
 # expire on the edge's own account (the rest of the period for the link and the controller's cycle).
 LATE_FRACTION = 0.8
 DASHBOARD_PORT = 29999
-DASHBOARD_PERIOD_S = 1.0  # how often the driver asks the dashboard whether the controller is in remote control
+DASHBOARD_PERIOD_S = 1.0  # how often the driver asks the dashboard about remote control and the running program
 DASHBOARD_TIMEOUT_S = 0.5  # for one exchange with it (connect, or a question and its answer)
 MODE_MAX, FAULT_MAX = 40, 200  # the lengths RobotState accepts: a longer text would make its encode() fail
 # The driver's command thread (it kicks the controller's watchdog) at real time, under the edge's control loop and
@@ -182,6 +201,22 @@ def ask_dashboard(stream: Any, question: str) -> str:
     return answer.strip()
 
 
+def foreign_program_playing(host: str, script_name: str) -> str:
+    """Before a reconnect uploads the edge's script (which would replace whatever runs): the name of a program other
+    than ``script_name`` (what the dashboard called the edge's script on the last connection) that the controller
+    runs or has paused, "" when none or when the dashboard does not answer (then nothing can be told, as before)."""
+    import socket
+
+    try:
+        with socket.create_connection((host, DASHBOARD_PORT), timeout=DASHBOARD_TIMEOUT_S) as sock, \
+                sock.makefile("rw", encoding="utf-8", newline="\n") as stream:
+            stream.readline()  # its welcome line
+            state, _, name = ask_dashboard(stream, "programState").partition(" ")
+    except OSError:
+        return ""
+    return name if state.upper() != "STOPPED" and name != script_name else ""
+
+
 # ---------------------------------------------------------------------------------------------------------
 # The child process. It imports only ur_rtde, so it starts fast and a hang in it cannot freeze the agent.
 
@@ -209,6 +244,14 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     # The connect timeout runs from here: starting Python and importing takes seconds on a busy Pi and says
     # nothing about the controller.
     conn.send(("connecting", ""))
+    if cfg["script_name"] is not None:
+        # A reconnect after a fault: somebody at the robot may have played a program of their own meanwhile (the
+        # last driver may not have lived to see it). Uploading would stop it: a takeover instead.
+        theirs = foreign_program_playing(cfg["host"], cfg["script_name"])
+        if theirs:
+            with contextlib.suppress(OSError):
+                conn.send(("takeover", foreign_program(theirs)))
+            os._exit(0)
     ctrl = None
     try:
         recv = rtde_receive.RTDEReceiveInterface(cfg["host"], cfg["rtde_frequency"], rt_priority=UR_RTDE_RT_PRIORITY)
@@ -307,32 +350,53 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
             else:
                 next_tick = time.monotonic()
 
-    def watch_remote_control() -> None:
-        """About once a second, whether the controller is still in remote control (RTDE has no bit for it); on
-        "false", tell the agent and have the main thread stop the arm and the script. A dashboard that does not
-        answer is asked again on a new connection (``dashboard["problem"]`` says so meanwhile)."""
+    def watch_dashboard() -> None:
+        """About once a second, on the dashboard (RTDE has no bit for either): whether the controller is still in
+        remote control, and which program it runs. On "false", tell the agent and have the main thread stop the arm
+        and the script. A program of somebody else's, played over this script (the pendant's Play, or the
+        dashboard's ``load`` + ``play``), leaves RTDE saying "program running" and ur_rtde's commands answering True
+        into registers nobody reads: it is told by ``programState`` naming another program than the one it named
+        while this script was known to run (asked first right after the connect, whose speedStop only this
+        script answers; a controller's name for an uploaded script is its own). Then the agent is told and this
+        process ends at once, writing nothing more: a stop or a stopScript would go to their program's registers,
+        and a speedStop would wait for an answer that never comes. A dashboard that does not answer is asked again
+        on a new connection (``dashboard["problem"]`` says so meanwhile)."""
         import socket
 
         conn_, stream = None, None
-        while not done.wait(DASHBOARD_PERIOD_S):
+        ours: str | None = None  # the name the dashboard gives this script
+        while not done.is_set():
             try:
                 if stream is None:
                     conn_ = socket.create_connection((cfg["host"], DASHBOARD_PORT), timeout=DASHBOARD_TIMEOUT_S)
                     stream = conn_.makefile("rw", encoding="utf-8", newline="\n")
                     stream.readline()  # its welcome line
-                answer = ask_dashboard(stream, "is in remote control")
+                remote = ask_dashboard(stream, "is in remote control")
+                program_state, _, program = ask_dashboard(stream, "programState").partition(" ")
             except OSError as exc:  # refused, timed out, closed
                 if conn_ is not None:
                     conn_.close()
                 conn_, stream = None, None
                 dashboard["problem"] = f"the dashboard ({cfg['host']}:{DASHBOARD_PORT}) does not answer ({exc})"
+                done.wait(DASHBOARD_PERIOD_S)
                 continue
-            if answer.lower() == "false":
+            if remote.lower() == "false":
                 takeover.append(LOCAL_TAKEOVER)
                 send(("takeover", LOCAL_TAKEOVER))
                 return
-            dashboard["problem"] = "" if answer.lower() == "true" else (
-                f"the dashboard answers {answer[:60]!r} to 'is in remote control'")
+            if ours is None:
+                ours = program
+                send(("script", ours))
+            elif program != ours and program_state.upper() != "STOPPED":
+                # Theirs runs: stopping it is theirs too. Exit holding the pipe's lock, so that the takeover is the
+                # last whole message the agent gets; ending the process closes the links to the controller.
+                with send_lock:
+                    with contextlib.suppress(OSError):
+                        conn.send(("takeover", foreign_program(program)))
+                    os._exit(0)
+            dashboard["problem"] = "" if remote.lower() == "true" else (
+                f"the dashboard answers {remote[:60]!r} to 'is in remote control'")
+            done.wait(DASHBOARD_PERIOD_S)
 
     def shutdown() -> None:
         done.set()
@@ -344,7 +408,7 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
 
     send(("ready", (priority, *installation)))
     threading.Thread(target=reader, name="ur-driver-reader", daemon=True).start()
-    threading.Thread(target=watch_remote_control, name="ur-driver-dashboard", daemon=True).start()
+    threading.Thread(target=watch_dashboard, name="ur-driver-dashboard", daemon=True).start()
     parent_timeout = cfg["parent_timeout"]
     last_parent = time.monotonic()
     moving = False
@@ -443,6 +507,9 @@ class URRobot(Robot):
         self._stopped_since: float | None = None  # monotonic time the program was first seen stopped
         self._controller_stop = ""  # a stop of the controller's own seen on this connection (its name), until cleared
         self._held = ""  # somebody at the robot took it over (why): no driver until allow_restart()
+        # What the dashboard called the edge's script on the last connection (None: not known): a reconnect after a
+        # fault does not upload over a program of another name (somebody's at the robot).
+        self._script_name: str | None = None
         self._dashboard_problem = ""  # why local control cannot be seen ("" while the dashboard answers)
         self._speed_fraction: float | None = None  # the pendant's speed slider as last reported; None: not yet
         self.installation: tuple[list[float], float] | None = None  # the controller's TCP offset and payload (kg)
@@ -461,6 +528,7 @@ class URRobot(Robot):
         cfg["tcp_offset"] = self.tcp_offset
         cfg["stop_deceleration"] = self.stop_deceleration
         cfg["realtime"] = self.realtime
+        cfg["script_name"] = self._script_name
         # The agent heartbeats every control cycle; silence for two watchdog periods means it is frozen.
         cfg["parent_timeout"] = max(2.0 / self.config.watchdog_hz, 3 * self.control_period)
         self._proc = self._ctx.Process(target=_driver_main, args=(child, cfg), name="ur-driver", daemon=True)
@@ -491,7 +559,8 @@ class URRobot(Robot):
     def _hold(self, reason: str) -> None:
         """Somebody at the robot took it over: the reason is the fault and the takeover the agent disarms on, and
         no driver starts again until :meth:`allow_restart`. The current one is left to end by itself (after local
-        control it stops the arm and the script first) or by the next fault check."""
+        control it stops the arm and the script first; after another program was played it leaves at once, writing
+        nothing to their program) or by the next fault check."""
         if not self._held:
             log.warning("UR: %s — the driver stays down until the edge is armed again", reason)
         self._held = self._fault = reason
@@ -501,6 +570,7 @@ class URRobot(Robot):
         if self._held:
             log.info("UR: armed again after \"%s\": reconnecting", self._held)
             self._held = ""
+            self._script_name = None  # armed on site: the edge's script may replace whatever runs
             self._retry_at = time.monotonic()
             self._backoff = 0.5
 
@@ -524,6 +594,10 @@ class URRobot(Robot):
             return
         if kind == "connecting":
             self._connecting_since, self._child_started = time.monotonic(), True
+            return
+        if kind == "takeover":  # another program plays: the driver left without uploading the edge's script
+            self._hold(text)
+            self._fail(text)
             return
         if kind != "ready":
             self._fail(f"cannot connect to the UR controller at {self.config.host}: {text}")
@@ -573,6 +647,8 @@ class URRobot(Robot):
                     self._note_dashboard(payload[12])
                 elif kind == "takeover":
                     self._hold(payload)
+                elif kind == "script":
+                    self._script_name = payload
                 elif kind == "lost":
                     self._fail(payload)
                     return
