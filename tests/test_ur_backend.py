@@ -9,6 +9,7 @@ time bound asserted is the issue's link-loss detection (100 ms, against ~10 ms m
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
 import os
 import shlex
 import shutil
@@ -304,3 +305,29 @@ def test_ur_rtdes_threads_stay_normal_on_a_real_time_kernel() -> None:
     assert got["driver_priority"].startswith("SCHED_FIFO"), got
     assert driver.pop(got["driver_pid"]) == (os.SCHED_FIFO, DRIVER_PRIORITY)
     assert len(driver) >= 3 and set(driver.values()) == {(os.SCHED_OTHER, 0)}, driver  # reader + ur_rtde's two
+
+
+def test_a_driver_that_stopped_reading_never_blocks_the_agent() -> None:
+    """A driver child whose main thread hangs inside ur_rtde (a speedStop waiting for a "done" that a program played
+    over the edge's script never writes) stops reading its pipe; at the control rate the pipe filled and the
+    agent's next send blocked, freezing its control loop. Here the child's end is a real pipe that nobody reads."""
+    from iorthand_edge.robots.ur import send_without_blocking
+
+    agent_end, child_end = mp.Pipe()
+    try:
+        sent, started = 0, time.monotonic()
+        while not (problem := send_without_blocking(agent_end, ("twist", [0.01] * 6, 0.5))):
+            sent += 1
+            assert time.monotonic() - started < 10.0, "the pipe never filled"
+        assert problem == "the UR driver stopped reading its commands (hung inside ur_rtde)"
+        assert sent > 10 and time.monotonic() - started < 10.0
+        started = time.monotonic()
+        assert send_without_blocking(agent_end, ("heartbeat",)) == problem  # at once, not blocked
+        assert time.monotonic() - started < 0.5
+        while child_end.poll(0):  # the driver reads again: the agent's sends go through
+            child_end.recv()
+        assert send_without_blocking(agent_end, ("heartbeat",)) == ""
+        child_end.close()
+        assert send_without_blocking(agent_end, ("heartbeat",)) == "UR driver pipe broken"
+    finally:
+        agent_end.close()

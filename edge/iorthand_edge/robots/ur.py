@@ -67,6 +67,7 @@ import contextlib
 import logging
 import math
 import multiprocessing as mp
+import select
 import time
 from collections.abc import Sequence
 from dataclasses import asdict
@@ -189,6 +190,20 @@ class WriteTimeline:
     def late_between(self, since: float, now: float) -> bool:
         """Whether a late silence overlapped [since, now], the one still going on at ``now`` included."""
         return self.late_until >= since or now - self.last_start >= self.late_gap
+
+
+def send_without_blocking(conn: Connection, msg: tuple[Any, ...]) -> str:
+    """Hand ``msg`` (a few hundred bytes at most) to the driver child; "" when it went, else why not. Never blocks:
+    a child whose main thread hangs inside ur_rtde (a speedStop waiting for a "done" nobody writes) stops reading,
+    the pipe fills at the control rate, and a blocking send froze the agent's control loop and every rule in it.
+    A socket that ``select`` calls writable has a quarter of its buffer free at least: the message fits."""
+    try:
+        if not select.select([], [conn], [], 0)[1]:
+            return "the UR driver stopped reading its commands (hung inside ur_rtde)"
+        conn.send(msg)
+    except (BrokenPipeError, OSError):
+        return "UR driver pipe broken"
+    return ""
 
 
 def ask_dashboard(stream: Any, question: str) -> str:
@@ -672,11 +687,8 @@ class URRobot(Robot):
             self._fail(f"RTDE link to the controller lost ({which} interface disconnected)")
         elif now - self._stamp_changed_at > self.config.link_timeout:
             self._fail(f"controller timestamp frozen for {1000 * (now - self._stamp_changed_at):.0f} ms (link lost)")
-        else:
-            try:
-                self._conn.send(("heartbeat",))
-            except (BrokenPipeError, OSError):
-                self._fail("UR driver pipe broken")
+        elif problem := send_without_blocking(self._conn, ("heartbeat",)):
+            self._fail(problem)
 
     def _note_speed_fraction(self, fraction: float) -> None:
         """Warn when the pendant's speed slider leaves 100 % (and at connect when it is already below), and when it
@@ -776,11 +788,9 @@ class URRobot(Robot):
         if fault or self._conn is None:
             raise RobotFault(fault or "UR driver not connected")
         sent = [float(v) for v in twist]
-        try:
-            self._conn.send(("twist", sent, float(acceleration)))
-        except (BrokenPipeError, OSError):
-            self._fail("UR driver pipe broken")
-            raise RobotFault(self._fault) from None
+        if problem := send_without_blocking(self._conn, ("twist", sent, float(acceleration))):
+            self._fail(problem)
+            raise RobotFault(self._fault)
         # The pendant's speed slider scales the controller's speedL: what the arm makes is the twist times it, and
         # that is what the applied echo and state/robot report.
         fraction = 1.0 if self._speed_fraction is None else min(max(self._speed_fraction, 0.0), 1.0)
@@ -789,16 +799,13 @@ class URRobot(Robot):
     def stop(self, deceleration: float) -> None:
         if self._phase != "up" or self._conn is None:
             return  # no driver: nothing moves through us, and the controller's watchdog covers the rest
-        try:
-            self._conn.send(("stop", float(deceleration)))
-        except (BrokenPipeError, OSError):
-            self._fail("UR driver pipe broken")
+        if problem := send_without_blocking(self._conn, ("stop", float(deceleration))):
+            self._fail(problem)
 
     def disconnect(self) -> None:
         self._closing = True
-        if self._phase == "up" and self._conn is not None and self._proc is not None:
-            with contextlib.suppress(BrokenPipeError, OSError):
-                self._conn.send(("close",))
-                self._proc.join(self.config.connect_timeout)
+        if (self._phase == "up" and self._conn is not None and self._proc is not None
+                and not send_without_blocking(self._conn, ("close",))):
+            self._proc.join(self.config.connect_timeout)  # its own stop and goodbye to the controller first
         self._kill()
         self._fault = "disconnected"
