@@ -285,6 +285,19 @@ def test_write_timeline_tells_a_late_silence_around_a_stop() -> None:
     assert writes.late_between(0.52, 0.6)  # nothing written since 0.508: a silence of 92 ms going on
 
 
+def drive_until_takeover(robot: URRobot, seconds: float) -> RobotReading:
+    """Command motion every control period, as the agent does, until the driver reports a takeover (or ``seconds``
+    pass); the last reading."""
+    end = time.monotonic() + seconds
+    reading = robot.read_state()
+    while not reading.takeover and time.monotonic() < end:
+        with contextlib.suppress(RobotFault):
+            robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
+        time.sleep(robot.control_period)
+        reading = robot.read_state()
+    return reading
+
+
 def test_local_control_while_driving_stops_the_arm_and_holds_the_driver(
         emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
     robot = make_robot()
@@ -292,13 +305,7 @@ def test_local_control_while_driving_stops_the_arm_and_holds_the_driver(
     cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
     emu.set_remote_control(on=False)  # the pendant's switch; the program goes on running, RTDE has no bit for it
     # Seen within the dashboard's poll (1 s) while the edge still commands motion; then refused.
-    end = time.monotonic() + 3.0
-    reading = robot.read_state()
-    while not reading.takeover and time.monotonic() < end:
-        with contextlib.suppress(RobotFault):
-            robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
-        time.sleep(robot.control_period)
-        reading = robot.read_state()
+    reading = drive_until_takeover(robot, 3.0)
     assert reading.takeover == LOCAL_TAKEOVER and reading.fault == LOCAL_TAKEOVER
     refuses(robot, "switched to local control")
     wait_emu(lambda: emu.status()["motion"] == "idle", 2.0, "the arm at rest")
@@ -326,13 +333,7 @@ def test_a_program_played_on_the_pendant_takes_over_and_the_edge_leaves_it_runni
     assert emu.status()["program"] == "/programs/palletizing.urp"
     # Seen within the dashboard's poll (1 s) while the edge still commands (speedL into registers nobody reads) and
     # stops (a speedStop that their program never answers).
-    end = time.monotonic() + 3.0
-    reading = robot.read_state()
-    while not reading.takeover and time.monotonic() < end:
-        with contextlib.suppress(RobotFault):
-            robot.send_twist(np.array([0.02, 0, 0, 0, 0, 0]), 0.5)
-        time.sleep(robot.control_period)
-        reading = robot.read_state()
+    reading = drive_until_takeover(robot, 3.0)
     robot.stop(0.5)
     reading, _ = until(robot, lambda r: bool(r.takeover), 2.0, "the takeover")
     assert reading.takeover == foreign_program("/programs/palletizing.urp") == reading.fault
