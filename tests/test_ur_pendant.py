@@ -248,6 +248,17 @@ def test_program_stopped_on_the_pendant_holds_the_driver_until_the_edge_is_armed
     stays_still(robot, emu, 0.3)
 
 
+def stall_until_the_watchdog_stops_the_program(robot: URRobot, emu: Emulator) -> None:
+    """The driver child stopped (SIGSTOP) until the controller's watchdog stops the edge's program, as a vCPU taken
+    away does; then let go."""
+    assert robot._proc is not None
+    os.kill(robot._proc.pid, signal.SIGSTOP)
+    try:
+        wait_emu(lambda: emu.status()["program"] is None, 2.0, "the watchdog stopping the program")
+    finally:
+        os.kill(robot._proc.pid, signal.SIGCONT)
+
+
 def test_watchdog_expiry_on_the_edges_own_stall_reconnects_without_a_takeover(
         emu: Emulator, make_robot: Callable[..., URRobot]) -> None:
     """The driver (and the agent's side: this test does not read meanwhile) stalls for 0.3 s, as a vCPU taken away
@@ -255,12 +266,7 @@ def test_watchdog_expiry_on_the_edges_own_stall_reconnects_without_a_takeover(
     robot = make_robot()
     robot.connect()
     cycle(robot, 0.3)
-    assert robot._proc is not None
-    os.kill(robot._proc.pid, signal.SIGSTOP)
-    try:
-        wait_emu(lambda: emu.status()["program"] is None, 2.0, "the watchdog stopping the program")
-    finally:
-        os.kill(robot._proc.pid, signal.SIGCONT)
+    stall_until_the_watchdog_stops_the_program(robot, emu)
     assert any("RTDE watchdog" in e for e in emu.status()["events"])
     takeovers: list[str] = []
 
@@ -363,12 +369,7 @@ def test_a_reconnect_after_a_fault_does_not_upload_over_a_program_played_meanwhi
     robot.connect()
     cycle(robot, 0.3)
     until(robot, lambda r: robot._script_name is not None, 3.0, "the dashboard's name for the script")
-    assert robot._proc is not None
-    os.kill(robot._proc.pid, signal.SIGSTOP)
-    try:
-        wait_emu(lambda: emu.status()["program"] is None, 2.0, "the watchdog stopping the program")
-    finally:
-        os.kill(robot._proc.pid, signal.SIGCONT)
+    stall_until_the_watchdog_stops_the_program(robot, emu)
     until(robot, lambda r: robot._phase == "down", 3.0, "the agent ending the stalled driver")
     scripts = emu.status()["counters"]["scripts_received_30003"]
     assert ur_dashboard(emu.host, "load /programs/palletizing.urp") == "Loading program: /programs/palletizing.urp"

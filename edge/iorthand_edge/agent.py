@@ -29,6 +29,7 @@ move the robot except through it.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import math
@@ -844,7 +845,7 @@ class EdgeAgent:
         # A console that cannot read all this edge sends would drive with part of its picture silently missing
         # (protocol's docstring): refused, saying both revisions and what to update; the answer says ours anyway.
         console = said_revision(req.params)
-        if ok and (unreadable := unreadable_by(console, self._sent_to_consoles())):
+        if ok and (unreadable := unreadable_by(console, self._sent_to_consoles)):
             ok, reason = False, update_the_console(console, unreadable)
         if not ok:
             self.rejects.add(str(query.key_expr), reason)
@@ -860,6 +861,7 @@ class EdgeAgent:
                     detail=revision_json())
         self._publish_safety(force=True)
 
+    @functools.cached_property
     def _sent_to_consoles(self) -> list[type[Message]]:
         """The messages this edge sends a console: its robot's streams (but the actuators it has not) and answers."""
         absent = {ServoState: self.servos is None, TorchState: self.torch is None}
