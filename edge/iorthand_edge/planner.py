@@ -54,14 +54,16 @@ class PlannerProcess:
     def plan_route(self, name: str, current: ArrayLike, limits: motion.Limits, poses: Mapping[str, Sequence[float]],
                    *args: Any, **kwargs: Any) -> motion.Route:
         """:func:`iorthand.motion.plan_route`'s answer; PlanningTimeout if it takes longer than ``timeout``."""
-        if self._child is not None and not self._child.is_alive():
-            self.close()  # it ended since the last plan (logged by _reap): a new child plans this one
+        request = ((name, current, limits, poses, *args), kwargs)
         conn = self._conn or self._start()
         try:
-            conn.send(((name, current, limits, poses, *args), kwargs))
-        except OSError:  # it ended just now: this plan fails, the next one starts a new child
+            conn.send(request)
+        except OSError:
+            # It ended since the last plan (logged by _reap; is_alive cannot tell, as the reaper may have taken its
+            # exit status first): nothing of this plan was done, a new child plans it.
             self.close()
-            raise RuntimeError(f"the planner process ended before planning {name!r}") from None
+            conn = self._start()
+            conn.send(request)
         if not conn.poll(self.timeout):
             self.close()
             log.error("planning %r took longer than %g s: planner restarted", name, self.timeout)
