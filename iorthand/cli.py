@@ -13,6 +13,7 @@ from typing import NoReturn
 
 import zenoh
 
+from iorthand import logs
 from iorthand.config import ConfigError
 from iorthand.process import name_thread
 from iorthand.security.certs import CertError
@@ -22,10 +23,6 @@ from iorthand.transport import ConnectError
 # (--log-level debug logs the traceback too).
 USER_ERRORS = (ConnectError, CertError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
                PermissionError, zenoh.ZError)
-
-
-def _setup_logging(level: str) -> None:
-    logging.basicConfig(level=getattr(logging, level.upper()), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -79,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    _setup_logging(args.log_level)
+    logs.setup(args.log_level)
     # ps and top show each service by its command (iorthand-router, iorthand-edge, iorthand-twin, ...), not as
     # "python" like every other Python program; threads started from here on inherit the name unless they name
     # themselves (those that the imports started stay "python").

@@ -6,6 +6,7 @@ OperatorClient in this process, on the test's router; the robot is the simulator
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -214,3 +215,53 @@ def test_a_second_agent_for_a_robot_online_elsewhere_is_refused(edge_factory) ->
     with pytest.raises(Exception, match="already online"):
         edge_factory()
     assert first.session is not None
+
+
+def test_an_edge_whose_stderr_nobody_reads_keeps_driving_and_stopping(router_endpoint: str, tmp_path: Path,
+                                                                       operator_factory) -> None:
+    """Found by a red-team run: an edge whose log output nobody reads (a terminal paused with Ctrl-S,
+    ``iorthand edge | less`` scrolled back, a log collector that stalls) froze in the first thread that logged a
+    line once the pipe was full. Here the pipe is full from the start: the edge's first line ("agent up") blocked
+    it, the operator's acquire timed out, nothing could drive it. Now lines wait in the process (iorthand.logs)
+    and are written when the pipe is read again."""
+    import fcntl
+
+    config = tmp_path / "edge.yaml"
+    config.write_text(yaml.safe_dump({
+        "robot_id": ROBOT_ID, "zenoh": {"mode": "client", "connect": [router_endpoint], "connect_retry_s": 10.0},
+        "robot": {"kind": "sim", "initial_pose": [0.30, 0.0, 0.20, 3.14159, 0.0, 0.0]},
+        "safety": {"auto_arm": True},
+    }))
+    read_end, write_end = os.pipe()
+    fcntl.fcntl(write_end, fcntl.F_SETPIPE_SZ, 4096)  # the smallest pipe, filled: the edge's next line blocks
+    os.set_blocking(write_end, False)
+    with contextlib.suppress(BlockingIOError):
+        while True:
+            os.write(write_end, b"earlier output nobody read\n")
+    os.set_blocking(write_end, True)
+    proc = subprocess.Popen(iorthand_cmd("edge", "--config", str(config)), stdout=subprocess.DEVNULL,
+                            stderr=write_end)
+    os.close(write_end)
+    try:
+        op = operator_factory(ROBOT_ID)
+        op.wait_for_state(timeout=30.0)
+        assert op.acquire().ok
+        op.start()
+        for _ in range(3):  # presses and releases, each stopped by its release
+            op.set_twist([0.004, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=True)
+            wait_until(lambda: any(op.robot_state.commanded), 5.0, message="the robot moving")
+            op.set_twist([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], deadman=False)
+            wait_until(lambda: not any(op.robot_state.commanded), 5.0, message="the robot stopped on release")
+        assert proc.poll() is None
+        said = b""
+        os.set_blocking(read_end, False)  # read again: the lines kept come out
+        deadline = time.monotonic() + 10.0
+        while b"control granted to 'op1'" not in said and time.monotonic() < deadline:
+            try:
+                said += os.read(read_end, 65536)
+            except BlockingIOError:
+                time.sleep(0.05)
+        assert b"edge agent 'sim1' up" in said and b"control granted to 'op1'" in said, said[-2000:]
+    finally:
+        terminate(proc)
+        os.close(read_end)

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 import zenoh
 
-from iorthand import keys
+from iorthand import keys, logs
 from iorthand.process import enter_child, exit_reason, name_thread
 from iorthand.protocol import (
     DecodeError,
@@ -79,7 +79,6 @@ RING_SIZE = 512  # state samples kept per key until a frame asks: 4 s of state/r
 FEEDBACK_RING = 64
 FORCE_MAX_AGE = 0.5  # s: an older force level (or none) counts as no contact for the ultrasound image
 _PARENT_CHECK_S = 0.25
-LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"  # as the iorthand command line's
 
 
 def sets_bitrate(owner: str, sender: str) -> bool:
@@ -319,7 +318,7 @@ def media_main(config: EdgeConfig, parent_pid: int, pdeathsig: bool, stop_flag: 
     # CPU on the same frames (waking and synchronising its workers), on the cores the control process needs.
     cv2.setNumThreads(1)
     # The child writes to the agent's stderr (inherited): the same lines as `iorthand edge` logs.
-    logging.basicConfig(level=log_level, format=LOG_FORMAT)
+    logs.setup(log_level)
     code = 0
     try:
         MediaService(config).run(stop_flag, parent_pid, conn)
@@ -329,6 +328,7 @@ def media_main(config: EdgeConfig, parent_pid: int, pdeathsig: bool, stop_flag: 
             conn.send(("failed", f"{type(exc).__name__}: {exc}"))
         code = 1
     finally:
+        logs.flush()
         with contextlib.suppress(Exception):
             sys.stdout.flush()
             sys.stderr.flush()
