@@ -37,3 +37,30 @@ def test_no_systemd_no_op(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
     assert sdnotify.notify("READY=1") is False
     sdnotify.cycle_hook()(None)
+
+
+def test_a_notify_socket_nobody_reads_never_blocks_the_control_loop(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """The watchdog ping runs in the edge's control loop. A datagram to a socket whose queue is full (systemd
+    stalled, or a notify socket that no service manager reads) blocked the sender until there was room: the loop
+    stopped with it. Now the ping is given up at once (systemd, stalled itself, restarts the agent if it lasts)."""
+    import threading
+
+    path = str(tmp_path / "notify.sock")
+    srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    srv.bind(path)
+    filler = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    filler.setblocking(False)
+    try:
+        while True:
+            filler.sendto(b"WATCHDOG=1", path)
+    except BlockingIOError:
+        pass  # the queue is full
+    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    answered: list[bool] = []
+    sender = threading.Thread(target=lambda: answered.append(sdnotify.notify("WATCHDOG=1")), daemon=True)
+    sender.start()
+    sender.join(5.0)
+    srv.close()  # frees a blocked sender (it fails then) so the thread ends
+    filler.close()
+    assert answered == [False], "notify blocked on a full socket"

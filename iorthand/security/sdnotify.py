@@ -24,7 +24,8 @@ def notify(state: str) -> bool:
         addr = "\0" + addr[1:]  # abstract namespace
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as s:
-            s.sendto(state.encode(), addr)
+            # Never wait: this runs in the control loop, and a full socket (systemd stalled) would stop it there.
+            s.sendto(state.encode(), socket.MSG_DONTWAIT, addr)
         return True
     except OSError:
         return False
