@@ -53,6 +53,7 @@ NOW = 1_700_000_000_000_000_000
 HEART = {"name": "heart-rate", "direction": "in", "topic": "site/{robot}/vitals/heart_rate",
          "key": "iorthand/{robot}/sensor/vital", "qos": 1, "max_hz": 100.0,
          "fields": {"name": "heart_rate", "unit": "bpm", "source": "monitor"}, "bounds": {"value": [20, 250]}}
+ROBOTS = ["sim1", "sim2", "sim3"]  # an 'in' mapping serves the robots its bridge names
 STATE_OUT = {"name": "robot-state", "direction": "out", "key": "iorthand/{robot}/state/robot",
              "topic": "site/{robot}/robot_state", "qos": 1, "max_hz": 10.0}
 
@@ -457,7 +458,7 @@ def bridge_factory(router_endpoint: str) -> Iterator[Callable[..., MqttBridge]]:
              connect: bool = True, **extra: Any) -> MqttBridge:
         data = {"zenoh": {"mode": "client", "connect": [router_endpoint]},
                 "mqtt": {"host": "127.0.0.1", "port": port, "client_id": f"bridge-{len(bridges)}", **(mqtt_cfg or {})},
-                "mappings": mappings, **extra}
+                "robots": ROBOTS, "mappings": mappings, **extra}
         bridge = MqttBridge(from_dict(data, BridgeConfig, source="<test>"))
         bridges.append(bridge)
         bridge.start()
@@ -599,7 +600,8 @@ def test_the_run_time_check_blocks_a_key_the_configuration_check_missed(broker_f
                                                                          session_factory) -> None:
     """Defence in depth: even if a route pointing at cmd/ got past the configuration (a bug), nothing is put."""
     broker = broker_factory()
-    cfg = from_dict({"mqtt": {"port": broker.port}, "mappings": [HEART]}, BridgeConfig, source="<test>")
+    cfg = from_dict({"mqtt": {"port": broker.port}, "robots": ROBOTS, "mappings": [HEART]}, BridgeConfig,
+                    source="<test>")
     sink = ZenohSink(session_factory(), "iorthand/**")
     rogue = MqttBridge(cfg, session=session_factory())
     route = rogue.routes[0]

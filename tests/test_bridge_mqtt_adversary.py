@@ -14,19 +14,22 @@ from typing import Any
 import msgpack
 import paho.mqtt.client as mqtt
 import pytest
+import zenoh
 
-from iorthand.config import from_dict
+from iorthand.config import ConfigError, from_dict
 from iorthand.protocol import RobotState, SensorReading
-from iorthand_cloud.bridge.config import BridgeConfig
-from iorthand_cloud.bridge.mapping import InRoute, Refused, to_json
-from iorthand_cloud.bridge.mqtt import MAX_KEYS, MqttBridge
+from iorthand_cloud.bridge.config import BridgeConfig, MappingConfig
+from iorthand_cloud.bridge.mapping import PUBLISH_OVERHEAD, InRoute, MappingError, RateLimits, Refused, to_json
+from iorthand_cloud.bridge.mqtt import MAX_KEYS, BrokerNumbering, MqttBridge
 from tests.conftest import wait_until
 from tests.test_bridge_mqtt import (  # noqa: F401  (fixtures, found by name)
     HEART,
     NOW,
+    STATE_OUT,
     Mosquitto,
     Probe,
     ZenohSink,
+    _deliver,
     _heart,
     bridge_factory,
     broker_factory,
@@ -40,35 +43,108 @@ def _mqtt_message(topic: str, payload: bytes) -> mqtt.MQTTMessage:
     return message
 
 
-def _bridge(session: Any, clock: Callable[[], float], **heart: Any) -> tuple[MqttBridge, InRoute]:
-    """A bridge of HEART (every robot) on a real Zenoh session, without a broker: messages go to its handler."""
-    bridge = MqttBridge(from_dict({"mappings": [{**HEART, **heart}]}, BridgeConfig, source="<test>"), session=session,
-                        clock=clock)
+def _bridge(session: Any, clock: Callable[[], float], robots: tuple[str, ...] = ("sim1", "sim2"),
+            **heart: Any) -> tuple[MqttBridge, InRoute]:
+    """A bridge of HEART for ``robots`` on a real Zenoh session, without a broker: messages go to its handler."""
+    bridge = MqttBridge(from_dict({"robots": list(robots), "mappings": [{**HEART, **heart}]}, BridgeConfig,
+                                  source="<test>"), session=session, clock=clock)
     route = bridge.routes[0]
     assert isinstance(route, InRoute)
     return bridge, route
 
 
-def test_a_flood_over_more_robots_than_the_bridge_tracks_keeps_every_robots_rate_limit(session_factory) -> None:
+def test_a_flood_over_more_keys_than_the_limits_track_keeps_every_keys_rate_limit() -> None:
     """Per-robot limits forgotten least-recently-used let 300 robots in turn reset each other's: every message
-    passed (here 900 of 900 at max_hz 1 within one window, where 300 were due). A limit is now forgotten only once its
-    window has passed, and a new robot while MAX_KEYS are within theirs is rate-limited."""
+    passed (900 of 900 at max_hz 1 within one window, where 300 were due). A limit is forgotten only once its window
+    has passed, and a new key while ``max_keys`` are within theirs is refused, like an excess item."""
+    limits = RateLimits(1.0, MAX_KEYS)
+    keys = [f"r{i}" for i in range(MAX_KEYS + 44)]
+    passed = [k for _ in range(3) for k in keys if limits.take(k, 100.0)]  # within one window
+    assert passed == keys[:MAX_KEYS] and len(limits) == MAX_KEYS
+    # The window has passed: each of those keys has its turn again; at most MAX_KEYS a window, still
+    assert [k for k in keys if limits.take(k, 101.0)] == keys[:MAX_KEYS]
+
+
+def test_an_in_mapping_whose_topic_chooses_the_robot_needs_the_robots_named() -> None:
+    """With ``robots: []`` an 'in' mapping took any valid robot id an MQTT client put in the topic: 256 invented
+    robots held every rate slot (a real device's readings were then dropped as over the rate), and evicted the real
+    device's sequence counter, whose numbering started again at 1 (a "reset" in the recording, its numbers reused).
+    The bridge now serves the robots its configuration names."""
+    with pytest.raises(ConfigError, match=r"mapping 'heart-rate' takes the robot from the MQTT topic.*name the robots"):
+        from_dict({"mappings": [HEART]}, BridgeConfig, source="<test>")
+    with pytest.raises(MappingError, match="name the robots"):
+        MqttBridge(BridgeConfig(mappings=[MappingConfig(**HEART)]))  # built in code, past the loader
+    with pytest.raises(ConfigError, match=f"robots: {MAX_KEYS + 1} named, at most {MAX_KEYS}"):
+        from_dict({"robots": [f"r{i}" for i in range(MAX_KEYS + 1)], "mappings": [HEART]}, BridgeConfig)
+    # A mapping naming its robot in the key, and 'out' mappings (the robots' own streams), need no list.
+    one = {**HEART, "key": "iorthand/sim1/sensor/vital", "topic": "ward3/bed2/heart_rate"}
+    assert len(from_dict({"mappings": [one, STATE_OUT]}, BridgeConfig).routes()) == 2
+
+
+def test_readings_for_robots_the_bridge_does_not_serve_cost_a_real_device_nothing(session_factory) -> None:
+    """300 invented robots between a real device's readings: each refused by its id, before any rate slot, sequence
+    counter or publisher is made for it; the device's readings all pass, numbered 1, 2, 3."""
     now = [100.0]
-    bridge, route = _bridge(session_factory(), lambda: now[0], max_hz=1.0)
+    bridge, route = _bridge(session_factory(), lambda: now[0], robots=("sim1",), max_hz=1.0)
     sink = ZenohSink(session_factory(), "iorthand/*/sensor/vital")
-    robots = [f"r{i}" for i in range(MAX_KEYS + 44)]
-    for _ in range(3):  # within one window (the clock stands still): one reading per robot at most
-        for robot in robots:
-            bridge._on_mqtt(route, None, None, _mqtt_message(f"site/{robot}/vitals/heart_rate", b'{"value": 72}'))
+    for _ in range(3):
+        bridge._on_mqtt(route, None, None, _mqtt_message("site/sim1/vitals/heart_rate", b'{"value": 72}'))
+        for i in range(MAX_KEYS + 44):
+            bridge._on_mqtt(route, None, None, _mqtt_message(f"site/r{i}/vitals/heart_rate", b'{"value": 72}'))
+        now[0] += 1.0
     stats = bridge.stats["heart-rate"]
-    assert stats.forwarded == MAX_KEYS and stats.rate_limited == 3 * len(robots) - MAX_KEYS and stats.refused == 0
-    wait_until(lambda: len(sink.samples.queue) >= MAX_KEYS, message="the readings on Zenoh")
-    put = [key for key, _ in sink.all(wait=0.3)]
-    assert len(put) == len(set(put)) == MAX_KEYS  # one per robot, and no more robots than the bridge tracks
-    now[0] += 1.0  # the window has passed: the robots refused now get their turn, once
-    for robot in robots:
-        bridge._on_mqtt(route, None, None, _mqtt_message(f"site/{robot}/vitals/heart_rate", b'{"value": 72}'))
-    assert stats.forwarded == MAX_KEYS + MAX_KEYS and bridge.blocked == 0
+    assert stats.forwarded == 3 and stats.rate_limited == 0 and stats.refused == 3 * (MAX_KEYS + 44)
+    assert "not one of the bridge's robots" in stats.last_refusal
+    assert len(bridge._limits["heart-rate"]) == 1 and list(bridge._sequencers) == ["iorthand/sim1/sensor/vital"]
+    wait_until(lambda: len(sink.samples.queue) >= 3, message="the three readings on Zenoh")
+    assert [(k, SensorReading.decode(p).seq) for k, p in sink.all(wait=0.3)] == [
+        ("iorthand/sim1/sensor/vital", 1), ("iorthand/sim1/sensor/vital", 2), ("iorthand/sim1/sensor/vital", 3)]
+
+
+def test_robot_state_of_more_robots_than_the_bridge_tracks_keeps_every_throttle(broker_factory,  # noqa: F811
+                                                                                session_factory) -> None:
+    """Out-direction throttles were forgotten least-recently-used: samples of 300 robot keys in turn evicted each
+    other's throttle, so every sample went to the broker at once (900 of 900 within one turn of a 0.1 Hz mapping),
+    and a real robot's throttle was evicted with the newest state it had waiting, which never went out. A throttle
+    is now forgotten only when a new one would do the same (nothing waiting, its turn come), and a new key while
+    MAX_KEYS are busy is dropped as over the rate. The clock stands still: one turn lasts the whole flood."""
+    broker = broker_factory()
+    now = [100.0]
+    cfg = from_dict({"mqtt": {"port": broker.port, "client_id": "bridge-throttles"},
+                     "mappings": [{**STATE_OUT, "max_hz": 0.1}]}, BridgeConfig, source="<test>")  # every robot
+    bridge = MqttBridge(cfg, session=session_factory(), clock=lambda: now[0])
+    probe = Probe(broker.port, "site/#")
+    bridge.start()
+    try:
+        assert bridge.wait_connected(10), bridge.last_error
+        zenoh_pub = session_factory()
+        stats = bridge.stats["robot-state"]
+
+        def put(robot: str, seq: int) -> None:
+            state = RobotState(tcp_pose=[0.3, 0.0, 0.2, 3.14, 0.0, 0.0], mode="sim", cmd_seq=seq).stamp(seq)
+            zenoh_pub.put(f"iorthand/{robot}/state/robot", state.encode(),
+                          congestion_control=zenoh.CongestionControl.BLOCK)
+
+        wait_until(lambda: put("sim1", 1) or stats.forwarded >= 1, timeout=10, message="sim1's first state sent")
+        put("sim1", 2)  # within sim1's turn: waits
+        wait_until(lambda: any(t.pending is not None for t in bridge._throttles.values()), message="sim1's waiting")
+        base = stats.rate_limited
+        flood = [f"r{i}" for i in range(MAX_KEYS + 44)]
+        for round_ in range(3):
+            for robot in flood:
+                put(robot, round_)
+        # 255 sent, 255 superseded, 255 waiting, 45 x 3 without a slot (before: 900 sent)
+        wait_until(lambda: stats.forwarded + stats.rate_limited - base >= 1 + 2 * (MAX_KEYS - 1) + 45 * 3, timeout=20,
+                   message="the flood taken")
+        time.sleep(0.3)
+        assert stats.forwarded == MAX_KEYS and len(bridge._throttles) == MAX_KEYS  # sim1's first, 255 of the flood
+        now[0] += 10.0  # the turn has come: what waits goes, sim1's newest state among it
+        wait_until(lambda: stats.forwarded >= 2 * MAX_KEYS - 1, message="the waiting states sent")
+        sim1 = [json.loads(m.payload)["seq"] for m in probe.received(2.0) if m.topic == "site/sim1/robot_state"]
+        assert sim1[-1] == 2 and len(sim1) == 2
+    finally:
+        probe.close()
+        bridge.shutdown()
 
 
 def test_readings_over_the_rate_are_dropped_before_they_are_parsed(session_factory,
@@ -200,3 +276,75 @@ def test_fields_a_newer_sender_adds_are_not_mirrored() -> None:
     assert msg.ignored == ("later_field",)
     assert json.loads(to_json(msg)) == {"v": 1, "seq": 3, "t": NOW, "name": "hr", "value": 72.0, "unit": "bpm",
                                         "source": ""}
+
+
+def _padded(size: int) -> bytes:
+    """A valid reading of exactly ``size`` bytes (JSON allows the spaces)."""
+    head = b'{"value": 72'
+    return head + b" " * (size - len(head) - 1) + b"}"
+
+
+def test_an_mqtt_v5_bridge_tells_the_broker_the_largest_message_it_takes(broker_factory, bridge_factory,  # noqa: F811
+                                                                        session_factory, tmp_path: Path) -> None:
+    """paho reads a message whole before the bridge's max_payload refuses it: a 16 MB publish cost the bridge process
+    ~50 MB at its peak (RSS 112 → 163 MB). Over MQTT v5 the bridge now announces its maximum packet size in CONNECT
+    (max_payload, the longest topic of its robots, the headers), and the broker drops a larger message for the
+    bridge without sending it (RSS +0.6 MB). The bridge counts it from the broker's numbering of QoS 1 messages."""
+    broker = broker_factory("allow_anonymous true\nlog_type all\n")
+    bridge = bridge_factory(broker.port, [HEART], {"protocol": "5"}, robots=["sim1"])
+    sink = ZenohSink(session_factory(), "iorthand/*/sensor/vital")
+    probe = Probe(broker.port)
+    _deliver(probe, "site/sim1/vitals/heart_rate", '{"value": 60}', sink)
+    stats = bridge.stats["heart-rate"]
+    sent = stats.forwarded
+    probe.publish("site/sim1/vitals/heart_rate", b"x" * 2**20)  # 1 MB: never sent to the bridge
+    wait_until(lambda: probe.publish("site/sim1/vitals/heart_rate", _padded(4096)) or stats.forwarded > sent,
+               message="the 4096-byte reading on Zenoh")  # the largest reading it takes still arrives
+    assert stats.refused == 0  # before: refused, once read whole
+    assert bridge.max_packet == 4096 + len("site/sim1/vitals/heart_rate") + PUBLISH_OVERHEAD
+    assert bridge.client is not None and bridge.client._connect_properties.MaximumPacketSize == bridge.max_packet
+    assert bridge.numbering.skipped == 1
+    assert "1 QoS 1 messages the broker did not deliver" in bridge.summary()
+    log = (tmp_path / f"mosquitto-{broker.port}.log").read_text()
+    assert f"Dropping too large outgoing PUBLISH for {bridge.cfg.mqtt.client_id}" in log
+    probe.close()
+
+
+def test_an_mqtt_3_bridge_says_which_broker_limit_protects_it(broker_factory, bridge_factory,  # noqa: F811
+                                                              caplog: pytest.LogCaptureFixture) -> None:
+    """MQTT 3.1.1 has no way to announce a size: the start log names the broker's setting and its value, and with
+    that setting the broker keeps a 1 MB message from the bridge."""
+    caplog.set_level(logging.WARNING, logger="iorthand.bridge")
+    cfg = from_dict({"robots": ["sim1"], "mappings": [HEART, {**HEART, "name": "spo2", "max_payload": 512,
+                                                              "topic": "site/{robot}/vitals/spo2"}]}, BridgeConfig)
+    assert [k for k, _ in cfg.warnings()] == ["mqtt.protocol"] and 'message_size_limit 4096"' in cfg.warnings()[0][1]
+    cfg.mqtt.protocol = "5"
+    assert cfg.warnings() == []
+    broker = broker_factory("allow_anonymous true\nmessage_size_limit 4096\n")
+    bridge = bridge_factory(broker.port, [HEART], robots=["sim1"])
+    assert any('"message_size_limit 4096"' in r.getMessage() for r in caplog.records)
+    probe = Probe(broker.port)
+    stats = bridge.stats["heart-rate"]
+
+    def deliver_largest(sent: int) -> None:
+        wait_until(lambda: probe.publish("site/sim1/vitals/heart_rate", _padded(4096)) or stats.forwarded > sent,
+                   message="the 4096-byte reading")
+
+    deliver_largest(0)  # the bridge's subscription is in place
+    probe.publish("site/sim1/vitals/heart_rate", b"x" * 2**20)
+    deliver_largest(1)
+    assert stats.refused == 0
+    probe.close()
+
+
+def test_the_broker_numbering_counts_what_it_withheld() -> None:
+    numbering = BrokerNumbering()
+    assert [numbering.observe(mid, 1, False) for mid in (1, 2, 4, 7)] == [0, 0, 1, 2]
+    assert numbering.observe(7, 1, True) == 0 and numbering.observe(0, 0, False) == 0  # resent; QoS 0 has no id
+    numbering.restart()
+    assert numbering.observe(2, 1, False) == 1  # a new session starts at 1
+    for mid in range(3, 65536):
+        numbering.observe(mid, 1, False)
+    assert numbering.observe(1, 1, False) == 0 and numbering.observe(3, 1, False) == 1  # 65535 wraps to 1
+    assert numbering.observe(40000, 1, False) == 0  # a numbering of its own, not 39996 messages withheld
+    assert numbering.skipped == 5

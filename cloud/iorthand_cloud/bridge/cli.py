@@ -24,7 +24,7 @@ def _mqtt(args: argparse.Namespace) -> int:
                 print(f"{r.name}: out {', '.join(r.exprs)} → mqtt {r.topic.text} (QoS {r.qos}, ≤ {r.max_hz:g} Hz per robot)")
             else:
                 print(f"{r.name}: in mqtt {r.topic.subscription} → {r.key.text} ({r.message.__name__}, QoS {r.qos})")
-        for key, problem in cfg.mqtt.warnings():
+        for key, problem in cfg.warnings():
             print(f"warning: {key}: {problem}")
         return 0
     from iorthand_cloud.bridge.mqtt import MqttBridge

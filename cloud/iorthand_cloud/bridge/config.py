@@ -15,7 +15,7 @@ from typing import Any
 
 from iorthand.config import setting
 from iorthand.transport import ZenohConfig, client_config
-from iorthand_cloud.bridge.mapping import Direction, Route, check_routes, compile_route
+from iorthand_cloud.bridge.mapping import MAX_KEYS, Direction, InRoute, Route, check_routes, compile_route
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 CLIENT_ID = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -110,14 +110,29 @@ class MappingConfig:
 class BridgeConfig:
     zenoh: ZenohConfig = dataclasses.field(default_factory=lambda: client_config(DEFAULT_CONNECT))
     mqtt: MqttConfig = dataclasses.field(default_factory=MqttConfig)
-    robots: list[str] = setting(default_factory=list, help="the robots bridged (empty: every robot)")
+    robots: list[str] = setting(default_factory=list, help="the robots bridged, at most 256 (empty: every robot, "
+                                "for 'out' mappings only: an 'in' mapping with {robot} needs them named)")
     mappings: list[MappingConfig] = setting(default_factory=list)
     stats_interval_s: float = setting(60.0, lo=1.0, help="s between the counters in the log")
 
     def routes(self) -> list[Route]:
+        if len(set(self.robots)) > MAX_KEYS:
+            raise ValueError(f"robots: {len(set(self.robots))} named, at most {MAX_KEYS} (run another bridge for more)")
         routes = [m.route(self.robots) for m in self.mappings]
         check_routes(routes)
         return routes
+
+    def warnings(self) -> list[tuple[str, str]]:
+        """Settings that load but weaken the bridge (logged at start, printed by --check)."""
+        out = self.mqtt.warnings()
+        payloads = [r.max_payload for r in self.routes() if isinstance(r, InRoute)]
+        if payloads and self.mqtt.protocol != "5":
+            out.append(("mqtt.protocol", (
+                f"{self.mqtt.protocol} cannot tell the broker the largest message the bridge takes: the broker sends "
+                f"it messages of any size (up to 256 MB), each read whole into memory before max_payload refuses it. "
+                f'Set "message_size_limit {max(payloads)}" (bytes: the largest max_payload of the in mappings) in '
+                'the broker\'s mosquitto.conf, or use protocol "5"')))
+        return out
 
     def check(self) -> None:
         if not self.mappings:

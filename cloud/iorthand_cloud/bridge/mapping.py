@@ -40,6 +40,14 @@ MAX_TOPIC_BYTES = 65535  # MQTT's limit of a topic name
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 _MAX_INT = 2**63 - 1
 STAMPED = ("seq", "t")  # numbered and timed by the bridge (``t`` may come from the sensor: see InRoute.reading)
+MAX_KEYS = 256  # robots one bridge serves, and per-key state (throttles, rate limits) it keeps: bounded memory
+MAX_ROBOT_ID = 64  # bytes of a robot id (keys.ROBOT_ID_PATTERN)
+# What an MQTT v5 PUBLISH adds to its payload: the fixed header (1 byte and a length of up to 4), the topic's length
+# (2), a packet id (2), the properties' length (up to 4) and the properties the sender attached, which the broker
+# passes on (content type, expiry, user properties...): 256 bytes are left for them. A reading sent with more is
+# dropped by the broker like one too large.
+PUBLISH_OVERHEAD = 1 + 4 + 2 + 2 + 4 + 256
+NO_INPUT_PACKET = 1024  # bytes: with no 'in' mapping the broker sends the bridge only its acknowledgements
 
 
 class Direction(StrEnum):
@@ -349,6 +357,14 @@ class InRoute:
         return [f.name for f in dataclasses.fields(self.message) if f.name != "seq"]
 
     @property
+    def max_packet(self) -> int:
+        """Bytes of the largest MQTT packet a message this route takes can be: ``max_payload``, the longest topic
+        (the robot level one of the robots named) and the headers (:data:`PUBLISH_OVERHEAD`)."""
+        robot = max((len(r) for r in self.robots), default=MAX_ROBOT_ID) if self.topic.robot_level is not None else 0
+        topic = len(self.topic.text.replace(ROBOT, "").encode()) + robot
+        return self.max_payload + topic + PUBLISH_OVERHEAD
+
+    @property
     def required(self) -> list[str]:
         """The fields a payload must carry: all the mapping does not fix (``t`` is optional)."""
         return [n for n in self.payload_fields if n not in STAMPED and n not in self.fixed]
@@ -505,7 +521,8 @@ def _compile(name: str, direction: Direction, key_text: str, topic_text: str, qo
 def check_routes(routes: list[Route]) -> None:
     """Refuse a set of mappings that would collide: two names alike, or two mappings whose topics one MQTT topic
     can match: two 'in' would publish a reading twice, two 'out' mix two streams on one topic, and an 'out' with an
-    'in' would read back what the bridge itself publishes."""
+    'in' would read back what the bridge itself publishes. And an 'in' mapping whose topic chooses the robot
+    without the robots it may choose named: any client of the broker could invent robots."""
     seen: set[str] = set()
     for r in routes:
         if r.name in seen:
@@ -516,6 +533,18 @@ def check_routes(routes: list[Route]) -> None:
             if a.topic.overlaps(b.topic):
                 raise MappingError(f"mappings {a.name!r} and {b.name!r}: topics {a.topic.text!r} and "
                                    f"{b.topic.text!r} can be one MQTT topic")
+    for r in routes:
+        if isinstance(r, InRoute) and r.key.robot is None and not r.robots:
+            raise MappingError(
+                f"mapping {r.name!r} takes the robot from the MQTT topic ({r.topic.text}): name the robots this "
+                f"bridge serves (robots: [...], at most {MAX_KEYS}). With none named any client of the broker could "
+                "publish readings for robots it invents, and take from the real devices the slots the bridge keeps")
+
+
+def max_packet_size(routes: Iterable[Route]) -> int:
+    """Bytes of the largest MQTT packet the bridge takes: what it announces to an MQTT v5 broker, which then drops
+    a larger message for the bridge instead of sending it (paho reads a message whole before any check)."""
+    return max((r.max_packet for r in routes if isinstance(r, InRoute)), default=NO_INPUT_PACKET)
 
 
 # ------------------------------------------------------------------------------------------------ rates
@@ -557,6 +586,11 @@ class LatestThrottle:
         """When the waiting item may go (None: nothing waits)."""
         return None if self.pending is None else self.next_ok
 
+    def idle(self, now: float) -> bool:
+        """Nothing waits and the next item may go at once: a new throttle would do the same, so this one can be
+        forgotten without letting anything through sooner or losing anything."""
+        return self.pending is None and now >= self.next_ok
+
 
 class RateLimits:
     """At most one item per ``1/max_hz`` per key (MQTT input: a flooding sensor), for at most ``max_keys`` keys at
@@ -597,7 +631,7 @@ class RateLimits:
 
 
 __all__ = [
-    "Direction", "InRoute", "KeyTemplate", "LatestThrottle", "MappingError", "OutRoute", "RateLimits", "Refused",
-    "Route", "TopicTemplate", "binary_fields", "bridge_channel", "channel_of", "check_bridge_key", "check_routes",
-    "compile_route", "to_json",
+    "MAX_KEYS", "Direction", "InRoute", "KeyTemplate", "LatestThrottle", "MappingError", "OutRoute", "RateLimits",
+    "Refused", "Route", "TopicTemplate", "binary_fields", "bridge_channel", "channel_of", "check_bridge_key",
+    "check_routes", "compile_route", "max_packet_size", "to_json",
 ]
