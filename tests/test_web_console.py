@@ -22,6 +22,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -56,6 +57,7 @@ from iorthand.protocol import (
 )
 from iorthand.transport import client_config, free_port, open_session
 from iorthand_operator.client import SAFETY_STALE_S, actuator_stale_after
+from iorthand_operator.console.model import picture_stale_after
 from iorthand_operator.web import users
 from iorthand_operator.web.config import WebConfig
 from tests.conftest import ROOT, iorthand_cmd, stop_process, wait_until
@@ -211,9 +213,10 @@ class Relay:
 
 class Stack:
     """Router, edge and web console, each a process of its own; a Zenoh session watching the robot. Without
-    ``with_edge`` the robot's messages are the test's own (:class:`StandIn`)."""
+    ``with_edge`` the robot's messages are the test's own (:class:`StandIn`). ``web``: more of the web console's
+    settings."""
 
-    def __init__(self, tmp: Path, with_edge: bool = True) -> None:
+    def __init__(self, tmp: Path, with_edge: bool = True, web: dict[str, Any] | None = None) -> None:
         self.tmp = tmp
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.procs: list[subprocess.Popen[bytes]] = []
@@ -235,7 +238,7 @@ class Stack:
             "deployment": "deployment.yaml", "users_file": "web-users.txt", "listen": f"127.0.0.1:{self.port}",
             "zenoh": {"mode": "client", "connect": [self.endpoint]},
             # The reverse proxy of test_behind_a_reverse_proxy_...: on this host, listed (none is by default).
-            "trusted_proxies": ["127.0.0.1"]}))
+            "trusted_proxies": ["127.0.0.1"], **(web or {})}))
         if with_edge:
             self.start("edge", iorthand_cmd("edge", "--config", str(tmp / "edge.yaml")), "media process")
         self.start("web", iorthand_cmd("web", "--config", str(tmp / "web.yaml")), "web console ready")
@@ -726,7 +729,7 @@ def test_a_page_sends_its_release_at_once_not_on_its_next_tick(stack, browser, h
         since = time.time_ns()
         drive(page, fingers, 0.0, 1.0)
         w.wait(lambda: len(w.moving_echoes(since)) > 20, 5.0, "the robot moving")
-        page.clock.pause_at(page.evaluate("Date.now()") + 20)
+        page.clock.pause_at((page.evaluate("Date.now()") + 300) / 1000)  # (s; ahead of a slow call)
         before = page.evaluate("window.sentTwists.length")
         assert page.evaluate("window.sentTwists[window.sentTwists.length - 1].deadman"), "held before letting go"
         if how == "lift":
@@ -756,7 +759,7 @@ def test_a_page_whose_stream_runs_late_says_so_and_draws_its_3d_view_with_fewer_
     view_width = "(() => { const c = document.getElementById('view3d'); return c.width / c.clientWidth; })()"
     try:
         page = open_console(browser, stack.url, clock=True)
-        page.clock.pause_at(page.evaluate("Date.now()") + 20)
+        page.clock.pause_at((page.evaluate("Date.now()") + 300) / 1000)  # (s; ahead of a slow call)
         page.clock.run_for(1500)  # the stream at its rate (60 Hz) on the page's clock
         on_time = page.evaluate("window.iorthand.pace")
         assert on_time is not None and not on_time["slow"] and on_time["rate"] >= 55, on_time
@@ -1431,4 +1434,48 @@ def test_a_video_source_that_failed_says_why_in_place_of_its_picture(standin, br
     finally:
         with robot.lock:
             robot.failures["camera"] = ""
+        page.context.close()
+
+
+def test_a_video_stream_that_goes_silent_without_a_notice_is_shown_not_live(standin, browser) -> None:
+    """Found: a stream whose frames stopped with no failure notice (a dead link, frames lost on the way) kept its
+    last picture on the page as if live, its caption showing the last delay; only the page-wide "no data" note
+    covered it, and only when the state went quiet too. Now the picture is dimmed and crossed out, its caption says
+    "no picture for N s", once no frame came for the stream's bound (three of its frame periods, at least
+    MARKERS_SHOWN_S: console.model.picture_stale_after); the next frame makes it live again."""
+    stack, robot = standin
+    page = open_console(browser, stack.url, "student", control=False)
+    figure = "figure:has(#camera)"
+    bound = picture_stale_after(STANDIN_PERIODS["camera"])
+    try:
+        page.wait_for_function("window.iorthand.video.camera.length > 2", timeout=10_000)  # pictures arrive
+        page.wait_for_function("document.getElementById('camera-age').textContent.endsWith(' ms')", timeout=10_000)
+        assert "not-live" not in _classes(page, figure)
+        page.evaluate("""() => { window.notLiveAt = 0; setInterval(() => {
+            if (!window.notLiveAt && document.querySelector('figure:has(#camera)').classList.contains('not-live')) {
+                window.notLiveAt = Date.now();
+            }
+        }, 10); }""")
+
+        with robot.lock:  # the camera's frames stop; the state and everything else go on
+            robot.quiet.add("camera")
+        page.wait_for_function("window.notLiveAt", timeout=10_000)
+        delay = page.evaluate("window.notLiveAt") / 1000 - robot.last_put["camera"]
+        # Never before its bound (the page times the pictures it gets), and within it plus the page's check (10 Hz)
+        # and a loaded machine's slack.
+        assert bound <= delay + 0.05 and delay <= bound + 1.0, f"shown not live {delay:.2f} s after the last frame"
+        caption = page.text_content("#camera-age")
+        assert re.fullmatch(r"no picture for \d+\.\d s", caption), caption
+        assert (page.get_attribute("#camera", "src") or "").startswith("blob:")  # the old picture, marked as old
+        assert page.text_content("#status") == "ok"  # the state is current: only the picture is old
+        assert "not-live" not in _classes(page, "figure:has(#ultrasound)")  # no stream there: nothing shown old
+
+        with robot.lock:  # frames again
+            robot.quiet.discard("camera")
+        page.wait_for_function("!document.querySelector('figure:has(#camera)').classList.contains('not-live')",
+                               timeout=10_000)
+        page.wait_for_function("document.getElementById('camera-age').textContent.endsWith(' ms')", timeout=10_000)
+    finally:
+        with robot.lock:
+            robot.quiet.discard("camera")
         page.context.close()

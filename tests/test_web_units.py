@@ -12,6 +12,7 @@ from iorthand.protocol import MarkerPose, Markers
 from iorthand.security.acl import Deployment
 from iorthand.security.hosts import host_allowed
 from iorthand_operator.client import MARKERS_SHOWN_S
+from iorthand_operator.console.model import picture_stale_after
 from iorthand_operator.web import messages, users
 from iorthand_operator.web.config import WebConfig
 from iorthand_operator.web.server import Frame, markers_on_page
@@ -298,3 +299,45 @@ def test_a_video_failure_notice_goes_to_the_page_with_its_reason() -> None:
     assert wire[14:].decode() == "USB camera unplugged"
     picture = Frame(seq=8, t=124, data=b"\xff\xd8jpeg", h264=True, keyframe=True).wire(1)
     assert struct.unpack(">BQIB", picture[:14]) == (1, 124, 8, 3) and picture[14:] == b"\xff\xd8jpeg"
+
+
+def test_a_pictures_bound_for_live_is_three_of_its_streams_frame_periods_and_at_least_a_second() -> None:
+    assert picture_stale_after(0.0) == MARKERS_SHOWN_S  # no period known yet
+    assert picture_stale_after(0.1) == MARKERS_SHOWN_S  # 10 fps: one lost frame must not blink the picture off
+    assert picture_stale_after(1.0) == pytest.approx(3.0)  # 1 fps: three periods
+
+
+def test_the_console_measures_each_video_streams_frame_period_from_its_frames(router_endpoint) -> None:
+    """The page's bound for a live picture follows the stream's rate (a frame lost on the way is a gap in the
+    sequence, not a longer period): measured on the console's feed from real frames through a real router."""
+    import asyncio
+    import time
+
+    from iorthand import keys
+    from iorthand.protocol import VideoFrame
+    from iorthand.transport import client_config, open_session
+    from iorthand_operator.web.server import Feed
+
+    session = open_session(client_config(router_endpoint))
+    loop = asyncio.new_event_loop()
+    feed = Feed(session, "r1", "ur3e", loop)
+    pub = session.declare_publisher(keys.RobotKeys("r1").key(keys.VIDEO_ULTRASOUND))
+    try:
+        time.sleep(0.3)  # the subscription reaches the router
+        t0 = time.time_ns()
+        for seq in (1, 2, 4):  # 2 fps; frame 3 lost on the way
+            pub.put(VideoFrame(source="ultrasound", width=4, height=4, data=b"jpeg").stamp(seq, t0 + seq * 500_000_000)
+                    .encode())
+        deadline = time.monotonic() + 5.0
+        while feed.frame_period["ultrasound"] == 0.0 or len(feed._last_picture) == 0 or \
+                feed._last_picture["ultrasound"][0] != 4:
+            assert time.monotonic() < deadline, "the frames did not arrive"
+            time.sleep(0.01)
+        assert feed.frame_period["ultrasound"] == pytest.approx(0.5)
+        assert picture_stale_after(feed.frame_period["ultrasound"]) == pytest.approx(1.5)
+        assert feed.frame_period["camera"] == 0.0
+    finally:
+        pub.undeclare()
+        feed.close()
+        session.close()
+        loop.close()

@@ -70,6 +70,19 @@ def markers_note(failure: str, age: float) -> tuple[str, bool]:
     return "", False
 
 
+# A video picture is shown as not live once no newer one came for this many of its stream's frame periods: a stream
+# that goes silent without the edge's failure notice (a dead link, a stalled relay) must not leave its last picture
+# reading as live. Never sooner than MARKERS_SHOWN_S: the markers come from the same camera frames, and one dropped
+# frame of a fast stream (video travels with congestion control DROP) must not blink the picture off.
+PICTURE_STALE_FRAMES = 3
+
+
+def picture_stale_after(period: float) -> float:
+    """s without a new picture after which a stream whose frames come every ``period`` s (0: not known yet) is shown
+    as not live: three of its periods, never less than MARKERS_SHOWN_S."""
+    return max(PICTURE_STALE_FRAMES * period, MARKERS_SHOWN_S)
+
+
 def sparkline(values: Sequence[float], width: int = 30, top: float | None = None) -> str:
     """The last ``width`` values as block characters scaled to ``top`` (default: their maximum)."""
     vals = [v for v in list(values)[-width:] if math.isfinite(v)]

@@ -11,6 +11,7 @@ from urllib.parse import urlsplit
 from iorthand.config import setting
 from iorthand.security.hosts import is_loopback, own_names
 from iorthand.transport import ZenohConfig
+from iorthand_operator.console.settings import ConsoleSettings
 
 
 @dataclass
@@ -57,6 +58,11 @@ class WebConfig:
         8, lo=1, hi=1000, help="open pages one user may have at once, over all of its log-ins: a viewer's thousand "
         "pages held up the physician's commands past the edge's deadman timeout",
     )
+    # The terminal console's section (configs/operator.yaml's console:), read by the same dataclass and its checks:
+    # a deployment sets its consoles' bounds and choices once. The page follows force_stale_after, state_stale_after,
+    # link, link_window, profiles and pan_tilt_step_deg; input, keymap, gamepad, input_hz and refresh_hz are the
+    # terminal's own inputs and screen (the page has its own, and twist_hz above).
+    console: ConsoleSettings = field(default_factory=ConsoleSettings)
     arm_model: str = setting("ur3e", choices=("ur3e", "ur5e"), help="the arm drawn in the 3D view")
     arm_models: dict[str, str] = setting(default_factory=dict, help="robot id → ur3e | ur5e, where not arm_model")
     release_tail: float = setting(0.3, lo=0.0, hi=5.0, help="s of released-deadman commands forwarded after a release")

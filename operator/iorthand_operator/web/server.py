@@ -57,9 +57,8 @@ from iorthand_operator.client import (
     OperatorClient,
     actuator_stale_after,
 )
-from iorthand_operator.console.model import force_view, markers_note, stale_note, vitals_line
-from iorthand_operator.console.settings import ConsoleSettings
-from iorthand_operator.link import GRADE_COLOURS, STATE_STALE_S, LinkThresholds
+from iorthand_operator.console.model import force_view, markers_note, picture_stale_after, stale_note, vitals_line
+from iorthand_operator.link import GRADE_COLOURS
 from iorthand_operator.web import messages, users
 from iorthand_operator.web.config import WebConfig
 
@@ -69,9 +68,6 @@ STATIC = Path(__file__).resolve().parent / "static"
 COOKIE = "iorthand_session"
 WATCHER_ID = "web"  # the id of the server's watching clients (they never acquire, announce or command)
 VIDEO_STREAMS = {"camera": keys.VIDEO_CAMERA, "ultrasound": keys.VIDEO_ULTRASOUND}
-# How old each value on the page may be before it is shown as old: the terminal console's bounds, from where they
-# are set (the page gets each row's age from here, and the page-side bound in its hello: no second copy in the page).
-FORCE_STALE_S = ConsoleSettings.force_stale_after
 # A page whose socket holds more than this unsent is behind: it gets no video until it has drained (newest wins).
 VIDEO_BACKLOG_BYTES = 256 * 1024
 WS_MAX_BYTES = 64 * 1024  # aiohttp closes a socket whose message is larger; up to it, messages.parse refuses
@@ -131,6 +127,10 @@ class Feed:
         self.frames: dict[str, deque[Frame]] = {name: deque(maxlen=H264_BACKLOG) for name in VIDEO_STREAMS}
         self.pages: set[Page] = set()
         self._video_failure = dict.fromkeys(VIDEO_STREAMS, "")  # each stream's newest failure ("": frames flow)
+        # Each stream's frame period (s, 0: not known yet), from its frames' capture times and sequence numbers (a
+        # frame lost on the way leaves a gap in the sequence, not a longer period): its pictures' bound for "live".
+        self.frame_period = dict.fromkeys(VIDEO_STREAMS, 0.0)
+        self._last_picture: dict[str, tuple[int, int]] = {}  # stream → (seq, t) of its newest picture
         self._arm_seq = -1
         self._arm_points: list[list[float]] | None = None
         self._lock = threading.Lock()
@@ -150,6 +150,11 @@ class Feed:
             if news:
                 self.watch.log_event("warning" if msg.failure else "info", f"{name}_video", news)
             self._video_failure[name] = msg.failure
+            if not msg.failure:
+                last = self._last_picture.get(name)
+                if last is not None and msg.seq > last[0] and msg.t > last[1]:
+                    self.frame_period[name] = (msg.t - last[1]) / 1e9 / (msg.seq - last[0])
+                self._last_picture[name] = (msg.seq, msg.t)
             frames = self.frames[name]
             if not frame.h264:
                 frames.clear()  # newest wins
@@ -500,6 +505,7 @@ class Page:
         assert self.bridge.session is not None
         client = OperatorClient(self.bridge.session, self.robot, self.grant.user, external_sender=True,
                                 bind_keys=self.bridge.config.bind_operator_keys,
+                                link_window=self.bridge.config.console.link_window,
                                 release_tail=self.bridge.config.release_tail)
         client.echo_listener = self._on_echo
         try:
@@ -636,6 +642,9 @@ class Page:
         w = self.feed.watch
         now = time.monotonic()
         st, sf = w.robot_state, w.safety
+        # How old each value may be before it is shown as old: the deployment's console settings, the terminal
+        # console's (the page gets each row's age from here, and the page-side bound in its hello).
+        console = self.bridge.config.console
         out: dict[str, Any] = {"type": "state", "robot": self.robot, "online": bool(w.edge_alive),
                                "user": self.grant.user, "role": str(self.grant.role), "refused": self.refused}
         if st is not None:
@@ -647,7 +656,7 @@ class Page:
             out["arm"] = self.feed.arm_points()
             # "stale 2.2 s" once the newest state is older than the link's bound: the arm drawn and the speed said
             # are where the robot was then ("" while current).
-            out["state_stale"] = stale_note(now - w.robot_state_at, STATE_STALE_S)
+            out["state_stale"] = stale_note(now - w.robot_state_at, console.state_stale_after)
         if sf is not None:
             out["safety"] = {"armed": sf.armed, "owner": sf.owner, "status": sf.status, "reason": sf.reason,
                              "profile": sf.profile, "deadman": sf.deadman, "linear_limit": sf.linear_limit,
@@ -655,9 +664,9 @@ class Page:
                              "contact": sf.contact_target, "task": sf.task,
                              # the edge's last word on all of these, aged once it is no longer its state
                              "stale": f"stale {w.safety_age(now):.1f} s" if w.safety_stale(now) else ""}
-        fv = force_view(w.force_level, w.force_level_at, now, FORCE_STALE_S)
+        fv = force_view(w.force_level, w.force_level_at, now, console.force_stale_after)
         force: dict[str, Any] = {"colour": fv.colour.replace("grey50", "grey"), "label": fv.label, "detail": fv.detail}
-        if w.force is not None and st is not None and now - w.force_at <= FORCE_STALE_S:
+        if w.force is not None and st is not None and now - w.force_at <= console.force_stale_after:
             force["vector"] = [round(v, 3) for v in geometry.rotate(st.tcp_pose[3:], w.force.force)]
         out["force"] = force
         if w.vitals:  # the patient's vital signs (sensor/vital), one line as on the terminal console
@@ -671,16 +680,28 @@ class Page:
             out["torch"] = {"on": w.torch.on, "brightness": w.torch.brightness,
                             "stale": stale_note(now - w.torch_at, actuator_stale_after(w.torch))}
         holder = self.bridge.controllers.get(self.robot)
-        out["control"] = {"mine": self.client is not None and self.client.owner, "here": holder.grant.user if holder else ""}
-        if self.grant.may_command(self.robot):
+        # s without a new picture after which the page shows each stream's last one as not live (the page times
+        # the pictures it gets: a link to it that dies stops them too)
+        out["picture_stale_s"] = {name: round(picture_stale_after(self.feed.frame_period[name]), 3)
+                                  for name in VIDEO_STREAMS}
+        # "elsewhere": the user of another page of this console that holds control ("" if none does)
+        out["control"] = {"mine": self.client is not None and self.client.owner,
+                          "elsewhere": holder.grant.user if holder is not None and holder is not self else ""}
+        if self.grant.may_command(self.robot) and holder is not None and holder is not self:
+            # One driver: another page of this console holds control (the same user's other device or tab, or
+            # another user's); "Take control" here is refused, so the page says who holds it and where.
+            who = "you hold" if holder.grant.user == self.grant.user else f"{holder.grant.user} holds"
+            out["hint"] = (f"{who} control of {self.robot} from another page (another device or tab): it must be "
+                           "released there before this page can take it")
+        elif self.grant.may_command(self.robot):
             # What stands between this page and motion, with the page's own controls named.
             step = self.client.next_step() if self.client is not None else recovery.NextStep(
                 recovery.Step.ACQUIRE, "this page does not hold control")
             out["hint"] = recovery.hint(step, "Take control", "HOLD", toggle=False)
         events = self._new_events("watch", w.events)
         if self.client is not None:
-            q = self.client.link_quality()
-            grades = q.grades(LinkThresholds())
+            q = self.client.link_quality(state_stale_after=console.state_stale_after)
+            grades = q.grades(console.link)
             out["link"] = {"rtt_p50": _finite(q.rtt_p50_ms), "rtt_p95": _finite(q.rtt_p95_ms),
                            "loss_up": _finite(q.uplink_loss), "loss_down": _finite(q.downlink_loss),
                            "no_state": q.no_state_s,  # s without robot state: the link is dead, not slow
@@ -912,7 +933,10 @@ async def _websocket(request: web.Request) -> web.StreamResponse:
                      "robots": list(grant.robots), "may_command": grant.may_command(robot),
                      "twist_hz": bridge.config.twist_hz,
                      # no state message from this server for this long: everything on the page is that old
-                     "state_stale_s": STATE_STALE_S})
+                     "state_stale_s": bridge.config.console.state_stale_after,
+                     # the profiles the operator chooses from, and the camera's step, as on the terminal console
+                     "profiles": bridge.config.console.profiles,
+                     "pan_tilt_step_deg": bridge.config.console.pan_tilt_step_deg})
     pusher = asyncio.create_task(page.push())
     try:
         async for msg in ws:

@@ -3,9 +3,10 @@
 //   held or not; the server forwards each one at once and never repeats one, so if this page stops (closed,
 //   frozen, offline) the edge's own timeout stops the robot;
 // - the deadman is held only while a finger (or the mouse, Space, a gamepad shoulder button) is on it: lifting
-//   it, a touchcancel, the page hidden, the window losing focus, the screen's layout changing (a rotation) or the
-//   socket closing all release it, and the release is sent at once, not on the next tick (a browser throttles the
-//   timers of a hidden or busy page);
+//   it, a touchcancel, the page hidden or frozen (or not run for longer than a state stays current), the window
+//   losing focus, the network lost, the screen's layout changing (a rotation) or the socket closing all release
+//   it, and the release is sent at once, not on the next tick (a browser throttles the timers of a hidden or busy
+//   page);
 // - a release (those, the e-stop, releasing control) holds until the input is let go and pressed anew: a held
 //   Space's auto-repeat, a gamepad's shoulder button still down, a key still down never take it back.
 // Velocities: left stick right = +x, up = +y; right stick up = +z, sideways = turn about z (base frame), scaled
@@ -120,11 +121,15 @@ const sticks = [
 
 let deadmanPointer = null;
 ui.deadman.addEventListener("pointerdown", (e) => {
+  e.preventDefault();
+  if (offline()) { // what it sends waits in the socket and reaches the edge late: the press counts once online
+    logEvent({ kind: "refused", status: "offline", reason: "no network: HOLD does nothing until it is back" });
+    return;
+  }
   deadmanPointer = e.pointerId;
   ui.deadman.setPointerCapture(e.pointerId);
   input.deadman.pointer = true;
   ui.deadman.classList.add("held");
-  e.preventDefault();
 });
 for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) {
   ui.deadman.addEventListener(type, (e) => {
@@ -139,9 +144,31 @@ for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) {
 window.addEventListener("touchcancel", () => releaseAll("touch cancelled"), { capture: true });
 document.addEventListener("visibilitychange", () => {
   if (document.hidden) releaseAll("page hidden");
-  else pace.restart(); // a hidden page's timers were throttled on purpose: watch its pace anew
+  else { // a hidden page's timers were throttled on purpose: watch its pace, and its gaps, anew
+    pace.restart();
+    lastTickAt = 0;
+  }
 });
 window.addEventListener("pagehide", () => releaseAll("page closed"));
+// A phone freezes a page in the background or under a locked screen (no timer runs: the edge's timeout stops the
+// robot). The hold ends there; on return the page does not take it back, even with the finger still down.
+document.addEventListener("freeze", () => releaseAll("the browser froze this page (screen locked, or in the background)"));
+document.addEventListener("resume", () => logEvent({ kind: "warning", status: "resumed",
+  reason: "this page runs again after being frozen: nothing moves until HOLD is pressed anew" }));
+// The network lost: what the page sends waits in its socket and would reach the server in a burst on return. The
+// hold ends at once, and a hold cannot start until the network is back (a finger, Space or button held since then
+// counts only when pressed anew).
+function offline() { return navigator.onLine === false; }
+window.addEventListener("offline", () => {
+  releaseAll("this device lost its network");
+  logEvent({ kind: "warning", status: "offline", reason: "no network: the robot stops (the edge's timeout); "
+    + "HOLD does nothing until it is back" });
+});
+window.addEventListener("online", () => logEvent({ kind: "info", status: "online",
+  reason: "network back: press HOLD anew to move" }));
+// Restored from the back-forward cache, the page would hold what it had when left (its socket closed then, its
+// control released on the server): it starts afresh, as on a reload.
+window.addEventListener("pageshow", (e) => { if (e.persisted) location.reload(); });
 window.addEventListener("blur", () => releaseAll("window lost focus"));
 // A rotation (or any change of the viewport) moves the sticks and the deadman from under the fingers, and the
 // fingers' own coordinates with them: a thumb resting on a stick's centre read as a full deflection. Everything is
@@ -159,7 +186,7 @@ window.addEventListener("keydown", (e) => {
   if (e.code === "Space") {
     e.preventDefault();
     // Only a press: never the auto-repeat of a held key, nor a Space held since a release (an e-stop, a blur).
-    if (!e.repeat && !spaceLocked) input.deadman.key = true;
+    if (!e.repeat && !spaceLocked && !offline()) input.deadman.key = true;
     else if (!e.repeat && !input.deadman.key) {
       logEvent({ kind: "input", status: "deadman", reason: "let go of Space and press it again to hold the deadman" });
     }
@@ -189,6 +216,7 @@ function readGamepad() {
   const dz = (v) => (Math.abs(v) < 0.12 ? 0 : v);
   const pressed = !!(p.buttons[4]?.pressed || p.buttons[5]?.pressed); // a shoulder button, held
   if (!pressed) padLocked = false; // let go since the last release: the next press counts
+  else if (offline()) padLocked = true; // pressed with no network: counts once let go and pressed again
   input.deadman.pad = pressed && !padLocked;
   return { lx: dz(p.axes[0] || 0), ly: -dz(p.axes[1] || 0), rx: dz(p.axes[2] || 0), ry: -dz(p.axes[3] || 0) };
 }
@@ -228,10 +256,23 @@ function sendTwist() {
 }
 // The fixed-rate stream: a timer at the server's rate, never input events (a release aside).
 let stream = null;
+let lastTickAt = 0;
 function startStream(hz) {
   clearInterval(stream);
   pace.restart();
-  stream = setInterval(() => { pace.tick(); sendTwist(); }, 1000 / hz);
+  lastTickAt = 0;
+  stream = setInterval(() => {
+    // A page that did not run for longer than its screen's bound for a current state (frozen by the browser with no
+    // freeze event, the device asleep) acted on nothing in that time: the hold ends, and needs a fresh press.
+    const now = performance.now();
+    const gap = lastTickAt ? now - lastTickAt : 0;
+    lastTickAt = now;
+    if (hello && gap > hello.state_stale_s * 1000) {
+      releaseAll(`this page did not run for ${(gap / 1000).toFixed(1)} s (frozen, or the device asleep)`);
+    }
+    pace.tick();
+    sendTwist();
+  }, 1000 / hz);
 }
 
 // The page's own pace. A busy page (slow drawing on a weak phone) runs the stream's timer late, and the edge stops
@@ -324,6 +365,9 @@ function onMessage(m) {
       ui.robot.textContent = m.robot;
       ui.who.textContent = `${m.user} (${m.role})`;
       document.body.classList.toggle("viewer", !m.may_command);
+      // The deployment's profiles, in its order (the console settings the terminal console cycles through).
+      ui.profile.replaceChildren(...m.profiles.map((p) => new Option(p, p)));
+      if (lastState?.safety?.profile) ui.profile.value = lastState.safety.profile;
       $("viewer-note").hidden = m.may_command;
       break;
     case "state": onState(m); break;
@@ -359,6 +403,8 @@ function onMessage(m) {
 const VIDEO_NAMES = ["camera", "ultrasound"];
 const HEADER_BYTES = 14; // stream u8, capture time u64 (ns), sequence u32, flags u8 (1: H.264, 2: keyframe, 4: failure)
 const objectUrls = {};
+// When each stream's picture on screen arrived (performance.now(); 0: none shown, or a failure notice in its place).
+const pictureAt = { camera: 0, ultrasound: 0 };
 const decoders = {}; // per stream: the WebCodecs H.264 decoder and the capture times of the frames in it
 
 function recordDelay(name, captureMs, bytes) {
@@ -368,7 +414,23 @@ function recordDelay(name, captureMs, bytes) {
   stats.videoBytes += bytes;
   if (list.length > 5000) list.splice(0, 2500);
   $(`${name}-age`).textContent = `${Math.max(0, delayMs).toFixed(0)} ms`;
-  $(`${name}-age`).closest("figure").classList.remove("failed");
+  $(`${name}-age`).closest("figure").classList.remove("failed", "not-live");
+  pictureAt[name] = performance.now();
+}
+
+// A stream that goes silent with no failure notice (a dead link, frames lost on the way) leaves its last picture on
+// screen: past the server's bound for that stream (three of its frame periods, at least a second) it is dimmed and
+// crossed out, and says for how long there has been no picture; the next picture makes it live again.
+function showPictureAges(now) {
+  for (const name of VIDEO_NAMES) {
+    const bound = lastState?.picture_stale_s?.[name];
+    const quiet = (now - pictureAt[name]) / 1000;
+    if (!pictureAt[name] || !bound || quiet <= bound) continue;
+    const note = `no picture for ${quiet.toFixed(1)} s`;
+    $(`${name}-age`).textContent = note;
+    ui[name].alt = `${name}: ${note}: the picture shown is from before`;
+    ui[name].closest("figure").classList.add("not-live");
+  }
 }
 
 // No picture, and why (the edge's reason, as text): in place of the last one, which would read as live.
@@ -380,6 +442,8 @@ function showNoPicture(name, reason) {
   img.alt = `${name}: no picture: ${reason}`;
   $(`${name}-age`).textContent = `no picture: ${reason}`;
   img.closest("figure").classList.add("failed");
+  img.closest("figure").classList.remove("not-live");
+  pictureAt[name] = 0;
 }
 
 function h264Decoder(name) {
@@ -523,7 +587,11 @@ function onState(s) {
     ui.link.className = `pill ${s.link.colour}`;
   }
   const owner = sf?.owner || "";
-  ui.control.textContent = mine ? "Release control" : owner ? aged(`controlled by ${owner}`, old) : "Take control";
+  // Another page of this console holds it (this user's other device or tab, or another user's): said as such.
+  const other = s.control?.elsewhere || "";
+  const elsewhere = `controlled by ${other === hello?.user ? "you" : other} on another page`;
+  ui.control.textContent = mine ? "Release control" : other ? elsewhere
+    : owner ? aged(`controlled by ${owner}`, old) : "Take control";
   ui.control.classList.toggle("mine", mine);
   ui.control.classList.toggle("stale", !!old && !mine);
   if (sf?.profile && document.activeElement !== ui.profile) ui.profile.value = sf.profile;
@@ -543,6 +611,7 @@ const HALTS = new Set(["disarmed", "command_timeout", "force_danger", "force_sta
 // the terminal console's), every value on the page is that old: the light, the status and the rows go grey, aged.
 setInterval(() => {
   showPace();
+  showPictureAges(performance.now());
   const quiet = (performance.now() - lastStateAt) / 1000;
   if (lastState && hello && quiet > hello.state_stale_s) {
     const note = `no data from the console's server for ${quiet.toFixed(1)} s`;
@@ -594,9 +663,10 @@ ui.control.addEventListener("click", () => {
   if (mine) { releaseAll(""); send({ type: "release" }); } else send({ type: "acquire", profile: ui.profile.value });
 });
 ui.profile.addEventListener("change", () => { if (mine) send({ type: "acquire", profile: ui.profile.value }); });
+// One step of the deployment's pan_tilt_step_deg (its hello's) in the button's direction.
 for (const b of document.querySelectorAll("[data-pan],[data-tilt]")) {
-  b.addEventListener("click", () => send({ type: "camera", pan: (Number(b.dataset.pan || 0) * Math.PI) / 180,
-    tilt: (Number(b.dataset.tilt || 0) * Math.PI) / 180 }));
+  const step = (direction) => (Number(direction || 0) * (hello?.pan_tilt_step_deg || 0) * Math.PI) / 180;
+  b.addEventListener("click", () => send({ type: "camera", pan: step(b.dataset.pan), tilt: step(b.dataset.tilt) }));
 }
 $("torch").addEventListener("click", () => send({ type: "camera", torch: !(lastState?.torch?.on) }));
 $("poses").addEventListener("click", () => send({ type: "poses" }));
