@@ -8,7 +8,6 @@ import functools
 import gc
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -213,11 +212,10 @@ def ur_controller() -> Iterator[EmulatorProcess]:
 
 def ur_dashboard(host: str, command: str) -> str:
     """One command on the controller's dashboard port, as the teach pendant's buttons do; its answer."""
-    from iorthand_edge.robots.ur import DASHBOARD_PORT, ask_dashboard
+    from iorthand_edge.robots.ur import DashboardLink
 
-    with socket.create_connection((host, DASHBOARD_PORT), timeout=3.0) as sock, sock.makefile("rw") as stream:
-        stream.readline()  # the welcome line
-        return ask_dashboard(stream, command)
+    with DashboardLink(host, timeout=3.0) as dashboard:
+        return dashboard.ask(command)
 
 
 class Emulator:

@@ -30,6 +30,7 @@ from iorthand_edge.robots.ur import (
     WriteTimeline,
     foreign_program,
     installation_mismatch,
+    program_running,
 )
 from iorthand_edge.ur_emulator.arm import ArmModel
 from tests.conftest import Emulator, ur_dashboard
@@ -130,6 +131,57 @@ def test_controller_with_another_tcp_or_payload_is_refused_at_connect(emu: Emula
     emu.set_payload(mass=1.2)
     robot = make_robot(tcp_offset=PROBE_TCP, payload_kg=1.2)
     robot.connect()
+    assert robot.installation == (pytest.approx(PROBE_TCP), pytest.approx(1.2))
+
+
+def counting_spawns(robot: URRobot, monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """How many driver children ``robot`` starts from now on (each one connection attempt, or one re-check)."""
+    spawns = [0]
+    spawn = robot._spawn
+
+    def counted() -> None:
+        spawns[0] += 1
+        spawn()
+
+    monkeypatch.setattr(robot, "_spawn", counted)
+    return spawns
+
+
+def scripts_uploaded(emu: Emulator) -> int:
+    return emu.status()["counters"].get("scripts_received_30003", 0)
+
+
+def test_a_mismatched_installation_gets_no_script_and_connects_once_it_is_set_right(
+        emu: Emulator, make_robot: Callable[..., URRobot], caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The controller still has last week's gripper. RTDE tells its TCP offset and payload before any upload: the
+    driver uploads nothing onto it (each upload starts and stops a program on the pendant), says the mismatch once
+    with both values, re-checks at every reconnect, and connects once the installation is set right, with no
+    restart of the edge."""
+    emu.set_tcp(offset=[0.0, 0.0, 0.15, 0.0, 0.0, 0.0])
+    emu.set_payload(mass=0.4)
+    robot = make_robot(tcp_offset=PROBE_TCP, payload_kg=1.2)  # reconnects within 0.5 s
+    with caplog.at_level(logging.ERROR, logger="iorthand.edge.ur"):
+        with pytest.raises(RobotFault) as refusal:
+            robot.connect()
+        why = str(refusal.value)
+        assert "TCP offset [0.0000, 0.0000, 0.1500" in why and "goto.tcp_offset [0.0000, 0.0000, 0.2000" in why
+        assert "payload 0.400 kg differs from robot.payload_kg 1.200 kg" in why
+        spawns = counting_spawns(robot, monkeypatch)
+        end = time.monotonic() + 4.0
+        while time.monotonic() < end:  # several reconnect periods: the same reason, and no upload
+            reading = robot.read_state()
+            assert reading.fault == why[:200] and not reading.connected and not reading.takeover
+            assert scripts_uploaded(emu) == 0
+            time.sleep(robot.control_period)
+    assert spawns[0] >= 2  # re-checked, not given up
+    said = [r.getMessage() for r in caplog.records if "differs from" in r.getMessage()]
+    assert len(said) == 1 and "payload 0.400 kg" in said[0] and "0.1500" in said[0], said
+    assert not any("rtde_control" in e for e in emu.status()["events"])  # the pendant saw no program come and go
+    emu.set_tcp(offset=PROBE_TCP)  # set right on the pendant
+    emu.set_payload(mass=1.2)
+    until(robot, healthy, 10.0, "the connection once the installation matches")
+    assert emu.status()["program"] == "rtde_control"
     assert robot.installation == (pytest.approx(PROBE_TCP), pytest.approx(1.2))
 
 
@@ -387,6 +439,50 @@ def test_a_reconnect_after_a_fault_does_not_upload_over_a_program_played_meanwhi
     held_without_a_script(robot, emu, "another program", 0.5)
     robot.allow_restart()  # and arms again at the edge
     until(robot, healthy, 10.0, "the reconnect")
+    assert emu.status()["program"] == "rtde_control"
+    stays_still(robot, emu, 0.3)
+
+
+def test_arming_while_their_program_still_plays_waits_for_it_to_stop_without_a_retry_storm(
+        emu: Emulator, make_robot: Callable[..., URRobot], caplog: pytest.LogCaptureFixture,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Somebody at the robot played a program of their own (a takeover), and the edge is armed again (``iorthand
+    arm``) while it still plays. Uploading the edge's script would stop it (ur_rtde writes a stop that their program
+    never answers, waits 3 s, then stops it on the dashboard): before, each attempt ended as "did not answer within
+    3 s (hung or half-open connection?)", again and again. Now one reason, said once, tells what to do; nothing is
+    uploaded and their program plays on; once it is stopped on the pendant the edge connects, with no second arm."""
+    robot = make_robot()
+    robot.connect()
+    cycle(robot, 0.3)
+    assert ur_dashboard(emu.host, "load /programs/palletizing.urp") == "Loading program: /programs/palletizing.urp"
+    assert ur_dashboard(emu.host, "play") == "Starting program"
+    assert drive_until_takeover(robot, 3.0).takeover == foreign_program("/programs/palletizing.urp")
+    until(robot, lambda r: robot._phase == "down", 3.0, "the held driver gone")
+    scripts = scripts_uploaded(emu)
+    spawns = counting_spawns(robot, monkeypatch)
+    caplog.clear()
+    with caplog.at_level(logging.ERROR, logger="iorthand.edge.ur"):
+        robot.allow_restart()  # armed at the edge while their program still plays
+        faults = set()
+        end = time.monotonic() + 4.0
+        while time.monotonic() < end:
+            reading = robot.read_state()
+            assert not reading.connected and not reading.takeover  # armed: no takeover; not connected: a fault
+            faults.add(reading.fault)
+            status = emu.status()
+            assert status["program"] == "/programs/palletizing.urp" and status["runtime_state"] == "PLAYING"
+            assert scripts_uploaded(emu) == scripts
+            time.sleep(robot.control_period)
+    why = program_running("/programs/palletizing.urp")
+    assert why == ("another program (/programs/palletizing.urp) is running on the controller: stop it on the teach "
+                   "pendant first; the edge connects once it has stopped")
+    # The takeover's reason until the first check answered, then this one only.
+    assert why in faults and faults <= {why, foreign_program("/programs/palletizing.urp")}, faults
+    assert spawns[0] >= 2
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert said == [f"UR driver fault: {why}"], said
+    assert ur_dashboard(emu.host, "stop") == "Stopped"  # the person at the robot stops theirs
+    until(robot, healthy, 10.0, "the connection once their program stopped")
     assert emu.status()["program"] == "rtde_control"
     stays_still(robot, emu, 0.3)
 

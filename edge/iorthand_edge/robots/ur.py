@@ -49,16 +49,24 @@ ur_rtde 1.6.5 facts this design follows (FACTS.md, issue 5):
   their program runs on, no stop, no stopScript, no new upload until the edge is armed again. Seen within about a
   second (the edge's speedL meanwhile reaches no motion). A reconnect after a fault asks first, and holds instead
   of uploading over a program of another name (the agent keeps the script's name between connections; arming
-  forgets it). Not seen: their program under the very name the dashboard gave the script (a controller that names
-  the loaded .urp for both), and a replacement before the first answer when the dashboard is down at connect.
+  forgets it). A connect with no script of the edge's known to run (at start, after arming) never uploads over any
+  program that runs or is paused (ur_rtde's constructor would write a stop into its registers, wait 3 s for an
+  answer it never gets, then stop it on the dashboard): the driver says :func:`program_running` and re-checks at
+  each reconnect, connecting once it is stopped (the edge stays armed; motion needs a re-acquire and a fresh
+  press, as after any fault). Not seen: their program under the very name the dashboard gave the script (a
+  controller that names the loaded .urp for both), and a replacement before the first answer when the dashboard is
+  down at connect.
 - ur_rtde's commands block (speedStop until the arm is at rest): the child streams state from a reader
   thread of its own so that a long stop never looks like a hung driver.
 - Faults never resume motion: after a reconnect the supervisor stays latched until an operator re-acquires.
 - The controller's own settings change what a command does: the teach pendant's speed slider slows every motion
   (RTDE ``target_speed_fraction``): ``send_twist`` returns the twist the arm really makes, the mode says
   "speed 30%" and the edge logs a warning whenever the slider is below 100 %. The installation's TCP and
-  payload are checked at connect against ``goto.tcp_offset`` (the kinematics' tool point) and ``payload_kg``: the workspace box guards the
-  configured tool point and the force levels assume the configured payload.
+  payload are checked against ``goto.tcp_offset`` (the kinematics' tool point) and ``payload_kg``: the workspace box
+  guards the configured tool point and the force levels assume the configured payload. Checked before the upload,
+  from RTDE (``payload``, and ``tcp_offset`` where the controller publishes it: :func:`read_tcp_offset`), so that
+  no script is uploaded onto an installation known to be wrong (said once, re-checked at each reconnect, connected
+  once it is set right); and again after it with the script's ``getTCPOffset``.
 """
 
 from __future__ import annotations
@@ -68,6 +76,8 @@ import logging
 import math
 import multiprocessing as mp
 import select
+import socket
+import struct
 import time
 from collections.abc import Sequence
 from dataclasses import asdict
@@ -116,6 +126,13 @@ def foreign_program(name: str) -> str:
             "again at the edge when they are done")
 
 
+def program_running(name: str) -> str:
+    """Why the driver does not upload the edge's script (which would stop it): a program the edge did not start runs,
+    or is paused, on the controller when no script of the edge's was running (the edge just armed, or started)."""
+    return (f"another program ({name[:60]}) is running on the controller: stop it on the teach pendant first; the "
+            "edge connects once it has stopped")
+
+
 # A silence of the driver's writes to the controller this long, in watchdog periods, may have let the RTDE watchdog
 # expire on the edge's own account (the rest of the period for the link and the controller's cycle).
 LATE_FRACTION = 0.8
@@ -147,12 +164,13 @@ def not_running(robot_mode: int) -> str:
             "brakes on the teach pendant, then re-acquire control")
 
 
-def installation_mismatch(cfg: dict[str, Any], tcp: Sequence[float], payload: float) -> str:
+def installation_mismatch(cfg: dict[str, Any], tcp: Sequence[float] | None, payload: float) -> str:
     """Why the controller's active TCP offset or payload is not the configured one ("" when it is, or when the
-    configuration does not say). Names both values: the fix is on the pendant or in the configuration."""
+    configuration does not say; ``tcp`` None: not known yet, not checked). Names both values: the fix is on the
+    pendant or in the configuration."""
     problems = []
     expected = cfg.get("tcp_offset")
-    if expected is not None:
+    if expected is not None and tcp is not None:
         dp = math.dist(tcp[:3], expected[:3])
         rel = rotvec_to_matrix(expected[3:6]).T @ rotvec_to_matrix(tcp[3:6])
         angle = math.acos(max(-1.0, min(1.0, (float(np.trace(rel)) - 1.0) / 2.0)))
@@ -206,30 +224,103 @@ def send_without_blocking(conn: Connection, msg: tuple[Any, ...]) -> str:
     return ""
 
 
-def ask_dashboard(stream: Any, question: str) -> str:
-    """One question on an open dashboard connection (a text file over its socket, with a timeout); its answer."""
-    stream.write(question + "\n")
-    stream.flush()
-    answer = stream.readline()
-    if not answer:
-        raise OSError("the dashboard closed the connection")
-    return answer.strip()
+class DashboardLink:
+    """A connection to the controller's dashboard server (:data:`DASHBOARD_PORT`), past its welcome line: the one
+    way this module (and the tests' teach pendant) talks to it. The connect and every exchange (a question and its
+    answer) are bounded by ``timeout``; a refusal, a timeout or a closed connection raises OSError."""
+
+    def __init__(self, host: str, timeout: float = DASHBOARD_TIMEOUT_S) -> None:
+        self._sock = socket.create_connection((host, DASHBOARD_PORT), timeout=timeout)
+        self._stream = self._sock.makefile("rw", encoding="utf-8", newline="\n")
+        try:
+            self._answer()  # its welcome line
+        except OSError:
+            self.close()
+            raise
+
+    def ask(self, question: str) -> str:
+        """One question; its answer."""
+        self._stream.write(question + "\n")
+        self._stream.flush()
+        return self._answer()
+
+    def _answer(self) -> str:
+        line = self._stream.readline()
+        if not line:
+            raise OSError("the dashboard closed the connection")
+        return line.strip()
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self._stream.close()  # its flush may fail on a broken connection: the socket is closed all the same
+        self._sock.close()
+
+    def __enter__(self) -> DashboardLink:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
 
 
-def foreign_program_playing(host: str, script_name: str) -> str:
-    """Before a reconnect uploads the edge's script (which would replace whatever runs): the name of a program other
-    than ``script_name`` (what the dashboard called the edge's script on the last connection) that the controller
-    runs or has paused, "" when none or when the dashboard does not answer (then nothing can be told, as before)."""
-    import socket
-
+def foreign_program_playing(host: str, script_name: str | None) -> str:
+    """Before the driver uploads the edge's script (which would replace whatever runs): the name of a program other
+    than ``script_name`` (what the dashboard called the edge's script on the last connection; None: no script of
+    the edge's is known to run, so any program is another's) that the controller runs or has paused, "" when none or
+    when the dashboard does not answer (then nothing can be told)."""
     try:
-        with socket.create_connection((host, DASHBOARD_PORT), timeout=DASHBOARD_TIMEOUT_S) as sock, \
-                sock.makefile("rw", encoding="utf-8", newline="\n") as stream:
-            stream.readline()  # its welcome line
-            state, _, name = ask_dashboard(stream, "programState").partition(" ")
+        with DashboardLink(host) as dashboard:
+            state, _, name = dashboard.ask("programState").partition(" ")
     except OSError:
         return ""
     return name if state.upper() != "STOPPED" and name != script_name else ""
+
+
+# RTDE (port 30004, protocol 2), for the one output ur_rtde's receive interface has no getter for.
+RTDE_PORT = 30004
+RTDE_REQUEST_PROTOCOL_VERSION, RTDE_SETUP_OUTPUTS, RTDE_START, RTDE_DATA = 86, 79, 83, 85  # 'V', 'O', 'S', 'U'
+RTDE_HEADER = struct.Struct(">HB")  # size (the header's 3 bytes included), type
+INSTALLATION_TIMEOUT_S = 1.0  # for reading the installation's TCP offset over RTDE (connect, each answer)
+
+
+def read_tcp_offset(host: str, timeout: float = INSTALLATION_TIMEOUT_S) -> list[float] | None:
+    """The installation's active TCP offset, from the controller's RTDE output ``tcp_offset`` on a connection of its
+    own, before anything is uploaded: ur_rtde 1.6.5's receive interface has no getter for it, and its control
+    interface's ``getTCPOffset`` asks the uploaded script. None when the controller does not publish it (older
+    software answers NOT_FOUND): the TCP is then known only once the script runs. Raises OSError on a link that
+    fails or a controller that does not answer within ``timeout``."""
+    deadline = time.monotonic() + 3 * timeout  # a controller that only sends other packages does not keep us here
+    with socket.create_connection((host, RTDE_PORT), timeout=timeout) as sock:
+
+        def receive(length: int) -> bytes:
+            data = b""
+            while len(data) < length:
+                chunk = sock.recv(length - len(data))
+                if not chunk:
+                    raise OSError("the controller closed the RTDE connection")
+                data += chunk
+            return data
+
+        def exchange(kind: int, payload: bytes = b"", send: bool = True) -> bytes:
+            """Send a package of ``kind`` (unless not ``send``) and return the payload of the next one of that kind;
+            the controller's others (text messages) are skipped."""
+            if send:
+                sock.sendall(RTDE_HEADER.pack(RTDE_HEADER.size + len(payload), kind) + payload)
+            while time.monotonic() < deadline:
+                size, got = RTDE_HEADER.unpack(receive(RTDE_HEADER.size))
+                body = receive(size - RTDE_HEADER.size)
+                if got == kind:
+                    return body
+            raise OSError(f"no RTDE package {chr(kind)!r} from the controller within {3 * timeout:g} s")
+
+        if exchange(RTDE_REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2))[:1] != b"\x01":
+            raise OSError("the controller refused RTDE protocol 2")
+        reply = exchange(RTDE_SETUP_OUTPUTS, struct.pack(">d", 10.0) + b"tcp_offset")
+        if reply[1:] != b"VECTOR6D":  # NOT_FOUND
+            return None
+        if exchange(RTDE_START)[:1] != b"\x01":
+            raise OSError("the controller refused to start the RTDE output")
+        data = exchange(RTDE_DATA, send=False)  # recipe id, then the 6 doubles
+        return [float(v) for v in struct.unpack_from(">6d", data, 1)]
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -259,14 +350,18 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
     # The connect timeout runs from here: starting Python and importing takes seconds on a busy Pi and says
     # nothing about the controller.
     conn.send(("connecting", ""))
-    if cfg["script_name"] is not None:
-        # A reconnect after a fault: somebody at the robot may have played a program of their own meanwhile (the
-        # last driver may not have lived to see it). Uploading would stop it: a takeover instead.
-        theirs = foreign_program_playing(cfg["host"], cfg["script_name"])
-        if theirs:
-            with contextlib.suppress(OSError):
-                conn.send(("takeover", foreign_program(theirs)))
-            os._exit(0)
+    # Uploading the edge's script would stop whatever program runs: ur_rtde's constructor first writes a stop into
+    # the registers (its own script's; another program never answers, and it waits 3 s), then stops the program on
+    # the dashboard. So a program the edge did not start is never uploaded over. After a fault (the dashboard's name
+    # for the edge's script known), one played meanwhile is a takeover: somebody at the robot has it (the last driver
+    # may not have lived to see it). With no script of the edge's known to run (the edge just started, or was armed
+    # on site), any program is somebody else's: the driver waits, re-checking at each reconnect, until it is stopped.
+    theirs = foreign_program_playing(cfg["host"], cfg["script_name"])
+    if theirs:
+        with contextlib.suppress(OSError):
+            conn.send(("takeover", foreign_program(theirs)) if cfg["script_name"] is not None
+                      else ("wait", program_running(theirs)))
+        os._exit(0)
     ctrl = None
     try:
         recv = rtde_receive.RTDEReceiveInterface(cfg["host"], cfg["rtde_frequency"], rt_priority=UR_RTDE_RT_PRIORITY)
@@ -277,6 +372,18 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
             raise RuntimeError(f"controller in {SAFETY_MODES[safety_mode]}")
         if robot_mode != ROBOT_MODE_RUNNING:
             raise RuntimeError(not_running(robot_mode))
+        # An installation set up for another tool is known before the upload (RTDE publishes the payload, and the
+        # TCP offset on current software): nothing is uploaded onto it, which would only disturb the pendant (a
+        # program started and stopped at every reconnect). The driver ends with the reason; each reconnect re-checks.
+        try:
+            tcp = read_tcp_offset(cfg["host"]) if cfg["tcp_offset"] is not None else None
+        except OSError as exc:
+            raise RuntimeError(f"reading the installation's TCP offset over RTDE failed ({exc})") from None
+        mismatch = installation_mismatch(cfg, tcp, float(recv.getPayload()))
+        if mismatch:
+            with contextlib.suppress(OSError):
+                conn.send(("wait", mismatch))
+            os._exit(0)
         try:
             ctrl = rtde_control.RTDEControlInterface(cfg["host"], cfg["rtde_frequency"],
                                                      rt_priority=UR_RTDE_RT_PRIORITY)
@@ -287,6 +394,8 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
         # mid-motion). So the first command of every connection is a stop; it also clears that register.
         if not ctrl.speedStop(cfg["stop_deceleration"]):
             raise RuntimeError("speedStop after connecting was refused (control script not running)")
+        # Again with the script's own TCP offset: a controller that does not publish it over RTDE is checked here
+        # (and an installation changed in between).
         installation = (list(ctrl.getTCPOffset()), float(recv.getPayload()))
         mismatch = installation_mismatch(cfg, *installation)
         if mismatch:
@@ -376,22 +485,18 @@ def _driver_main(conn: Connection, cfg: dict[str, Any]) -> None:
         process ends at once, writing nothing more: a stop or a stopScript would go to their program's registers,
         and a speedStop would wait for an answer that never comes. A dashboard that does not answer is asked again
         on a new connection (``dashboard["problem"]`` says so meanwhile)."""
-        import socket
-
-        conn_, stream = None, None
+        link: DashboardLink | None = None
         ours: str | None = None  # the name the dashboard gives this script
         while not done.is_set():
             try:
-                if stream is None:
-                    conn_ = socket.create_connection((cfg["host"], DASHBOARD_PORT), timeout=DASHBOARD_TIMEOUT_S)
-                    stream = conn_.makefile("rw", encoding="utf-8", newline="\n")
-                    stream.readline()  # its welcome line
-                remote = ask_dashboard(stream, "is in remote control")
-                program_state, _, program = ask_dashboard(stream, "programState").partition(" ")
+                if link is None:
+                    link = DashboardLink(cfg["host"])
+                remote = link.ask("is in remote control")
+                program_state, _, program = link.ask("programState").partition(" ")
             except OSError as exc:  # refused, timed out, closed
-                if conn_ is not None:
-                    conn_.close()
-                conn_, stream = None, None
+                if link is not None:
+                    link.close()
+                link = None
                 dashboard["problem"] = f"the dashboard ({cfg['host']}:{DASHBOARD_PORT}) does not answer ({exc})"
                 done.wait(DASHBOARD_PERIOD_S)
                 continue
@@ -585,7 +690,7 @@ class URRobot(Robot):
         if self._held:
             log.info("UR: armed again after \"%s\": reconnecting", self._held)
             self._held = ""
-            self._script_name = None  # armed on site: the edge's script may replace whatever runs
+            self._script_name = None  # armed on site: no script of the edge's is known to run (nor uploaded over any)
             self._retry_at = time.monotonic()
             self._backoff = 0.5
 
@@ -612,6 +717,9 @@ class URRobot(Robot):
             return
         if kind == "takeover":  # another program plays: the driver left without uploading the edge's script
             self._hold(text)
+            self._fail(text)
+            return
+        if kind == "wait":  # what must change at the controller first; it left without uploading, and is retried
             self._fail(text)
             return
         if kind != "ready":

@@ -317,6 +317,7 @@ class Controller:
             "actual_digital_output_bits": self.digital_out,
             "payload": self.payload,
             "payload_cog": tuple(self.payload_cog),
+            "tcp_offset": tuple(m.tcp_offset),
             "joint_temperatures": (30.0,) * 6,
             "actual_main_voltage": 48.0,
             "actual_robot_voltage": 48.0 if powered else 0.0,

@@ -106,6 +106,7 @@ OUTPUT_TYPES: dict[str, str] = {
     "joint_position_deviation_ratio": "DOUBLE",
     "collision_detection_ratio": "DOUBLE",
     "time_scale_source": "UINT32",
+    "tcp_offset": "VECTOR6D",  # the installation's active TCP (Universal_Robots_Client_Library's RTDE table has it)
 }
 
 INPUT_TYPES: dict[str, str] = {
