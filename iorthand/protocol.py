@@ -34,12 +34,15 @@ What each end does about it (decided here, once):
   (``DISPLAY_ONLY``: servo and torch states, the wrench, markers, video, vital signs, the twin's and recorder's
   status) that carries fields it does not know, without them: they are extras for the eye, and dropping the whole
   message hid what the receiver does understand. So the next field added to one of them does not cost the console
-  of the release before its picture. A field added there must not change what the fields already there mean (a
-  new meaning is a new field or a new key). Every other message is refused whole when it carries a field the
-  receiver does not know: commands (an edge never acts on part of an order), control requests and replies, and
-  the state safety rests on (robot state, safety status, force level, command echo) — a field added there may be
-  the one that says why the robot stopped, and reading the rest as if complete would be reading a different
-  message. A field added to them makes the edge refuse control to the consoles of the releases before, clearly;
+  of the release before its picture. ``msg.ignored`` names what was left out, each field once, by its path in the
+  message: ``zoom`` for one of its own, ``markers[].zoom`` for one of a nested map (the list field, ``[]`` for
+  whichever of its elements carried it, the field); the console shows them after the class ("Markers shown without
+  markers[].zoom"). A field added there must not change what the fields already there mean (a new meaning is a new
+  field or a new key). Every other message is refused whole when it carries a field the receiver does not know, in a
+  nested map of it too: commands (an edge never acts on part of an order), control requests and replies, and the state
+  safety rests on (robot state, safety status, force level, command echo) — a field added there may be the one that
+  says why the robot stopped, and reading the rest as if complete would be reading a different message. A field added
+  to them makes the edge refuse control to the consoles of the releases before, clearly;
   the stop is the exception that needs none of this (any payload on ``cmd/stop`` stops the edge).
 - **Said once per key.** A refusal or an ignored field that a newer sender explains names the message, the
   field and says "the sender is newer: update this program"; :class:`RejectCounter` logs it once per key (not at
@@ -76,6 +79,7 @@ _MAX_INT = 2**63 - 1
 _FAR_FUTURE_NS = 2**62  # about year 2116: any later source time is garbage
 MAC_MAX = 32  # bytes of a command's signature field (iorthand.security.auth uses 16)
 KEY_MAX = 64  # bytes of a grant's key in the acquire reply (iorthand.security.auth uses 32)
+_MAX_IGNORED = 8  # names of unknown fields a display-only message keeps in ``ignored`` (the sender chose them)
 
 log = logging.getLogger("iorthand.protocol")
 
@@ -303,9 +307,11 @@ class Struct:
     # before) decodes with the field's default. Every other field must be present.
     ADDED_FIELDS: ClassVar[frozenset[str]] = frozenset()
     # A message only shown (see the module's docstring): decoded without the fields this build does not know,
-    # which it names in ``ignored``. Every other message carrying one is refused whole.
+    # which it names in ``ignored``. Every other message carrying one is refused whole. A nested map is read without
+    # them only when its class and its message's are both display-only.
     DISPLAY_ONLY: ClassVar[bool] = False
-    ignored: ClassVar[tuple[str, ...]] = ()  # set on an instance decoded without some fields (DISPLAY_ONLY)
+    # Set on an instance decoded without some fields (DISPLAY_ONLY): their paths, ``zoom`` or ``markers[].zoom``.
+    ignored: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def max_len(cls, field_name: str) -> int | None:
@@ -389,21 +395,36 @@ class Struct:
         if not isinstance(data, dict):
             raise DecodeError(mtype, "payload", f"expected a map, got {type(data).__name__}")
         known, checkers = cls._checkers()
-        ignored: tuple[str, ...] = ()
+        # What this map is read without, named to say so: a dict as an ordered set, bounded (the sender chose them).
+        ignored: dict[str, None] = {}
         if not known.issuperset(data):
             unknown = [k for k in data if k not in known]
             if not cls.DISPLAY_ONLY:
                 raise _unknown_field(mtype, unknown[0])
-            ignored = tuple(str(k)[:40] for k in unknown[:8])  # named to say so (bounded: the sender chose them)
+            ignored.update((str(k)[:40], None) for k in unknown[:_MAX_IGNORED])
         values: dict[str, Any] = {}
         for name, check in checkers:
             if name in data:
                 values[name] = check(mtype, name, data[name])
             elif name not in cls.ADDED_FIELDS:
                 raise DecodeError(mtype, name, "missing field")
+        # A nested map read without some fields (its class display-only) is part of this message: named here by its
+        # path, once for all the elements that lack it; a message read whole is refused for it as for its own.
+        for name, _ in cls._nested():
+            for i, item in enumerate(values.get(name, ())):
+                if not item.ignored:
+                    continue
+                if not cls.DISPLAY_ONLY:
+                    raise _unknown_field(f"{mtype}.{name}[{i}]", item.ignored[0])
+                for path in item.ignored:
+                    if len(ignored) < _MAX_IGNORED:
+                        ignored[f"{name}[].{path}"] = None
+                # Named by the message now. Left on the map, msgspec would encode it as one of its fields where the
+                # map is passed on (the twin's snapshot carries the markers it received).
+                del item.ignored
         msg = cls(**values)
         if ignored:
-            msg.ignored = ignored  # type: ignore[misc]
+            msg.ignored = tuple(ignored)  # type: ignore[misc]
         return msg
 
     def validate(self) -> Self:
@@ -1104,16 +1125,16 @@ def unreadable_by(revision: int, classes: Iterable[type[Struct]]) -> list[str]:
     """The fields (``Class.field``) of ``classes``, as this build sends them, for which a receiver speaking
     protocol ``revision`` refuses the whole message: those added after its revision, in the classes it reads whole
     (before TOLERANT_SINCE all of them; since, those that are not display-only). Nested maps count with their
-    message."""
-    by_name: dict[str, type[Struct]] = {}
+    message: read in part only when both are display-only (in every message of ``classes`` that carries them)."""
+    tolerant: dict[str, bool] = {}  # by class name: whether a receiver since TOLERANT_SINCE reads it in part
     for cls in classes:
-        by_name[cls.__name__] = cls
-        by_name.update((item.__name__, item) for _, item in cls._nested())
+        tolerant[cls.__name__] = cls.DISPLAY_ONLY
+        for _, item in cls._nested():
+            tolerant[item.__name__] = tolerant.get(item.__name__, True) and item.DISPLAY_ONLY and cls.DISPLAY_ONLY
     out = []
     for added_in, added in sorted(ADDED_IN.items()):
         for name, fields in added.items():
-            cls_ = by_name.get(name)
-            if added_in > revision and cls_ is not None and (revision < TOLERANT_SINCE or not cls_.DISPLAY_ONLY):
+            if added_in > revision and name in tolerant and (revision < TOLERANT_SINCE or not tolerant[name]):
                 out.extend(f"{name}.{f}" for f in sorted(fields))
     return out
 

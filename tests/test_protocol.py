@@ -9,7 +9,7 @@ import msgpack
 import pytest
 
 from iorthand import keys, protocol
-from iorthand.protocol import DecodeError, ForceLevel, Markers, Message, TwistCommand, VideoFrame
+from iorthand.protocol import DecodeError, ForceLevel, MarkerPose, Markers, Message, TwistCommand, VideoFrame
 
 ALL_MESSAGES = sorted(
     {cls for cls in vars(protocol).values() if isinstance(cls, type) and issubclass(cls, Message) and cls is not Message},
@@ -322,6 +322,69 @@ def test_what_a_receiver_of_an_older_revision_cannot_read() -> None:
         assert protocol.unreadable_by(protocol.REVISION, sent) == ["SafetyStatus.why"]
         assert protocol.unreadable_by(1, sent) == ["ServoState.period", "TorchState.period", "ServoState.zoom",
                                                    "MarkerPose.size", "SafetyStatus.why"]
+    finally:
+        protocol.ADDED_IN.clear()
+        protocol.ADDED_IN.update(original)
+
+
+def _with_nested(msg: Message, field_name: str, extras: list[dict[str, object]], **added: object) -> bytes:
+    """``msg``'s payload with ``extras[i]`` added to the i-th nested map of ``field_name`` (and ``added`` to its own)."""
+    data = msgpack.unpackb(msg.encode())
+    for item, extra in zip(data[field_name], extras, strict=True):
+        item.update(extra)
+    return msgpack.packb({**data, **added})
+
+
+def test_a_nested_maps_newer_field_is_named_by_its_path_once_for_all_its_elements() -> None:
+    sent = Markers(markers=[MarkerPose(id=i, pixel_size=10.0 + i) for i in range(3)]).stamp(4, 5)
+    read = Markers.decode(_with_nested(sent, "markers", [{"zoom": 1.0}, {}, {"zoom": 2.0, "tint": "red"}], later=1))
+    assert read == sent  # every marker shown, without what this build does not know
+    assert read.ignored == ("later", "markers[].zoom", "markers[].tint")
+    snapshot = protocol.TwinSnapshot(images=[protocol.ImageInfo(source="camera")],
+                                     streams=[protocol.StreamInfo(key="state/robot")]).stamp(1, 1)
+    payload = _with_nested(snapshot, "streams", [{"jitter": 0.1}])
+    assert protocol.TwinSnapshot.decode(payload).ignored == ("streams[].jitter",)
+    assert protocol.TwinSnapshot.decode(_with_nested(snapshot, "images", [{"zoom": 1}])).ignored == ("images[].zoom",)
+    # What a receiver passes on is what it read, without the names of what it left out: the twin's snapshot carries
+    # the markers of the edge's Markers message.
+    relayed = protocol.TwinSnapshot(markers=read.markers).stamp(2, 2).encode()
+    assert [sorted(m) for m in msgpack.unpackb(relayed)["markers"]] == [sorted(f.name for f in
+                                                                            dataclasses.fields(MarkerPose))] * 3
+    assert protocol.TwinSnapshot.decode(relayed).ignored == ()
+
+
+def test_what_a_display_only_message_names_as_ignored_stays_bounded() -> None:
+    """A sender chooses the names: 100 markers with two new fields each must not make ``ignored`` 200 long."""
+    sent = Markers(markers=[MarkerPose(id=i) for i in range(100)]).stamp(1, 1)
+    extras: list[dict[str, object]] = [{f"a{i}": 0, f"b{i}": 1} for i in range(100)]
+    read = Markers.decode(_with_nested(sent, "markers", extras))
+    assert read == sent and read.ignored == ("markers[].a0", "markers[].b0", "markers[].a1", "markers[].b1",
+                                             "markers[].a2", "markers[].b2", "markers[].a3", "markers[].b3")
+
+
+@dataclasses.dataclass(kw_only=True)
+class _Route(Message):
+    """Not a message of the protocol: one read whole that carries display-only nested maps (markers to pass by),
+    as a command or a safety state may one day."""
+
+    markers: list[MarkerPose] = protocol.spec(default_factory=list, max_len=4)
+
+
+def test_a_message_read_whole_is_refused_for_a_nested_maps_newer_field_too() -> None:
+    sent = _Route(markers=[MarkerPose(id=1), MarkerPose(id=2)]).stamp(1, 1)
+    assert _Route.decode(sent.encode()) == sent
+    with pytest.raises(DecodeError) as err:
+        _Route.decode(_with_nested(sent, "markers", [{}, {"zoom": 1.0}]))
+    assert err.value.message_type == "_Route.markers[1]" and err.value.field == "zoom" and err.value.newer
+    # The protocol's own messages with nested maps are all display-only; the edge's check agrees with the decoder.
+    assert all(cls.DISPLAY_ONLY for cls in ALL_MESSAGES if cls._nested())
+    later = protocol.REVISION + 1
+    original = dict(protocol.ADDED_IN)
+    protocol.ADDED_IN[later] = {"MarkerPose": frozenset({"size"})}
+    try:
+        assert protocol.unreadable_by(protocol.REVISION, [Markers, protocol.TwinSnapshot]) == []
+        assert protocol.unreadable_by(protocol.REVISION, [Markers, _Route]) == ["MarkerPose.size"]
+        assert protocol.unreadable_by(protocol.REVISION, [_Route, Markers]) == ["MarkerPose.size"]
     finally:
         protocol.ADDED_IN.clear()
         protocol.ADDED_IN.update(original)

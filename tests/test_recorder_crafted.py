@@ -18,6 +18,7 @@ from typing import Any
 import pytest
 import zstandard
 from mcap.data_stream import RecordBuilder
+from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, ChunkIndex, DataEnd, Footer, Header, Metadata
@@ -29,6 +30,7 @@ from iorthand_cloud.recorder import reader
 from iorthand_cloud.recorder.config import RecorderConfig
 from iorthand_cloud.recorder.reader import CorruptSegment, SegmentError, attachments, iter_records, segment_topics
 from iorthand_cloud.recorder.repair import has_footer, repair_segment
+from iorthand_cloud.recorder.segments import MAX_SUMMARY_BYTES
 
 FORCE = "iorthand/sim1/state/force"
 CALIBRATION = b"camera_matrix: [600, 0, 320, 0, 600, 240, 0, 0, 1]\n"
@@ -76,28 +78,101 @@ def _peak(read: Callable[[], Any]) -> tuple[Any, float]:
 
 def test_a_summary_larger_than_the_recorder_writes_is_refused_unread(tmp_path: Path) -> None:
     """Before, mcap's reader parsed any summary whole: 1 M chunk index records (87 MB) took the report to
-    1.1 GB and has_footer (the repair's first look at every segment) to 640 MiB. The recorder's own are a few
-    hundred kB (220 kB for 12 minutes of a robot's telemetry); beyond 64 MiB the segment is refused by name."""
+    1.1 GB and has_footer (the repair's first look at every segment) to 640 MiB; then, within a bound of 64 MiB,
+    63 MiB of them took 7-17 s to check. The recorder's own are a few hundred kB (180 kB for 10 minutes of a
+    robot's telemetry, at most a few MiB: segments.SUMMARY_ROLL_BYTES); beyond MAX_SUMMARY_BYTES (24 MiB) the
+    segment is refused by name, unread."""
+    bound = MAX_SUMMARY_BYTES // 2**20
     data = _segment()
     summary = make_reader(io.BytesIO(data)).get_summary()
     one = _records(summary.chunk_indexes[0])
     path = tmp_path / "telemetry-0001.mcap"
-    path.write_bytes(_with_summary(data, _records(*summary.channels.values()) + one * (66 * 2**20 // len(one))))
+    path.write_bytes(_with_summary(data, _records(*summary.channels.values()) + one * (63 * 2**20 // len(one))))
     refused, peak = _peak(lambda: list(iter_records(tmp_path)))
     assert isinstance(refused, SegmentError), refused
-    assert "telemetry-0001.mcap: its summary is 66 MiB, more than the 64 MiB of any the recorder writes" in str(
-        refused)
+    assert (f"telemetry-0001.mcap: its summary is 63 MiB, more than the {bound} MiB of any the recorder writes"
+            in str(refused))
     assert peak < 4, f"{peak:.0f} MiB held to refuse it"
     assert has_footer(path)  # finished: a repair leaves it as it is, the reading refuses it
-    with pytest.raises(SegmentError, match="its summary is 66 MiB"):
+    with pytest.raises(SegmentError, match="its summary is 63 MiB"):
         attachments(tmp_path)
+
+
+def test_a_summary_indexing_more_chunks_than_its_file_holds_is_refused_after_as_many(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Checking a crafted summary of 63 MiB of chunk index records took 7-17 s (each parsed twice by mcap's
+    reader, a field at a time), however little data it indexed. Each chunk index points to a chunk of its own:
+    one of 15 MiB over a 3.5 kB data section (room for 72 chunks) is refused once it has indexed more chunks than
+    that, after reading as many; the work of checking a summary follows the data it indexes."""
+    data = _segment()
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    one = _records(summary.chunk_indexes[0])
+    path = tmp_path / "telemetry-0001.mcap"
+    path.write_bytes(_with_summary(data, _records(*summary.channels.values()) + one * (15 * 2**20 // len(one))))
+    (data_section,) = struct.unpack_from("<Q", data, len(data) - 8 - 20)  # where the summary begins
+    room = (data_section - len(_MAGIC)) // (struct.calcsize("<BQQQQII") + 8)  # a chunk record with nothing in it
+    parsed = []
+    chunk_index = reader._chunk_index
+    monkeypatch.setattr(reader, "_chunk_index", lambda *args: parsed.append(1) or chunk_index(*args))
+    for read in (lambda: segment_topics(tmp_path), lambda: list(iter_records(tmp_path)), lambda: attachments(tmp_path)):
+        parsed.clear()
+        with pytest.raises(SegmentError, match=rf"telemetry-0001.mcap: its summary indexes more chunks than the "
+                                               rf"{data_section} bytes before it can hold \({room}, of 49 bytes at "
+                                               r"least each\): not read"):
+            read()
+        assert len(parsed) == room
+    assert has_footer(path)  # (finished: the reading refuses it)
+
+
+def test_chunk_indexes_are_read_as_mcaps_reader_reads_them() -> None:
+    """The summary's chunk indexes are parsed here, not by mcap's reader (8 times slower): every record it
+    accepts, mcap's reader reads with the same fields; every one it refuses, mcap's reader refuses or reads with
+    message index offsets that are not whole entries (the recorder writes none)."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    records = [_records(ChunkIndex(message_start_time=5 + i, message_end_time=9 + i, chunk_start_offset=100 * i,
+                                   chunk_length=77, message_index_offsets={c: 1000 + c for c in range(i)},
+                                   message_index_length=31 * i, compression=("", "zstd", "zst\u00e9")[i % 3],
+                                   compressed_size=40, uncompressed_size=2**40 + i))[9:] for i in range(5)]
+
+    def outcome(parse: Callable[[bytes], Any], body: bytes) -> Any:
+        try:
+            return parse(body)
+        except (CorruptSegment, EndOfFile, struct.error, UnicodeDecodeError, ValueError, McapError):
+            return None
+
+    def ours(body: bytes) -> Any:
+        first, last, offset, size, channel_map = reader._chunk_index(Path("x.mcap"), 0, body)
+        return first, last, offset, size, {c for c, _ in struct.iter_unpack("<HQ", channel_map)}
+
+    def mcaps(body: bytes) -> Any:
+        c, used = reader._parse(Opcode.CHUNK_INDEX, body, len(body))
+        if used != len(body):  # (the length check of reader._summary_parse)
+            return None
+        return c.message_start_time, c.message_end_time, c.chunk_start_offset, c.uncompressed_size, set(
+            c.message_index_offsets)
+
+    @settings(max_examples=3000, deadline=None, derandomize=True)
+    @given(st.sampled_from(records), st.integers(0, 120), st.binary(min_size=0, max_size=6), st.booleans())
+    def check(record: bytes, at: int, patch: bytes, cut: bool) -> None:
+        body = record[:at] if cut else record[:at] + patch + record[at + len(patch):]
+        got, expected = outcome(ours, body), outcome(mcaps, body)
+        if got is not None:
+            assert got == expected
+        elif expected is not None:
+            assert struct.unpack_from("<I", body, 32)[0] % 10, body  # the offsets: not whole entries
+
+    for record in records:
+        assert outcome(ours, record) == outcome(mcaps, record) is not None
+    check()
 
 
 def test_a_large_summary_within_the_bound_is_held_compactly(tmp_path: Path) -> None:
     """30 000 chunk index records (2.6 MB): mcap's reader held ~512 bytes for each (15 MiB, 640 MiB for the 87 MB
     above); read here, a few bytes each, and their chunks are checked before one is read (these point where no
-    chunk is)."""
-    data = _segment()
+    chunk is). (A 2 MiB attachment makes the data section long enough to hold as many chunks.)"""
+    data = _segment(attached=bytes(2 * 2**20))
     summary = make_reader(io.BytesIO(data)).get_summary()
     first = summary.chunk_indexes[0]
     entries = [dataclasses.replace(first, chunk_start_offset=first.chunk_start_offset + i,
@@ -300,17 +375,55 @@ def test_a_segment_that_is_no_regular_file_is_refused_by_name(tmp_path: Path) ->
     """A FIFO (opening it blocks), a link to /dev/zero (never ends), a link to nothing: before, left out without a
     word (the session read as if it had no such segment)."""
     (tmp_path / "telemetry-0001.mcap").write_bytes(_segment())
-    for make, kind in [(lambda p: os.mkfifo(p), "a FIFO"), (lambda p: p.symlink_to("/dev/zero"), "a device"),
-                       (lambda p: p.symlink_to(tmp_path / "gone"), "cannot be read")]:
+    for make, kind in [(lambda p: os.mkfifo(p), "a FIFO"), (lambda p: p.symlink_to("/dev/zero"), "a symbolic link"),
+                       (lambda p: p.symlink_to(tmp_path / "gone"), "a symbolic link")]:
         odd = tmp_path / "telemetry-0002.mcap"
         make(odd)
-        with pytest.raises(SegmentError, match=rf"telemetry-0002.mcap: {kind}"):
+        with pytest.raises(SegmentError, match=rf"telemetry-0002.mcap: {kind}, not a segment file: not read"):
             list(iter_records(tmp_path))
-        if kind == "a FIFO":  # (the service's start-up looks at its Foxglove segments one by one)
-            with pytest.raises(SegmentError, match="not a regular file"):
-                has_footer(odd)
+        # (the service's start-up looks at its Foxglove segments one by one)
+        with pytest.raises(SegmentError, match=rf"telemetry-0002.mcap: {kind}, not a segment file: not read"):
+            has_footer(odd)
         odd.unlink()
     assert len(list(iter_records(tmp_path))) == 100
+
+
+def test_a_segment_linked_to_a_file_elsewhere_is_refused_by_name_unread(tmp_path: Path) -> None:
+    """A segment that is a symbolic link to a readable file: before, followed. A key file's first 8 bytes were
+    quoted in the refusal ("not an MCAP file (it begins b'-----BEG')"), and ``iorthand report`` wrote them into
+    the session's manifest and report while it "repaired" the link into an empty segment; another session's
+    segment was read as this session's own. The recorder writes no link: now every reader and the repair refuse
+    it by name, without opening what it points to, and leave the session and the file as they were."""
+    from iorthand_cloud.recorder import manifest as mf
+    from iorthand_cloud.recorder.repair import repair_all, repair_if_crashed
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    key = elsewhere / "recorder.key"
+    key.write_bytes(b"-----BEGIN PRIVATE KEY-----\nMIIEvQIBADANBgkqhkiG9w0BAQEFAASC\n")
+    other = elsewhere / "telemetry-0001.mcap"  # another session's segment: readable, and not this session's
+    other.write_bytes(other_data := _segment())
+    session = tmp_path / "recordings" / "s1"
+    session.mkdir(parents=True)
+    mf.Manifest(session_id="s1").write(session)  # "recording": its recorder was killed, so a reader repairs it
+    mf.release_writer_lock(session)
+    (session / "telemetry-0001.mcap").write_bytes(_segment())
+    link = session / "telemetry-0002.mcap"
+    for target in (key, other):
+        link.symlink_to(target)
+        said = rf"{re.escape(str(link))}: a symbolic link, not a segment file: not read"
+        for read in (lambda: list(iter_records(session)), lambda: segment_topics(session),
+                     lambda: attachments(session), lambda: has_footer(link), lambda: repair_segment(link),
+                     lambda: repair_if_crashed(session), lambda: reader.open_segment(link)):
+            with pytest.raises(SegmentError, match=said) as refused:
+                read()
+            assert "-----BEG" not in str(refused.value)
+        assert repair_all(session.parent) == {}  # (said in the log, the other sessions repaired)
+        assert link.is_symlink() and sorted(p.name for p in session.iterdir()) == [
+            ".writer.lock", "manifest.json", "telemetry-0001.mcap", "telemetry-0002.mcap"]
+        assert b"-----BEG" not in (session / "manifest.json").read_bytes()
+        link.unlink()
+    assert key.read_bytes().startswith(b"-----BEGIN") and other.read_bytes() == other_data
 
 
 def test_one_unreadable_session_does_not_stop_the_start_up_repair(tmp_path: Path) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import bisect
 import contextlib
 import dataclasses
+import errno
 import heapq
 import io
 import itertools
@@ -125,22 +126,47 @@ def session_dir(path: str | Path) -> Path:
 
 
 def segment_files(folder: Path) -> list[Path]:
-    """A session folder's segments, in order. A ``*.mcap`` there that is not a regular file (a FIFO, a device, a
-    link to one or to nothing) is refused by name: opening a FIFO blocks and a device may never end; before, they
-    were left out without a word."""
+    """A session folder's segments, in order. A ``*.mcap`` there that is not a regular file is refused by name,
+    unread: a FIFO (opening it blocks), a device (it may never end), and a symbolic link, whatever it points to.
+    The recorder writes no link; one brings a file from elsewhere into the session, which reading would take as
+    its own (another session's segment) or quote in its refusal (the first bytes of a key file, in a report and
+    a manifest). Before, FIFOs and devices were left out without a word and links followed. :func:`open_segment`
+    checks the same on the file it opens."""
     out = []
     for path in sorted(folder.glob("*.mcap")):
         try:
-            mode = path.stat().st_mode
+            mode = path.lstat().st_mode
         except OSError as exc:
-            raise SegmentError(f"{path}: cannot be read ({exc.strerror}: a link to nothing?)") from None
+            raise SegmentError(f"{path}: cannot be read ({exc.strerror})") from None
         if not stat.S_ISREG(mode):
-            kind = ("a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else
-                    "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a file")
-            raise SegmentError(f"{path}: {kind}{' (a link to one)' if path.is_symlink() else ''}, not a segment "
-                               "file: not read")
+            raise SegmentError(_not_a_segment(path, mode))
         out.append(path)
     return out
+
+
+def _not_a_segment(path: Path, mode: int) -> str:
+    kind = ("a symbolic link" if stat.S_ISLNK(mode) else "a directory" if stat.S_ISDIR(mode) else
+            "a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+            "not a file")
+    return f"{path}: {kind}, not a segment file: not read"
+
+
+def open_segment(path: Path) -> BinaryIO:
+    """A segment opened for reading, or :class:`SegmentError` by name when it is not a regular file, unread: the
+    check of :func:`segment_files` made on the file opened itself (a link put in a segment's place after the
+    folder was listed is not followed; a FIFO does not block the open)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:  # O_NOFOLLOW's answer for a link
+            raise SegmentError(_not_a_segment(path, stat.S_IFLNK)) from None
+        raise
+    f = os.fdopen(fd, "rb")
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        f.close()
+        raise SegmentError(_not_a_segment(path, mode))
+    return f
 
 
 def segment_topics(folder: str | Path) -> set[str]:
@@ -148,7 +174,7 @@ def segment_topics(folder: str | Path) -> set[str]:
     back read of one without (a segment being written)."""
     topics: set[str] = set()
     for path in segment_files(session_dir(folder)):
-        with path.open("rb") as f:
+        with open_segment(path) as f:
             index = _index(f, path, chunks=False)
             if index is not None and index.channels:
                 topics.update(c.topic for c in index.channels.values())
@@ -219,23 +245,32 @@ def read_index(f: Any, path: Path, start: int | None = None, end: int | None = N
             raise CorruptSegment(f"{path}: its summary is damaged (its CRC does not match: {got:#010x}, "
                                  f"{crc:#010x} written)")
     index = SegmentIndex(channels={})
-    chunk_index_at = array("Q")
-    for at, record in _summary_records(fd, path, summary_start, footer_at):
+    # Each chunk index points to a chunk of its own in the data section: no more of them than it can hold, so the
+    # work of reading a summary is bounded by the data it indexes, not by what the summary claims.
+    most_chunks = (summary_start - len(_MAGIC)) // _CHUNK_MIN_BYTES
+    for at, opcode, body in _summary_records(fd, path, summary_start, footer_at):
+        if opcode == Opcode.CHUNK_INDEX:  # (the many: checked by their fields alone, kept in the second pass)
+            if index.chunks_indexed == most_chunks:
+                raise SegmentError(f"{path}: its summary indexes more chunks than the {summary_start} bytes before "
+                                   f"it can hold ({most_chunks}, of {_CHUNK_MIN_BYTES} bytes at least each): not "
+                                   "read (it was not written by the recorder)")
+            _chunk_index(path, at, body)
+            index.chunks_indexed += 1
+            continue
+        record = _summary_parse(path, at, opcode, body)
         if isinstance(record, Channel):
             index.channels[record.id] = _slim(record)
-        elif isinstance(record, ChunkIndex):
-            chunk_index_at.append(at)
         elif isinstance(record, AttachmentIndex):
             index.attachment_indexes.append(at)
-    index.chunks_indexed = len(chunk_index_at)
     # A second pass, once every channel is known (the recorder writes them first, a crafted file need not).
-    for at in chunk_index_at if chunks else ():
-        c = _summary_record(fd, path, at)
-        if _chunk_wanted(c, index.channels, start, end, topics):
-            index.starts.append(c.message_start_time)
-            index.ends.append(c.message_end_time)
-            index.offsets.append(c.chunk_start_offset)
-            index.sizes.append(c.uncompressed_size)
+    for at, opcode, body in _summary_records(fd, path, summary_start, footer_at) if chunks else ():
+        if opcode == Opcode.CHUNK_INDEX:
+            first, last, offset, size, channel_map = _chunk_index(path, at, body)
+            if _chunk_wanted(first, last, channel_map, index.channels, start, end, topics):
+                index.starts.append(first)
+                index.ends.append(last)
+                index.offsets.append(offset)
+                index.sizes.append(size)
     return index
 
 
@@ -249,15 +284,23 @@ def _crc_of(fd: int, begin: int, end: int) -> int:
     return crc
 
 
-def _summary_records(fd: int, path: Path, begin: int, end: int) -> Iterator[tuple[int, Any]]:
-    """(offset, record) of each record of a summary section, each checked: a kind a summary holds, a length
-    within the section and below :data:`MAX_SMALL_RECORD_BYTES`, and fields that take that length."""
+# A summary is read in blocks of this size (a record at a time took three reads each: most of the time of a
+# large one went to them).
+_SUMMARY_BLOCK = 2**20
+
+
+def _summary_records(fd: int, path: Path, begin: int, end: int) -> Iterator[tuple[int, int, bytes]]:
+    """(offset, opcode, body) of each record of a summary section, read in blocks, each checked: a kind a summary
+    holds, a length within the section and below :data:`MAX_SMALL_RECORD_BYTES` (its fields are the caller's to
+    check: :func:`_summary_parse`, :func:`_chunk_index`)."""
+    block, block_at = b"", begin  # the bytes of the section from block_at on, as far as read
     at = begin
     while at < end:
-        head = os.pread(fd, _HEAD.size, at)
-        if len(head) < _HEAD.size or at + _HEAD.size > end:
+        if at + _HEAD.size > end:
             raise CorruptSegment(f"{path}: its summary is damaged: it ends inside the record at byte {at}")
-        opcode, length = _HEAD.unpack(head)
+        if at + _HEAD.size > block_at + len(block):
+            block, block_at = _summary_block(fd, path, at, end, _HEAD.size)
+        opcode, length = _HEAD.unpack_from(block, at - block_at)
         if opcode not in _SUMMARY_RECORDS:
             kind = Opcode(opcode).name.lower().replace("_", " ") if opcode in _READERS or opcode == Opcode.MESSAGE \
                 else f"opcode {opcode:#04x}"
@@ -266,24 +309,82 @@ def _summary_records(fd: int, path: Path, begin: int, end: int) -> Iterator[tupl
         if at + _HEAD.size + length > end:
             raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at} says it is {length} "
                                  "bytes long, past the summary's end")
-        yield at, _summary_record(fd, path, at)
-        at += _HEAD.size + length
+        _check_summary_record_length(path, at, length)
+        after = at + _HEAD.size + length
+        if after > block_at + len(block):
+            block, block_at = _summary_block(fd, path, at, end, _HEAD.size + length)
+        yield at, opcode, block[at - block_at + _HEAD.size:after - block_at]
+        at = after
 
 
-def _summary_record(fd: int, path: Path, at: int) -> Any:
-    opcode, length = _HEAD.unpack(os.pread(fd, _HEAD.size, at))
+def _summary_block(fd: int, path: Path, at: int, end: int, need: int) -> tuple[bytes, int]:
+    """The summary's bytes from ``at`` on: at least ``need`` of them (one record, within the section), as many as a
+    block holds."""
+    block = os.pread(fd, min(max(need, _SUMMARY_BLOCK), end - at), at)
+    if len(block) < need:  # (the file shrank under the reader)
+        raise CorruptSegment(f"{path}: its summary is damaged: it ends inside the record at byte {at}")
+    return block, at
+
+
+def _check_summary_record_length(path: Path, at: int, length: int) -> None:
     if length > MAX_SMALL_RECORD_BYTES:
         raise SegmentError(f"{path}: its summary's record at byte {at} is {length} bytes long, more than the "
                            f"{MAX_SMALL_RECORD_BYTES // 2**20} MiB of any the recorder writes: not read (it was "
                            "not written by the recorder)")
+
+
+def _summary_parse(path: Path, at: int, opcode: int, body: bytes) -> Any:
+    """The summary record at ``at``, parsed by mcap's reader: fields that take its whole length."""
     try:
-        record, used = _parse(opcode, os.pread(fd, length, at + _HEAD.size), length)
+        record, used = _parse(opcode, body, len(body))
     except (EndOfFile, *_PARSE_ERRORS) as exc:
         raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at}: {exc!r}") from None
-    if used != length:
-        raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at} says it is {length} bytes "
+    if used != len(body):
+        raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at} says it is {len(body)} bytes "
                              f"long, its own fields {used}")
     return record
+
+
+def _summary_record(fd: int, path: Path, at: int) -> Any:
+    """The summary record at ``at``, read on its own (an attachment's index entry)."""
+    opcode, length = _HEAD.unpack(os.pread(fd, _HEAD.size, at))
+    _check_summary_record_length(path, at, length)
+    return _summary_parse(path, at, opcode, os.pread(fd, length, at + _HEAD.size))
+
+
+# A chunk index record's fields (the MCAP specification), read here rather than by mcap's reader, which takes
+# ~9 µs for one (a field at a time): a summary holds a chunk index for every chunk, up to ~190 000 in one of
+# MAX_SUMMARY_BYTES. Message start and end times, chunk start offset and length, the message index
+# offsets' length in bytes (then the offsets, 10 bytes each: channel id, offset); then the message index length
+# and the compression's length (then its name); then the compressed and uncompressed sizes.
+_CHUNK_INDEX_HEAD = struct.Struct("<QQQQI")
+_CHUNK_INDEX_MIDDLE = struct.Struct("<QI")
+_CHUNK_INDEX_TAIL = struct.Struct("<QQ")
+_CHANNEL_OFFSET = struct.Struct("<HQ")
+
+
+def _chunk_index(path: Path, at: int, body: bytes) -> tuple[int, int, int, int, bytes]:
+    """A chunk index record's message start and end times, chunk start offset, uncompressed size and message
+    index offsets (:data:`_CHANNEL_OFFSET` each), its fields checked as mcap's reader does: each whole, a
+    compression name in UTF-8, and together the record's whole length."""
+    try:
+        first, last, offset, _length, map_bytes = _CHUNK_INDEX_HEAD.unpack_from(body)
+        map_at = _CHUNK_INDEX_HEAD.size
+        if map_bytes % _CHANNEL_OFFSET.size:
+            raise ValueError(f"its message index offsets take {map_bytes} bytes, not a whole number of entries")
+        _index_length, name_length = _CHUNK_INDEX_MIDDLE.unpack_from(body, map_at + map_bytes)
+        name_at = map_at + map_bytes + _CHUNK_INDEX_MIDDLE.size
+        if name_at + name_length > len(body):
+            raise EndOfFile()
+        body[name_at:name_at + name_length].decode()
+        _compressed, size = _CHUNK_INDEX_TAIL.unpack_from(body, name_at + name_length)
+    except (EndOfFile, *_PARSE_ERRORS) as exc:
+        raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at}: {exc!r}") from None
+    used = name_at + name_length + _CHUNK_INDEX_TAIL.size
+    if used != len(body):
+        raise CorruptSegment(f"{path}: its summary is damaged: the record at byte {at} says it is {len(body)} bytes "
+                             f"long, its own fields {used}")
+    return first, last, offset, size, body[map_at:map_at + map_bytes]
 
 
 def _slim(channel: Channel) -> Channel:
@@ -305,14 +406,12 @@ def _index(f: Any, path: Path, start: int | None = None, end: int | None = None,
 def has_footer(path: Path) -> bool:
     """Whether a segment was finished: it ends with a footer and its summary, if it has one, is whole (a summary
     the recorder does not write counts as finished: reading it refuses it by name). Raises
-    :class:`SegmentError` for a path that is no regular file (opened without blocking: a FIFO would block)."""
+    :class:`SegmentError` for a path that is no regular file, unread (:func:`open_segment`)."""
     try:
-        f = os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb")
+        f = open_segment(path)
     except OSError:
         return False
     with f:
-        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-            raise SegmentError(f"{path}: not a regular file, not a segment file: not read")
         try:
             read_index(f, path, chunks=False)
         except (NoFooter, CorruptSegment, OSError):
@@ -330,7 +429,7 @@ def stream_of(path: Path) -> str:
 def _iter_file(path: Path, start: int | None, end: int | None,
                topics: Collection[str] | None = None) -> Iterator[Record]:
     stream = stream_of(path)
-    with path.open("rb") as f:
+    with open_segment(path) as f:
         index = _index(f, path, start, end, topics)
         if index is None or not index.chunks_indexed:
             # No index to seek with (mcap's own reader would then decompress every chunk unchecked): front to
@@ -389,17 +488,21 @@ def _iter_indexed(f: BinaryIO, path: Path, stream: str, index: SegmentIndex, sta
         yield heapq.heappop(held)[3]
 
 
-def _chunk_wanted(c: ChunkIndex, channels: dict[int, Channel], start: int | None, end: int | None,
-                  topics: Collection[str] | None) -> bool:
-    if (start is not None and c.message_end_time < start) or (end is not None and c.message_start_time >= end):
+def _chunk_wanted(first: int, last: int, channel_map: bytes, channels: dict[int, Channel], start: int | None,
+                  end: int | None, topics: Collection[str] | None) -> bool:
+    """Whether a chunk holds messages wanted: its times (``first`` to ``last``) and the channels of its message
+    index offsets (``channel_map``, :data:`_CHANNEL_OFFSET` each)."""
+    if (start is not None and last < start) or (end is not None and first >= end):
         return False
-    if topics is None or not c.message_index_offsets:  # (without message indexes, only reading tells)
+    if topics is None or not channel_map:  # (without message indexes, only reading tells)
         return True
-    return any(ch in channels and channels[ch].topic in topics for ch in c.message_index_offsets)
+    return any(ch in channels and channels[ch].topic in topics for ch, _ in _CHANNEL_OFFSET.iter_unpack(channel_map))
 
 
 # A chunk record: opcode, record length, message start and end times, uncompressed size, CRC, compression.
 _CHUNK_HEAD = struct.Struct("<BQQQQII")
+# The shortest chunk record: its head, no compression name, the records' length (8 bytes) and no records.
+_CHUNK_MIN_BYTES = _CHUNK_HEAD.size + 8
 
 
 def _declared_size(f: BinaryIO, path: Path, offset: int) -> int:
@@ -798,7 +901,7 @@ def attachments(folder: str | Path) -> dict[str, bytes]:
     size, its CRC), at most :data:`MAX_ATTACHMENT_BYTES` each and :data:`MAX_ATTACHMENTS_BYTES` together."""
     out: dict[str, bytes] = {}
     for path in segment_files(session_dir(folder)):
-        with path.open("rb") as f:
+        with open_segment(path) as f:
             index = _index(f, path, chunks=False)
             if index is None:  # no summary to seek with: front to back
                 f.seek(0)

@@ -30,6 +30,7 @@ from iorthand_cloud.recorder.reader import (
     TornTail,
     has_footer,
     iter_records,
+    open_segment,
     segment_files,
     stream_of,
     stream_records,
@@ -57,14 +58,15 @@ def repair_segment(path: Path) -> RepairResult:
     """Rewrite ``path`` from its readable records; returns what was recovered. Reading stops at a torn tail
     (what a killed writer leaves: dropped) or at a damaged record (a CRC that does not match...): then what
     follows may be good, so the file as it was is kept beside the repaired one (``<name>.orig``)."""
-    size = path.stat().st_size
     tmp = path.with_suffix(".mcap.repair")
     compression = COMPRESSION.get(stream_of(path), CompressionType.ZSTD)
     messages = 0
     good_offset = 0
     damage: CorruptSegment | None = None
     try:
-        with path.open("rb") as src, tmp.open("wb") as dst:
+        # (a link is refused unread: what it points to is no file of this session to read or replace)
+        with open_segment(path) as src, tmp.open("wb") as dst:
+            size = os.fstat(src.fileno()).st_size
             writer = Writer(dst, compression=compression)
             writer.start(profile=PROFILE, library=LIBRARY)
             schemas: dict[int, int] = {}

@@ -24,13 +24,17 @@ PROFILE = "iorthand"
 LIBRARY = "iorthand-recorder"
 MALFORMED_META = "iorthand.malformed"
 # A segment's summary restates its schemas and channels and indexes each chunk (~90 bytes, plus 10 per channel in
-# the chunk) and attachment: 220 kB for 12 minutes of one robot's telemetry (1 500 chunks of 7 channels). A reader
-# takes at most MAX_SUMMARY_BYTES of one (reader.read_index: parsed whole by mcap's reader, 87 MB of crafted chunk
-# index records took 640 MiB); a larger one was not written by the recorder, because it starts a new segment once
-# its estimate of the summary reaches SUMMARY_ROLL_BYTES (small chunks, many keys: settings that no size bound on
-# the segment alone keeps readable).
-MAX_SUMMARY_BYTES = 64 * 2**20
-SUMMARY_ROLL_BYTES = MAX_SUMMARY_BYTES // 4
+# the chunk) and attachment: 180 kB for a 10-minute segment (segment_max_s) of one robot's telemetry at the default
+# flush_interval (1 200 chunks of 7 channels), 2 MB for all the segments of an hour's session with its video;
+# 3.9 MB at the shortest flush_interval (20 ms: 30 000 chunks). A reader takes at most MAX_SUMMARY_BYTES of one
+# (reader.read_index; mcap's reader, which parsed them whole, took 640 MiB for 87 MB of crafted chunk index
+# records, and the check 7-17 s for 63 MiB when this bound was 64 MiB); a larger one was not written by the
+# recorder, because it starts a new segment once its estimate of the summary reaches SUMMARY_ROLL_BYTES (small
+# chunks, many keys, long segments: settings that no size bound on the segment alone keeps readable).
+# The recorder rolls at a quarter of what a reader takes; the reader's bound stays above the 16 MiB at which the
+# releases before this one rolled, so that their segments stay readable.
+SUMMARY_ROLL_BYTES = 4 * 2**20
+MAX_SUMMARY_BYTES = 24 * 2**20
 CHUNK_INDEX_BYTES, CHUNK_INDEX_CHANNEL_BYTES = 100, 10  # an upper estimate of a chunk index record's size
 MESSAGE_RECORD_BYTES = 31  # a message record's fields besides its data (its share of a chunk's size)
 # The streams of a session, each its own series of segments: video (uncompressed) apart from the rest (zstd), so
