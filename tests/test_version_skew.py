@@ -195,6 +195,33 @@ def test_a_newer_edge_whose_safety_state_this_console_cannot_read_is_not_driven(
         q.undeclare()
 
 
+def test_an_edge_updated_under_a_running_console_reads_update_this_console_not_link_down(
+        session_factory, operator_factory) -> None:
+    """The edge is updated while a console of the release before watches it: its safety status, read until then,
+    now carries a field this console does not know and is refused. Once the last one it read went stale, the
+    console said "no safety status from the edge for 0.6 s: the link or the edge is down", while the link was up
+    and the edge sent 20 statuses a second; what the operator must do is update the console."""
+    from iorthand_operator.client import SAFETY_STALE_S
+
+    edge = session_factory()
+    safety_key = keys.RobotKeys("sim1").key(keys.STATE_SAFETY)
+    client = operator_factory(operator_id="new-console", realtime=False, query_timeout=0.5)
+    status = SafetyStatus(armed=True, status="ok").stamp(1)
+    deadline = time.monotonic() + 10
+    while client.safety is None and time.monotonic() < deadline:  # the edge before its update: read
+        edge.put(safety_key, status.encode())
+        time.sleep(0.05)
+    assert client.safety is not None
+    stale_from = time.monotonic() + SAFETY_STALE_S + 0.3
+    while (time.monotonic() < stale_from or not client.safety_stale()) and time.monotonic() < deadline:
+        edge.put(safety_key, _newer(status, why_stopped="a reason this console cannot show"))  # after its update
+        time.sleep(0.05)
+    assert client.safety_stale()
+    step = client.next_step()
+    assert step.step is recovery.Step.WAIT and step.why.startswith(
+        f"update this console: it speaks protocol revision {REVISION}"), step
+
+
 def test_a_newer_edges_servo_state_is_shown_without_what_it_added_and_said_once(
         session_factory, operator_factory) -> None:
     """A display-only message with a field this console does not know is shown without it (the camera's angles

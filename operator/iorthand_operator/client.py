@@ -1032,13 +1032,15 @@ class OperatorClient:
     def next_step(self) -> recovery.NextStep:
         """What this operator must do before the robot moves again (:mod:`iorthand_operator.recovery`). A stale
         safety status (safety_stale) is none: an old one said "nothing stands between you and motion" while the
-        link or the edge was down."""
-        if self.safety_stale():
+        link or the edge was down. (recovery.next_step gives an unreadable one its reason.)"""
+        # Statuses that arrive and cannot be read leave the last one read to go stale too: the cause to say is the
+        # console's age, not the link (an edge updated under a running console read "the link is down").
+        unreadable = self._cannot_read_safety()
+        if self.safety_stale() and not unreadable:
             return recovery.NextStep(recovery.Step.WAIT, f"no safety status from the edge for {self.safety_age():.1f} "
                                                          "s: the link or the edge is down")
         fresh = self._deadman and self._pressed_at > max(self._halted_at, self._press_from)
         old = self._deadman and self._pressed_at < self._press_from
-        unreadable = self._cannot_read_safety()
         return recovery.next_step(self.operator_id, self.owner, self.safety, fresh, self.sender_down, old, unreadable)
 
     def recover(self) -> recovery.NextStep:
