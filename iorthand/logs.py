@@ -97,9 +97,15 @@ def setup(level: int | str) -> None:
     root = logging.getLogger()
     if root.handlers:
         return
-    root.setLevel(level if isinstance(level, int) else level.upper())
+    level = level if isinstance(level, int) else level.upper()
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # no stderr, or one that is no file (a harness's capture)
+        logging.basicConfig(level=level, format=FORMAT)
+        return
+    root.setLevel(level)
     lines: queue.Queue[logging.LogRecord | threading.Event] = queue.Queue(MAX_PENDING)
-    writer = _Writer(sys.stderr.fileno())
+    writer = _Writer(fd)
     writer.setFormatter(logging.Formatter(FORMAT))
     root.addHandler(_Queueing(lines, writer))
 

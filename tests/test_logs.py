@@ -105,3 +105,13 @@ def test_a_process_whose_stderr_is_full_still_ends_with_its_exit_code() -> None:
             child.wait(10.0)
     finally:
         os.close(read_end)
+
+
+def test_a_stderr_that_is_no_file_gets_the_lines_directly() -> None:
+    """A harness that replaced sys.stderr by an object without a file descriptor (a capture) before the command ran
+    in its process: the lines go to that object, as logging.basicConfig would send them (setup raised before)."""
+    done = subprocess.run([sys.executable, "-c", "import io, logging, sys; from iorthand import logs;"
+                           "capture = sys.stderr = io.StringIO(); logs.setup('info');"
+                           "logging.getLogger('child').info('captured'); sys.stderr = sys.__stderr__;"
+                           "print(capture.getvalue(), end='')"], capture_output=True, timeout=30.0, check=True)
+    assert done.stdout.endswith(b"INFO child: captured\n")
