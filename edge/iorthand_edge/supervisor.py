@@ -122,6 +122,9 @@ class ForceReaction:
         # Normalised where it is used: a near-zero axis would amplify noise into a direction.
         if math.hypot(*self.contact_axis) < 0.1:
             raise ValueError(f"contact_axis {self.contact_axis} must be a direction (length 1: the probe's axis)")
+        if self.retract_distance > 0 and self.retract_speed <= 0:
+            raise ValueError(f"retract_distance {self.retract_distance:g} m needs a retract_speed above 0: at DANGER "
+                             "the retreat would never run")
 
     def approach_speed_cap(self, deceleration: float) -> float:
         """The fastest approach (m/s) that still stops within ``overshoot_margin``: v·T + v²/(2a) ≤ margin."""
