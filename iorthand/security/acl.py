@@ -179,6 +179,11 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
     services = [_service_space(s) for s in dep.services]
 
     def add(subject: str, rule_list: list[dict[str, Any]]) -> None:
+        # A rule with no key expression allows nothing, and Zenoh refuses the whole configuration for it ("Given
+        # collection was empty"): a cloud router set up before its first robot, an operator granted no robot yet.
+        rule_list = [r for r in rule_list if r["key_exprs"]]
+        if not rule_list:
+            return  # nothing granted: the default, deny
         subjects.append({"id": subject, "cert_common_names": [subject], "usernames": [subject]} if dep.users_file
                         else {"id": subject, "cert_common_names": [subject]})
         rules.extend(rule_list)
@@ -300,7 +305,8 @@ def router_config(dep: Deployment) -> dict[str, Any]:
     }
     if dep.connect:
         cfg["connect"] = {"endpoints": list(dep.connect)}
-    else:  # the router operators connect to: each session's flood of set-points is capped here
+    elif dep.robots:  # the router operators connect to: each session's flood of set-points is capped here (with
+        # no robot yet there is nothing to cap, and Zenoh refuses an empty list of rules)
         cfg["downsampling"] = rate_limits(dep.robots)
     return cfg
 

@@ -277,7 +277,7 @@ class OperatorClient:
         self._last_superseded: int | None = None  # None until the first status: a count from before we joined is not news
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        twist_key = self.keys.key(keys.CMD_TWIST) + (f"/{self.operator_id}" if bind_keys else "")
+        twist_key = self._own_key(keys.CMD_TWIST)
         self.ui_timeout = ui_timeout
         # The process sender (own session; twists go out from the child) or, without a config, the thread one.
         self._proc_sender: ProcessSender | None = None
@@ -294,10 +294,9 @@ class OperatorClient:
         self._pub_twist = None if self._proc_sender is not None else publisher(session, twist_key, QOS_BY_KEY[keys.CMD_TWIST])
         # With bound keys every command goes on the key carrying our id, the one the router's ACL lets only our
         # certificate publish on (a stop there also tells the edge who sent it).
-        own = f"/{self.operator_id}" if bind_keys else ""
-        self._pub_stop = publisher(session, self.keys.key(keys.CMD_STOP) + own, QOS_BY_KEY[keys.CMD_STOP])
-        self._pub_servo = publisher(session, self.keys.key(keys.CMD_SERVO) + own, QOS_BY_KEY[keys.CMD_SERVO])
-        self._pub_torch = publisher(session, self.keys.key(keys.CMD_TORCH) + own, QOS_BY_KEY[keys.CMD_TORCH])
+        self._pub_stop = publisher(session, self._own_key(keys.CMD_STOP), QOS_BY_KEY[keys.CMD_STOP])
+        self._pub_servo = publisher(session, self._own_key(keys.CMD_SERVO), QOS_BY_KEY[keys.CMD_SERVO])
+        self._pub_torch = publisher(session, self._own_key(keys.CMD_TORCH), QOS_BY_KEY[keys.CMD_TORCH])
         # The liveliness token tells the edge this operator is alive (its loss releases control); a client that
         # only watches (the web console's view of a robot) announces nothing.
         self._token = session.liveliness().declare_token(self.keys.alive_operator(operator_id)) if announce else None
@@ -336,7 +335,7 @@ class OperatorClient:
         grant = self._sign(req, suffix)  # and what the edge's answer must be signed with
         payload = req.encode()
         to_edge = key is None  # (a preview goes through the twin: what it answers, the edge checks again)
-        key = key or self.keys.key(suffix) + (f"/{self.operator_id}" if self.bind_keys else "")
+        key = key or self._own_key(suffix)
         context = auth.reply_context(self.keys.robot, suffix)
 
         def signed_with(payload: bytes, secret: bytes) -> ControlReply | None:
@@ -436,6 +435,11 @@ class OperatorClient:
         edge = f"the edge {self.edge_revision}" if self.edge_revision is not None else "the edge a newer one"
         return (f"update this console: it speaks protocol revision {REVISION}, {edge}, and it cannot read "
                 f"{'; '.join(self.unreadable.values())}")
+
+    def _own_key(self, suffix: str) -> str:
+        """The key this client sends ``suffix`` on: with bound keys the one carrying its id, which the router's ACL
+        lets only its certificate write (identity.bound_key), else the plain key."""
+        return identity.bound_key(self.keys, suffix, self.operator_id) if self.bind_keys else self.keys.key(suffix)
 
     def _set_key(self, key: bytes) -> None:
         with self._lock:
