@@ -209,6 +209,8 @@ NOT_ARMED = "not armed: confirm arming on the robot side"
 WALL_STEP_TOLERANCE = 0.05
 MAX_SLEW = 500e-6
 GRANT_NEEDS_PRESS = "control granted: release the deadman and press it to move"
+DANGER_HELD = "danger-level force: motion pressing harder removed"
+RETRACTING = "retracting from danger-level force"
 
 
 @dataclass
@@ -520,7 +522,7 @@ class Supervisor:
             self._halt(Status.FORCE_STALE, reason, latch=True)
             self._intervene(Status.FORCE_STALE, reason)
         elif level == ForceLevel.DANGER and not stale and not was_danger:
-            reason = "danger-level force: motion pressing harder removed"
+            reason = DANGER_HELD
             if reaction.retract_distance > 0 and reaction.retract_speed > 0:
                 self._retreat_until = now + reaction.retract_distance / reaction.retract_speed
                 reason += f", retracting {1000 * reaction.retract_distance:.1f} mm"
@@ -665,7 +667,7 @@ class Supervisor:
         # The deadman times out also while a latch holds the robot: a deadman left held under a latch made
         # timeout_at() a time already past, and the control loop woke for it again and again (~20 000 cycles a
         # second, a core, for as long as the lease was renewed).
-        if self._deadman and now - self._last_accepted > self.config.command_timeout:
+        if now >= self.timeout_at():  # the instant itself (the control loop wakes for it)
             self._deadman = False
             self._target = [0.0] * 6
             if not self._latched and self.armed:
@@ -790,9 +792,15 @@ class Supervisor:
             self._clip_force(twist, pose, now)
             self._clip_workspace(twist, pose)
             self.moving = any(twist)
-            self._set(Status.FORCE_DANGER, "retracting from danger-level force")
-            return self._decide(twist, True, Status.FORCE_DANGER, "retracting from danger-level force", ["force"])
+            self._set(Status.FORCE_DANGER, RETRACTING)
+            return self._decide(twist, True, Status.FORCE_DANGER, RETRACTING, ["force"])
         self.moving = False
+        if self.status == Status.FORCE_DANGER and self.reason == RETRACTING:
+            # The retreat is over: say what holds now (the status said "retracting" until the next event, seconds).
+            if self.force_level == ForceLevel.DANGER and not self.force_stale:
+                self._set(Status.FORCE_DANGER, DANGER_HELD)
+            else:
+                self._set(Status.NO_DEADMAN, "deadman released")
         return self._decide([0.0] * 6, False, self.status, self.reason)
 
     def _intervene(self, status: Status, reason: str) -> None:
@@ -872,6 +880,8 @@ class Supervisor:
             speed = max(-c.max_speed, min(c.max_speed, c.gain * error + self._contact_integral))
         _add_along(twist, speed - along, n)
         if not fresh:
+            if math.isinf(self._contact_force_at):
+                return "contact mode: no force reading along the probe yet: holding"
             return f"contact mode: no fresh force reading for {1000 * (now - self._contact_force_at):.0f} ms: holding"
         return f"contact mode: {self._contact_force:.1f} N of {self.contact_target:g} N"
 
