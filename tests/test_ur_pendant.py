@@ -151,6 +151,13 @@ def scripts_uploaded(emu: Emulator) -> int:
     return emu.status()["counters"].get("scripts_received_30003", 0)
 
 
+def theirs_plays_untouched(emu: Emulator, scripts: int) -> None:
+    """The person's program still plays, and the edge uploaded nothing over it since ``scripts`` were counted."""
+    status = emu.status()
+    assert status["program"] == "/programs/palletizing.urp" and status["runtime_state"] == "PLAYING"
+    assert scripts_uploaded(emu) == scripts
+
+
 def test_a_mismatched_installation_gets_no_script_and_connects_once_it_is_set_right(
         emu: Emulator, make_robot: Callable[..., URRobot], caplog: pytest.LogCaptureFixture,
         monkeypatch: pytest.MonkeyPatch) -> None:
@@ -385,7 +392,7 @@ def test_a_program_played_on_the_pendant_takes_over_and_the_edge_leaves_it_runni
     robot = make_robot()
     robot.connect()
     cycle(robot, 0.3, [0.02, 0, 0, 0, 0, 0])
-    scripts = emu.status()["counters"]["scripts_received_30003"]
+    scripts = scripts_uploaded(emu)
     assert ur_dashboard(emu.host, "load /programs/palletizing.urp") == "Loading program: /programs/palletizing.urp"
     assert ur_dashboard(emu.host, "play") == "Starting program"
     assert emu.status()["program"] == "/programs/palletizing.urp"
@@ -400,9 +407,7 @@ def test_a_program_played_on_the_pendant_takes_over_and_the_edge_leaves_it_runni
     while time.monotonic() < end:  # theirs runs on: the edge stopped nothing and uploaded nothing over it
         reading = robot.read_state()
         assert reading.takeover == foreign_program("/programs/palletizing.urp")
-        status = emu.status()
-        assert status["program"] == "/programs/palletizing.urp" and status["runtime_state"] == "PLAYING"
-        assert status["counters"]["scripts_received_30003"] == scripts
+        theirs_plays_untouched(emu, scripts)
         time.sleep(0.02)
     assert ur_dashboard(emu.host, "stop") == "Stopped"  # the person is done
     held_without_a_script(robot, emu, "another program", 1.0)
@@ -423,7 +428,7 @@ def test_a_reconnect_after_a_fault_does_not_upload_over_a_program_played_meanwhi
     until(robot, lambda r: robot._script_name is not None, 3.0, "the dashboard's name for the script")
     stall_until_the_watchdog_stops_the_program(robot, emu)
     until(robot, lambda r: robot._phase == "down", 3.0, "the agent ending the stalled driver")
-    scripts = emu.status()["counters"]["scripts_received_30003"]
+    scripts = scripts_uploaded(emu)
     assert ur_dashboard(emu.host, "load /programs/palletizing.urp") == "Loading program: /programs/palletizing.urp"
     assert ur_dashboard(emu.host, "play") == "Starting program"
     reading, _ = until(robot, lambda r: bool(r.takeover), 5.0, "the takeover")
@@ -431,9 +436,7 @@ def test_a_reconnect_after_a_fault_does_not_upload_over_a_program_played_meanwhi
     end = time.monotonic() + 2.0
     while time.monotonic() < end:
         assert robot.read_state().takeover
-        status = emu.status()
-        assert status["program"] == "/programs/palletizing.urp" and status["runtime_state"] == "PLAYING"
-        assert status["counters"]["scripts_received_30003"] == scripts
+        theirs_plays_untouched(emu, scripts)
         time.sleep(0.02)
     assert ur_dashboard(emu.host, "stop") == "Stopped"  # the person is done
     held_without_a_script(robot, emu, "another program", 0.5)
@@ -469,9 +472,7 @@ def test_arming_while_their_program_still_plays_waits_for_it_to_stop_without_a_r
             reading = robot.read_state()
             assert not reading.connected and not reading.takeover  # armed: no takeover; not connected: a fault
             faults.add(reading.fault)
-            status = emu.status()
-            assert status["program"] == "/programs/palletizing.urp" and status["runtime_state"] == "PLAYING"
-            assert scripts_uploaded(emu) == scripts
+            theirs_plays_untouched(emu, scripts)
             time.sleep(robot.control_period)
     why = program_running("/programs/palletizing.urp")
     assert why == ("another program (/programs/palletizing.urp) is running on the controller: stop it on the teach "

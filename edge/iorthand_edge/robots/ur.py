@@ -88,6 +88,7 @@ import numpy as np
 
 from iorthand.geometry import rotvec_to_matrix
 from iorthand.process import REALTIME_PRIORITY, exit_reason, raise_priority
+from iorthand_edge.robots import rtde_wire
 from iorthand_edge.robots.base import Robot, RobotFault, RobotReading, Vector
 from iorthand_edge.robots.config import URRobotConfig
 
@@ -275,10 +276,6 @@ def foreign_program_playing(host: str, script_name: str | None) -> str:
     return name if state.upper() != "STOPPED" and name != script_name else ""
 
 
-# RTDE (port 30004, protocol 2), for the one output ur_rtde's receive interface has no getter for.
-RTDE_PORT = 30004
-RTDE_REQUEST_PROTOCOL_VERSION, RTDE_SETUP_OUTPUTS, RTDE_START, RTDE_DATA = 86, 79, 83, 85  # 'V', 'O', 'S', 'U'
-RTDE_HEADER = struct.Struct(">HB")  # size (the header's 3 bytes included), type
 INSTALLATION_TIMEOUT_S = 1.0  # for reading the installation's TCP offset over RTDE (connect, each answer)
 
 
@@ -289,37 +286,27 @@ def read_tcp_offset(host: str, timeout: float = INSTALLATION_TIMEOUT_S) -> list[
     software answers NOT_FOUND): the TCP is then known only once the script runs. Raises OSError on a link that
     fails or a controller that does not answer within ``timeout``."""
     deadline = time.monotonic() + 3 * timeout  # a controller that only sends other packages does not keep us here
-    with socket.create_connection((host, RTDE_PORT), timeout=timeout) as sock:
-
-        def receive(length: int) -> bytes:
-            data = b""
-            while len(data) < length:
-                chunk = sock.recv(length - len(data))
-                if not chunk:
-                    raise OSError("the controller closed the RTDE connection")
-                data += chunk
-            return data
+    with socket.create_connection((host, rtde_wire.PORT), timeout=timeout) as sock:
 
         def exchange(kind: int, payload: bytes = b"", send: bool = True) -> bytes:
             """Send a package of ``kind`` (unless not ``send``) and return the payload of the next one of that kind;
             the controller's others (text messages) are skipped."""
             if send:
-                sock.sendall(RTDE_HEADER.pack(RTDE_HEADER.size + len(payload), kind) + payload)
+                sock.sendall(rtde_wire.pack_message(kind, payload))
             while time.monotonic() < deadline:
-                size, got = RTDE_HEADER.unpack(receive(RTDE_HEADER.size))
-                body = receive(size - RTDE_HEADER.size)
+                got, body = rtde_wire.read_message(sock)  # ConnectionError (an OSError) when it closes
                 if got == kind:
                     return body
             raise OSError(f"no RTDE package {chr(kind)!r} from the controller within {3 * timeout:g} s")
 
-        if exchange(RTDE_REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2))[:1] != b"\x01":
+        if exchange(rtde_wire.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2))[:1] != b"\x01":
             raise OSError("the controller refused RTDE protocol 2")
-        reply = exchange(RTDE_SETUP_OUTPUTS, struct.pack(">d", 10.0) + b"tcp_offset")
+        reply = exchange(rtde_wire.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 10.0) + b"tcp_offset")
         if reply[1:] != b"VECTOR6D":  # NOT_FOUND
             return None
-        if exchange(RTDE_START)[:1] != b"\x01":
+        if exchange(rtde_wire.CONTROL_PACKAGE_START)[:1] != b"\x01":
             raise OSError("the controller refused to start the RTDE output")
-        data = exchange(RTDE_DATA, send=False)  # recipe id, then the 6 doubles
+        data = exchange(rtde_wire.DATA_PACKAGE, send=False)  # recipe id, then the 6 doubles
         return [float(v) for v in struct.unpack_from(">6d", data, 1)]
 
 

@@ -8,20 +8,22 @@ a controller does, and ur_rtde then raises with the list of unknown names.
 from __future__ import annotations
 
 import re
-import socket
-import struct
 
-# Package types (ASCII letters in the protocol).
-REQUEST_PROTOCOL_VERSION = 86  # 'V'
-GET_URCONTROL_VERSION = 118  # 'v'
-TEXT_MESSAGE = 77  # 'M'
-DATA_PACKAGE = 85  # 'U'
-CONTROL_PACKAGE_SETUP_OUTPUTS = 79  # 'O'
-CONTROL_PACKAGE_SETUP_INPUTS = 73  # 'I'
-CONTROL_PACKAGE_START = 83  # 'S'
-CONTROL_PACKAGE_PAUSE = 80  # 'P'
-
-HEADER = struct.Struct(">HB")
+# The framing and package types, shared with the edge's UR driver (which reads one output ur_rtde has no getter for).
+from iorthand_edge.robots.rtde_wire import (  # noqa: F401 (the emulator's modules take them from here)
+    CONTROL_PACKAGE_PAUSE,
+    CONTROL_PACKAGE_SETUP_INPUTS,
+    CONTROL_PACKAGE_SETUP_OUTPUTS,
+    CONTROL_PACKAGE_START,
+    DATA_PACKAGE,
+    GET_URCONTROL_VERSION,
+    HEADER,
+    REQUEST_PROTOCOL_VERSION,
+    TEXT_MESSAGE,
+    pack_message,
+    read_message,
+    recv_exact,
+)
 
 #: struct format of each RTDE data type (without byte order).
 TYPE_FORMATS: dict[str, str] = {
@@ -159,28 +161,6 @@ def input_type(name: str) -> str | None:
             return None
         return {"int": "INT32", "double": "DOUBLE", "bit": "BOOL"}[reg[1]]
     return INPUT_TYPES.get(name)
-
-
-def pack_message(msg_type: int, payload: bytes = b"") -> bytes:
-    return HEADER.pack(HEADER.size + len(payload), msg_type) + payload
-
-
-def recv_exact(sock: socket.socket, n: int) -> bytes:
-    """Read exactly ``n`` bytes; raise ConnectionError on EOF."""
-    chunks = bytearray()
-    while len(chunks) < n:
-        chunk = sock.recv(n - len(chunks))
-        if not chunk:
-            raise ConnectionError("peer closed the connection")
-        chunks += chunk
-    return bytes(chunks)
-
-
-def read_message(sock: socket.socket) -> tuple[int, bytes]:
-    size, msg_type = HEADER.unpack(recv_exact(sock, HEADER.size))
-    if size < HEADER.size:
-        raise ConnectionError(f"malformed RTDE header: size {size}")
-    return msg_type, recv_exact(sock, size - HEADER.size)
 
 
 def flatten(values: list[object]) -> list[object]:
