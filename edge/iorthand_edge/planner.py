@@ -50,6 +50,9 @@ class PlannerProcess:
         self.timeout = timeout
         self._child: multiprocessing.process.BaseProcess | None = None
         self._conn: Connection | None = None
+        # One thread at a time collects a child's exit status: two waiting at once (the reaper and close()), the
+        # loser's waitpid failed and the child read as alive after it had ended (a test's is_alive, under load).
+        self._collect = threading.Lock()
 
     def plan_route(self, name: str, current: ArrayLike, limits: motion.Limits, poses: Mapping[str, Sequence[float]],
                    *args: Any, **kwargs: Any) -> motion.Route:
@@ -90,7 +93,9 @@ class PlannerProcess:
         """Wait for ``child`` to end. Killed between plans (the OOM killer), it stayed a zombie and unmentioned
         until the next preview, which may never come: now it is reaped, and logged with why, at once."""
         name_thread("edge-planner-reap")
-        child.join()
+        multiprocessing.connection.wait([child.sentinel])  # ended (its status not collected yet)
+        with self._collect:
+            child.join()
         if self._child is child:  # not ended by close()
             log.error("the planner process %s: a new one starts at the next plan", exit_reason(child.exitcode))
 
@@ -98,7 +103,8 @@ class PlannerProcess:
         child, self._child = self._child, None  # first: its reaper then knows that it was ended on purpose
         if child is not None:
             child.kill()
-            child.join(2.0)
+            with self._collect:
+                child.join(2.0)
         if self._conn is not None:
             self._conn.close()
             self._conn = None
