@@ -33,6 +33,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
 from iorthand.config import ConfigError, from_dict, load, read_yaml
 from iorthand.security import acl, identity
 from iorthand.security.diagnose import (
@@ -44,7 +46,7 @@ from iorthand.security.diagnose import (
     is_encrypted,
     precheck,
 )
-from iorthand.transport import ZenohConfig
+from iorthand.transport import ZenohConfig, forwarding_rules
 
 # role → (module, dataclass name). Imported lazily: the core depends on no role package.
 ROLE_CONFIGS: dict[str, tuple[str, str]] = {
@@ -139,14 +141,12 @@ def _subjects(router_cfg: dict[str, Any]) -> set[str]:
 
 def _load_json5(path: Path) -> dict[str, Any]:
     """Validate with Zenoh itself (it knows every key), then read the values back as JSON."""
-    import zenoh
-
     try:
         zc = zenoh.Config.from_file(str(path))
     except zenoh.ZError as exc:
         raise ConfigError(str(path), "", f"not a valid Zenoh configuration: {str(exc).split(' at /', 1)[0]}") from None
     out: dict[str, Any] = {}
-    for key in ("mode", "listen", "connect", "transport", "access_control"):
+    for key in ("mode", "listen", "connect", "transport", "access_control", "qos"):
         out[key] = json.loads(zc.get_json(key))
     return out
 
@@ -211,7 +211,26 @@ def check_router(path: Path) -> Report:
                 "allow: a session that matches no subject (another certificate of the CA, a wrong user name) may "
                 "do whatever no rule denies: set it to deny, as `iorthand certs router-config` does")))
         rep.notes.append(f"ACL: {len(ac.get('subjects') or [])} subjects, default {ac.get('default_permission')}")
+    missing = _unforwarded(cfg)
+    if missing:
+        rep.findings.append(Finding("warning", "qos.network", (
+            f"{', '.join(missing)} forwarded as published (BLOCK): one subscriber that stops reading (a hung "
+            "console) holds up these messages, and everything else the edge sends, for every other subscriber, for "
+            "up to 5 s at a time. Add the egress rules of `iorthand certs router-config` (configs/router.json5 "
+            "shows them)")))
     return rep
+
+
+def _unforwarded(cfg: dict[str, Any]) -> list[str]:
+    """The keys of :func:`~iorthand.transport.forwarding_rules` that the router's ``qos.network`` does not forward
+    as they say (a hand-written or older configuration)."""
+    have = [(zenoh.KeyExpr(expr), (rule.get("overwrite") or {}).get("congestion_control"))
+            for rule in (cfg.get("qos") or {}).get("network") or []
+            if "egress" in (rule.get("flows") or ["egress"]) and "put" in (rule.get("messages") or [])
+            for expr in rule.get("key_exprs") or ["**"]]  # no key_exprs: every key
+    return [expr for rule in forwarding_rules() for expr in rule["key_exprs"]
+            if not any(mode == rule["overwrite"]["congestion_control"] and covering.includes(zenoh.KeyExpr(expr))
+                       for covering, mode in have)]
 
 
 def _users(path: Path) -> dict[str, str]:

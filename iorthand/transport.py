@@ -39,6 +39,10 @@ class QosProfile:
     congestion: zenoh.CongestionControl
     express: bool = False
     best_effort: bool = False  # see VIDEO
+    # How routers forward a BLOCK message to each subscriber (Zenoh's qos.network names; see forwarding_rules):
+    # "" as it was published. A router forwards with the publisher's congestion control, so with BLOCK the
+    # thread reading the publisher's link waits for room in the slowest subscriber's queue (up to 5 s).
+    forwarded: str = ""
 
     @property
     def reliability(self) -> zenoh.Reliability:
@@ -46,9 +50,15 @@ class QosProfile:
 
 
 COMMAND = QosProfile(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.DROP, express=True)
+# Forwarded as published (BLOCK), although a subscriber of commands that stops reading then holds up the
+# operator's link at the router: Zenoh's "block_first" keeps one message of a priority in flight per link and
+# drops the next if it waits more than 1 ms, so on a router short of CPU a stop that follows a servo set-point
+# could be dropped. A stop is never dropped; the edge's deadman stops the robot if the commands stall.
 CONTROL = QosProfile(zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK, express=True)
 STATE = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.DROP)
-SAFETY = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.BLOCK)
+# BLOCK at the edge (a status is never dropped from its own queue); dropped when forwarded to a subscriber whose
+# link is full: the edge sends the status again at its rate, so that subscriber gets the newest when it reads again.
+SAFETY = QosProfile(zenoh.Priority.INTERACTIVE_HIGH, zenoh.CongestionControl.BLOCK, forwarded="drop")
 DATA = QosProfile(zenoh.Priority.DATA, zenoh.CongestionControl.DROP)
 # BLOCK: a full uplink makes the edge's put wait (it then skips frames at the source and lowers the H.264 bitrate)
 # instead of dropping frames in the sender's queue, which spoils an H.264 stream until its next keyframe.
@@ -628,6 +638,24 @@ def rate_limits(robots: Iterable[str] = ("*",)) -> list[dict[str, Any]]:
     return [{"flows": ["ingress"], "messages": ["put"], "rules": rules}]
 
 
+def forwarding_rules(table: Iterable[channels.Channel] = channels.TABLE) -> list[dict[str, Any]]:
+    """The router's ``qos.network`` section: the channels whose profile says how they are ``forwarded`` (the
+    edge's safety status and force level: dropped for a subscriber whose link is full), so that a subscriber
+    that stops reading (a console whose callback hung, its keep-alives still flowing) holds up nobody. Without
+    it, about 40 s after a console hung the router stopped forwarding the edge's state to everyone for 5 s and
+    the edge lost its link (tests/test_router_fanout.py). Best-effort video needs no rule: Zenoh never blocks
+    on it. Egress only: what the edge's own queue does with its messages is its own QoS."""
+    by_mode: dict[str, list[str]] = {}
+    for c in table:
+        qos = QOS_PROFILES[c.qos] if c.qos is not None else None
+        if qos is not None and qos.forwarded:
+            key = f"{keys.ROOT}/*/{c.suffix}"
+            bound = c.operator_key is not channels.OperatorKey.NONE
+            by_mode.setdefault(qos.forwarded, []).extend([key, f"{key}/*"] if bound else [key])
+    return [{"id": f"forward-{mode.replace('_', '-')}", "messages": ["put"], "flows": ["egress"], "key_exprs": exprs,
+             "overwrite": {"congestion_control": mode}} for mode, exprs in sorted(by_mode.items())]
+
+
 def router_settings(listen: list[str], connect: list[str] | None = None, lease_ms: int | None = None,
                     shared_memory: bool = True, datagrams: bool = False) -> dict[str, Any]:
     """A plain router's configuration as a dict (written as JSON, it is a JSON5 file a stock zenohd reads).
@@ -651,6 +679,7 @@ def router_settings(listen: list[str], connect: list[str] | None = None, lease_m
                                          else {"enabled": False})
     if datagrams:
         cfg["transport"]["unicast"] = {"max_links": DATAGRAM_MAX_LINKS}
+    cfg["qos"] = {"network": forwarding_rules()}
     if connect:
         cfg["connect"] = {"endpoints": list(connect)}
     return cfg

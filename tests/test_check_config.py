@@ -177,6 +177,22 @@ def test_a_loopback_router_may_stay_open_for_development(lab: Lab, tmp_path: Pat
     assert rep.ok and {f.subject for f in rep.findings} == {"access_control"}, rep.text(Path("local.json5"))
 
 
+def test_a_router_that_forwards_the_edges_status_as_published_is_warned_about(lab: Lab, tmp_path: Path) -> None:
+    """Without the egress rules, one hung subscriber holds up the edge's status for everyone (forwarding_rules)."""
+    def warned(path: Path) -> str:
+        return " ".join(f.message for f in check_file(path).findings if f.subject == "qos.network")
+
+    local = {"access_control.enabled": False, "transport.auth": None}
+    assert warned(_router(lab, tmp_path / "generated.json5", listen="tcp/127.0.0.1:7447", **local)) == ""
+    said = warned(_router(lab, tmp_path / "old.json5", listen="tcp/127.0.0.1:7447", qos=None, **local))
+    assert "iorthand/*/state/safety, iorthand/*/state/force_level forwarded as published" in said, said
+    # A rule of its own that drops every key's puts covers them; one that blocks does not.
+    for mode, expected in (("drop", ""), ("block", "iorthand/*/state/safety")):
+        rules = {"network": [{"messages": ["put"], "flows": ["egress"], "overwrite": {"congestion_control": mode}}]}
+        said = warned(_router(lab, tmp_path / f"{mode}.json5", listen="tcp/127.0.0.1:7447", qos=rules, **local))
+        assert expected in said if expected else said == "", (mode, said)
+
+
 def test_the_identity_must_be_the_roles_own(lab: Lab, tmp_path: Path) -> None:
     def errors(path: Path, **kw: object) -> list[str]:
         return [f"{f.subject}: {f.message}" for f in check_file(path, **kw).findings if f.level == "error"]

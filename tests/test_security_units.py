@@ -20,6 +20,7 @@ from iorthand.transport import (
     TX_QUEUE_SIZE,
     TlsConfig,
     ZenohConfig,
+    forwarding_rules,
     load_router_config,
     rate_limits,
     router_settings,
@@ -173,10 +174,10 @@ def test_generated_config_is_accepted_by_zenoh(tmp_path: Path, bind: bool) -> No
     assert json.loads(zc.get_json("access_control/enabled")) is True
 
 
-def test_every_router_configuration_has_the_command_queue_sizes_and_the_small_shared_memory_pool() -> None:
+def test_every_router_configuration_has_the_queue_sizes_the_small_shared_memory_pool_and_the_forwarding() -> None:
     """The generated (TLS) configuration, the shipped plain one and ``iorthand router``'s built-in one all
-    ride out CPU stalls without dropping commands (see TX_QUEUE_SIZE) and forward through a small pool
-    (SHM_POOL_SIZE)."""
+    ride out CPU stalls without dropping commands (see TX_QUEUE_SIZE), forward through a small pool
+    (SHM_POOL_SIZE) and let no subscriber hold up the edge's status (forwarding_rules)."""
     configs = {
         "generated": zenoh.Config.from_json5(acl.to_json5(acl.router_config(_dep()))),
         "configs/router.json5": load_router_config(ROOT / "configs" / "router.json5"),
@@ -192,6 +193,10 @@ def test_every_router_configuration_has_the_command_queue_sizes_and_the_small_sh
         # (see rate_limits).
         caps = [{k: item[k] for k in ("flows", "messages", "rules")} for item in json.loads(zc.get_json("downsampling"))]
         assert caps == ([] if name == "built-in" else rate_limits(robots.get(name, ("*",)))), name
+        # The edge's status dropped for a subscriber that stops reading, not held up for all (forwarding_rules).
+        rules = [{k: item[k] for k in ("id", "messages", "flows", "key_exprs")} | {"overwrite": {
+            "congestion_control": item["overwrite"]["congestion_control"]}} for item in json.loads(zc.get_json("qos/network"))]
+        assert rules == forwarding_rules(), name
     # A router that dials another carries every operator's messages on that link: no cap there.
     assert "downsampling" not in acl.router_config(_dep(connect=["tls/cloud.example.org:7447"]))
 

@@ -53,7 +53,14 @@ from iorthand import channels, keys
 from iorthand.channels import Channel, Kind, OperatorKey, Role
 from iorthand.config import setting
 from iorthand.security.identity import edge_common_name, operator_common_name
-from iorthand.transport import ROUTER_LEASE_MS, SHM_POOL_SIZE, TX_QUEUE_SIZE, announced_lease, rate_limits
+from iorthand.transport import (
+    ROUTER_LEASE_MS,
+    SHM_POOL_SIZE,
+    TX_QUEUE_SIZE,
+    announced_lease,
+    forwarding_rules,
+    rate_limits,
+)
 
 ALL_MESSAGES = [
     "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
@@ -302,6 +309,7 @@ def router_config(dep: Deployment) -> dict[str, Any]:
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": transport,
         "access_control": acl_rules(dep),
+        "qos": {"network": forwarding_rules()},  # a subscriber that stops reading holds up nobody
     }
     if dep.connect:
         cfg["connect"] = {"endpoints": list(dep.connect)}
