@@ -79,18 +79,22 @@ def _check_nothing_forged_applied(agent, alice: OperatorClient, echoes: list[App
     assert not [e for e in list(alice.echoes) if not e.accepted and e.status == Status.NOT_OWNER]
 
 
-def _forge_while_alice_holds(agent, alice: OperatorClient, attacker: zenoh.Session) -> None:
-    """Alice holds control and the deadman, standing still; the attacker watches every command and answer on
-    the robot (as any granted session may), then forges and replays in her name. Nothing of it may act."""
+def _forge_while_alice_holds(agent, alice: OperatorClient, attacker: zenoh.Session,
+                             wiretap: zenoh.Session | None = None) -> None:
+    """Alice holds control and the deadman, standing still; the attacker watches every answer on the robot and
+    has her commands (on an open router it reads them itself; behind the ACL, which refuses an operator the
+    commands, through ``wiretap``: a leaked recording, say), then forges and replays in her name. Nothing of it
+    may act."""
     _owner_holds_still(alice)
     x0 = np.asarray(agent.reading.tcp_pose[:3])
     echoes: list[AppliedCommand] = []
     captured: list[bytes] = []
     k = keys.RobotKeys("sim1")
+    tap = wiretap or attacker
     subs = [
         attacker.declare_subscriber(k.key(keys.STATE_APPLIED), lambda s: echoes.append(AppliedCommand.decode(s.payload.to_bytes()))),
-        attacker.declare_subscriber(k.key(keys.CMD_TWIST) + "/**", lambda s: captured.append(s.payload.to_bytes())),
-        attacker.declare_subscriber(k.key(keys.CMD_TWIST), lambda s: captured.append(s.payload.to_bytes())),
+        tap.declare_subscriber(k.key(keys.CMD_TWIST) + "/**", lambda s: captured.append(s.payload.to_bytes())),
+        tap.declare_subscriber(k.key(keys.CMD_TWIST), lambda s: captured.append(s.payload.to_bytes())),
     ]
     wait_until(lambda: captured, 3.0, message="the attacker seeing the owner's commands")
     _attack(attacker, "sim1", "alice", captured)
@@ -288,9 +292,10 @@ def test_forged_owner_from_a_second_granted_certificate(shared_robot_lab) -> Non
     try:
         a_session = open_session(lab.client("operator-alice"))
         m_session = open_session(lab.client("operator-mallory"))
-        sessions += [a_session, m_session]
+        wiretap = open_session(lab.client("recorder"))
+        sessions += [a_session, m_session, wiretap]
         alice = OperatorClient(a_session, "sim1", "alice")
-        _forge_while_alice_holds(agent, alice, m_session)
+        _forge_while_alice_holds(agent, alice, m_session, wiretap)
         # Mallory, as herself, is refused with the owner's name; her stop is obeyed and logged as hers.
         mallory = OperatorClient(m_session, "sim1", "mallory")
         with pytest.raises(ControlRefused, match="alice"):

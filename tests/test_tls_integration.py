@@ -312,6 +312,34 @@ def test_bind_operator_keys_acl(bound_lab: Lab) -> None:
             s.close()
 
 
+def test_an_operator_reads_the_robots_state_but_never_the_commands(bound_lab: Lab) -> None:
+    """A granted operator's session that subscribed to the commands and stopped reading would hold them up at the
+    router for everyone (commands are forwarded BLOCK, see iorthand.transport.CONTROL): the router refuses the
+    subscription. Before, bob received alice's commands (and could stall them by not reading)."""
+    lab = bound_lab
+    edge = open_session(lab.client("edge-sim1"))
+    alice = open_session(lab.client("operator-alice"))
+    bob = open_session(lab.client("operator-bob"))
+    try:
+        at_edge: list[str] = []
+        at_bob: list[str] = []
+        edge.declare_subscriber("iorthand/sim1/cmd/**", lambda s: at_edge.append(str(s.key_expr)))
+        for expr in ("iorthand/sim1/cmd/**", "iorthand/sim1/**", "iorthand/sim1/state/robot"):
+            bob.declare_subscriber(expr, lambda s: at_bob.append(str(s.key_expr)))
+        time.sleep(0.3)
+        for key in ("iorthand/sim1/cmd/twist/alice", "iorthand/sim1/cmd/stop", "iorthand/sim1/cmd/servo/alice"):
+            alice.put(key, msgpack.packb({"x": 1}))
+        edge.put("iorthand/sim1/state/robot", msgpack.packb({"x": 1}))
+        wait_until(lambda: len(at_edge) >= 3 and at_bob, 3.0, message="alice's commands at the edge, the state at bob")
+        time.sleep(0.2)
+        # No command through any subscription. The router refused iorthand/sim1/** (it includes the commands);
+        # bob's session hands the state it receives for state/robot to each of its own matching callbacks.
+        assert set(at_bob) == {"iorthand/sim1/state/robot"}, at_bob
+    finally:
+        for s in (bob, alice, edge):
+            s.close()
+
+
 def test_an_operator_previews_a_move_through_the_twin(tmp_path: Path) -> None:
     """The console previews a named pose through the twin, which has the edge plan it and draws the plan. In the
     secured deployment the router let the twin query nothing of a robot's, so every preview came back "no answer

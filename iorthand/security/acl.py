@@ -169,6 +169,21 @@ def _grants(table: Iterable[Channel], role: Role, kind: Kind, *, query: bool = F
     return out
 
 
+def _readable(table: Iterable[Channel], role: Role) -> list[str]:
+    """The key suffixes ``role`` may subscribe to: every family but those only its own role writes (an operator
+    reads what robots publish, never the operators' commands). A session that subscribed to the commands and
+    stopped reading would hold them up at the router for everyone (they are forwarded BLOCK: a stop is never
+    dropped, see iorthand.transport.CONTROL): the router refuses that subscription instead."""
+    table = tuple(table)
+    out: list[str] = []
+    for fam in dict.fromkeys(c.family for c in table):
+        rows = [c for c in table if c.family == fam]
+        if all(c.writers == {role} for c in rows):
+            continue
+        out += [*([fam] if any(c.suffix == fam for c in rows) else []), f"{fam}/**"]
+    return out
+
+
 def _tokens(table: Iterable[Channel], role: Role, operator: str = "") -> list[str]:
     """The liveliness tokens ``role`` may declare, by exact key (an operator's carries its name)."""
     return [f"{c.suffix}/{keys.check_operator_id(operator)}" if c.operator_key is OperatorKey.ALWAYS else c.suffix
@@ -227,7 +242,8 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
         sid = operator_common_name(op)
         rks = [keys.RobotKeys(r) for r in robots]
         rl = [
-            _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all for k in rks] + services),
+            _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"],
+                  [k.key(s) for k in rks for s in _readable(table, Role.OPERATOR)] + services),
             _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all for k in rks] + services),
             *operator_rules(sid, op, robots),
         ]
