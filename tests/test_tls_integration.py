@@ -263,7 +263,7 @@ def test_a_viewer_may_ask_the_recorder_its_status_but_not_stop_or_annotate(lab: 
 def bound_lab(tmp_path: Path) -> Iterator[Lab]:
     """A deployment with bind_operator_keys (alice and bob granted sim1), its router running."""
     lab = make_lab(tmp_path, free_port(), robots=["sim1"], operators={"alice": ["sim1"], "bob": ["sim1"]},
-                   bind_operator_keys=True)
+                   viewers=["eve"], bind_operator_keys=True)
     router = zenoh.open(zenoh.Config.from_file(str(lab.router_config)))
     yield lab
     router.close()
@@ -312,31 +312,33 @@ def test_bind_operator_keys_acl(bound_lab: Lab) -> None:
             s.close()
 
 
-def test_an_operator_reads_the_robots_state_but_never_the_commands(bound_lab: Lab) -> None:
-    """A granted operator's session that subscribed to the commands and stopped reading would hold them up at the
-    router for everyone (commands are forwarded BLOCK, see iorthand.transport.CONTROL): the router refuses the
-    subscription. Before, bob received alice's commands (and could stall them by not reading)."""
+def test_operators_and_viewers_receive_the_robots_state_but_never_the_commands(bound_lab: Lab) -> None:
+    """A session that received the commands and stopped reading would hold them up at the router for everyone
+    (commands are forwarded BLOCK, see iorthand.transport.CONTROL): the router sends them to no operator and no
+    viewer, whatever they subscribe to. Before, bob and eve received alice's commands."""
     lab = bound_lab
-    edge = open_session(lab.client("edge-sim1"))
-    alice = open_session(lab.client("operator-alice"))
-    bob = open_session(lab.client("operator-bob"))
+    sessions = {who: open_session(lab.client(who)) for who in ("edge-sim1", "operator-alice", "operator-bob", "viewer-eve")}
     try:
-        at_edge: list[str] = []
-        at_bob: list[str] = []
-        edge.declare_subscriber("iorthand/sim1/cmd/**", lambda s: at_edge.append(str(s.key_expr)))
-        for expr in ("iorthand/sim1/cmd/**", "iorthand/sim1/**", "iorthand/sim1/state/robot"):
-            bob.declare_subscriber(expr, lambda s: at_bob.append(str(s.key_expr)))
+        got: dict[str, list[str]] = {who: [] for who in sessions}
+        subscriptions = {"edge-sim1": ["iorthand/sim1/cmd/**"], "operator-alice": [],
+                         "operator-bob": ["iorthand/sim1/cmd/**", "iorthand/sim1/**"], "viewer-eve": ["iorthand/**"]}
+        for who, exprs in subscriptions.items():
+            for expr in exprs:
+                sessions[who].declare_subscriber(expr, lambda s, who=who: got[who].append(str(s.key_expr)))
         time.sleep(0.3)
         for key in ("iorthand/sim1/cmd/twist/alice", "iorthand/sim1/cmd/stop", "iorthand/sim1/cmd/servo/alice"):
-            alice.put(key, msgpack.packb({"x": 1}))
-        edge.put("iorthand/sim1/state/robot", msgpack.packb({"x": 1}))
-        wait_until(lambda: len(at_edge) >= 3 and at_bob, 3.0, message="alice's commands at the edge, the state at bob")
+            sessions["operator-alice"].put(key, msgpack.packb({"x": 1}))
+        sessions["edge-sim1"].put("iorthand/sim1/state/robot", msgpack.packb({"x": 1}))
+        wait_until(lambda: len(got["edge-sim1"]) >= 3 and got["operator-bob"] and got["viewer-eve"], 3.0,
+                   message="alice's commands at the edge, the state at bob and eve")
         time.sleep(0.2)
-        # No command through any subscription. The router refused iorthand/sim1/** (it includes the commands);
-        # bob's session hands the state it receives for state/robot to each of its own matching callbacks.
-        assert set(at_bob) == {"iorthand/sim1/state/robot"}, at_bob
+        assert sorted(got["edge-sim1"]) == ["iorthand/sim1/cmd/servo/alice", "iorthand/sim1/cmd/stop",
+                                            "iorthand/sim1/cmd/twist/alice"]
+        # The state, and no command through any subscription.
+        assert got["operator-bob"] == ["iorthand/sim1/state/robot"], got["operator-bob"]
+        assert got["viewer-eve"] == ["iorthand/sim1/state/robot"], got["viewer-eve"]
     finally:
-        for s in (bob, alice, edge):
+        for s in sessions.values():
             s.close()
 
 

@@ -67,6 +67,8 @@ ALL_MESSAGES = [
     "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
 ]
 SUBSCRIBE = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
+PUTS = ["put", "delete"]
+NOT_PUTS = [m for m in ALL_MESSAGES if m not in PUTS]
 SERVICES = ("twin", "recorder")
 REPLAY = Role.REPLAY.value  # the identity of `iorthand replay`
 WEB = "web"  # the identity of `iorthand web`
@@ -169,16 +171,16 @@ def _grants(table: Iterable[Channel], role: Role, kind: Kind, *, query: bool = F
     return out
 
 
-def _readable(table: Iterable[Channel], role: Role) -> list[str]:
-    """The key suffixes ``role`` may subscribe to: every family but those only its own role writes (an operator
-    reads what robots publish, never the operators' commands). A session that subscribed to the commands and
-    stopped reading would hold them up at the router for everyone (they are forwarded BLOCK: a stop is never
-    dropped, see iorthand.transport.CONTROL): the router refuses that subscription instead."""
+def _readable(table: Iterable[Channel]) -> list[str]:
+    """The key suffixes a reader that is no robot receives the puts of: every family but the commands (those only
+    operators write). Commands are forwarded BLOCK (a stop is never dropped, see iorthand.transport.CONTROL), so
+    a session that received them and stopped reading would hold up every operator's commands at the router. The
+    router does not send them to it (an egress rule: a subscription to ``iorthand/<robot>/**`` still gets the rest)."""
     table = tuple(table)
     out: list[str] = []
     for fam in dict.fromkeys(c.family for c in table):
         rows = [c for c in table if c.family == fam]
-        if all(c.writers == {role} for c in rows):
+        if all(c.writers == {Role.OPERATOR} for c in rows):
             continue
         out += [*([fam] if any(c.suffix == fam for c in rows) else []), f"{fam}/**"]
     return out
@@ -242,9 +244,9 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
         sid = operator_common_name(op)
         rks = [keys.RobotKeys(r) for r in robots]
         rl = [
-            _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"],
-                  [k.key(s) for k in rks for s in _readable(table, Role.OPERATOR)] + services),
-            _rule(f"{sid}-receive", ALL_MESSAGES, ["egress"], [k.all for k in rks] + services),
+            _rule(f"{sid}-subscribe", SUBSCRIBE, ["ingress"], [k.all for k in rks] + services),
+            _rule(f"{sid}-receive", NOT_PUTS, ["egress"], [k.all for k in rks] + services),
+            _rule(f"{sid}-read", PUTS, ["egress"], [k.key(s) for k in rks for s in _readable(table)] + services),
             *operator_rules(sid, op, robots),
         ]
         if services:
@@ -267,10 +269,13 @@ def acl_rules(dep: Deployment, table: Iterable[Channel] = channels.TABLE) -> dic
 
     everything = f"{keys.ROOT}/**"
     for name in [*dep.services, *(f"viewer-{v}" for v in dep.viewers)]:
-        rl = [
-            _rule(f"{name}-subscribe", SUBSCRIBE, ["ingress"], [everything]),
-            _rule(f"{name}-receive", ALL_MESSAGES, ["egress"], [everything]),
-        ]
+        rl = [_rule(f"{name}-subscribe", SUBSCRIBE, ["ingress"], [everything])]
+        if name in dep.services:  # the recorder keeps the commands; services queue what they receive
+            rl.append(_rule(f"{name}-receive", ALL_MESSAGES, ["egress"], [everything]))
+        else:  # an observer: what an operator reads, of every robot
+            rl += [_rule(f"{name}-receive", NOT_PUTS, ["egress"], [everything]),
+                   _rule(f"{name}-read", PUTS, ["egress"],
+                         [f"{keys.ROOT}/*/{s}" for s in _readable(table)] + services)]
         if services:
             asked = services if name in SERVICES else [READ_ONLY_QUERIES[s] for s in dep.services]
             rl.append(_rule(f"{name}-query", ["query"], ["ingress"], asked))
