@@ -578,6 +578,13 @@ TX_QUEUE_SIZE_KEY = "transport/link/tx/queue/size"
 SHM_POOL_SIZE = 4 * 1024 * 1024
 SHM_POOL_SIZE_KEY = "transport/shared_memory/transport_optimization/pool_size"
 
+# Sessions a router lets open at once before the handshake is done (Zenoh's default: 100). Anyone who reaches the
+# port, before any certificate is checked, can hold that many TCP connections idle until they time out (10 s):
+# 150 idle connections from one address made the router refuse every new session at once (an edge back from a
+# blip, an operator). 1024 of them cost a few MB, and a legit client still connected within 0.4-1.9 s with 300-600
+# held. deploy/router/nftables.conf caps the connections one source address may hold (DEPLOY.md §2).
+ACCEPT_PENDING = 1024
+ACCEPT_PENDING_KEY = "transport/unicast/accept_pending"
 
 ROUTER_LEASE_MS = 2000
 # A router that dials another (an edge site's router → the cloud) announces a longer lease than the router it
@@ -677,8 +684,9 @@ def router_settings(listen: list[str], connect: list[str] | None = None, lease_m
     }
     cfg["transport"]["shared_memory"] = ({"transport_optimization": {"pool_size": SHM_POOL_SIZE}} if shared_memory
                                          else {"enabled": False})
+    cfg["transport"]["unicast"] = {"accept_pending": ACCEPT_PENDING}
     if datagrams:
-        cfg["transport"]["unicast"] = {"max_links": DATAGRAM_MAX_LINKS}
+        cfg["transport"]["unicast"]["max_links"] = DATAGRAM_MAX_LINKS
     cfg["qos"] = {"network": forwarding_rules()}
     if connect:
         cfg["connect"] = {"endpoints": list(connect)}

@@ -13,6 +13,8 @@ import zenoh
 
 from iorthand.security import acl, certs, diagnose, identity
 from iorthand.transport import (
+    ACCEPT_PENDING,
+    ACCEPT_PENDING_KEY,
     DIALING_LEASE_EXTRA_MS,
     ROUTER_LEASE_MS,
     SHM_POOL_SIZE,
@@ -189,6 +191,7 @@ def test_every_router_configuration_has_the_queue_sizes_the_small_shared_memory_
         assert {k: sizes[k] for k in TX_QUEUE_SIZE} == TX_QUEUE_SIZE, name
         assert json.loads(zc.get_json("transport/link/tx/lease")) == ROUTER_LEASE_MS, name
         assert json.loads(zc.get_json(SHM_POOL_SIZE_KEY)) == SHM_POOL_SIZE, name
+        assert json.loads(zc.get_json(ACCEPT_PENDING_KEY)) == ACCEPT_PENDING, name
         # The per-session caps on set-points (rate_limits), as Zenoh reads them back; not in the built-in router
         # (see rate_limits).
         caps = [{k: item[k] for k in ("flows", "messages", "rules")} for item in json.loads(zc.get_json("downsampling"))]

@@ -54,6 +54,7 @@ from iorthand.channels import Channel, Kind, OperatorKey, Role
 from iorthand.config import setting
 from iorthand.security.identity import edge_common_name, operator_common_name
 from iorthand.transport import (
+    ACCEPT_PENDING,
     ROUTER_LEASE_MS,
     SHM_POOL_SIZE,
     TX_QUEUE_SIZE,
@@ -320,7 +321,7 @@ def router_config(dep: Deployment) -> dict[str, Any]:
         "close_link_on_expiration": True,
     }
     tx = {"lease": announced_lease(dep.lease_ms, bool(dep.connect)), "queue": {"size": dict(TX_QUEUE_SIZE)}}
-    transport: dict[str, Any] = {"link": {"tls": tls, "tx": tx},
+    transport: dict[str, Any] = {"link": {"tls": tls, "tx": tx}, "unicast": {"accept_pending": ACCEPT_PENDING},
                                  "shared_memory": {"transport_optimization": {"pool_size": SHM_POOL_SIZE}}}
     if dep.users_file is not None:
         transport["auth"] = {"usrpwd": {"dictionary_file": str(dep.users_file)}}
