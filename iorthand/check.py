@@ -46,7 +46,7 @@ from iorthand.security.diagnose import (
     is_encrypted,
     precheck,
 )
-from iorthand.transport import ACCEPT_PENDING, ZenohConfig, forwarding_rules
+from iorthand.transport import ZenohConfig, forwarding_rules
 
 # role → (module, dataclass name). Imported lazily: the core depends on no role package.
 ROLE_CONFIGS: dict[str, tuple[str, str]] = {
@@ -211,12 +211,6 @@ def check_router(path: Path) -> Report:
                 "allow: a session that matches no subject (another certificate of the CA, a wrong user name) may "
                 "do whatever no rule denies: set it to deny, as `iorthand certs router-config` does")))
         rep.notes.append(f"ACL: {len(ac.get('subjects') or [])} subjects, default {ac.get('default_permission')}")
-    pending = ((cfg.get("transport") or {}).get("unicast") or {}).get("accept_pending")
-    if exposed and isinstance(pending, int) and pending < ACCEPT_PENDING:
-        rep.findings.append(Finding("warning", "transport.unicast.accept_pending", (
-            f"{pending}: that many idle connections, opened by anyone who reaches the port before any certificate "
-            f"is checked, make the router refuse every new session (an edge back from a blip). Set {ACCEPT_PENDING}, "
-            "as `iorthand certs router-config` does, and load deploy/router/nftables.conf (DEPLOY.md §2)")))
     missing = _unforwarded(cfg)
     if missing:
         rep.findings.append(Finding("warning", "qos.network", (

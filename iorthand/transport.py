@@ -578,11 +578,11 @@ TX_QUEUE_SIZE_KEY = "transport/link/tx/queue/size"
 SHM_POOL_SIZE = 4 * 1024 * 1024
 SHM_POOL_SIZE_KEY = "transport/shared_memory/transport_optimization/pool_size"
 
-# Sessions a router lets open at once before the handshake is done (Zenoh's default: 100). Anyone who reaches the
-# port, before any certificate is checked, can hold that many TCP connections idle until they time out (10 s):
-# 150 idle connections from one address made the router refuse every new session at once (an edge back from a
-# blip, an operator). 1024 of them cost a few MB, and a legit client still connected within 0.4-1.9 s with 300-600
-# held. deploy/router/nftables.conf caps the connections one source address may hold (DEPLOY.md §2).
+# Sessions a router lets open at once before the handshake is done (Zenoh's default: 100). Anyone who reaches a
+# plain tcp/ listener can hold that many connections idle until they time out (10 s): 150 from one address made
+# the router refuse every new session at once (an edge back from a blip, an operator). (The tls/ listener did not
+# lock out with 1 000 idle or half-begun handshakes.) 1024 cost a few MB, and a legit client still connected
+# within 0.4-1.9 s with 300-600 held. deploy/router/nftables.conf caps what one address may hold (DEPLOY.md §2).
 ACCEPT_PENDING = 1024
 ACCEPT_PENDING_KEY = "transport/unicast/accept_pending"
 

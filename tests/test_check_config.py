@@ -193,19 +193,6 @@ def test_a_router_that_forwards_the_edges_status_as_published_is_warned_about(la
         assert expected in said if expected else said == "", (mode, said)
 
 
-def test_an_exposed_router_that_lets_few_sessions_into_their_handshake_is_warned_about(lab: Lab, tmp_path: Path) -> None:
-    """Zenoh's default of 100: 150 idle connections locked every new session out (tests/test_router_accept.py)."""
-    def warned(path: Path) -> str:
-        return " ".join(f.message for f in check_file(path).findings if f.subject == "transport.unicast.accept_pending")
-
-    assert warned(_router(lab, tmp_path / "generated.json5")) == ""
-    assert "100: that many idle connections" in warned(
-        _router(lab, tmp_path / "default.json5", **{"transport.unicast": {"accept_pending": 100}}))
-    # On the loopback nobody else reaches it: not said.
-    assert warned(_router(lab, tmp_path / "local.json5", listen="tcp/127.0.0.1:7447",
-                          **{"transport.unicast": {"accept_pending": 100}})) == ""
-
-
 def test_the_identity_must_be_the_roles_own(lab: Lab, tmp_path: Path) -> None:
     def errors(path: Path, **kw: object) -> list[str]:
         return [f"{f.subject}: {f.message}" for f in check_file(path, **kw).findings if f.level == "error"]

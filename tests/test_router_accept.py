@@ -1,9 +1,9 @@
 """Idle connections cannot lock everyone out of the router.
 
-Found by trial (2026-11-29): anyone who reaches the router's port, before any certificate is checked, could open
-150 TCP connections and send nothing; the router then refused every new session at once ("Unable to connect")
-until they timed out 10 s later, and an attacker simply opens them again: an edge back from a blip, or an operator,
-could not get in. Zenoh lets 100 sessions be in their handshake at a time by default; the routers now let 1024
+Found by trial (2026-11-29): anyone who reaches a router's plain tcp/ listener (a lab, a site's own network)
+could open 150 TCP connections and send nothing; the router then refused every new session at once ("Unable to
+connect") until they timed out 10 s later, and an attacker simply opens them again: an edge back from a blip, or
+an operator, could not get in. (The tls/ listener did not lock out with 1 000 idle or half-begun handshakes.) Zenoh lets 100 sessions be in their handshake at a time by default; the routers now let 1024
 (``iorthand.transport.ACCEPT_PENDING``), and ``deploy/router/nftables.conf`` caps the connections one address may
 hold at 32 (docs/DEPLOY.md §2).
 """
