@@ -654,11 +654,8 @@ def forwarding_rules(table: Iterable[channels.Channel] = channels.TABLE) -> list
     on it. Egress only: what the edge's own queue does with its messages is its own QoS."""
     by_mode: dict[str, list[str]] = {}
     for c in table:
-        qos = QOS_PROFILES[c.qos] if c.qos is not None else None
-        if qos is not None and qos.forwarded:
-            key = f"{keys.ROOT}/*/{c.suffix}"
-            bound = c.operator_key is not channels.OperatorKey.NONE
-            by_mode.setdefault(qos.forwarded, []).extend([key, f"{key}/*"] if bound else [key])
+        if c.qos is not None and QOS_PROFILES[c.qos].forwarded:
+            by_mode.setdefault(QOS_PROFILES[c.qos].forwarded, []).append(f"{keys.ROOT}/*/{c.suffix}")
     return [{"id": f"forward-{mode.replace('_', '-')}", "messages": ["put"], "flows": ["egress"], "key_exprs": exprs,
              "overwrite": {"congestion_control": mode}} for mode, exprs in sorted(by_mode.items())]
 

@@ -168,23 +168,23 @@ def _grants(table: Iterable[Channel], role: Role, kind: Kind, *, query: bool = F
         if bound is not None and rows[0].operator_key is OperatorKey.BOUND:
             out += [f"{fam}/*/{bound}", *(c.suffix for c in rows if c.shared)]
         else:
-            out += [*([fam] if any(c.suffix == fam for c in rows) else []), f"{fam}/**"]
+            out += _whole(fam, rows)
     return out
 
 
+def _whole(fam: str, rows: list[Channel]) -> list[str]:
+    """A family's keys whole: ``state/**``, and the plain key where a row is the family itself (``markers``)."""
+    return [*([fam] if any(c.suffix == fam for c in rows) else []), f"{fam}/**"]
+
+
 def _readable(table: Iterable[Channel]) -> list[str]:
-    """The key suffixes a reader that is no robot receives the puts of: every family but the commands (those only
+    """The key suffixes whose puts a reader that is no robot receives: every family but the commands (the streams
     operators write). Commands are forwarded BLOCK (a stop is never dropped, see iorthand.transport.CONTROL), so
     a session that received them and stopped reading would hold up every operator's commands at the router. The
     router does not send them to it (an egress rule: a subscription to ``iorthand/<robot>/**`` still gets the rest)."""
     table = tuple(table)
-    out: list[str] = []
-    for fam in dict.fromkeys(c.family for c in table):
-        rows = [c for c in table if c.family == fam]
-        if all(c.writers == {Role.OPERATOR} for c in rows):
-            continue
-        out += [*([fam] if any(c.suffix == fam for c in rows) else []), f"{fam}/**"]
-    return out
+    return [key for kind in Kind for fam, rows in channels.families(table, kind).items()
+            if not (kind is Kind.PUT and Role.OPERATOR in rows[0].writers) for key in _whole(fam, rows)]
 
 
 def _tokens(table: Iterable[Channel], role: Role, operator: str = "") -> list[str]:
