@@ -476,6 +476,15 @@ class ZenohSink:
         self.samples: queue.Queue[tuple[str, bytes]] = queue.Queue()
         self.sub = session.declare_subscriber(key, lambda s: self.samples.put((str(s.key_expr), s.payload.to_bytes())))
 
+    def reached_from(self, session: Any, probe_key: str, timeout: float = 10.0) -> None:
+        """Put on ``probe_key`` (one the sink takes) from ``session`` until one arrives, then forget them: a put made
+        before the sink's subscription has reached that session through the router is lost (a loaded CI run)."""
+        deadline = time.monotonic() + timeout
+        while not self.all(wait=0.1):
+            assert time.monotonic() < deadline, f"the sink's subscription did not reach the session in {timeout} s"
+            session.put(probe_key, b"")
+        self.all(wait=0.2)
+
     def all(self, wait: float = 0.0) -> list[tuple[str, bytes]]:
         time.sleep(wait)
         out = []

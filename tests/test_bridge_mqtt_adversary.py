@@ -85,8 +85,10 @@ def test_readings_for_robots_the_bridge_does_not_serve_cost_a_real_device_nothin
     """300 invented robots between a real device's readings: each refused by its id, before any rate slot, sequence
     counter or publisher is made for it; the device's readings all pass, numbered 1, 2, 3."""
     now = [100.0]
-    bridge, route = _bridge(session_factory(), lambda: now[0], robots=("sim1",), max_hz=1.0)
+    session = session_factory()
+    bridge, route = _bridge(session, lambda: now[0], robots=("sim1",), max_hz=1.0)
     sink = ZenohSink(session_factory(), "iorthand/*/sensor/vital")
+    sink.reached_from(session, "iorthand/probe/sensor/vital")
     for _ in range(3):
         bridge._on_mqtt(route, None, None, _mqtt_message("site/sim1/vitals/heart_rate", b'{"value": 72}'))
         for i in range(MAX_KEYS + 44):
